@@ -1,0 +1,1 @@
+"""Sans-IO core: no sockets, threads, sleeps or clocks. Time is a parameter."""

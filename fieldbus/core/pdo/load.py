@@ -1,0 +1,519 @@
+"""Drive-map YAML -> validated :class:`DriveMap`, with located errors.
+
+Every problem is a :class:`~fieldbus.errors.PdoMapError` naming
+``file:line:column`` and the field path. The accepted keys are a superset of
+ethercat_driver_ros2's slave configuration files; see docs/yaml-reference.md.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from fieldbus.core import datatypes
+from fieldbus.core.datatypes import DataType
+from fieldbus.core.pdo.model import (
+    CanopenConfig,
+    CanopenPdo,
+    Channel,
+    Direction,
+    DriveMap,
+    EthercatConfig,
+    Pdo,
+    SdoWrite,
+    SyncManager,
+)
+from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD, default_name
+from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located
+from fieldbus.errors import PdoMapError
+
+CLASSIC_CAN_PDO_BYTES = 8
+CAN_FD_PDO_BYTES = 64
+COE_RANGES = {Direction.OUTPUTS: (0x1600, 0x17FF), Direction.INPUTS: (0x1A00, 0x1BFF)}
+# CiA 301 predefined connection set: default COB-IDs of PDO 1..4 (node id added).
+DEFAULT_COB_IDS = {
+    Direction.OUTPUTS: (0x200, 0x300, 0x400, 0x500),
+    Direction.INPUTS: (0x180, 0x280, 0x380, 0x480),
+}
+
+_TOP_KEYS = (
+    "name", "description", "vendor_id", "product_id", "revision", "profile",
+    "assign_activate", "auto_fault_reset", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen",
+)  # fmt: skip
+_PDO_KEYS = ("index", "channels", "fixed", "name", "description")
+_CHANNEL_KEYS = (
+    "index", "sub_index", "type", "name", "command_interface", "state_interface",
+    "default", "mask", "factor", "offset", "unit", "description",
+)  # fmt: skip
+_SDO_KEYS = ("index", "sub_index", "type", "value", "description")
+_SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
+_ETHERCAT_KEYS = ("coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial")
+_CANOPEN_KEYS = ("fd", "heartbeat_ms", "disable_unused_pdos", "pdo")
+_CANOPEN_PDO_KEYS = ("index", "cob_id", "cob_id_absolute", "transmission_type", "inhibit_time", "event_timer")
+_PROFILES = ("cia402",)
+
+
+class Reader:
+    """Typed, located access to a loaded YAML document (shared with the network loader)."""
+
+    def __init__(self, doc: Located) -> None:
+        self.doc = doc
+
+    def err(self, path: PathT, message: str, *, key: bool = False) -> PdoMapError:
+        return self.doc.error(path, message, key=key)
+
+    def mapping(
+        self, value: Any, path: PathT, allowed: Iterable[str], required: Iterable[str] = ()
+    ) -> Mapping[Any, Any]:
+        """``value`` as a mapping with only ``allowed`` keys and every ``required`` key."""
+        if not isinstance(value, Mapping):
+            raise self.err(path, f"expected a mapping, got {_kind(value)}")
+        allowed = tuple(allowed)
+        for key in value:
+            if key not in allowed:
+                near = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
+                hint = f" (did you mean {near[0]}?)" if near else f" (allowed: {', '.join(allowed)})"
+                raise self.err((*path, key), f"unknown key '{key}'{hint}", key=True)
+        for key in required:
+            if key not in value:
+                raise self.err(path, f"missing required key '{key}'")
+        return value
+
+    def sequence(self, value: Any, path: PathT) -> list[Any]:
+        if value is None:
+            return []
+        if not isinstance(value, list):
+            raise self.err(path, f"expected a list, got {_kind(value)}")
+        return value
+
+    def integer(self, value: Any, path: PathT, lo: int, hi: int) -> int:
+        """An int in ``[lo, hi]``; hex strings such as ``"0x6040"`` are accepted."""
+        if isinstance(value, str):
+            try:
+                value = int(value.strip(), 0)
+            except ValueError:
+                raise self.err(path, f"expected an integer, got '{value}'") from None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.err(path, f"expected an integer, got {_kind(value)}")
+        if not lo <= value <= hi:
+            raise self.err(path, f"{_num(value)} out of range {_num(lo)}..{_num(hi)}")
+        return value
+
+    def number(self, value: Any, path: PathT, *, allow_nan: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.err(path, f"expected a number, got {_kind(value)}")
+        if isinstance(value, float) and not math.isfinite(value):
+            if not (allow_nan and math.isnan(value)):
+                raise self.err(path, f"expected a finite number, got {value}")
+        return float(value)
+
+    def boolean(self, value: Any, path: PathT) -> bool:
+        if not isinstance(value, bool):
+            raise self.err(path, f"expected true or false, got {_kind(value)}")
+        return value
+
+    def string(self, value: Any, path: PathT) -> str:
+        if not isinstance(value, str):
+            raise self.err(path, f"expected a string, got {_kind(value)}")
+        return value
+
+    def name(self, value: Any, path: PathT) -> str:
+        text = self.string(value, path)
+        if not text or not text.isprintable() or any(ch in text for ch in " \t,:[]{}'\""):
+            raise self.err(path, f"'{text}' is not a usable name (no spaces, quotes or ,:[]{{}})")
+        return text
+
+    def choice(self, value: Any, path: PathT, options: Iterable[str]) -> str:
+        options = tuple(options)
+        if not isinstance(value, str) or value not in options:
+            near = difflib.get_close_matches(str(value), options, n=1, cutoff=0.5)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise self.err(path, f"'{value}' is not one of {', '.join(options)}{hint}")
+        return value
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"a boolean ({value})"
+    if isinstance(value, Mapping):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, str):
+        return f"a string ('{value[:40]}')"
+    return f"{type(value).__name__} ({value!r})"
+
+
+def _num(v: int) -> str:
+    return f"0x{v:X}" if v > 255 else str(v)
+
+
+def load_drive_map(path: str | Path) -> DriveMap:
+    """Load and validate the drive map at ``path``."""
+    doc = load_file(path)
+    return parse_drive_map(doc, default_name=Path(path).stem)
+
+
+def drive_map_from_text(text: str, file: str = "<string>") -> DriveMap:
+    """Validate a drive map given as YAML text (``file`` names it in errors)."""
+    return parse_drive_map(load_located(text, file), default_name=Path(file).stem or "drive")
+
+
+def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
+    """Validate a loaded document into a :class:`DriveMap`."""
+    r = Reader(doc)
+    top = r.mapping(doc.data, (), _TOP_KEYS, required=("vendor_id", "product_id"))
+    name = r.name(top["name"], ("name",)) if "name" in top else _safe_name(default_name)
+    profile = r.choice(top["profile"], ("profile",), _PROFILES) if "profile" in top else None
+    canopen_raw = top.get("canopen")
+    canopen = _canopen(r, canopen_raw) if "canopen" in top else None
+    can_pdos = _canopen_pdos(r, canopen_raw) if isinstance(canopen_raw, Mapping) else {}
+
+    rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
+    tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
+    for (index, path) in can_pdos.values():
+        if not any(p.index == index for p in (*rpdo, *tpdo)):
+            raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
+
+    drive = DriveMap(
+        name=name,
+        vendor_id=r.integer(top["vendor_id"], ("vendor_id",), 0, 0xFFFFFFFF),
+        product_id=r.integer(top["product_id"], ("product_id",), 0, 0xFFFFFFFF),
+        revision=r.integer(top.get("revision", 0), ("revision",), 0, 0xFFFFFFFF),
+        description=r.string(top.get("description", ""), ("description",)),
+        profile=profile,
+        assign_activate=r.integer(top.get("assign_activate", 0), ("assign_activate",), 0, 0xFFFF),
+        auto_fault_reset=r.boolean(top.get("auto_fault_reset", False), ("auto_fault_reset",)),
+        sdo=_sdos(r, top.get("sdo")),
+        rpdo=rpdo,
+        tpdo=tpdo,
+        sm=_sync_managers(r, top.get("sm")),
+        ethercat=_ethercat(r, top.get("ethercat")),
+        canopen=canopen,
+        source=doc.file,
+    )
+    if profile == "cia402":
+        if drive.find(Direction.OUTPUTS, CONTROLWORD) is None:
+            raise r.err(("rpdo",), "profile cia402 needs the controlword 0x6040:00 in an rpdo")
+        if drive.find(Direction.INPUTS, STATUSWORD) is None:
+            raise r.err(("tpdo",), "profile cia402 needs the statusword 0x6041:00 in a tpdo")
+    return drive
+
+
+def _safe_name(stem: str) -> str:
+    cleaned = "".join(ch if ch.isalnum() or ch in "_-." else "_" for ch in stem)
+    return cleaned or "drive"
+
+
+def _dtype(r: Reader, value: Any, path: PathT) -> DataType:
+    text = r.string(value, path)
+    dt = datatypes.lookup(text)
+    if dt is None:
+        near = datatypes.suggest(text)
+        hint = f" (did you mean {near}?)" if near else f" (known: {', '.join(datatypes.TYPE_NAMES)})"
+        raise r.err(path, f"unknown type '{text}'{hint}")
+    return dt
+
+
+def _pdos(
+    r: Reader,
+    raw: Any,
+    direction: Direction,
+    canopen: CanopenConfig | None,
+    can_pdos: dict[int, tuple[int, PathT]],
+) -> tuple[Pdo, ...]:
+    key = direction.yaml_key
+    lo, hi = COE_RANGES[direction]
+    pdos: list[Pdo] = []
+    seen_index: dict[int, int] = {}
+    seen_names: dict[str, PathT] = {}
+    bit_owner: dict[int, PathT] = {}  # absolute bit in the direction image -> channel path
+    bit_cursor = 0
+    for i, item in enumerate(r.sequence(raw, (key,))):
+        ppath: PathT = (key, i)
+        m = r.mapping(item, ppath, _PDO_KEYS, required=("index", "channels"))
+        index = r.integer(m["index"], (*ppath, "index"), 0, 0xFFFF)
+        if not lo <= index <= hi:
+            what = "RxPDO (master outputs)" if direction is Direction.OUTPUTS else "TxPDO (master inputs)"
+            raise r.err((*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}")
+        if index in seen_index:
+            raise r.err((*ppath, "index"), f"PDO 0x{index:04X} listed twice (also {key}[{seen_index[index]}])")
+        seen_index[index] = i
+        channels: list[Channel] = []
+        raw_channels = r.sequence(m["channels"], (*ppath, "channels"))
+        if len(raw_channels) > 254:
+            raise r.err((*ppath, "channels"), f"{len(raw_channels)} entries; a mapping object holds at most 254")
+        for j, craw in enumerate(raw_channels):
+            cpath: PathT = (*ppath, "channels", j)
+            ch = _channel(r, craw, cpath, direction)
+            _place_bits(r, ch, cpath, bit_cursor, bit_owner)
+            bit_cursor += ch.bits
+            if not ch.is_gap:
+                if ch.name in seen_names:
+                    other = seen_names[ch.name]
+                    raise r.err(
+                        (*cpath, "name") if "name" in craw else cpath,
+                        f"duplicate {direction.value} channel name '{ch.name}' "
+                        f"(also {'.'.join(str(p) for p in other)}); give one a 'name'",
+                    )
+                seen_names[ch.name] = cpath
+            channels.append(ch)
+        pdo = Pdo(
+            index=index,
+            channels=tuple(channels),
+            fixed=r.boolean(m.get("fixed", False), (*ppath, "fixed")),
+            canopen=_canopen_pdo_for(r, index, direction, canopen, can_pdos, ppath),
+        )
+        if canopen is not None:
+            limit = CAN_FD_PDO_BYTES if canopen.fd else CLASSIC_CAN_PDO_BYTES
+            if pdo.size > limit:
+                bus = "CAN FD" if canopen.fd else "classic CAN"
+                raise r.err(
+                    (*ppath, "channels"),
+                    f"PDO 0x{index:04X} is {pdo.size} bytes; {bus} carries at most {limit} per PDO",
+                )
+            if len(channels) > 64:
+                raise r.err((*ppath, "channels"), "a CANopen PDO maps at most 64 entries")
+        pdos.append(pdo)
+    return tuple(pdos)
+
+
+def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
+    m = r.mapping(raw, path, _CHANNEL_KEYS, required=("index", "sub_index", "type"))
+    index = r.integer(m["index"], (*path, "index"), 0, 0xFFFF)
+    sub = r.integer(m["sub_index"], (*path, "sub_index"), 0, 0xFF)
+    dt = _dtype(r, m["type"], (*path, "type"))
+    wrong_iface = "state_interface" if direction is Direction.OUTPUTS else "command_interface"
+    if wrong_iface in m:
+        right = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
+        raise r.err(
+            (*path, wrong_iface),
+            f"{wrong_iface} belongs in the other direction; a {direction.yaml_key} channel uses {right}",
+            key=True,
+        )
+    iface_key = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
+    interface = r.string(m[iface_key], (*path, iface_key)) if iface_key in m else None
+    if index <= 0x0007:
+        if index == 0 and sub != 0:
+            raise r.err((*path, "sub_index"), "a gap (index 0) has sub_index 0")
+        for k in ("name", "command_interface", "state_interface", "default", "factor", "offset", "unit"):
+            if k in m:
+                raise r.err((*path, k), f"a gap entry (index 0x{index:04X}) carries no '{k}'", key=True)
+    if "name" in m:
+        name = r.name(m["name"], (*path, "name"))
+    elif interface:
+        name = r.name(interface, (*path, iface_key))
+    else:
+        name = default_name(index, sub)
+    mask = None
+    if "mask" in m:
+        if dt.name != "bool":
+            raise r.err((*path, "mask"), f"mask is only used with type bool, not {dt.name}", key=True)
+        mask = r.integer(m["mask"], (*path, "mask"), 1, 0x80)
+        if mask & (mask - 1):
+            raise r.err((*path, "mask"), f"mask 0x{mask:02X} must be a single bit of the byte")
+    default = None
+    if "default" in m:
+        if direction is Direction.INPUTS:
+            raise r.err((*path, "default"), "default is only for rpdo channels (master outputs)", key=True)
+        d = r.number(m["default"], (*path, "default"), allow_nan=True)
+        if not math.isnan(d):
+            if dt.is_bits and dt.name != "bool":
+                ok = d == int(d) and 0 <= d < (1 << dt.bits)
+            else:
+                ok = dt.fits(d) if dt.name != "bool" else d in (0.0, 1.0)
+            if not ok:
+                raise r.err((*path, "default"), f"default {m['default']!r} does not fit {dt.name}")
+            default = d
+    factor = r.number(m["factor"], (*path, "factor")) if "factor" in m else 1.0
+    if factor == 0.0:
+        raise r.err((*path, "factor"), "factor 0 would lose the value")
+    offset = r.number(m["offset"], (*path, "offset")) if "offset" in m else 0.0
+    unit = r.string(m["unit"], (*path, "unit")) if "unit" in m else None
+    scaled = any(k in m for k in ("factor", "offset", "unit"))
+    if scaled and (dt.is_bits):
+        raise r.err(path, f"factor/offset/unit need a numeric type, not {dt.name}")
+    return Channel(
+        index=index,
+        sub_index=sub,
+        type=dt,
+        name=name,
+        interface=interface,
+        unit=unit,
+        default=default,
+        mask=mask,
+        factor=factor,
+        offset=offset,
+        scaled=scaled,
+        description=r.string(m.get("description", ""), (*path, "description")),
+    )
+
+
+def _place_bits(r: Reader, ch: Channel, path: PathT, cursor: int, owner: dict[int, PathT]) -> None:
+    """Check that ``ch`` placed at bit ``cursor`` fits the process image rules."""
+    byte, bit = divmod(cursor, 8)
+    if ch.mask is not None:
+        mask_bit = ch.mask.bit_length() - 1
+        if mask_bit != bit:
+            target = byte * 8 + mask_bit
+            if target in owner:
+                other = owner[target]
+                raise r.err(
+                    (*path, "mask"),
+                    f"mask 0x{ch.mask:02X} overlaps bit {mask_bit} of byte {byte}, "
+                    f"already used by {'.'.join(str(p) for p in other)}",
+                )
+            raise r.err(
+                (*path, "mask"),
+                f"mask 0x{ch.mask:02X} does not match this entry's position "
+                f"(bit {bit} of byte {byte}: mask 0x{1 << bit:02X}); add a bitN gap before it",
+            )
+    if not ch.type.is_bits and bit != 0:
+        if ch.type.is_float or ch.bits == 64:
+            raise r.err(
+                (*path, "type"),
+                f"{ch.type.name} entry starts at bit {bit} of byte {byte}; it must start on a byte boundary",
+            )
+    for b in range(cursor, cursor + ch.bits):
+        owner[b] = path
+
+
+def _canopen(r: Reader, raw: Any) -> CanopenConfig:
+    path: PathT = ("canopen",)
+    if raw is None:
+        return CanopenConfig()
+    m = r.mapping(raw, path, _CANOPEN_KEYS)
+    return CanopenConfig(
+        fd=r.boolean(m.get("fd", False), (*path, "fd")),
+        heartbeat_ms=r.integer(m.get("heartbeat_ms", 100), (*path, "heartbeat_ms"), 0, 0xFFFF),
+        disable_unused_pdos=r.boolean(m.get("disable_unused_pdos", True), (*path, "disable_unused_pdos")),
+    )
+
+
+def _canopen_pdos(r: Reader, raw: Mapping[Any, Any]) -> dict[int, tuple[int, PathT]]:
+    """Index -> (list position, path) of the entries in ``canopen.pdo``."""
+    out: dict[int, tuple[int, PathT]] = {}
+    for i, item in enumerate(r.sequence(raw.get("pdo"), ("canopen", "pdo"))):
+        path: PathT = ("canopen", "pdo", i)
+        m = r.mapping(item, path, _CANOPEN_PDO_KEYS, required=("index",))
+        index = r.integer(m["index"], (*path, "index"), 0, 0xFFFF)
+        if index in out:
+            raise r.err((*path, "index"), f"CANopen settings for 0x{index:04X} given twice")
+        out[index] = (i, path)
+    return out
+
+
+def _canopen_pdo_for(
+    r: Reader,
+    index: int,
+    direction: Direction,
+    canopen: CanopenConfig | None,
+    can_pdos: dict[int, tuple[int, PathT]],
+    pdo_path: PathT,
+) -> CanopenPdo | None:
+    if canopen is None:
+        return None
+    number = (index & 0x1FF) + 1
+    defaults = DEFAULT_COB_IDS[direction]
+    entry = can_pdos.get(index)
+    m: Mapping[Any, Any] = {}
+    path: PathT = pdo_path
+    if entry is not None:
+        path = entry[1]
+        m = r.doc.data["canopen"]["pdo"][entry[0]]
+    if "cob_id" in m:
+        absolute = r.boolean(m.get("cob_id_absolute", False), (*path, "cob_id_absolute"))
+        cob = r.integer(m["cob_id"], (*path, "cob_id"), 1, 0x7FF if absolute else 0x780)
+    elif number <= 4:
+        cob, absolute = defaults[number - 1], False
+    else:
+        raise r.err(
+            (*pdo_path, "index"),
+            f"PDO 0x{index:04X} is {direction.yaml_key.upper()}{number}: only PDO 1-4 have a default "
+            "COB-ID; give canopen.pdo[].cob_id",
+        )
+    return CanopenPdo(
+        cob_id=cob,
+        cob_id_absolute=absolute,
+        transmission_type=r.integer(m.get("transmission_type", 1), (*path, "transmission_type"), 0, 0xFF),
+        inhibit_time=r.integer(m.get("inhibit_time", 0), (*path, "inhibit_time"), 0, 0xFFFF),
+        event_timer=r.integer(m.get("event_timer", 0), (*path, "event_timer"), 0, 0xFFFF),
+    )
+
+
+def _sdos(r: Reader, raw: Any) -> tuple[SdoWrite, ...]:
+    out = []
+    for i, item in enumerate(r.sequence(raw, ("sdo",))):
+        path: PathT = ("sdo", i)
+        m = r.mapping(item, path, _SDO_KEYS, required=("index", "sub_index", "type", "value"))
+        dt = _dtype(r, m["type"], (*path, "type"))
+        value = r.number(m["value"], (*path, "value"))
+        if dt.name == "bool":
+            ok = value in (0.0, 1.0)
+        elif dt.is_bits:
+            ok = value == int(value) and 0 <= value < (1 << dt.bits)
+        else:
+            ok = dt.fits(value)
+        if not ok:
+            raise r.err((*path, "value"), f"value {m['value']!r} does not fit {dt.name}")
+        out.append(
+            SdoWrite(
+                index=r.integer(m["index"], (*path, "index"), 0x1000, 0xFFFF),
+                sub_index=r.integer(m["sub_index"], (*path, "sub_index"), 0, 0xFF),
+                type=dt,
+                value=value,
+                description=r.string(m.get("description", ""), (*path, "description")),
+            )
+        )
+    return tuple(out)
+
+
+def _sync_managers(r: Reader, raw: Any) -> tuple[SyncManager, ...]:
+    out = []
+    seen: set[int] = set()
+    for i, item in enumerate(r.sequence(raw, ("sm",))):
+        path: PathT = ("sm", i)
+        m = r.mapping(item, path, _SM_KEYS, required=("index", "type"))
+        index = r.integer(m["index"], (*path, "index"), 0, 15)
+        if index in seen:
+            raise r.err((*path, "index"), f"SyncManager {index} listed twice")
+        seen.add(index)
+        kind = r.choice(m["type"], (*path, "type"), ("output", "input"))
+        pdo = m.get("pdo")
+        if pdo is not None:
+            pdo = r.choice(pdo, (*path, "pdo"), ("rpdo", "tpdo"))
+            want = "output" if pdo == "rpdo" else "input"
+            if kind != want:
+                raise r.err((*path, "pdo"), f"{pdo} data needs an {want} SyncManager, this one is {kind}")
+        wd = r.choice(m.get("watchdog", "disable"), (*path, "watchdog"), ("enable", "disable"))
+        out.append(
+            SyncManager(
+                index=index,
+                type=kind,
+                pdo=pdo,
+                watchdog=wd == "enable",
+                start=r.integer(m["start"], (*path, "start"), 0, 0xFFFF) if "start" in m else None,
+                size=r.integer(m["size"], (*path, "size"), 0, 0xFFFF) if "size" in m else None,
+            )
+        )
+    return tuple(out)
+
+
+def _ethercat(r: Reader, raw: Any) -> EthercatConfig:
+    path: PathT = ("ethercat",)
+    if raw is None:
+        return EthercatConfig()
+    m = r.mapping(raw, path, _ETHERCAT_KEYS)
+    return EthercatConfig(
+        coe=r.boolean(m.get("coe", True), (*path, "coe")),
+        lrw=r.boolean(m.get("lrw", True), (*path, "lrw")),
+        mailbox_size=r.integer(m.get("mailbox_size", 128), (*path, "mailbox_size"), 32, 1486),
+        sync0_shift_ns=r.integer(m.get("sync0_shift_ns", 0), (*path, "sync0_shift_ns"), -(2**31), 2**31 - 1),
+        sync1_cycle_ns=r.integer(m.get("sync1_cycle_ns", 0), (*path, "sync1_cycle_ns"), 0, 2**32 - 1),
+        serial=r.integer(m.get("serial", 0), (*path, "serial"), 0, 0xFFFFFFFF),
+    )

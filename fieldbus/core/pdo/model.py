@@ -1,0 +1,197 @@
+"""Validated drive-map model: frozen dataclasses, no I/O.
+
+Direction naming: in YAML and here, ``rpdo`` / ``tpdo`` are named from the
+*drive's* side (RxPDO = the drive receives = master outputs; TxPDO = the drive
+transmits = master inputs). The process-image API names them from the master's
+side: ``outputs`` (RxPDO) and ``inputs`` (TxPDO).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+from fieldbus.core.datatypes import DataType
+
+
+class Direction(enum.Enum):
+    """PDO direction, named from the master's side (see module docstring)."""
+
+    OUTPUTS = "outputs"  # RxPDO: master -> drive
+    INPUTS = "inputs"  # TxPDO: drive -> master
+
+    @property
+    def yaml_key(self) -> str:
+        return "rpdo" if self is Direction.OUTPUTS else "tpdo"
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One PDO entry (one mapped object, or a gap).
+
+    ``factor``/``offset`` follow ethercat_driver_ros2 in both directions:
+    inputs ``value = factor * raw + offset``; outputs ``raw = factor * value + offset``.
+    ``default`` is a *raw* value written to outputs until the user writes one
+    (``None``: 0). ``mask`` is the single bit a ``bool`` occupies in its byte.
+    """
+
+    index: int
+    sub_index: int
+    type: DataType
+    name: str
+    interface: str | None = None
+    unit: str | None = None
+    default: float | None = None
+    mask: int | None = None
+    factor: float = 1.0
+    offset: float = 0.0
+    scaled: bool = False
+    description: str = ""
+
+    @property
+    def is_gap(self) -> bool:
+        """Padding entry (index 0, or a CiA 301 dummy object 0x0001..0x0007)."""
+        return self.index <= 0x0007
+
+    @property
+    def bits(self) -> int:
+        return self.type.bits
+
+    @property
+    def mapping_value(self) -> int:
+        """The 32-bit value of this entry in a 0x16xx/0x1Axx mapping object."""
+        return (self.index << 16) | (self.sub_index << 8) | self.bits
+
+    @property
+    def address(self) -> str:
+        return f"0x{self.index:04X}:{self.sub_index:02X}"
+
+
+@dataclass(frozen=True)
+class CanopenPdo:
+    """CANopen communication parameters of one PDO (0x14xx / 0x18xx).
+
+    ``cob_id`` is relative: the node id is added unless ``cob_id_absolute``.
+    ``inhibit_time`` is in units of 100 us, ``event_timer`` in ms (CiA 301).
+    """
+
+    cob_id: int
+    transmission_type: int = 1
+    inhibit_time: int = 0
+    event_timer: int = 0
+    cob_id_absolute: bool = False
+
+    def cob_id_for(self, node_id: int) -> int:
+        return self.cob_id if self.cob_id_absolute else self.cob_id + node_id
+
+
+@dataclass(frozen=True)
+class Pdo:
+    """One PDO: its mapping object index (0x16xx RxPDO / 0x1Axx TxPDO) and entries.
+
+    ``fixed``: the drive's mapping is read-only; bring-up verifies it instead of
+    writing it.
+    """
+
+    index: int
+    channels: tuple[Channel, ...]
+    fixed: bool = False
+    canopen: CanopenPdo | None = None
+
+    @property
+    def bits(self) -> int:
+        return sum(c.bits for c in self.channels)
+
+    @property
+    def size(self) -> int:
+        """Bytes when this PDO travels alone (one CAN frame)."""
+        return (self.bits + 7) // 8
+
+    @property
+    def number(self) -> int:
+        """1-based CANopen PDO number (0x1600 -> RPDO1, 0x1A03 -> TPDO4)."""
+        return (self.index & 0x1FF) + 1
+
+
+@dataclass(frozen=True)
+class SdoWrite:
+    """A start-up SDO write from the map (applied in PRE-OP, before the cycle)."""
+
+    index: int
+    sub_index: int
+    type: DataType
+    value: float
+    description: str = ""
+
+    @property
+    def data(self) -> bytes:
+        return self.type.encode(self.value)
+
+
+@dataclass(frozen=True)
+class SyncManager:
+    """An EtherCAT SyncManager as in ethercat_driver_ros2's ``sm`` list."""
+
+    index: int
+    type: str  # "output" | "input"
+    pdo: str | None = None  # "rpdo" | "tpdo" | None
+    watchdog: bool = False
+    start: int | None = None
+    size: int | None = None
+
+
+@dataclass(frozen=True)
+class EthercatConfig:
+    """EtherCAT specifics. Times in ns; mailbox sizes in bytes."""
+
+    coe: bool = True
+    lrw: bool = True
+    mailbox_size: int = 128
+    sync0_shift_ns: int = 0
+    sync1_cycle_ns: int = 0
+    revision: int = 0
+    serial: int = 0
+
+
+@dataclass(frozen=True)
+class CanopenConfig:
+    """CANopen specifics. ``fd``: CAN FD frames (PDOs up to 64 bytes)."""
+
+    fd: bool = False
+    heartbeat_ms: int = 100
+    disable_unused_pdos: bool = True
+
+
+@dataclass(frozen=True)
+class DriveMap:
+    """A validated drive map: identity, PDOs, start-up SDOs, bus specifics."""
+
+    name: str
+    vendor_id: int
+    product_id: int
+    rpdo: tuple[Pdo, ...] = ()
+    tpdo: tuple[Pdo, ...] = ()
+    sdo: tuple[SdoWrite, ...] = ()
+    sm: tuple[SyncManager, ...] = ()
+    description: str = ""
+    revision: int = 0
+    profile: str | None = None
+    assign_activate: int = 0
+    auto_fault_reset: bool = False
+    ethercat: EthercatConfig = field(default_factory=EthercatConfig)
+    canopen: CanopenConfig | None = None
+    source: str = "<string>"
+
+    def pdos(self, direction: Direction) -> tuple[Pdo, ...]:
+        return self.rpdo if direction is Direction.OUTPUTS else self.tpdo
+
+    def channels(self, direction: Direction) -> tuple[Channel, ...]:
+        """Non-gap channels of a direction, in wire order."""
+        return tuple(c for p in self.pdos(direction) for c in p.channels if not c.is_gap)
+
+    def find(self, direction: Direction, index: int, sub_index: int = 0) -> Channel | None:
+        """The channel mapping object ``index:sub_index`` in ``direction``, if any."""
+        for c in self.channels(direction):
+            if c.index == index and c.sub_index == sub_index:
+                return c
+        return None
