@@ -1,0 +1,5 @@
+import sys
+
+from fieldbus.cli import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of the ``fieldbus`` CLI; see :mod:`fieldbus.cli`."""
