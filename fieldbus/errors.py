@@ -81,9 +81,7 @@ class SdoAbortError(FieldbusError):
         self.detail = detail
         who = f"{slave}: " if slave else ""
         extra = f" ({detail})" if detail else ""
-        super().__init__(
-            f"{who}SDO abort 0x{code:08X} '{self.name}' on 0x{index:04X}:{subindex:02X}{extra}"
-        )
+        super().__init__(f"{who}SDO abort 0x{code:08X} '{self.name}' on 0x{index:04X}:{subindex:02X}{extra}")
 
 
 class SdoMismatchError(FieldbusError):

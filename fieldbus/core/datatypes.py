@@ -73,9 +73,14 @@ class DataType:
     def fits(self, value: float) -> bool:
         """Whether ``value`` is representable as a raw value of this type."""
         if self.kind == "float":
-            return bool(value != value) or abs(value) <= self.max or value in (
-                float("inf"),
-                float("-inf"),
+            return (
+                bool(value != value)
+                or abs(value) <= self.max
+                or value
+                in (
+                    float("inf"),
+                    float("-inf"),
+                )
             )
         if value != value or value in (float("inf"), float("-inf")):
             return False

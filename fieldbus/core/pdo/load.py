@@ -105,9 +105,8 @@ class Reader:
     def number(self, value: Any, path: PathT, *, allow_nan: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.err(path, f"expected a number, got {_kind(value)}")
-        if isinstance(value, float) and not math.isfinite(value):
-            if not (allow_nan and math.isnan(value)):
-                raise self.err(path, f"expected a finite number, got {value}")
+        if isinstance(value, float) and not math.isfinite(value) and not (allow_nan and math.isnan(value)):
+            raise self.err(path, f"expected a finite number, got {value}")
         return float(value)
 
     def boolean(self, value: Any, path: PathT) -> bool:
@@ -176,7 +175,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
 
     rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
     tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
-    for (index, path) in can_pdos.values():
+    for index, path in can_pdos.values():
         if not any(p.index == index for p in (*rpdo, *tpdo)):
             raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
 
@@ -240,14 +239,20 @@ def _pdos(
         index = r.integer(m["index"], (*ppath, "index"), 0, 0xFFFF)
         if not lo <= index <= hi:
             what = "RxPDO (master outputs)" if direction is Direction.OUTPUTS else "TxPDO (master inputs)"
-            raise r.err((*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}")
+            raise r.err(
+                (*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}"
+            )
         if index in seen_index:
-            raise r.err((*ppath, "index"), f"PDO 0x{index:04X} listed twice (also {key}[{seen_index[index]}])")
+            raise r.err(
+                (*ppath, "index"), f"PDO 0x{index:04X} listed twice (also {key}[{seen_index[index]}])"
+            )
         seen_index[index] = i
         channels: list[Channel] = []
         raw_channels = r.sequence(m["channels"], (*ppath, "channels"))
         if len(raw_channels) > 254:
-            raise r.err((*ppath, "channels"), f"{len(raw_channels)} entries; a mapping object holds at most 254")
+            raise r.err(
+                (*ppath, "channels"), f"{len(raw_channels)} entries; a mapping object holds at most 254"
+            )
         for j, craw in enumerate(raw_channels):
             cpath: PathT = (*ppath, "channels", j)
             ch = _channel(r, craw, cpath, direction)
@@ -373,12 +378,11 @@ def _place_bits(r: Reader, ch: Channel, path: PathT, cursor: int, owner: dict[in
                 f"mask 0x{ch.mask:02X} does not match this entry's position "
                 f"(bit {bit} of byte {byte}: mask 0x{1 << bit:02X}); add a bitN gap before it",
             )
-    if not ch.type.is_bits and bit != 0:
-        if ch.type.is_float or ch.bits == 64:
-            raise r.err(
-                (*path, "type"),
-                f"{ch.type.name} entry starts at bit {bit} of byte {byte}; it must start on a byte boundary",
-            )
+    if not ch.type.is_bits and bit != 0 and (ch.type.is_float or ch.bits == 64):
+        raise r.err(
+            (*path, "type"),
+            f"{ch.type.name} entry starts at bit {bit} of byte {byte}; it must start on a byte boundary",
+        )
     for b in range(cursor, cursor + ch.bits):
         owner[b] = path
 
