@@ -39,12 +39,13 @@ class Located:
     file: str
     values: dict[PathT, tuple[int, int]] = field(default_factory=dict)
     keys: dict[PathT, tuple[int, int]] = field(default_factory=dict)
+    collections: set[PathT] = field(default_factory=set)
 
     def where(self, path: PathT, *, key: bool = False) -> tuple[int | None, int | None]:
         """Line and column of ``path`` (its key if ``key``), else of its nearest parent."""
         probe = tuple(path)
-        if key and probe in self.keys:
-            return self.keys[probe]
+        if (key or probe in self.collections) and probe in self.keys:
+            return self.keys[probe]  # a whole list/mapping is reported at its key
         while True:
             if probe in self.values:
                 return self.values[probe]
@@ -60,8 +61,9 @@ class Located:
 
 def load_located(text: str, file: str = "<string>") -> Located:
     """Parse one YAML document; any syntax problem is a located :class:`PdoMapError`."""
-    loader = yaml.SafeLoader(text)
+    loader: yaml.SafeLoader | None = None
     try:
+        loader = yaml.SafeLoader(text)
         node = loader.get_single_node()
         doc = Located(data=None, file=file)
         if node is not None:
@@ -76,12 +78,15 @@ def load_located(text: str, file: str = "<string>") -> Located:
             line=mark.line + 1 if mark else None,
             column=mark.column + 1 if mark else None,
         ) from None
+    except yaml.reader.ReaderError as exc:
+        raise PdoMapError(f"YAML: {exc.reason} (character 0x{exc.character:02X})", file=file) from None
     except yaml.YAMLError as exc:
         raise PdoMapError(f"YAML: {exc}", file=file) from None
     except RecursionError:
         raise PdoMapError("YAML nested too deeply", file=file) from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def load_file(path: str | Path) -> Located:
@@ -106,6 +111,8 @@ def _build(loader: yaml.SafeLoader, node: yaml.Node, path: PathT, doc: Located, 
     if depth > _MAX_DEPTH:
         raise doc.error(path, f"nested deeper than {_MAX_DEPTH} levels")
     doc.values[path] = _mark(node)
+    if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
+        doc.collections.add(path)
     if isinstance(node, yaml.MappingNode):
         loader.flatten_mapping(node)  # resolves '<<' merge keys
         out: dict[Any, Any] = {}

@@ -30,6 +30,7 @@ import numpy.typing as npt
 
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout, MapLayout
 from fieldbus.core.pdo.model import Direction
+from fieldbus.errors import FieldbusError
 
 U8 = npt.NDArray[np.uint8]
 
@@ -169,6 +170,11 @@ class DirectionImage:
         self.values: npt.NDArray[Any] = np.zeros(n_axes, dtype=user_dtype(dl))
 
         channels = dl.channels
+        for e in channels:
+            if e.channel.type.is_float and not e.aligned:
+                raise FieldbusError(
+                    f"{e.name}: {e.channel.type.name} entry at bit {e.bit_offset} is not byte aligned"
+                )
         scaled = [e for e in channels if e.channel.scaled]
         # scaled columns: aligned ones first (one structured cast), then bit-level ones
         scaled.sort(key=lambda e: not e.aligned)
@@ -282,7 +288,8 @@ class DirectionImage:
             np.rint(w, out=w)
         else:
             np.rint(w, out=w, where=self._int_cols)
-        np.clip(w, aff.lo, aff.hi, out=w)
+        np.minimum(w, aff.hi, out=w)  # saturate (np.clip's wrapper allocates)
+        np.maximum(w, aff.lo, out=w)
         np.copyto(self._last, w)
 
     def _gathered(self) -> npt.NDArray[np.float64]:

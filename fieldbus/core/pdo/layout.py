@@ -160,7 +160,7 @@ def get_value(buf: bytes | bytearray | memoryview, entry: EntryLayout, base: int
     start = base + entry.byte_offset
     chunk = bytes(buf[start : start + entry.span_bytes])
     if dt.is_float:
-        return float(struct.unpack(_FLOAT_FMT[dt.bits], chunk)[0])
+        return float(struct.unpack(_FLOAT_FMT[dt.bits], chunk[: dt.bits // 8])[0])
     raw = (int.from_bytes(chunk, "little") >> entry.shift) & ((1 << dt.bits) - 1)
     if dt.name == "bool":
         return bool(raw)
@@ -175,7 +175,9 @@ def set_value(buf: bytearray | memoryview, entry: EntryLayout, value: float, bas
     start = base + entry.byte_offset
     end = start + entry.span_bytes
     if dt.is_float:
-        buf[start:end] = struct.pack(_FLOAT_FMT[dt.bits], value)
+        if entry.shift:
+            raise FieldbusError(f"{entry.name}: a {dt.name} entry must start on a byte boundary")
+        buf[start : start + dt.bits // 8] = struct.pack(_FLOAT_FMT[dt.bits], value)
         return
     mask = ((1 << dt.bits) - 1) << entry.shift
     word = int.from_bytes(bytes(buf[start:end]), "little")

@@ -175,7 +175,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
 
     rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
     tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
-    for index, path in can_pdos.values():
+    for index, (_, path) in can_pdos.items():
         if not any(p.index == index for p in (*rpdo, *tpdo)):
             raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
 
@@ -284,6 +284,11 @@ def _pdos(
                 )
             if len(channels) > 64:
                 raise r.err((*ppath, "channels"), "a CANopen PDO maps at most 64 entries")
+            if pdo.bits % 8:
+                raise r.err(
+                    (*ppath, "channels"),
+                    f"PDO 0x{index:04X} is {pdo.bits} bits; on CANopen pad it to whole bytes with a bit{8 - pdo.bits % 8} gap",
+                )
         pdos.append(pdo)
     return tuple(pdos)
 

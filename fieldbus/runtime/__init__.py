@@ -1,0 +1,1 @@
+"""Runtime: the cyclic loop, timing statistics, gc control, allocation checks."""

@@ -1,0 +1,18 @@
+"""Shared fixtures and paths."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+INTEROP = REPO.parent / "shared" / "interop" / "ethercat_driver_ros2"
+PDO_MAPS = REPO / "pdo_maps"
+
+
+@pytest.fixture
+def interop_dir() -> Path:
+    if not INTEROP.is_dir():
+        pytest.fail(f"interop files missing: {INTEROP} (the shared/ folder must sit beside the repo)")
+    return INTEROP

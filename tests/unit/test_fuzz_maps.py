@@ -1,0 +1,230 @@
+"""Fuzzing: malformed drive maps and network files raise nothing but PdoMapError.
+
+CI runs 2,000 cases per test; the long run is documented in docs/reliability.md:
+``FIELDBUS_FUZZ_EXAMPLES=10000 pytest tests/unit/test_fuzz_maps.py``.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fieldbus.core.network import network_from_text
+from fieldbus.core.pdo import drive_map_from_text
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.layout import layout
+from fieldbus.core.sdo import canopen_plan, coe_plan
+from fieldbus.errors import FieldbusError, PdoMapError
+
+EXAMPLES = int(os.environ.get("FIELDBUS_FUZZ_EXAMPLES", "2000"))
+INTEROP = Path(__file__).resolve().parents[2].parent / "shared" / "interop" / "ethercat_driver_ros2"
+SEEDS = [p.read_text() for p in sorted(INTEROP.glob("*.yaml"))] + [
+    """
+name: can_servo
+vendor_id: 0x9
+product_id: 0x10
+profile: cia402
+canopen: {heartbeat_ms: 100, pdo: [{index: 0x1a00, transmission_type: 1}]}
+rpdo:
+  - index: 0x1600
+    channels:
+      - {index: 0x6040, sub_index: 0, type: uint16}
+      - {index: 0x607a, sub_index: 0, type: int32, factor: 1000, unit: rad}
+      - {index: 0x6060, sub_index: 0, type: int8, default: 8}
+      - {index: 0, sub_index: 0, type: bit8}
+tpdo:
+  - index: 0x1a00
+    channels:
+      - {index: 0x6041, sub_index: 0, type: uint16}
+      - {index: 0x6064, sub_index: 0, type: int32, factor: 0.001}
+      - {index: 0x2000, sub_index: 1, type: bool, mask: 1}
+      - {index: 0, sub_index: 0, type: bit15}
+sm:
+  - {index: 2, type: output, pdo: rpdo, watchdog: enable}
+"""
+]
+SEED_DOCS = [yaml.safe_load(s) for s in SEEDS]
+
+garbage = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+    st.sampled_from(
+        ["bool", "int33", "bit0", "bit65", "bit7", "uint64", "double", "0x6040", "rpdo", "enable"]
+    ),
+    st.lists(st.integers(-5, 70000), max_size=3),
+    st.dictionaries(
+        st.sampled_from(["index", "type", "x", "channels"]), st.integers(-1, 0x20000), max_size=3
+    ),
+)
+
+
+def _paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    out = [prefix]
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _paths(v, (*prefix, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += _paths(v, (*prefix, i))
+    return out
+
+
+def _set(doc: Any, path: tuple[Any, ...], value: Any) -> Any:
+    if not path:
+        return value
+    parent = doc
+    for p in path[:-1]:
+        parent = parent[p]
+    parent[path[-1]] = value
+    return doc
+
+
+def _delete(doc: Any, path: tuple[Any, ...]) -> Any:
+    if not path:
+        return None
+    parent = doc
+    for p in path[:-1]:
+        parent = parent[p]
+    del parent[path[-1]]
+    return doc
+
+
+@st.composite
+def mutated_docs(draw: Any) -> str:
+    doc = copy.deepcopy(draw(st.sampled_from(SEED_DOCS)))
+    for _ in range(draw(st.integers(1, 4))):
+        paths = _paths(doc)
+        path = draw(st.sampled_from(paths))
+        op = draw(st.sampled_from(["set", "set", "delete", "add_key", "dup_list_item"]))
+        try:
+            if op == "set":
+                doc = _set(doc, path, draw(garbage))
+            elif op == "delete":
+                doc = _delete(doc, path)
+            elif op == "add_key":
+                target = doc
+                for p in path:
+                    target = target[p]
+                if isinstance(target, dict):
+                    target[
+                        draw(st.sampled_from(["mask", "factor", "unit", "bogus", "default", "fixed", "pdo"]))
+                    ] = draw(garbage)
+            elif op == "dup_list_item":
+                target = doc
+                for p in path:
+                    target = target[p]
+                if isinstance(target, list) and target:
+                    target.append(copy.deepcopy(target[draw(st.integers(0, len(target) - 1))]))
+        except (KeyError, IndexError, TypeError):
+            pass
+    return yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
+
+
+@st.composite
+def corrupted_text(draw: Any) -> str:
+    text = draw(st.sampled_from(SEEDS))
+    for _ in range(draw(st.integers(1, 5))):
+        pos = draw(st.integers(0, max(0, len(text) - 1)))
+        op = draw(st.sampled_from(["insert", "delete", "replace"]))
+        chunk = draw(
+            st.sampled_from(
+                [
+                    "{",
+                    "}",
+                    "[",
+                    ":",
+                    "- ",
+                    "\n",
+                    "  ",
+                    "&a",
+                    "*a",
+                    "!!python/object ",
+                    "<<: *a",
+                    "\t",
+                    "'",
+                    '"',
+                    "%",
+                    "0x",
+                    "~",
+                    "\x00",
+                ]
+            )
+        )
+        if op == "insert":
+            text = text[:pos] + chunk + text[pos:]
+        elif op == "delete":
+            text = text[:pos] + text[pos + draw(st.integers(1, 20)) :]
+        else:
+            text = text[:pos] + chunk + text[pos + len(chunk) :]
+    return text
+
+
+def _exercise(text: str) -> None:
+    """Everything a valid map feeds must work; anything else must be a PdoMapError."""
+    try:
+        drive = drive_map_from_text(text, "fuzz.yaml")
+    except PdoMapError as exc:
+        assert exc.file == "fuzz.yaml"
+        str(exc)
+        return
+    for align in (1, 8):
+        lay = layout(drive, pdo_align=align)
+        img = ProcessImage(lay, 2)
+        img.pack()
+        img.unpack()
+    try:
+        coe_plan(drive)
+    except FieldbusError as exc:  # e.g. start-up SDOs with ethercat.coe false: a typed, named error
+        assert "CoE" in str(exc)
+    if drive.canopen is not None:
+        canopen_plan(drive, 1)
+
+
+SETTINGS = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+
+
+@SETTINGS
+@given(mutated_docs())
+def test_mutated_maps_raise_only_pdo_map_error(text: str) -> None:
+    _exercise(text)
+
+
+@SETTINGS
+@given(corrupted_text())
+def test_corrupted_yaml_raises_only_pdo_map_error(text: str) -> None:
+    _exercise(text)
+
+
+@settings(max_examples=EXAMPLES // 4, deadline=None, suppress_health_check=list(HealthCheck))
+@given(
+    st.recursive(
+        garbage,
+        lambda inner: st.one_of(
+            st.lists(inner, max_size=3),
+            st.dictionaries(
+                st.sampled_from(["buses", "name", "type", "slaves", "map", "node_id", "count", "interface"]),
+                inner,
+                max_size=4,
+            ),
+        ),
+        max_leaves=12,
+    )
+)
+def test_random_network_documents_raise_only_pdo_map_error(doc: Any) -> None:
+    try:
+        text = yaml.safe_dump(doc)
+    except yaml.YAMLError:
+        return
+    try:
+        network_from_text(text, "net.yaml", base=INTEROP)
+    except PdoMapError as exc:
+        assert exc.file is not None
