@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.core.network import Network, is_network_document, parse_network
-from fieldbus.core.pdo.layout import MapLayout, layout
+from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlsrc import load_file
