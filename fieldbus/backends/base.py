@@ -6,11 +6,10 @@ safe stop and statistics; a backend only moves bytes and runs bus-specific
 bring-up. Directions are named from the master's side: ``outputs`` are the
 RxPDOs (master -> drive), ``inputs`` the TxPDOs (drive -> master).
 
-Process data live in one buffer per bus, ``iomap``: the outputs of every slave
-in wire order, then their inputs, each slave's image starting on a byte (the
-layout SOEM's ``config_map`` produces for byte-sized slaves). Groups of
-consecutive slaves with the same map get one :class:`ProcessImage` whose wire
-rows are views into ``iomap``: packing writes straight into it.
+Process data live in the axis groups' images: consecutive slaves with the same
+map form one :class:`AxisGroup` whose :class:`ProcessImage` holds one row per
+axis. A backend moves each slave's ``out_row(i)`` onto the bus and each reply
+into ``in_row(i)``; both are contiguous uint8 views of that slave's wire bytes.
 """
 
 from __future__ import annotations
@@ -29,12 +28,12 @@ from fieldbus.errors import FieldbusError
 
 @dataclass(frozen=True)
 class SlaveArea:
-    """Byte offsets of one slave's outputs and inputs in the bus ``iomap``."""
+    """One slave on its bus: its layout and its row in its group's process image."""
 
     slave: Slave
     layout: MapLayout
-    out_offset: int
-    in_offset: int
+    group: int  # index into Backend.groups
+    row: int  # row in that group's image
 
     @property
     def out_size(self) -> int:
@@ -70,44 +69,36 @@ class Backend(abc.ABC):
         """``options`` are backend specific (for example fault hooks of the sim backend)."""
         self.bus = bus
         self.options = options
-        self.areas: list[SlaveArea] = []
-        out = 0
         layouts = [layout(s.map, pdo_align=self.pdo_align) for s in bus.slaves]
-        for s, lay in zip(bus.slaves, layouts, strict=True):
-            self.areas.append(SlaveArea(s, lay, out, -1))
-            out += lay.outputs.size
-        total_out = out
-        for i, area in enumerate(self.areas):
-            self.areas[i] = SlaveArea(area.slave, area.layout, area.out_offset, out)
-            out += area.layout.inputs.size
-        self.out_bytes = total_out
-        self.in_bytes = out - total_out
-        self.iomap: npt.NDArray[np.uint8] = np.zeros(max(out, 1), dtype=np.uint8)
-        self.groups = self._make_groups()
-
-    # -- process image ---------------------------------------------------------
-    def _make_groups(self) -> list[AxisGroup]:
+        self.groups: list[AxisGroup] = []
+        self.areas: list[SlaveArea] = []
         runs: list[list[int]] = []
-        for i, area in enumerate(self.areas):
-            if runs and self.areas[runs[-1][0]].slave.map is area.slave.map:
+        for i, s in enumerate(bus.slaves):
+            if runs and bus.slaves[runs[-1][0]].map is s.map:
                 runs[-1].append(i)
             else:
                 runs.append([i])
-        groups = []
         for run in runs:
-            first = self.areas[run[0]]
-            n = len(run)
-            lay = first.layout
-            out = self.iomap[first.out_offset : first.out_offset + n * lay.outputs.size].reshape(
-                n, lay.outputs.size
-            )
-            inp = self.iomap[first.in_offset : first.in_offset + n * lay.inputs.size].reshape(
-                n, lay.inputs.size
-            )
-            name = self.bus.name if len(runs) == 1 else f"{self.bus.name}.{first.slave.name}"
-            slaves = tuple(self.areas[i].slave for i in run)
-            groups.append(AxisGroup(name, slaves, ProcessImage(lay, n, out_wire=out, in_wire=inp), run[0]))
-        return groups
+            first = bus.slaves[run[0]]
+            name = bus.name if len(runs) == 1 else f"{bus.name}.{first.name}"
+            image = ProcessImage(layouts[run[0]], len(run))
+            for row, i in enumerate(run):
+                self.areas.append(SlaveArea(bus.slaves[i], layouts[i], len(self.groups), row))
+            self.groups.append(AxisGroup(name, tuple(bus.slaves[i] for i in run), image, run[0]))
+        self.out_bytes = sum(a.out_size for a in self.areas)
+        self.in_bytes = sum(a.in_size for a in self.areas)
+
+    def out_row(self, i: int) -> npt.NDArray[np.uint8]:
+        """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
+        a = self.areas[i]
+        row: npt.NDArray[np.uint8] = self.groups[a.group].image.outputs.wire[a.row]
+        return row
+
+    def in_row(self, i: int) -> npt.NDArray[np.uint8]:
+        """Slave ``i``'s input (TxPDO) wire bytes: a contiguous view into its group's image."""
+        a = self.areas[i]
+        row: npt.NDArray[np.uint8] = self.groups[a.group].image.inputs.wire[a.row]
+        return row
 
     @property
     def n_slaves(self) -> int:
@@ -146,11 +137,11 @@ class Backend(abc.ABC):
     # -- cycle ----------------------------------------------------------------------
     @abc.abstractmethod
     def send(self) -> None:
-        """Put this cycle's outputs (``iomap`` output area) on the bus."""
+        """Put this cycle's outputs (every slave's ``out_row``) on the bus."""
 
     @abc.abstractmethod
     def receive(self) -> int | None:
-        """Wait up to the receive timeout; fill the ``iomap`` input area.
+        """Wait up to the receive timeout; copy replies into the slaves' ``in_row``.
 
         Returns the working counter (CAN: the number of expected frames that
         arrived) or None on timeout. Inputs may be partly written on a miss:

@@ -35,45 +35,6 @@ from fieldbus.errors import FieldbusError
 U8 = npt.NDArray[np.uint8]
 
 
-def user_dtype(dl: DirectionLayout) -> np.dtype[Any]:
-    """The ``values`` dtype: scaled channels first (float64, contiguous), then the rest."""
-    scaled = [(e.name, "f8") for e in dl.channels if e.channel.scaled]
-    plain = [(e.name, _plain_format(e)) for e in dl.channels if not e.channel.scaled]
-    return np.dtype(scaled + plain)
-
-
-def _plain_format(e: EntryLayout) -> str:
-    dt = e.channel.type
-    if dt.name == "bool":
-        return "?"
-    return "=" + dt.numpy[1:] if dt.numpy[0] == "<" else dt.numpy
-
-
-def wire_dtype(dl: DirectionLayout, names: list[str]) -> np.dtype[Any]:
-    """Structured dtype over one wire row for the byte-aligned entries ``names``."""
-    entries = [dl.entry(n) for n in names]
-    return np.dtype(
-        {
-            "names": names,
-            "formats": [e.channel.type.numpy for e in entries],
-            "offsets": [e.byte_offset for e in entries],
-            "itemsize": max(dl.size, 1),
-        }
-    )
-
-
-@dataclass(frozen=True)
-class _Affine:
-    """raw = a * value + b (to wire); value = c * raw + d (from wire); per scaled column."""
-
-    a: npt.NDArray[np.float64]
-    b: npt.NDArray[np.float64]
-    c: npt.NDArray[np.float64]
-    d: npt.NDArray[np.float64]
-    lo: npt.NDArray[np.float64]
-    hi: npt.NDArray[np.float64]
-
-
 class _BitField:
     """Precomputed views and scratch for one entry that is not byte-aligned."""
 
@@ -149,97 +110,174 @@ class _BitField:
             np.copyto(self.src, self.stage, casting="unsafe")
 
 
+def _round8(n: int) -> int:
+    return -(-n // 8) * 8
+
+
+def _bit_format(e: EntryLayout) -> str:
+    dt = e.channel.type
+    if dt.name == "bool":
+        return "?"
+    return dt.numpy
+
+
+@dataclass(frozen=True)
+class ImageLayout:
+    """Where each channel lives in one row of ``values`` (bytes).
+
+    The row starts with the wire bytes themselves (``size`` bytes): byte-aligned
+    unscaled channels are fields at their wire offsets, so they cost nothing to
+    encode or decode. Then, 8-byte aligned, one float64 per scaled channel (the
+    engineering value), then one field per remaining bit-level channel.
+    """
+
+    dtype: np.dtype[Any]
+    size: int  # wire bytes per row
+    float_offset: int  # byte offset of the float64 block
+    scaled: tuple[EntryLayout, ...]  # float-block column order: aligned (by wire offset), then bit-level
+    groups: tuple[tuple[int, int, str, int], ...]  # (first column, columns, wire dtype, wire offset)
+    bits: tuple[EntryLayout, ...]  # unscaled bit-level channels
+
+
+def image_layout(dl: DirectionLayout) -> ImageLayout:
+    size = dl.size
+    names: list[str] = []
+    formats: list[str] = []
+    offsets: list[int] = []
+    for e in dl.channels:
+        if e.aligned and not e.channel.scaled:
+            names.append(e.name)
+            formats.append(e.channel.type.numpy)
+            offsets.append(e.byte_offset)
+    aligned = sorted((e for e in dl.channels if e.channel.scaled and e.aligned), key=lambda e: e.bit_offset)
+    unaligned = [e for e in dl.channels if e.channel.scaled and not e.aligned]
+    scaled = (*aligned, *unaligned)
+    float_offset = _round8(size)
+    for j, e in enumerate(scaled):
+        names.append(e.name)
+        formats.append("<f8")
+        offsets.append(float_offset + 8 * j)
+    groups: list[tuple[int, int, str, int]] = []
+    for j, e in enumerate(aligned):
+        fmt = e.channel.type.numpy
+        if groups:
+            first, count, gfmt, goff = groups[-1]
+            if gfmt == fmt and goff + count * (e.bits // 8) == e.byte_offset:
+                groups[-1] = (first, count + 1, gfmt, goff)
+                continue
+        groups.append((j, 1, fmt, e.byte_offset))
+    cursor = float_offset + 8 * len(scaled)
+    bits = tuple(e for e in dl.channels if not e.channel.scaled and not e.aligned)
+    for e in bits:
+        fmt = _bit_format(e)
+        width = np.dtype(fmt).itemsize
+        cursor = -(-cursor // width) * width
+        names.append(e.name)
+        formats.append(fmt)
+        offsets.append(cursor)
+        cursor += width
+    # keep the user-visible field order = wire order
+    order = {e.name: i for i, e in enumerate(dl.channels)}
+    fields = sorted(zip(names, formats, offsets, strict=True), key=lambda f: order[f[0]])
+    dtype = np.dtype(
+        {
+            "names": [f[0] for f in fields],
+            "formats": [f[1] for f in fields],
+            "offsets": [f[2] for f in fields],
+            "itemsize": _round8(max(cursor, 8)),
+        }
+    )
+    return ImageLayout(dtype, size, float_offset, scaled, tuple(groups), bits)
+
+
+def user_dtype(dl: DirectionLayout) -> np.dtype[Any]:
+    """The dtype of ``values`` rows for direction layout ``dl``."""
+    return image_layout(dl).dtype
+
+
 class DirectionImage:
     """One direction (outputs = RxPDOs or inputs = TxPDOs) of N axes sharing a map.
 
-    ``wire`` may be given as an ``(N, size)`` uint8 view into a larger buffer
-    (for example a master's IO map); otherwise it is allocated.
+    ``values`` (N,) structured and ``wire`` (N, size) uint8 share one buffer:
+    each ``wire`` row is contiguous, rows are ``values.dtype.itemsize`` apart.
     """
 
-    def __init__(self, dl: DirectionLayout, n_axes: int, wire: U8 | None = None) -> None:
+    def __init__(self, dl: DirectionLayout, n_axes: int, *, engine: str = "auto") -> None:
         if n_axes < 1:
             raise ValueError("n_axes must be >= 1")
-        self.layout = dl
-        self.n_axes = n_axes
-        size = dl.size
-        if wire is None:
-            wire = np.zeros((n_axes, size), dtype=np.uint8)
-        elif wire.shape != (n_axes, size) or wire.dtype != np.uint8:
-            raise ValueError(f"wire must be uint8 of shape {(n_axes, size)}, got {wire.dtype} {wire.shape}")
-        self.wire: U8 = wire
-        self.values: npt.NDArray[Any] = np.zeros(n_axes, dtype=user_dtype(dl))
-
-        channels = dl.channels
-        for e in channels:
+        for e in dl.channels:
             if e.channel.type.is_float and not e.aligned:
                 raise FieldbusError(
                     f"{e.name}: {e.channel.type.name} entry at bit {e.bit_offset} is not byte aligned"
                 )
-        scaled = [e for e in channels if e.channel.scaled]
-        # scaled columns: aligned ones first (one structured cast), then bit-level ones
-        scaled.sort(key=lambda e: not e.aligned)
-        self._scaled_names = [e.name for e in scaled]
-        k = len(scaled)
+        self.layout = dl
+        self.n_axes = n_axes
+        il = image_layout(dl)
+        self.image_layout = il
+        stride = il.dtype.itemsize
+        self._buf = np.zeros(n_axes * stride, dtype=np.uint8)
+        self.values: npt.NDArray[Any] = np.ndarray((n_axes,), dtype=il.dtype, buffer=self._buf)
+        self.wire: U8 = np.ndarray((n_axes, dl.size), dtype=np.uint8, buffer=self._buf, strides=(stride, 1))
+        k = len(il.scaled)
         self._k = k
-        n_aligned_scaled = sum(1 for e in scaled if e.aligned)
-        if k:
-            itemsize = self.values.dtype.itemsize
-            # (N, k) float64 view over the scaled block of `values` (in user-dtype order)
-            self._scaled_view = np.ndarray(
-                (n_axes, k), dtype=np.float64, buffer=self.values, offset=0, strides=(itemsize, 8)
-            )
-            order = [self.values.dtype.names.index(nm) for nm in self._scaled_names]  # type: ignore[union-attr]
-            self._col_order = np.array(order, dtype=np.intp)
-            self._identity_order = order == list(range(k))
-        self._work = np.zeros((n_axes, k), dtype=np.float64)  # raw values, float64
-        self._last = np.zeros((n_axes, k), dtype=np.float64)  # raw values sent last
-        self._nan = np.zeros((n_axes, k), dtype=bool)
-        self._gather = np.zeros((n_axes, k), dtype=np.float64)
-        f = np.array([e.channel.factor for e in scaled], dtype=np.float64)
-        o = np.array([e.channel.offset for e in scaled], dtype=np.float64)
+        self._scaled = np.ndarray(
+            (n_axes, k), dtype=np.float64, buffer=self._buf, offset=il.float_offset, strides=(stride, 8)
+        )
+        self._last = np.zeros((n_axes, k), dtype=np.float64)  # raw values (float64) encoded last
+        self._work = np.zeros((n_axes, k), dtype=np.float64)
+        self._ok = np.zeros((n_axes, k), dtype=bool)
+        f = np.array([e.channel.factor for e in il.scaled], dtype=np.float64)
+        o = np.array([e.channel.offset for e in il.scaled], dtype=np.float64)
         if dl.direction is Direction.OUTPUTS:  # raw = f*value + o
             a, b, c, d = f, o, 1.0 / f, -o / f
         else:  # value = f*raw + o
             a, b, c, d = 1.0 / f, -o / f, f, o
-        self._affine = _Affine(
-            a, b, c, d,
-            np.array([e.channel.type.min for e in scaled], dtype=np.float64),
-            np.array([e.channel.type.max for e in scaled], dtype=np.float64),
-        )  # fmt: skip
-        self._int_cols = np.array([not e.channel.type.is_float for e in scaled], dtype=bool)
-        self._all_int = bool(self._int_cols.all())
-        for i, e in enumerate(scaled):
-            if e.channel.default is not None:
-                self._last[:, i] = e.channel.default
-                self._work[:, i] = e.channel.default
-
-        # Byte-aligned entries move as structured copies, one call per group:
-        # (wire view, values-side view). Scaled ones go through `_work` (raw as float64).
-        self._scaled_pair: tuple[npt.NDArray[Any], npt.NDArray[Any]] | None = None
-        if n_aligned_scaled:
-            names = self._scaled_names[:n_aligned_scaled]
-            work_dtype = np.dtype([(nm, "f8") for nm in names])
-            work_view = np.ndarray((n_axes,), dtype=work_dtype, buffer=self._work, strides=(8 * k,))
-            self._scaled_pair = (self._wire_struct(names), work_view)
-        plain = [e.name for e in channels if not e.channel.scaled and e.aligned]
-        self._plain_pair = (self._wire_struct(plain), self.values[plain]) if plain else None
+        lo = np.array([e.channel.type.min for e in il.scaled], dtype=np.float64)
+        hi = np.array([e.channel.type.max for e in il.scaled], dtype=np.float64)
+        self._coef = (a, b, c, d, lo, hi)
+        # per-axis copies of the coefficients: contiguous (N, k) operands are ~2x faster than broadcasting
+        self._a, self._b, self._c, self._d, self._lo, self._hi = (
+            np.ascontiguousarray(np.broadcast_to(v, (n_axes, k))) for v in self._coef
+        )
+        self._use_b = bool(np.any(b != 0.0))
+        self._use_d = bool(np.any(d != 0.0))
+        self._is_int = [not e.channel.type.is_float for e in il.scaled]
+        # wire views of each run of same-typed, adjacent scaled entries: one ufunc each
+        self._groups: list[
+            tuple[npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], bool]
+        ] = []
+        for first, count, fmt, off in il.groups:
+            width = np.dtype(fmt).itemsize
+            wv = np.ndarray((n_axes, count), dtype=fmt, buffer=self._buf, offset=off, strides=(stride, width))
+            cols = slice(first, first + count)
+            is_int = np.dtype(fmt).kind in "iu"
+            self._groups.append((wv, self._last[:, cols], self._scaled[:, cols], self._c[:, cols], is_int))
         # bit-level entries
         self._bits: list[_BitField] = []
-        for e in channels:
+        for e in dl.channels:
             if e.aligned:
                 continue
-            src = self._work[:, self._scaled_names.index(e.name)] if e.channel.scaled else self.values[e.name]
+            src = self._work[:, il.scaled.index(e)] if e.channel.scaled else self.values[e.name]
             self._bits.append(_BitField(e, self.wire, src, n_axes))
-        # plain defaults
-        for e in channels:
-            if not e.channel.scaled and e.channel.default is not None:
+        self._bit_scaled = [(il.scaled.index(e), e) for e in il.scaled if not e.aligned]
+        # defaults: plain ones straight into values; scaled ones as the initial raw value
+        for e in dl.channels:
+            if e.channel.default is None:
+                continue
+            if e.channel.scaled:
+                j = il.scaled.index(e)
+                self._last[:, j] = e.channel.default
+                self._scaled[:, j] = c[j] * e.channel.default + d[j]
+            else:
                 self.values[e.name] = e.channel.default
-        if k and dl.direction is Direction.OUTPUTS:
-            self._raw_to_values()  # scaled outputs start at their default, in units
-
-    def _wire_struct(self, names: list[str]) -> npt.NDArray[Any]:
-        dt = wire_dtype(self.layout, names)
-        return np.ndarray((self.n_axes,), dtype=dt, buffer=self.wire, strides=(self.wire.strides[0],))
+        self.engine = "numpy"
+        self._fast: Any = None
+        if engine in ("auto", "c") and k and not self._bit_scaled:
+            self._fast = _make_fast(self)
+            if self._fast is not None:
+                self.engine = "c"
+        if engine == "c" and self.engine != "c" and k:
+            raise FieldbusError("the C codec is not available (fieldbus._codec did not build or import)")
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -255,63 +293,84 @@ class DirectionImage:
 
     # -- encode ---------------------------------------------------------------
     def to_wire(self) -> None:
-        """Encode ``values`` into ``wire`` (all axes)."""
+        """Encode ``values`` into ``wire`` (all axes). Unscaled byte-aligned channels are already there."""
         if self._k:
-            self._values_to_raw()
-            if self._scaled_pair is not None:
-                np.copyto(self._scaled_pair[0], self._scaled_pair[1], casting="unsafe")
-        if self._plain_pair is not None:
-            np.copyto(self._plain_pair[0], self._plain_pair[1], casting="unsafe")
+            if self._fast is not None:
+                self._fast.encode()
+            else:
+                self._encode_numpy()
         for bf in self._bits:
             bf.to_wire()
 
+    def _encode_numpy(self) -> None:
+        w, last, ok = self._work, self._last, self._ok
+        np.multiply(self._scaled, self._a, out=w)
+        if self._use_b:
+            np.add(w, self._b, out=w)
+        np.minimum(w, self._hi, out=w)  # saturate; NaN stays NaN
+        np.maximum(w, self._lo, out=w)
+        np.equal(w, w, out=ok)  # False where NaN
+        np.copyto(last, w, where=ok)  # NaN keeps the raw value sent last
+        for wv, lg, _, _, is_int in self._groups:
+            if is_int:
+                np.rint(lg, out=wv, casting="unsafe")
+            else:
+                np.copyto(wv, lg, casting="unsafe")
+        for j, _ in self._bit_scaled:
+            np.rint(last[:, j], out=w[:, j])
+
     def from_wire(self) -> None:
         """Decode ``wire`` into ``values`` (all axes)."""
-        if self._plain_pair is not None:
-            np.copyto(self._plain_pair[1], self._plain_pair[0], casting="unsafe")
         for bf in self._bits:
             bf.from_wire()
-        if self._k:
-            if self._scaled_pair is not None:
-                np.copyto(self._scaled_pair[1], self._scaled_pair[0], casting="unsafe")
-            np.copyto(self._last, self._work)
-            self._raw_to_values()
-
-    def _values_to_raw(self) -> None:
-        aff, w = self._affine, self._work
-        src = self._scaled_view if self._identity_order else self._gathered()
-        np.multiply(src, aff.a, out=w)
-        np.add(w, aff.b, out=w)
-        np.isnan(w, out=self._nan)
-        np.copyto(w, self._last, where=self._nan)
-        if self._all_int:
-            np.rint(w, out=w)
-        else:
-            np.rint(w, out=w, where=self._int_cols)
-        np.minimum(w, aff.hi, out=w)  # saturate (np.clip's wrapper allocates)
-        np.maximum(w, aff.lo, out=w)
-        np.copyto(self._last, w)
-
-    def _gathered(self) -> npt.NDArray[np.float64]:
-        np.take(self._scaled_view, self._col_order, axis=1, out=self._gather)
-        return self._gather
-
-    def _raw_to_values(self) -> None:
-        aff = self._affine
-        if self._identity_order:
-            np.multiply(self._work, aff.c, out=self._scaled_view)
-            np.add(self._scaled_view, aff.d, out=self._scaled_view)
-        else:
-            np.multiply(self._work, aff.c, out=self._gather)
-            np.add(self._gather, aff.d, out=self._gather)
-            self._scaled_view[:, self._col_order] = self._gather
+        if not self._k:
+            return
+        if self._fast is not None:
+            self._fast.decode()
+            return
+        for wv, _, sg, cg, _ in self._groups:
+            np.multiply(wv, cg, out=sg)
+        for j, _ in self._bit_scaled:
+            np.multiply(self._work[:, j], self._c[:, j], out=self._scaled[:, j])
+        if self._use_d:
+            np.add(self._scaled, self._d, out=self._scaled)
 
     def raw(self, name: str) -> npt.NDArray[Any]:
         """A fresh (allocating) array of the raw wire values of ``name`` (diagnostics, tests)."""
         from fieldbus.core.pdo.layout import get_value
 
         e = self.layout.entry(name)
-        return np.array([get_value(self.wire[i].data, e) for i in range(self.n_axes)])
+        return np.array([get_value(bytes(self.wire[i]), e) for i in range(self.n_axes)])
+
+
+def _make_fast(img: DirectionImage) -> Any:
+    """The C codec for ``img``'s scaled channels, or None where it is not built."""
+    try:
+        from fieldbus import _codec  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    import struct
+    import sys
+
+    if sys.byteorder != "little":
+        return None
+    il = img.image_layout
+    a, b, c, d, lo, hi = img._coef
+    spec = b"".join(
+        struct.pack(
+            "<ic3xdddddd",
+            e.byte_offset,
+            np.dtype(e.channel.type.numpy).char.encode(),
+            a[j],
+            b[j],
+            c[j],
+            d[j],
+            lo[j],
+            hi[j],
+        )
+        for j, e in enumerate(il.scaled)
+    )
+    return _codec.ScaledCodec(img._buf, img.n_axes, il.dtype.itemsize, il.float_offset, img._last, spec)
 
 
 class ProcessImage:
@@ -321,18 +380,11 @@ class ProcessImage:
     (drive -> master), both named from the master's side.
     """
 
-    def __init__(
-        self,
-        map_layout: MapLayout,
-        n_axes: int = 1,
-        *,
-        out_wire: U8 | None = None,
-        in_wire: U8 | None = None,
-    ) -> None:
+    def __init__(self, map_layout: MapLayout, n_axes: int = 1, *, engine: str = "auto") -> None:
         self.layout = map_layout
         self.n_axes = n_axes
-        self.outputs = DirectionImage(map_layout.outputs, n_axes, out_wire)
-        self.inputs = DirectionImage(map_layout.inputs, n_axes, in_wire)
+        self.outputs = DirectionImage(map_layout.outputs, n_axes, engine=engine)
+        self.inputs = DirectionImage(map_layout.inputs, n_axes, engine=engine)
 
     def pack(self) -> None:
         """Master side: encode outputs for sending."""

@@ -1,0 +1,291 @@
+"""EtherCAT backend on pysoem (SOEM inside).
+
+Bring-up: ``config_init`` and an identity check against the maps; in PRE-OP
+each slave's CoE SDO plan is written and read back; ``config_map`` and a size
+check against our layout; SAFE-OP; OP. The plan is also installed as the
+slave's PRE-OP -> SAFE-OP hook so that SOEM's ``reconfig`` (after a power
+cycle) applies it again.
+
+Cycle: outputs are copied per slave from its process-image row into SOEM's IO map (pysoem exposes each
+slave's area only as ``bytes``: a transient copy, nothing kept), one LRW is
+sent, the reply is awaited for at most the bus's receive timeout with the GIL
+released, inputs are copied back into the slaves' rows of the process images.
+
+Recovery (like SOEM's ``ecatcheck``) runs in a monitor thread woken by a miss,
+so the cycle never waits for it; see docs/backends.md for its limits.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from fieldbus.backends.base import Backend
+from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core.network import Bus
+from fieldbus.core.sdo import coe_plan
+from fieldbus.core.wkc import AL_ERROR, Recovery, recovery_action
+from fieldbus.errors import (
+    BackendUnavailableError,
+    FieldbusError,
+    SdoAbortError,
+    StateTransitionError,
+)
+
+try:
+    import pysoem
+except ImportError as exc:  # pragma: no cover - depends on the install
+    raise BackendUnavailableError(
+        f"the ethercat backend needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"
+    ) from None
+
+STATE_NAMES = {0x01: "INIT", 0x02: "PRE-OP", 0x03: "BOOT", 0x04: "SAFE-OP", 0x08: "OP"}
+STATE_TIMEOUT_US = 2_000_000
+
+
+def state_name(state: int) -> str:
+    base = STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:X}")
+    return base + ("+ERROR" if state & AL_ERROR else "")
+
+
+class EthercatBackend(Backend):
+    """One EtherCAT segment on one network card (``interface`` in the network file)."""
+
+    kind = "ethercat"
+
+    def __init__(self, bus: Bus, **options: object) -> None:
+        super().__init__(bus, **options)
+        if not bus.interface:
+            raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
+        self.master: Any = pysoem.Master()
+        self._slaves: list[Any] = []
+        self._open = False
+        self._timeout_us = bus.receive_timeout_us
+        self._out_views: list[tuple[Any, memoryview]] = []
+        self._in_views: list[tuple[Any, memoryview]] = []
+        self._wake = threading.Event()
+        self._stop_monitor = threading.Event()
+        self._monitor: threading.Thread | None = None
+        self.recoveries = 0  # slaves brought back to OP by the monitor
+        self.monitor_errors: list[str] = []
+
+    # -- bring-up ----------------------------------------------------------------
+    def open(self) -> None:
+        try:
+            self.master.open(self.bus.interface)
+        except Exception as exc:
+            raise FieldbusError(
+                f"bus '{self.bus.name}': cannot open interface '{self.bus.interface}' ({exc}); "
+                "raw sockets need root (or CAP_NET_RAW) and the link must be up"
+            ) from None
+        self._open = True
+        found = self.master.config_init()
+        self._slaves = list(self.master.slaves) if found > 0 else []
+        self._check_identity(found)
+
+    def _check_identity(self, found: int) -> None:
+        want = self.areas
+        lines = []
+        for i in range(max(found, 0, len(want))):
+            have = self._slaves[i] if i < len(self._slaves) else None
+            exp = want[i].slave if i < len(want) else None
+            have_txt = (
+                f"'{have.name}' vendor 0x{have.man:08X} product 0x{have.id:08X} rev 0x{have.rev:08X}"
+                if have is not None
+                else "nothing"
+            )
+            if exp is None:
+                lines.append(f"  position {i}: found {have_txt}, not in the network file")
+            elif have is None or (have.man, have.id) != (exp.map.vendor_id, exp.map.product_id):
+                lines.append(
+                    f"  position {i} ({exp.name}): expected {exp.map.name} vendor 0x{exp.map.vendor_id:08X} "
+                    f"product 0x{exp.map.product_id:08X}, found {have_txt}"
+                )
+        if lines:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}' on {self.bus.interface}: {max(found, 0)} slaves found, "
+                f"{len(want)} expected; mismatches:\n" + "\n".join(lines)
+            )
+
+    def configure(self) -> None:
+        state = self.master.state_check(pysoem.PREOP_STATE, STATE_TIMEOUT_US)
+        if state != pysoem.PREOP_STATE:
+            self._raise_state("PRE-OP", state)
+        for i, area in enumerate(self.areas):
+            plan = coe_plan(area.slave.map)
+            if plan.steps:
+                apply_plan(plan, *self._sdo_pair(i), slave=area.slave.name)
+
+    def _sdo_pair(self, i: int) -> tuple[Any, Any]:
+        def write(index: int, sub: int, data: bytes) -> None:
+            self.sdo_write(i, index, sub, data)
+
+        def read(index: int, sub: int, size: int) -> bytes:
+            return self._sdo_read_sized(i, index, sub, size)
+
+        return write, read
+
+    def safe_op(self) -> None:
+        self.master.config_map()
+        problems = []
+        for i, (area, s) in enumerate(zip(self.areas, self._slaves, strict=True)):
+            out_len, in_len = len(s.output), len(s.input)
+            if (out_len, in_len) != (area.out_size, area.in_size):
+                problems.append(
+                    f"  position {i} ({area.slave.name}): SOEM mapped {out_len} output / {in_len} input bytes, "
+                    f"the map implies {area.out_size} / {area.in_size}"
+                )
+        if problems:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': process data sizes differ from the maps:\n" + "\n".join(problems)
+            )
+        if self.master.expected_wkc != self.expected_wkc:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': SOEM expects WKC {self.master.expected_wkc}, our layout {self.expected_wkc}"
+            )
+        for i, area in enumerate(self.areas):  # SOEM's reconfig() re-applies the plan through this hook
+            plan = coe_plan(area.slave.map)
+            if plan.steps:
+                self._slaves[i].config_func = self._hook(i)
+        self._out_views = [
+            (s, self.out_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].out_size
+        ]
+        self._in_views = [
+            (s, self.in_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].in_size
+        ]
+        state = self.master.state_check(pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
+        if state != pysoem.SAFEOP_STATE:
+            self._raise_state("SAFE-OP", state)
+
+    def _hook(self, i: int) -> Any:
+        area = self.areas[i]
+
+        def hook(_pos: int) -> None:
+            apply_plan(coe_plan(area.slave.map), *self._sdo_pair(i), slave=area.slave.name)
+
+        return hook
+
+    def op(self) -> None:
+        for _ in range(3):  # valid outputs before OP, so no watchdog trips on the way
+            self.send()
+            self.receive()
+        self.master.state = pysoem.OP_STATE
+        self.master.write_state()
+        for _ in range(200):
+            self.send()
+            self.receive()
+            if self.master.state_check(pysoem.OP_STATE, 10_000) == pysoem.OP_STATE:
+                break
+        else:
+            self._raise_state("OP", self.master.read_state())
+        self._monitor = threading.Thread(
+            target=self._monitor_loop, name=f"ecatcheck-{self.bus.name}", daemon=True
+        )
+        self._monitor.start()
+
+    def _raise_state(self, target: str, lowest: int) -> None:
+        self.master.read_state()
+        lines = []
+        first_code: int | None = None
+        for i, s in enumerate(self._slaves):
+            if (s.state & 0x0F) != {"PRE-OP": 2, "SAFE-OP": 4, "OP": 8}[target] or s.state & AL_ERROR:
+                code = s.al_status
+                first_code = code if first_code is None else first_code
+                lines.append(
+                    f"  position {i} ({self.areas[i].slave.name if i < len(self.areas) else '?'}): "
+                    f"{state_name(s.state)}, AL status 0x{code:04X} {pysoem.al_status_code_to_string(code)}"
+                )
+        raise StateTransitionError(
+            f"bus '{self.bus.name}': not all slaves reached {target} (lowest {state_name(lowest)}):\n"
+            + "\n".join(lines),
+            al_status=first_code,
+        )
+
+    # -- cycle ----------------------------------------------------------------------
+    def send(self) -> None:
+        for s, mv in self._out_views:
+            s.output = bytes(mv)
+        self.master.send_processdata(release_gil=True)
+
+    def receive(self) -> int | None:
+        wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
+        if wkc < 0:
+            return None
+        for s, mv in self._in_views:
+            mv[:] = s.input
+        return wkc
+
+    def recover_step(self) -> bool:
+        self._wake.set()  # the monitor thread does the work; the cycle never waits for it
+        return False
+
+    def _monitor_loop(self) -> None:
+        while not self._stop_monitor.is_set():
+            if not self._wake.wait(0.1):
+                continue
+            self._wake.clear()
+            try:
+                self._check_slaves()
+            except Exception as exc:  # keep monitoring; report what failed
+                self.monitor_errors.append(f"{type(exc).__name__}: {exc}")
+
+    def _check_slaves(self) -> None:
+        self.master.read_state()
+        for s in self._slaves:
+            if self._stop_monitor.is_set():
+                return
+            action = recovery_action(None if s.is_lost else s.state)
+            if action is Recovery.NONE:
+                continue
+            if action is Recovery.ACK_ERROR:
+                s.state = pysoem.SAFEOP_STATE + pysoem.STATE_ACK
+                s.write_state()
+            elif action is Recovery.REQUEST_OP:
+                s.state = pysoem.OP_STATE
+                s.write_state()
+            elif action is Recovery.RECONFIGURE:
+                if s.reconfig(timeout=500) >= pysoem.SAFEOP_STATE:
+                    s.state = pysoem.OP_STATE
+                    s.write_state()
+            elif action is Recovery.RECOVER:
+                if s.recover(timeout=500) > 0:
+                    s.is_lost = False
+                continue
+            if s.state_check(pysoem.OP_STATE, 20_000) == pysoem.OP_STATE:
+                self.recoveries += 1
+
+    # -- shut-down --------------------------------------------------------------------
+    def stop(self) -> None:
+        self._stop_monitor.set()
+        if self._monitor is not None:
+            self._monitor.join(timeout=2.0)
+        if self._open and self._slaves:
+            self.master.state = pysoem.INIT_STATE
+            self.master.write_state()
+
+    def close(self) -> None:
+        self._stop_monitor.set()
+        if self._open:
+            self._open = False
+            self.master.close()
+
+    # -- acyclic ------------------------------------------------------------------------
+    def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
+        return self._sdo_read_sized(slave, index, sub_index, 0)
+
+    def _sdo_read_sized(self, slave: int, index: int, sub_index: int, size: int) -> bytes:
+        try:
+            data: bytes = self._slaves[slave].sdo_read(index, sub_index, size, release_gil=True)
+            return data
+        except pysoem.SdoError as exc:
+            raise SdoAbortError(
+                exc.abort_code, index=index, subindex=sub_index, slave=self.areas[slave].slave.name
+            ) from None
+
+    def sdo_write(self, slave: int, index: int, sub_index: int, data: bytes) -> None:
+        try:
+            self._slaves[slave].sdo_write(index, sub_index, data, release_gil=True)
+        except pysoem.SdoError as exc:
+            raise SdoAbortError(
+                exc.abort_code, index=index, subindex=sub_index, slave=self.areas[slave].slave.name
+            ) from None

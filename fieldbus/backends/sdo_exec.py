@@ -1,0 +1,51 @@
+"""Execute an :class:`~fieldbus.core.sdo.SdoPlan` through a backend's SDO verbs.
+
+All writes first, in plan order; then every step with a ``readback`` is read
+and compared. The first abort or mismatch stops the plan and raises with the
+slave, object and abort code; nothing after it is written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from fieldbus.core.sdo import SdoPlan, StepKind
+from fieldbus.errors import SdoAbortError, SdoMismatchError
+
+Write = Callable[[int, int, bytes], None]
+Read = Callable[[int, int, int], bytes]  # (index, sub, expected size) -> bytes
+
+
+def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
+    """Run ``plan``; returns the number of SDO transfers made.
+
+    ``write``/``read`` raise :class:`SdoAbortError` on an abort; this adds the
+    slave name when the backend did not.
+    """
+    transfers = 0
+    try:
+        for step in plan.steps:
+            if step.kind is StepKind.WRITE:
+                write(step.index, step.sub_index, step.data)
+                transfers += 1
+        for step in plan.checks:
+            assert step.readback is not None
+            got = read(step.index, step.sub_index, len(step.readback))
+            transfers += 1
+            if got[: len(step.readback)] != step.readback or (
+                len(got) > len(step.readback) and any(got[len(step.readback) :])
+            ):
+                raise SdoMismatchError(
+                    index=step.index,
+                    subindex=step.sub_index,
+                    expected=step.readback,
+                    received=got,
+                    slave=slave,
+                )
+    except SdoAbortError as exc:
+        if not exc.slave:
+            raise SdoAbortError(
+                exc.code, index=exc.index, subindex=exc.subindex, slave=slave, detail=exc.detail
+            ) from None
+        raise
+    return transfers
