@@ -38,12 +38,16 @@ def gc_held() -> Iterator[None]:
             gc.enable()
 
 
-def wait_until(deadline_ns: int) -> None:
-    """Sleep, then spin, until ``time.perf_counter_ns() >= deadline_ns``."""
-    remaining = deadline_ns - time.perf_counter_ns()
+def wait_until(
+    deadline_ns: int,
+    clock: Callable[[], int] = time.perf_counter_ns,
+    sleep: Callable[[float], None] = time.sleep,
+) -> None:
+    """Sleep, then spin, until ``clock() >= deadline_ns`` (ns)."""
+    remaining = deadline_ns - clock()
     if remaining > SPIN_NS:
-        time.sleep((remaining - SPIN_NS) / 1e9)
-    while time.perf_counter_ns() < deadline_ns:
+        sleep((remaining - SPIN_NS) / 1e9)
+    while clock() < deadline_ns:
         pass
 
 
@@ -56,23 +60,26 @@ def run_cycles(
     status: TextIO | None = None,
     status_every_s: float = 1.0,
     describe: Callable[[], str] | None = None,
+    clock: Callable[[], int] = time.perf_counter_ns,
+    sleep: Callable[[float], None] = time.sleep,
 ) -> CycleTimer:
     """Run ``step(k)`` for k = 0..cycles-1 at ``cycle_time_us``; ``step`` returning True stops early.
 
     ``timer`` receives the duration of each ``step`` (ns). With ``status`` (e.g.
     ``sys.stderr``) a one-line status is rewritten about once per
-    ``status_every_s`` using ``describe()``.
+    ``status_every_s`` using ``describe()``. ``clock`` (ns) and ``sleep`` (s)
+    are injectable for tests.
     """
     timer = timer or CycleTimer(capacity=max(1, min(cycles, 1_000_000)))
     period = int(cycle_time_us * 1000)
     next_status = 0
     with gc_held():
-        start = time.perf_counter_ns()
+        start = clock()
         deadline = start
         for k in range(cycles):
-            t0 = time.perf_counter_ns()
+            t0 = clock()
             stop = step(k)
-            t1 = time.perf_counter_ns()
+            t1 = clock()
             deadline += period
             overrun = t1 > deadline
             timer.add(t1 - t0, overrun=overrun)
@@ -91,7 +98,7 @@ def run_cycles(
                 behind = (t1 - deadline) // period
                 deadline += behind * period  # skip deadlines we can no longer meet
                 continue
-            wait_until(deadline)
+            wait_until(deadline, clock, sleep)
     if status is not None:
         status.write("\n")
         status.flush()
