@@ -169,6 +169,10 @@ def _bus(
                 raise r.err((*spath, "count"), f"node ids {first}..{first + count - 1} pass 127")
             if kind == "canopen" and drive.canopen is None:
                 raise r.err((*spath, "map"), f"map {drive.source} has no 'canopen' section")
+            if kind == "rawcan" and drive.rawcan is None:
+                raise r.err((*spath, "map"), f"map {drive.source} has no 'rawcan' section")
+        elif drive.rawcan is not None:
+            raise r.err((*spath, "map"), f"map {drive.source} is a rawcan map; it needs a 'rawcan' bus")
         elif "node_id" in s:
             raise r.err((*spath, "node_id"), f"node_id is for CAN buses, this bus is {kind}", key=True)
         else:

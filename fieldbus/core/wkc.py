@@ -103,11 +103,11 @@ class WkcPolicy:
         else:
             self.last_wkc = wkc
             verdict = Verdict.OK if wkc == self.expected else Verdict.SHORT
-        if verdict is Verdict.OK and slave_ok is not None:
+        if slave_ok is not None:  # the bus can tell which slaves answered (CAN)
             np.copyto(self.fresh, slave_ok)
-            if not slave_ok.all():
+            if verdict is Verdict.OK and not slave_ok.all():
                 verdict = Verdict.SHORT
-        else:
+        else:  # one datagram for all (EtherCAT): a miss makes every slave stale
             self.fresh.fill(verdict is Verdict.OK)
         self.stale_cycles += 1
         self.stale_cycles[self.fresh] = 0

@@ -49,6 +49,7 @@ sm:
   - {index: 2, type: output, pdo: rpdo, watchdog: enable}
 """
 ]
+SEEDS.append((Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml").read_text())
 SEED_DOCS = [yaml.safe_load(s) for s in SEEDS]
 
 garbage = st.one_of(

@@ -46,10 +46,12 @@ def test_verdicts_and_stale_flags() -> None:
 
 
 def test_per_slave_arrival_on_can() -> None:
-    p = WkcPolicy(expected=0, n_slaves=3)
-    assert p.judge(0, np.array([True, False, True])) is Verdict.SHORT
+    p = WkcPolicy(expected=3, n_slaves=3)
+    assert p.judge(2, np.array([True, False, True])) is Verdict.SHORT
     assert list(p.fresh) == [True, False, True]
     assert list(p.stale_cycles) == [0, 1, 0]
+    assert p.judge(None, np.array([False, False, False])) is Verdict.TIMEOUT and not p.fresh.any()
+    assert p.judge(3, np.array([True, True, True])) is Verdict.OK and p.fresh.all()
 
 
 @pytest.mark.parametrize("threshold", [1, 3, 10])

@@ -41,7 +41,7 @@ DEFAULT_COB_IDS = {
 
 _TOP_KEYS = (
     "name", "description", "vendor_id", "product_id", "revision", "profile",
-    "assign_activate", "auto_fault_reset", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen",
+    "assign_activate", "auto_fault_reset", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
 )  # fmt: skip
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
 _CHANNEL_KEYS = (
@@ -166,23 +166,40 @@ def drive_map_from_text(text: str, file: str = "<string>") -> DriveMap:
 def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     """Validate a loaded document into a :class:`DriveMap`."""
     r = Reader(doc)
-    top = r.mapping(doc.data, (), _TOP_KEYS, required=("vendor_id", "product_id"))
+    top = r.mapping(doc.data, (), _TOP_KEYS)
+    rawcan = None
+    if "rawcan" in top:
+        from fieldbus.core.rawcan import parse_rawcan
+
+        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat"):
+            if key in top:
+                raise r.err(
+                    (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
+                )
+        rawcan, raw_rpdo, raw_tpdo = parse_rawcan(r, top["rawcan"])
+    else:
+        for key in ("vendor_id", "product_id"):
+            if key not in top:
+                raise r.err((), f"missing required key '{key}'")
     name = r.name(top["name"], ("name",)) if "name" in top else _safe_name(default_name)
     profile = r.choice(top["profile"], ("profile",), _PROFILES) if "profile" in top else None
     canopen_raw = top.get("canopen")
     canopen = _canopen(r, canopen_raw) if "canopen" in top else None
     can_pdos = _canopen_pdos(r, canopen_raw) if isinstance(canopen_raw, Mapping) else {}
 
-    rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
-    tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
+    if rawcan is not None:
+        rpdo, tpdo = raw_rpdo, raw_tpdo
+    else:
+        rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
+        tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
     for index, (_, path) in can_pdos.items():
         if not any(p.index == index for p in (*rpdo, *tpdo)):
             raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
 
     drive = DriveMap(
         name=name,
-        vendor_id=r.integer(top["vendor_id"], ("vendor_id",), 0, 0xFFFFFFFF),
-        product_id=r.integer(top["product_id"], ("product_id",), 0, 0xFFFFFFFF),
+        vendor_id=r.integer(top.get("vendor_id", 0), ("vendor_id",), 0, 0xFFFFFFFF),
+        product_id=r.integer(top.get("product_id", 0), ("product_id",), 0, 0xFFFFFFFF),
         revision=r.integer(top.get("revision", 0), ("revision",), 0, 0xFFFFFFFF),
         description=r.string(top.get("description", ""), ("description",)),
         profile=profile,
@@ -194,6 +211,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         sm=_sync_managers(r, top.get("sm")),
         ethercat=_ethercat(r, top.get("ethercat")),
         canopen=canopen,
+        rawcan=rawcan,
         source=doc.file,
     )
     if profile == "cia402":

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from fieldbus.core.datatypes import DataType
+
+if TYPE_CHECKING:
+    from fieldbus.core.rawcan import RawCanConfig
 
 
 class Direction(enum.Enum):
@@ -180,6 +184,7 @@ class DriveMap:
     auto_fault_reset: bool = False
     ethercat: EthercatConfig = field(default_factory=EthercatConfig)
     canopen: CanopenConfig | None = None
+    rawcan: RawCanConfig | None = None  # raw-CAN motor frames (MIT mode); see fieldbus.core.rawcan
     source: str = "<string>"
 
     def pdos(self, direction: Direction) -> tuple[Pdo, ...]:

@@ -1,0 +1,184 @@
+"""Raw-CAN backend for MIT-mode actuators on python-can.
+
+One command frame per motor per cycle (CAN id ``command_id + node_id``), one
+reply expected from each; replies are routed by the map's ``node_field`` (the
+motor-id byte) or by CAN id. Frames are the byte-reversed wire rows of the
+process image (see :mod:`fieldbus.core.rawcan`). ``op()`` sends the
+enter-motor-mode frame to every motor and waits for each to answer;
+``stop()`` sends exit-motor-mode.
+
+``receive()`` returns the number of replies that arrived (the "working
+counter" of a CAN cycle) and ``arrived()`` says which motors answered.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.backends.base import Backend
+from fieldbus.core.network import Bus
+from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
+
+try:
+    import can
+except ImportError as exc:  # pragma: no cover - depends on the install
+    raise BackendUnavailableError(
+        f"the rawcan backend needs python-can ({exc}): pip install 'fieldbus[can]'"
+    ) from None
+
+ENTER_TIMEOUT_S = 0.5
+
+
+class RawCanBackend(Backend):
+    """MIT-mode motors on one CAN bus (``interface`` = python-can channel)."""
+
+    kind = "rawcan"
+    pdo_align = 8
+
+    def __init__(self, bus: Bus, **options: Any) -> None:
+        super().__init__(bus, **options)
+        self._bus: Any = options.get("can_bus")  # tests may hand in a bus instance
+        self._own_bus = self._bus is None
+        self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
+        self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
+        self._arrived = np.zeros(self.n_slaves, dtype=bool)
+        self._timeout_s = bus.receive_timeout_us / 1e6
+        for i, area in enumerate(self.areas):
+            cfg = area.slave.map.rawcan
+            if cfg is None:
+                raise FieldbusError(
+                    f"bus '{bus.name}': slave {area.slave.name} map {area.slave.map.name} has no rawcan section"
+                )
+            node = area.slave.node_id or 0
+            out_row = self.out_row(i)
+            msg = can.Message(
+                arbitration_id=cfg.command_id + node, data=bytearray(out_row.size), is_extended_id=False
+            )
+            # the frame's data bytearray seen as a numpy array: encoding writes straight into it
+            self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
+            reply_id = cfg.reply_id if cfg.reply_id is not None else cfg.command_id + node
+            byte = -1
+            if cfg.node_field:
+                bit = 0
+                for f in cfg.reply:
+                    if f.name == cfg.node_field:
+                        break
+                    bit += f.bits
+                if bit % 8 or next(f.bits for f in cfg.reply if f.name == cfg.node_field) != 8:
+                    raise FieldbusError(
+                        f"{area.slave.map.name}: node_field must be a whole byte of the reply"
+                    )
+                byte = bit // 8
+            self._node_byte[reply_id] = byte
+            key = (reply_id, node if byte >= 0 else -1)
+            if key in self._route:
+                raise FieldbusError(
+                    f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
+                )
+            self._route[key] = i
+
+    @property
+    def expected_wkc(self) -> int:
+        """One reply per motor per cycle."""
+        return self.n_slaves
+
+    def open(self) -> None:
+        if self._bus is None:
+            try:
+                self._bus = can.Bus(
+                    interface=self.bus.can_interface, channel=self.bus.interface, bitrate=self.bus.bitrate
+                )
+            except Exception as exc:
+                raise FieldbusError(
+                    f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
+                ) from None
+
+    def configure(self) -> None:
+        """MIT-mode motors have no object dictionary: nothing to configure."""
+
+    def safe_op(self) -> None:
+        """Nothing: motors stay out of motor mode until :meth:`op`."""
+
+    def op(self) -> None:
+        missing = self._special("enter")
+        if missing:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': no answer to enter-motor-mode from "
+                + ", ".join(self.areas[i].slave.name for i in missing)
+            )
+
+    def _special(self, which: str) -> list[int]:
+        """Send the enter/exit/zero frame to every motor; return the ones that did not answer."""
+        self._drain()
+        for i, area in enumerate(self.areas):
+            cfg = area.slave.map.rawcan
+            assert cfg is not None
+            msg, _, _ = self._cmd[i]
+            self._bus.send(
+                can.Message(arbitration_id=msg.arbitration_id, data=getattr(cfg, which), is_extended_id=False)
+            )
+        self._arrived.fill(False)
+        deadline = time.monotonic() + ENTER_TIMEOUT_S
+        while not self._arrived.all() and time.monotonic() < deadline:
+            self._accept(self._bus.recv(timeout=max(0.0, deadline - time.monotonic())), copy=False)
+        return [i for i in range(self.n_slaves) if not self._arrived[i]]
+
+    def send(self) -> None:
+        for msg, rev, data in self._cmd:
+            np.copyto(data, rev)
+            self._bus.send(msg)
+
+    def receive(self) -> int | None:
+        self._arrived.fill(False)
+        deadline = time.perf_counter() + self._timeout_s
+        count = 0
+        while count < self.n_slaves:
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                break
+            if self._accept(self._bus.recv(timeout=remaining), copy=True):
+                count += 1
+        return count if count else None
+
+    def _accept(self, msg: Any, *, copy: bool) -> bool:
+        if msg is None or msg.is_extended_id:
+            return False
+        byte = self._node_byte.get(msg.arbitration_id)
+        if byte is None:
+            return False
+        node = msg.data[byte] if 0 <= byte < len(msg.data) else -1
+        i = self._route.get((msg.arbitration_id, node if byte >= 0 else -1))
+        if i is None or self._arrived[i]:
+            return False
+        row = self.in_row(i)
+        if copy:
+            if len(msg.data) != row.size:
+                return False
+            row[::-1] = np.frombuffer(msg.data, dtype=np.uint8)
+        self._arrived[i] = True
+        return True
+
+    def _drain(self) -> None:
+        while self._bus.recv(timeout=0) is not None:
+            pass
+
+    def arrived(self) -> npt.NDArray[np.bool_]:
+        return self._arrived
+
+    def zero_position(self) -> list[str]:
+        """Set the current position of every motor as zero; returns the motors that did not answer."""
+        return [self.areas[i].slave.name for i in self._special("zero")]
+
+    def stop(self) -> None:
+        if self._bus is not None:
+            self._special("exit")
+
+    def close(self) -> None:
+        if self._bus is not None and self._own_bus:
+            self._bus.shutdown()
+        self._bus = None

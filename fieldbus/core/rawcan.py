@@ -1,0 +1,168 @@
+"""Raw-CAN motor frames (MIT-mode style actuators) described in a drive map's ``rawcan:`` section.
+
+MIT-mode frames (bgkatz/motorcontrol; CubeMars AK, Damiao DM-J) pack fields
+most-significant bit first, big-endian: the 8-byte command is
+``[p15-8][p7-0][v11-4][v3-0|kp11-8][kp7-0][kd11-4][kd3-0|t11-8][t7-0]``.
+Reversing the frame's bytes turns that into an ordinary least-significant-bit
+first layout with the fields in reverse order, so a ``rawcan`` map compiles
+into the same PDO model (command = RxPDO = master outputs; reply = TxPDO =
+master inputs) and uses the same vectorised process image; the backend
+reverses bytes on the wire.
+
+A field with ``min``/``max`` is a float sent as an unsigned integer over its
+range: ``raw = (x - min) * steps / (max - min)`` with ``steps = 2**bits - 1``
+(bgkatz's ``float_to_uint``) or ``2**bits`` (``span: power_of_two``, CubeMars'
+library). That is an affine map, i.e. a ``factor``/``offset`` of the PDO model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from fieldbus.core import datatypes
+from fieldbus.core.pdo.model import Channel, Pdo
+from fieldbus.core.yamlsrc import PathT
+
+RAWCAN_KEYS = ("command_id", "reply_id", "node_field", "span", "enter", "exit", "zero", "command", "reply")
+FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description")
+COMMAND_OBJECT = 0x2000  # pseudo object indices: the fields have no object dictionary
+REPLY_OBJECT = 0x2001
+MIT_ENTER = bytes([0xFF] * 7 + [0xFC])
+MIT_EXIT = bytes([0xFF] * 7 + [0xFD])
+MIT_ZERO = bytes([0xFF] * 7 + [0xFE])
+
+
+@dataclass(frozen=True)
+class RawCanField:
+    """One field of a frame, in frame order (first = most significant bits)."""
+
+    name: str
+    bits: int
+    min: float | None = None
+    max: float | None = None
+    unit: str | None = None
+
+    @property
+    def scaled(self) -> bool:
+        return self.min is not None
+
+
+@dataclass(frozen=True)
+class RawCanConfig:
+    """Frame ids and special frames. CAN ids: command ``command_id + node_id``;
+    replies ``reply_id`` (None: any id), routed by the ``node_field`` reply field
+    (the motor id byte) or, without it, by ``reply_id + node_id``."""
+
+    command: tuple[RawCanField, ...]
+    reply: tuple[RawCanField, ...]
+    command_id: int = 0
+    reply_id: int | None = None
+    node_field: str | None = None
+    span: str = "full"  # "full": 2**bits - 1 steps; "power_of_two": 2**bits
+    enter: bytes = MIT_ENTER
+    exit: bytes = MIT_EXIT
+    zero: bytes = MIT_ZERO
+
+    @property
+    def command_bytes(self) -> int:
+        return sum(f.bits for f in self.command) // 8
+
+    @property
+    def reply_bytes(self) -> int:
+        return sum(f.bits for f in self.reply) // 8
+
+
+def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
+    """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""
+    path: PathT = ("rawcan",)
+    m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
+    span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
+    command = _fields(r, m["command"], (*path, "command"))
+    reply = _fields(r, m["reply"], (*path, "reply"))
+    node_field = None
+    if "node_field" in m:
+        node_field = r.string(m["node_field"], (*path, "node_field"))
+        if node_field not in {f.name for f in reply} or any(f.scaled for f in reply if f.name == node_field):
+            raise r.err((*path, "node_field"), f"'{node_field}' is not an unscaled reply field")
+    cfg = RawCanConfig(
+        command=command,
+        reply=reply,
+        command_id=r.integer(m.get("command_id", 0), (*path, "command_id"), 0, 0x7FF),
+        reply_id=r.integer(m["reply_id"], (*path, "reply_id"), 0, 0x7FF) if "reply_id" in m else None,
+        node_field=node_field,
+        span=span,
+        enter=_frame(r, m.get("enter"), (*path, "enter"), MIT_ENTER),
+        exit=_frame(r, m.get("exit"), (*path, "exit"), MIT_EXIT),
+        zero=_frame(r, m.get("zero"), (*path, "zero"), MIT_ZERO),
+    )
+    rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True)),)
+    tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False)),)
+    return cfg, rpdo, tpdo
+
+
+def _frame(r: Any, raw: Any, path: PathT, default: bytes) -> bytes:
+    if raw is None:
+        return default
+    items = r.sequence(raw, path)
+    if not 0 < len(items) <= 8:
+        raise r.err(path, f"a classic CAN frame has 1..8 bytes, not {len(items)}")
+    return bytes(r.integer(v, (*path, i), 0, 255) for i, v in enumerate(items))
+
+
+def _fields(r: Any, raw: Any, path: PathT) -> tuple[RawCanField, ...]:
+    out: list[RawCanField] = []
+    seen: set[str] = set()
+    for i, item in enumerate(r.sequence(raw, path)):
+        fp: PathT = (*path, i)
+        f = r.mapping(item, fp, FIELD_KEYS, required=("name", "bits"))
+        name = r.name(f["name"], (*fp, "name"))
+        if name in seen:
+            raise r.err((*fp, "name"), f"duplicate field name '{name}'")
+        seen.add(name)
+        bits = r.integer(f["bits"], (*fp, "bits"), 1, 32)
+        lo = r.number(f["min"], (*fp, "min")) if "min" in f else None
+        hi = r.number(f["max"], (*fp, "max")) if "max" in f else None
+        if (lo is None) != (hi is None):
+            raise r.err(fp, "give both min and max (or neither)")
+        if lo is not None and hi is not None and not hi > lo:
+            raise r.err((*fp, "max"), f"max {hi:g} must be greater than min {lo:g}")
+        unit = r.string(f["unit"], (*fp, "unit")) if "unit" in f else None
+        out.append(RawCanField(name, bits, lo, hi, unit))
+    total = sum(f.bits for f in out)
+    if not out or total % 8 or total > 64:
+        raise r.err(path, f"fields add up to {total} bits; a classic CAN frame is 8..64 bits in whole bytes")
+    return tuple(out)
+
+
+def _channels(fields: tuple[RawCanField, ...], obj: int, span: str, *, outputs: bool) -> tuple[Channel, ...]:
+    """PDO channels of the byte-reversed frame: fields in reverse order, LSB first."""
+    chans: list[Channel] = []
+    bit = 0
+    for sub, f in reversed(list(enumerate(fields, start=1))):
+        aligned = bit % 8 == 0 and f.bits in (8, 16, 32)
+        dt = datatypes.lookup(f"uint{f.bits}" if aligned else f"bit{f.bits}")
+        assert dt is not None
+        factor, offset = 1.0, 0.0
+        if f.min is not None and f.max is not None:
+            steps = (1 << f.bits) - (1 if span == "full" else 0)
+            per_unit = steps / (f.max - f.min)  # raw counts per engineering unit
+            if outputs:  # raw = factor * value + offset
+                factor, offset = per_unit, -f.min * per_unit
+            else:  # value = factor * raw + offset
+                factor, offset = 1.0 / per_unit, f.min
+        chans.append(
+            Channel(
+                index=obj,
+                sub_index=sub,
+                type=dt,
+                name=f.name,
+                unit=f.unit,
+                factor=factor,
+                offset=offset,
+                scaled=f.scaled,
+            )
+        )
+        bit += f.bits
+    return tuple(chans)

@@ -1,0 +1,175 @@
+"""Emulated MIT-mode motors on a python-can bus (one bus instance serves every motor).
+
+Each motor answers every command frame addressed to it (CAN id
+``command_id + node_id``) with one reply frame, as bgkatz/motorcontrol does.
+Special frames: enter motor mode (FF x7 FC), exit (FD), set zero (FE).
+Physics per motor: a rotor of inertia ``J`` (kg·m²) with viscous friction
+``b`` (N·m·s/rad) driven by the MIT impedance law
+``tau = kp*(p_des - p) + kd*(v_des - v) + tau_ff``, saturated to the torque
+field's range, integrated over the time between commands (``dt_s`` if given).
+Fault hooks: ``drop_replies(node, n)`` and ``silence(node)``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.layout import layout
+from fieldbus.core.pdo.model import DriveMap
+
+
+@dataclass
+class MotorState:
+    """One emulated motor. Angles in rad, speeds in rad/s, torque in N·m."""
+
+    node_id: int
+    position: float = 0.0
+    velocity: float = 0.0
+    torque: float = 0.0
+    enabled: bool = False
+    zero: float = 0.0
+    inertia: float = 0.002
+    friction: float = 0.01
+    commands: int = 0
+    drop: int = 0
+    silent: bool = False
+    last_t: float | None = None
+    history: list[tuple[float, float]] = field(default_factory=list)
+
+
+class MitMotorSimulator:
+    """Motors with maps ``motors = [(drive_map, node_id), ...]`` on ``bus`` (python-can)."""
+
+    def __init__(
+        self, bus: can.BusABC, motors: list[tuple[DriveMap, int]], *, dt_s: float | None = None
+    ) -> None:
+        self.bus = bus
+        self.dt_s = dt_s
+        self._by_id: dict[int, tuple[MotorState, ProcessImage, Any]] = {}
+        for drive, node in motors:
+            cfg = drive.rawcan
+            if cfg is None:
+                raise ValueError(f"{drive.name} has no rawcan section")
+            img = ProcessImage(layout(drive), 1, engine="numpy")
+            self._by_id[cfg.command_id + node] = (MotorState(node), img, cfg)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.errors: list[str] = []
+
+    def motor(self, node_id: int) -> MotorState:
+        for st, _, _ in self._by_id.values():
+            if st.node_id == node_id:
+                return st
+        raise KeyError(node_id)
+
+    def start(self) -> MitMotorSimulator:
+        self._thread = threading.Thread(target=self._run, name="mit-motors", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> MitMotorSimulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # fault hooks
+    def drop_replies(self, node_id: int, n: int) -> None:
+        self.motor(node_id).drop += n
+
+    def silence(self, node_id: int, silent: bool = True) -> None:
+        self.motor(node_id).silent = silent
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=0.05)
+            if msg is None or msg.is_extended_id or msg.arbitration_id not in self._by_id:
+                continue
+            try:
+                self.handle(msg)
+            except Exception as exc:  # keep serving; a test reads .errors
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def handle(self, msg: can.Message) -> can.Message | None:
+        """Process one command frame; returns (and sends) the reply, if any."""
+        st, img, cfg = self._by_id[msg.arbitration_id]
+        data = bytes(msg.data)
+        now = msg.timestamp or time.monotonic()
+        if data == cfg.enter:
+            st.enabled = True
+        elif data == cfg.exit:
+            st.enabled = False
+        elif data == cfg.zero:
+            st.zero += st.position
+            st.position = 0.0
+        elif len(data) == cfg.command_bytes:
+            img.outputs.wire[0, :] = np.frombuffer(data[::-1], dtype=np.uint8)
+            img.outputs.from_wire()
+            v = img.outputs.values[0]
+            dt = (
+                self.dt_s
+                if self.dt_s is not None
+                else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
+            )
+            self._step(
+                st,
+                cfg,
+                float(v["position"]),
+                float(v["velocity"]),
+                float(v["kp"]),
+                float(v["kd"]),
+                float(v["torque"]),
+                dt,
+            )
+            st.commands += 1
+        else:
+            return None
+        st.last_t = now
+        if st.silent:
+            return None
+        if st.drop:
+            st.drop -= 1
+            return None
+        inp = img.inputs.values
+        for name, value in (("position", st.position), ("velocity", st.velocity), ("torque", st.torque)):
+            if name in (inp.dtype.names or ()):
+                inp[name][0] = value
+        if cfg.node_field:
+            inp[cfg.node_field][0] = st.node_id
+        img.inputs.to_wire()
+        reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
+        reply = can.Message(
+            arbitration_id=reply_id, data=bytes(img.inputs.wire[0, ::-1]), is_extended_id=False
+        )
+        self.bus.send(reply)
+        return reply
+
+    @staticmethod
+    def _step(
+        st: MotorState, cfg: Any, p_des: float, v_des: float, kp: float, kd: float, tau_ff: float, dt: float
+    ) -> None:
+        tmax = next((f.max for f in cfg.command if f.name == "torque" and f.max is not None), 1e9)
+        tau = kp * (p_des - st.position) + kd * (v_des - st.velocity) + tau_ff if st.enabled else 0.0
+        tau = max(-tmax, min(tmax, tau))
+        st.torque = tau
+        # semi-implicit Euler in small sub-steps: stiff gains stay stable
+        n = max(1, int(dt / 1e-4))
+        h = dt / n
+        for _ in range(n):
+            t = kp * (p_des - st.position) + kd * (v_des - st.velocity) + tau_ff if st.enabled else 0.0
+            t = max(-tmax, min(tmax, t))
+            st.velocity += h * (t - st.friction * st.velocity) / st.inertia
+            st.position += h * st.velocity
+        st.torque = t if n else tau

@@ -1,0 +1,137 @@
+"""Raw-CAN MIT-mode motors: golden frames and the emulated motors through the Network API."""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from fieldbus.core.pdo import load_drive_map
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.layout import layout
+from fieldbus.network import open_network
+from sim_slaves.mit_motor import MitMotorSimulator
+
+MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
+_channels = itertools.count()
+
+
+def frame(img_dir: object) -> bytes:
+    """The CAN data of axis 0: the byte-reversed wire row."""
+    return bytes(img_dir.wire[0, ::-1])  # type: ignore[attr-defined]
+
+
+def value(raw: int, lo: float, hi: float, bits: int) -> float:
+    """bgkatz uint_to_float: the engineering value of a raw field."""
+    return raw * (hi - lo) / ((1 << bits) - 1) + lo
+
+
+def test_command_frame_matches_the_published_mit_layout() -> None:
+    img = ProcessImage(layout(load_drive_map(MAP)), 1)
+    out = img.outputs
+    out["position"][0] = value(0x1234, -12.5, 12.5, 16)
+    out["velocity"][0] = value(0x567, -50, 50, 12)
+    out["kp"][0] = value(0x89A, 0, 500, 12)
+    out["kd"][0] = value(0xBCD, 0, 5, 12)
+    out["torque"][0] = value(0xEF0, -18, 18, 12)
+    out.to_wire()
+    assert frame(out) == bytes.fromhex("12 34 56 78 9A BC DE F0")
+    # range ends: max position, min velocity, max kp, zero kd, max torque
+    out["position"][0], out["velocity"][0], out["kp"][0], out["kd"][0], out["torque"][0] = (
+        12.5,
+        -50,
+        500,
+        0,
+        18,
+    )
+    out.to_wire()
+    assert frame(out) == bytes.fromhex("FF FF 00 0F FF 00 0F FF")
+    # out of range saturates instead of wrapping
+    out["position"][0], out["torque"][0] = 99.0, -99.0
+    out.to_wire()
+    assert frame(out)[:2] == b"\xff\xff" and frame(out)[6] & 0x0F == 0 and frame(out)[7] == 0
+
+
+def test_reply_frame_decodes_per_the_published_layout() -> None:
+    img = ProcessImage(layout(load_drive_map(MAP)), 1)
+    img.inputs.wire[0, ::-1] = np.frombuffer(bytes.fromhex("05 12 34 56 78 9A"), dtype=np.uint8)
+    img.inputs.from_wire()
+    v = img.inputs.values[0]
+    assert v["motor_id"] == 5
+    assert v["position"] == pytest.approx(value(0x1234, -12.5, 12.5, 16))
+    assert v["velocity"] == pytest.approx(value(0x567, -50, 50, 12))
+    assert v["torque"] == pytest.approx(value(0x89A, -18, 18, 12))
+
+
+@pytest.fixture
+def network(tmp_path: Path) -> Iterator[tuple[Path, str]]:
+    channel = f"fb-mit-{os.getpid()}-{next(_channels)}"
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 2000\nreceive_timeout_us: 5000\nsafe_stop_after: 4\nbuses:\n"
+        f"  - {{name: legs, type: rawcan, interface: {channel}, can_interface: virtual,\n"
+        f"     slaves: [{{name: 'm{{i}}', map: {MAP}, node_id: 1, count: 4}}]}}\n"
+    )
+    yield net, channel
+
+
+def test_motors_follow_commands_through_the_network_api(network: tuple[Path, str]) -> None:
+    net_file, channel = network
+    drive = load_drive_map(MAP)
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        MitMotorSimulator(sim_bus, [(drive, n) for n in range(1, 5)], dt_s=0.002) as sim,
+        open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        assert all(sim.motor(n).enabled for n in range(1, 5))
+        legs = op["legs"]
+        out, inp = legs.outputs, legs.inputs
+        out["kp"][:] = 40.0
+        out["kd"][:] = 1.5
+        target = np.array([0.5, -0.5, 1.0, 0.0])
+        errors = []
+        for k in range(300):
+            out["position"][:] = target * min(1.0, k / 100)
+            res = op.exchange()
+            assert res.fresh, (k, res.buses[0])
+            errors.append(np.abs(inp["position"] - out["position"]).max())
+        assert max(errors[-50:]) < 0.02, max(errors[-50:])  # rad, after the ramp settles
+        assert list(inp["motor_id"]) == [1, 2, 3, 4]
+        assert not sim.errors
+    assert not any(sim.motor(n).enabled for n in range(1, 5))  # exit motor mode on close
+
+
+def test_missing_replies_are_stale_and_held(network: tuple[Path, str]) -> None:
+    net_file, channel = network
+    drive = load_drive_map(MAP)
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        MitMotorSimulator(sim_bus, [(drive, n) for n in range(1, 5)], dt_s=0.002) as sim,
+        open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        legs = op["legs"]
+        legs.outputs["kp"][:] = 20.0
+        legs.outputs["position"][:] = 0.3
+        for _ in range(20):
+            op.exchange()
+        held = float(legs.inputs["position"][2])
+        legs.outputs["position"][:] = -0.3
+        sim.drop_replies(3, 2)  # node 3 is row 2
+        for _ in range(2):
+            res = op.exchange()
+            st = res.bus("legs")
+            assert not res.fresh and list(st.fresh) == [True, True, False, True]
+            assert float(legs.inputs["position"][2]) == held  # stale row keeps its last value
+        res = op.exchange()
+        assert res.fresh and float(legs.inputs["position"][2]) != held
+        # a silent motor escalates to a safe stop after safe_stop_after (4) misses
+        sim.silence(4)
+        stops = [op.exchange().safe_stop for _ in range(5)]
+        assert stops == [False, False, False, True, True]
