@@ -1,0 +1,38 @@
+"""The 30-axis humanoid example: why the seed recommends EtherCAT over 6 CAN buses."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from fieldbus.cli import main
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+
+def bandwidth(capsys: pytest.CaptureFixture[str], name: str, *extra: str) -> dict:  # type: ignore[type-arg]
+    assert main(["bandwidth", str(EXAMPLES / name), "--json", *extra]) == 0
+    return json.loads(capsys.readouterr().out)  # type: ignore[no-any-return]
+
+
+def test_30_axes_fit_one_ethercat_segment_at_1khz(capsys: pytest.CaptureFixture[str]) -> None:
+    r = bandwidth(capsys, "humanoid_ethercat.yaml")
+    (bus,) = r["buses"]
+    assert bus["type"] == "ethercat" and bus["frames_per_cycle"] == 1
+    assert bus["bytes_per_cycle"] == 30 * (10 + 10)  # seed 62.5: 600 bytes
+    assert bus["load_percent"] < 10 and bus["max_rate_hz"] > 10_000
+
+
+def test_6_can_buses_of_5_cannot_run_1khz(capsys: pytest.CaptureFixture[str]) -> None:
+    r = bandwidth(capsys, "humanoid_can.yaml")
+    assert len(r["buses"]) == 6
+    for bus in r["buses"]:
+        # SYNC + 5 nodes x (2 RPDO + 2 TPDO)
+        assert bus["frames_per_cycle"] == 21
+        assert bus["load_percent"] > 100 and bus["max_rate_hz"] < 500
+    assert r["bottleneck"] in {b["name"] for b in r["buses"]}
+    # even at 400 Hz each CAN bus is close to saturation
+    r400 = bandwidth(capsys, "humanoid_can.yaml", "--rate", "400")
+    assert all(80 < b["load_percent"] <= 100 for b in r400["buses"])
