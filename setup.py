@@ -4,6 +4,8 @@ from setuptools import Extension, setup
 
 setup(
     ext_modules=[
-        Extension("fieldbus._codec", sources=["fieldbus/_codec.c"], optional=True, extra_compile_args=["-O2"]),
+        Extension(
+            "fieldbus._codec", sources=["fieldbus/_codec.c"], optional=True, extra_compile_args=["-O2"]
+        ),
     ]
 )

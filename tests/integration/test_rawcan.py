@@ -73,7 +73,7 @@ def network(tmp_path: Path) -> Iterator[tuple[Path, str]]:
     channel = f"fb-mit-{os.getpid()}-{next(_channels)}"
     net = tmp_path / "net.yaml"
     net.write_text(
-        "cycle_time_us: 2000\nreceive_timeout_us: 5000\nsafe_stop_after: 4\nbuses:\n"
+        "cycle_time_us: 2000\nreceive_timeout_us: 20000\nsafe_stop_after: 4\nbuses:\n"
         f"  - {{name: legs, type: rawcan, interface: {channel}, can_interface: virtual,\n"
         f"     slaves: [{{name: 'm{{i}}', map: {MAP}, node_id: 1, count: 4}}]}}\n"
     )

@@ -1,0 +1,126 @@
+"""LRW cycles per second of the EtherCAT emulator: in-process and over veth with pysoem driving.
+
+    python benchmarks/emulator.py [--seconds 3] [--slaves 12 64] [--no-veth]
+
+In-process: ``EscChain.process_into`` on the cycle frames of a SOEM-like
+mapping (one LRW per segment of <= 1486 bytes), slave application cycles
+included. Over veth (root only): the real pysoem master in this process,
+``python -m sim_slaves.ethercat`` in a child process on the peer end; one
+cycle = ``send_processdata`` + ``receive_processdata``; cycles with a WKC
+other than ``expected_wkc`` are counted. Slaves: Maxon EPOS4 maps (23 output
+bytes, 25 input bytes each). Applications: ``none`` (ESC only), ``auto``
+(the CiA 402 drive model, ``sim_slaves.drive402``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from fieldbus.core.pdo.load import load_drive_map
+from sim_slaves.ethercat import EscChain
+from sim_slaves.ethercat.bringup import bring_up
+
+REPO = Path(__file__).resolve().parent.parent
+MAXON = REPO.parent / "shared" / "interop" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
+
+
+def in_process(n: int, app: str, seconds: float) -> float:
+    chain = EscChain.from_maps([load_drive_map(MAXON)] * n, app="auto" if app == "auto" else None)
+    plan = bring_up(chain)
+    frames = [bytearray(f) for f in plan.lrw_frames()]
+    work = [(bytearray(f), len(f)) for f in frames]
+    cycles = 0
+    now = 0
+    t0 = time.perf_counter()
+    end = t0 + seconds
+    while time.perf_counter() < end:
+        for _ in range(100):
+            now += 250_000
+            for i, (buf, size) in enumerate(work):
+                buf[:] = frames[i]
+                chain.process_into(buf, size, now)
+        cycles += 100
+    return cycles / (time.perf_counter() - t0)
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], capture_output=True, check=False)
+
+
+def over_veth(n: int, app: str, seconds: float) -> tuple[float, int]:
+    import pysoem
+
+    master_if, slave_if = f"fbbm{os.getpid() % 1000}", f"fbbs{os.getpid() % 1000}"
+    _ip("link", "del", master_if)
+    _ip("link", "add", master_if, "type", "veth", "peer", "name", slave_if)
+    for name in (master_if, slave_if):
+        _ip("link", "set", name, "arp", "off")
+        _ip("link", "set", name, "up")
+    cmd = [sys.executable, "-m", "sim_slaves.ethercat", "--iface", slave_if, "--map", str(MAXON)]
+    proc = subprocess.Popen(
+        [*cmd, "--count", str(n), "--app", app], cwd=REPO, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("ready")
+        m = pysoem.Master()
+        m.open(master_if)
+        try:
+            assert m.config_init() == n
+            m.config_map()
+            m.config_dc()
+            m.state = pysoem.OP_STATE
+            m.write_state()
+            for _ in range(1000):
+                m.send_processdata()
+                m.receive_processdata(10_000)
+                if m.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
+                    break
+            expected = m.expected_wkc
+            cycles = bad = 0
+            t0 = time.perf_counter()
+            end = t0 + seconds
+            while time.perf_counter() < end:
+                for _ in range(100):
+                    m.send_processdata()
+                    if m.receive_processdata(10_000) != expected:
+                        bad += 1
+                cycles += 100
+            return cycles / (time.perf_counter() - t0), bad
+        finally:
+            m.close()
+    finally:
+        proc.terminate()
+        proc.wait(5)
+        _ip("link", "del", master_if)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seconds", type=float, default=3.0)
+    p.add_argument("--slaves", type=int, nargs="+", default=[12, 64])
+    p.add_argument("--no-veth", action="store_true")
+    args = p.parse_args()
+    veth = not args.no_veth and os.geteuid() == 0
+    print(f"cpus: {os.cpu_count()}, python {sys.version.split()[0]}")
+    print(
+        f"{'slaves':>6} {'app':>5} {'in-process [cycles/s]':>22} {'veth+pysoem [cycles/s]':>23} {'bad WKC':>8}"
+    )
+    for n in args.slaves:
+        for app in ("none", "auto"):
+            rate = in_process(n, app, args.seconds)
+            if veth:
+                vrate, bad = over_veth(n, app, args.seconds)
+                vtxt, btxt = f"{vrate:,.0f}", str(bad)
+            else:
+                vtxt, btxt = "(needs root)", "-"
+            print(f"{n:>6} {app:>5} {rate:>22,.0f} {vtxt:>23} {btxt:>8}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

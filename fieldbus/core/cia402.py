@@ -1,0 +1,631 @@
+"""CiA 402 (IEC 61800-7-201) drive state machine as tables, and a vectorised master controller.
+
+One module, one table. :data:`TRANSITIONS` (transitions 0-16 with their
+numbers) is the only statement of the state machine; the master side
+(:class:`Cia402Controller`, through the planner tables built from it at import)
+and the emulated drive (``sim_slaves.drive402``) both read it.
+
+Directions, from the master's side: the **controlword** (0x6040) is a master
+*output* written to the drive (RxPDO in the drive's terms); the **statusword**
+(0x6041) and **modes_of_operation_display** (0x6061) are master *inputs* read
+from the drive (TxPDO). **modes_of_operation** (0x6060) is an output.
+
+Pure: no clock, no I/O. Time is counted in cycles (calls of
+:meth:`Cia402Controller.step`). The per-cycle path allocates nothing that
+outlives the call: every array is preallocated and ufuncs write with ``out=``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import IntEnum
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+# --------------------------------------------------------------------------- states
+
+
+class State402(IntEnum):
+    """The eight states of the CiA 402 power drive system (PDS) state machine."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+
+
+UNKNOWN_STATE = -1
+"""Code :func:`decode_states` writes for a statusword that matches no state pattern."""
+
+
+@dataclass(frozen=True)
+class StatusPattern:
+    """``statusword & mask == value`` identifies ``state`` (statusword = master input)."""
+
+    state: State402
+    mask: int
+    value: int
+
+
+# IEC 61800-7-201 / CiA 402 statusword coding (bits 0-3 ready/switched on/op enabled/fault,
+# bit 5 quick stop (active low), bit 6 switch on disabled):
+STATUSWORD_PATTERNS: tuple[StatusPattern, ...] = (
+    StatusPattern(State402.NOT_READY_TO_SWITCH_ON, 0x004F, 0x0000),  # xxxx xxxx x0xx 0000
+    StatusPattern(State402.SWITCH_ON_DISABLED, 0x004F, 0x0040),  # xxxx xxxx x1xx 0000
+    StatusPattern(State402.READY_TO_SWITCH_ON, 0x006F, 0x0021),  # xxxx xxxx x01x 0001
+    StatusPattern(State402.SWITCHED_ON, 0x006F, 0x0023),  # xxxx xxxx x01x 0011
+    StatusPattern(State402.OPERATION_ENABLED, 0x006F, 0x0027),  # xxxx xxxx x01x 0111
+    StatusPattern(State402.QUICK_STOP_ACTIVE, 0x006F, 0x0007),  # xxxx xxxx x00x 0111
+    StatusPattern(State402.FAULT_REACTION_ACTIVE, 0x004F, 0x000F),  # xxxx xxxx x0xx 1111
+    StatusPattern(State402.FAULT, 0x004F, 0x0008),  # xxxx xxxx x0xx 1000
+)
+
+STATUSWORD_STATE_BITS: Mapping[State402, int] = MappingProxyType(
+    {p.state: p.value for p in STATUSWORD_PATTERNS}
+)
+"""Canonical state bits a drive reports in its statusword for each state."""
+
+
+class StatusBit(IntEnum):
+    """Statusword (0x6041, master input) bit masks other than the state bits."""
+
+    VOLTAGE_ENABLED = 1 << 4
+    QUICK_STOP = 1 << 5  # active low: 0 = quick stop active
+    WARNING = 1 << 7
+    REMOTE = 1 << 9  # controlword is processed (drive under fieldbus control)
+    TARGET_REACHED = 1 << 10
+    INTERNAL_LIMIT_ACTIVE = 1 << 11
+    FOLLOWS_TARGET = 1 << 12  # CSP/CSV/CST: drive follows the cyclic target value
+    FOLLOWING_ERROR = 1 << 13  # CSP: following error window exceeded
+
+
+def _build_statusword_lut() -> npt.NDArray[np.int8]:
+    lut = np.full(65536, UNKNOWN_STATE, dtype=np.int8)
+    words = np.arange(65536, dtype=np.uint32)
+    for p in STATUSWORD_PATTERNS:
+        hit = (words & p.mask) == p.value
+        if np.any(lut[hit] != UNKNOWN_STATE):
+            raise AssertionError(f"statusword patterns overlap at {p.state.name}")
+        lut[hit] = p.state
+    lut.flags.writeable = False
+    return lut
+
+
+STATUSWORD_LUT: npt.NDArray[np.int8] = _build_statusword_lut()
+"""65536-entry table: statusword (uint16) -> :class:`State402` code, or :data:`UNKNOWN_STATE`."""
+
+
+def decode_state(statusword: int) -> State402 | None:
+    """State of one statusword (master input), or ``None`` when it matches no pattern."""
+    code = int(STATUSWORD_LUT[statusword & 0xFFFF])
+    return None if code == UNKNOWN_STATE else State402(code)
+
+
+def decode_states(
+    statusword: npt.NDArray[Any], out: npt.NDArray[np.int8], scratch: npt.NDArray[np.intp] | None = None
+) -> None:
+    """Decode statuswords (uint16 master inputs, one per axis) into ``out`` (int8 state codes).
+
+    Unknown bit patterns give :data:`UNKNOWN_STATE`. ``scratch`` (an ``intp`` array
+    of the same length) makes the call allocation-free; without it numpy casts
+    the indices into a temporary.
+    """
+    if scratch is None:
+        np.take(STATUSWORD_LUT, statusword, out=out, mode="clip")
+    else:
+        np.copyto(scratch, statusword, casting="unsafe")
+        np.take(STATUSWORD_LUT, scratch, out=out, mode="clip")
+
+
+# --------------------------------------------------------------------------- controlword
+
+
+class Trigger(IntEnum):
+    """What moves the state machine: a controlword command (0-5) or a drive-internal event (6-8)."""
+
+    DISABLE_VOLTAGE = 0
+    QUICK_STOP = 1
+    SHUTDOWN = 2
+    SWITCH_ON = 3
+    DISABLE_OPERATION = 3  # alias: same controlword bits as SWITCH_ON (0x07)
+    ENABLE_OPERATION = 4
+    FAULT_RESET = 5  # rising edge of controlword bit 7
+    POWER_ON = 6  # drive-internal: power applied
+    AUTO = 7  # drive-internal: self-test done / fault reaction done / quick stop done
+    FAULT = 8  # drive-internal: a fault occurred
+
+
+MASTER_COMMANDS: frozenset[Trigger] = frozenset(
+    {
+        Trigger.DISABLE_VOLTAGE,
+        Trigger.QUICK_STOP,
+        Trigger.SHUTDOWN,
+        Trigger.SWITCH_ON,
+        Trigger.ENABLE_OPERATION,
+        Trigger.FAULT_RESET,
+    }
+)
+
+CONTROLWORD: Mapping[Trigger, int] = MappingProxyType(
+    {
+        Trigger.SHUTDOWN: 0x0006,
+        Trigger.SWITCH_ON: 0x0007,  # also "disable operation"
+        Trigger.ENABLE_OPERATION: 0x000F,
+        Trigger.DISABLE_VOLTAGE: 0x0000,
+        Trigger.QUICK_STOP: 0x0002,
+        Trigger.FAULT_RESET: 0x0080,  # acts on the 0 -> 1 edge of bit 7
+    }
+)
+"""Controlword (0x6040, master output) bits 0-3 and 7 for each command."""
+
+CONTROLWORD_STATE_BITS = 0x008F
+"""Controlword bits owned by the state machine (0-3, 7); bits 4-6, 8 (halt) and up are mode-specific."""
+
+FAULT_RESET_BIT = 0x0080
+
+
+@dataclass(frozen=True)
+class CommandPattern:
+    """``controlword & mask == value`` is ``command`` (bit 7 is read only for its rising edge)."""
+
+    command: Trigger
+    mask: int
+    value: int
+
+
+# IEC 61800-7-201 command coding of bits 0-3 (bit 7 = 0 in the standard; a drive here
+# ignores a held bit 7 and reacts only to its rising edge, as FAULT_RESET).
+COMMAND_PATTERNS: tuple[CommandPattern, ...] = (
+    CommandPattern(Trigger.DISABLE_VOLTAGE, 0x0002, 0x0000),  # xxxx xx0x
+    CommandPattern(Trigger.QUICK_STOP, 0x0006, 0x0002),  # xxxx x01x
+    CommandPattern(Trigger.SHUTDOWN, 0x0007, 0x0006),  # xxxx x110
+    CommandPattern(Trigger.SWITCH_ON, 0x000F, 0x0007),  # xxxx 0111 (= disable operation)
+    CommandPattern(Trigger.ENABLE_OPERATION, 0x000F, 0x000F),  # xxxx 1111
+)
+
+
+def _build_nibble_commands() -> tuple[Trigger, ...]:
+    out: list[Trigger] = []
+    for nibble in range(16):
+        hits = [p.command for p in COMMAND_PATTERNS if nibble & p.mask == p.value]
+        if len(hits) != 1:
+            raise AssertionError(f"controlword nibble {nibble:#x} decodes to {hits}")
+        out.append(hits[0])
+    return tuple(out)
+
+
+COMMAND_BY_NIBBLE: tuple[Trigger, ...] = _build_nibble_commands()
+"""Controlword bits 0-3 (0..15) -> the command they encode."""
+
+
+def command_of(controlword: int) -> Trigger:
+    """The command in a controlword (master output); fault reset is an edge, see :data:`FAULT_RESET_BIT`."""
+    return COMMAND_BY_NIBBLE[controlword & 0x000F]
+
+
+# --------------------------------------------------------------------------- transitions
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One arrow of the CiA 402 state diagram.
+
+    ``source`` is ``None`` only for transition 0 (power on). ``condition`` names a
+    drive-side guard; the controller never plans through a guarded transition.
+    """
+
+    number: int
+    source: State402 | None
+    trigger: Trigger
+    target: State402
+    condition: str = ""
+
+    @property
+    def trigger_name(self) -> str:
+        """The trigger's name as the standard calls it here (transition 5 is "disable operation")."""
+        return "DISABLE_OPERATION" if self.number == 5 else self.trigger.name
+
+
+_S = State402
+_T = Trigger
+
+TRANSITIONS: tuple[Transition, ...] = (
+    Transition(0, None, _T.POWER_ON, _S.NOT_READY_TO_SWITCH_ON),
+    Transition(1, _S.NOT_READY_TO_SWITCH_ON, _T.AUTO, _S.SWITCH_ON_DISABLED),
+    Transition(2, _S.SWITCH_ON_DISABLED, _T.SHUTDOWN, _S.READY_TO_SWITCH_ON),
+    Transition(3, _S.READY_TO_SWITCH_ON, _T.SWITCH_ON, _S.SWITCHED_ON),
+    # "switch on + enable operation" (0x0F) performs 3, then 4 on a following cycle
+    Transition(3, _S.READY_TO_SWITCH_ON, _T.ENABLE_OPERATION, _S.SWITCHED_ON),
+    Transition(4, _S.SWITCHED_ON, _T.ENABLE_OPERATION, _S.OPERATION_ENABLED),
+    Transition(5, _S.OPERATION_ENABLED, _T.DISABLE_OPERATION, _S.SWITCHED_ON),
+    Transition(6, _S.SWITCHED_ON, _T.SHUTDOWN, _S.READY_TO_SWITCH_ON),
+    Transition(7, _S.READY_TO_SWITCH_ON, _T.DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
+    Transition(7, _S.READY_TO_SWITCH_ON, _T.QUICK_STOP, _S.SWITCH_ON_DISABLED),
+    Transition(8, _S.OPERATION_ENABLED, _T.SHUTDOWN, _S.READY_TO_SWITCH_ON),
+    Transition(9, _S.OPERATION_ENABLED, _T.DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
+    Transition(10, _S.SWITCHED_ON, _T.DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
+    Transition(10, _S.SWITCHED_ON, _T.QUICK_STOP, _S.SWITCH_ON_DISABLED),
+    Transition(11, _S.OPERATION_ENABLED, _T.QUICK_STOP, _S.QUICK_STOP_ACTIVE),
+    Transition(12, _S.QUICK_STOP_ACTIVE, _T.DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
+    Transition(12, _S.QUICK_STOP_ACTIVE, _T.AUTO, _S.SWITCH_ON_DISABLED, "quick stop done, option code 0-4"),
+    *(
+        Transition(13, s, _T.FAULT, _S.FAULT_REACTION_ACTIVE)
+        for s in State402
+        if s not in (_S.FAULT_REACTION_ACTIVE, _S.FAULT)
+    ),
+    Transition(14, _S.FAULT_REACTION_ACTIVE, _T.AUTO, _S.FAULT),
+    Transition(15, _S.FAULT, _T.FAULT_RESET, _S.SWITCH_ON_DISABLED),
+    Transition(
+        16, _S.QUICK_STOP_ACTIVE, _T.ENABLE_OPERATION, _S.OPERATION_ENABLED, "quick stop option code 5-8"
+    ),
+)
+"""The CiA 402 state machine: every transition 0-16, one row per (source, trigger)."""
+
+
+def _index_transitions() -> Mapping[tuple[State402, Trigger], Transition]:
+    index: dict[tuple[State402, Trigger], Transition] = {}
+    for t in TRANSITIONS:
+        if t.source is None:
+            continue
+        key = (t.source, t.trigger)
+        if key in index:
+            raise AssertionError(f"two transitions for {key}")
+        index[key] = t
+    return MappingProxyType(index)
+
+
+TRANSITION_INDEX: Mapping[tuple[State402, Trigger], Transition] = _index_transitions()
+"""``(source, trigger) -> Transition`` (transition 0 has no source and is not indexed)."""
+
+
+def transition(state: State402, trigger: Trigger) -> Transition | None:
+    """The transition ``trigger`` causes in ``state``, or ``None`` (the trigger is ignored there)."""
+    return TRANSITION_INDEX.get((state, trigger))
+
+
+def next_command(state: State402, goal: State402, *, allow_fault_reset: bool = True) -> Trigger | None:
+    """First master command on a shortest path from ``state`` to ``goal`` through :data:`TRANSITIONS`.
+
+    Only unguarded transitions triggered by master commands are used; ``None``
+    when ``state == goal`` or no such path exists (e.g. from states that only
+    leave automatically). Ties are broken by :class:`Trigger` order.
+    """
+    if state == goal:
+        return None
+    edges: dict[State402, list[Transition]] = {s: [] for s in State402}
+    for t in TRANSITIONS:
+        if t.source is None or t.condition or t.trigger not in MASTER_COMMANDS:
+            continue
+        if t.trigger is Trigger.FAULT_RESET and not allow_fault_reset:
+            continue
+        edges[t.source].append(t)
+    for lst in edges.values():
+        lst.sort(key=lambda t: (int(t.trigger), t.number))
+    first: dict[State402, Trigger] = {}
+    seen = {state}
+    queue: deque[State402] = deque([state])
+    while queue:
+        s = queue.popleft()
+        for t in edges[s]:
+            if t.target in seen:
+                continue
+            seen.add(t.target)
+            first[t.target] = first.get(s, t.trigger)
+            if t.target == goal:
+                return first[t.target]
+            queue.append(t.target)
+    return None
+
+
+def mermaid_diagram() -> str:
+    """The state diagram as a mermaid ``stateDiagram-v2``, drawn from :data:`TRANSITIONS`."""
+    lines = ["stateDiagram-v2"]
+    for t in TRANSITIONS:
+        src = "[*]" if t.source is None else t.source.name
+        label = f"{t.number}: {t.trigger_name}"
+        if t.trigger in CONTROLWORD:
+            label += f" ({CONTROLWORD[t.trigger]:#06x})"
+        if t.condition:
+            label += f" [{t.condition}]"
+        lines.append(f"    {src} --> {t.target.name}: {label}")
+    return "\n".join(lines)
+
+
+def transition_table_markdown() -> str:
+    """:data:`TRANSITIONS` as a markdown table (for docs/cia402.md)."""
+    rows = [
+        "| # | from | trigger | controlword (bits 0-3, 7) | to | condition |",
+        "|---|------|---------|---------------------------|----|-----------|",
+    ]
+    for t in TRANSITIONS:
+        if t.trigger is Trigger.FAULT_RESET:
+            word = f"`{FAULT_RESET_BIT:#06x}` rising edge"
+        elif t.trigger in CONTROLWORD:
+            word = f"`{CONTROLWORD[t.trigger]:#06x}`"
+        else:
+            word = "internal fault" if t.trigger is Trigger.FAULT else "automatic"
+        src = "power on" if t.source is None else t.source.name
+        rows.append(f"| {t.number} | {src} | {t.trigger_name} | {word} | {t.target.name} | {t.condition} |")
+    return "\n".join(rows)
+
+
+# --------------------------------------------------------------------------- modes
+
+
+class Mode(IntEnum):
+    """modes_of_operation (0x6060, master output) / display (0x6061, master input) values."""
+
+    NO_MODE = 0
+    PROFILE_POSITION = 1
+    PROFILE_VELOCITY = 3
+    PROFILE_TORQUE = 4
+    HOMING = 6
+    INTERPOLATED_POSITION = 7
+    CSP = 8  # cyclic synchronous position
+    CSV = 9  # cyclic synchronous velocity
+    CST = 10  # cyclic synchronous torque
+
+
+# --------------------------------------------------------------------------- controller
+
+
+class Goal(IntEnum):
+    """What the master wants of an axis; :class:`Cia402Controller` walks the table toward it."""
+
+    DISABLE = 0  # SWITCH_ON_DISABLED by disable voltage; a fault is left latched
+    ENABLE = 1  # OPERATION_ENABLED in the requested mode (resets a fault on the way)
+    QUICK_STOP = 2  # quick stop command; reached in QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED or FAULT
+    FAULT_RESET = 3  # reset a fault, then rest in SWITCH_ON_DISABLED
+
+
+class SafeStop(IntEnum):
+    """Controlword :meth:`Cia402Controller.safe_stop` writes (master output)."""
+
+    QUICK_STOP = 0x0002
+    DISABLE_VOLTAGE = 0x0000
+
+
+_HOLD = 0xFFFF  # table marker: keep the last state-machine bits (unknown statusword)
+_N_ROWS = len(State402) + 1  # last row: UNKNOWN_STATE (index -1 wraps onto it)
+_N_GOALS = len(Goal)
+
+_GOAL_TARGET: Mapping[Goal, State402] = MappingProxyType(
+    {
+        Goal.DISABLE: State402.SWITCH_ON_DISABLED,
+        Goal.ENABLE: State402.OPERATION_ENABLED,
+        Goal.FAULT_RESET: State402.SWITCH_ON_DISABLED,
+    }
+)
+_QUICK_STOP_REACHED = (State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT)
+
+
+def _build_controller_tables() -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """Per (state row, goal): the state-machine controlword bits, whether the goal is reached,
+    and whether the cell is a fault-reset pulse. Derived from :data:`TRANSITIONS` by :func:`next_command`.
+    """
+    cw = np.zeros((_N_ROWS, _N_GOALS), dtype=np.uint16)
+    reached = np.zeros((_N_ROWS, _N_GOALS), dtype=bool)
+    pulse = np.zeros((_N_ROWS, _N_GOALS), dtype=bool)
+    for goal in Goal:
+        for s in State402:
+            if goal is Goal.QUICK_STOP:
+                cw[s, goal] = CONTROLWORD[Trigger.QUICK_STOP]
+                reached[s, goal] = s in _QUICK_STOP_REACHED
+                continue
+            target = _GOAL_TARGET[goal]
+            reset_allowed = goal is not Goal.DISABLE
+            cmd = next_command(s, target, allow_fault_reset=reset_allowed)
+            if s == target:  # hold the goal: the command that leads into it
+                cmd = Trigger.ENABLE_OPERATION if goal is Goal.ENABLE else Trigger.DISABLE_VOLTAGE
+                reached[s, goal] = True
+            elif goal is Goal.DISABLE and s is State402.FAULT:
+                reached[s, goal] = True  # power is off; the fault stays latched
+            if cmd is Trigger.FAULT_RESET:
+                pulse[s, goal] = True
+                cw[s, goal] = 0  # bit 7 is added by the pulse generator
+            elif cmd is None:  # only automatic exits (NOT_READY, FAULT_REACTION): wait neutrally
+                cw[s, goal] = CONTROLWORD[Trigger.DISABLE_VOLTAGE]
+            else:
+                cw[s, goal] = CONTROLWORD[cmd]
+    cw[_N_ROWS - 1, :] = _HOLD
+    for a in (cw, reached, pulse):
+        a.flags.writeable = False
+    return cw, reached, pulse
+
+
+CONTROLLER_CW, CONTROLLER_REACHED, CONTROLLER_PULSE = _build_controller_tables()
+"""Controller tables, shape ``(len(State402) + 1, len(Goal))``; the last row is UNKNOWN_STATE."""
+
+_CW_FLAT = CONTROLLER_CW.reshape(-1)
+_REACHED_FLAT = CONTROLLER_REACHED.reshape(-1)
+_PULSE_FLAT = CONTROLLER_PULSE.reshape(-1)
+
+
+class Cia402Controller:
+    """Non-blocking CiA 402 master logic for ``n_axes`` drives, one table step per cycle.
+
+    Each cycle :meth:`step` reads the statusword array (master inputs), writes
+    the state-machine bits (0-3, 7) of the controlword array (master outputs)
+    in place and leaves every other controlword bit as the caller set it
+    (bits 4-6 mode-specific, bit 8 halt, ...). Per-axis goals live in
+    :attr:`goal` (set them with :meth:`set_goal`).
+
+    Per-axis results, updated every cycle (read-only views for the caller):
+    :attr:`state` (int8 :class:`State402` codes, -1 unknown), :attr:`reached`,
+    :attr:`transitions` (state changes seen since the goal was set),
+    :attr:`cycles` (cycles spent not at the goal since it was set),
+    :attr:`stuck` (no state change for more than ``timeout_cycles`` while
+    the goal is not reached), :attr:`mode_ok` (display matches request).
+
+    A fault reset is a pulse on bit 7: ``fault_reset_cycles`` cycles high
+    (the rising edge), as many low, repeated while the drive stays in FAULT.
+    """
+
+    def __init__(
+        self,
+        n_axes: int,
+        *,
+        timeout_cycles: int = 1000,
+        safe_stop_word: SafeStop = SafeStop.QUICK_STOP,
+        fault_reset_cycles: int = 1,
+        mode: Mode = Mode.CSP,
+    ) -> None:
+        if n_axes < 1:
+            raise ValueError(f"n_axes must be >= 1, got {n_axes}")
+        if timeout_cycles < 1:
+            raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
+        if fault_reset_cycles < 1:
+            raise ValueError(f"fault_reset_cycles must be >= 1, got {fault_reset_cycles}")
+        self.n_axes = n_axes
+        self.timeout_cycles = timeout_cycles
+        self.safe_stop_word = SafeStop(safe_stop_word)
+        self.fault_reset_cycles = fault_reset_cycles
+        n = n_axes
+        self.goal: npt.NDArray[np.int8] = np.full(n, Goal.DISABLE, dtype=np.int8)
+        self.state: npt.NDArray[np.int8] = np.full(n, UNKNOWN_STATE, dtype=np.int8)
+        self.reached: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)
+        self.stuck: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)
+        self.transitions: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)
+        self.cycles: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)
+        self.since_progress: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)
+        self.mode_request: npt.NDArray[np.int8] = np.full(n, int(mode), dtype=np.int8)
+        self.mode_ok: npt.NDArray[np.bool_] = np.ones(n, dtype=bool)
+        # scratch, preallocated once
+        self._prev_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
+        self._idx = np.zeros(n, dtype=np.intp)
+        self._sm = np.zeros(n, dtype=np.uint16)
+        self._last_sm = np.zeros(n, dtype=np.uint16)
+        self._phase = np.zeros(n, dtype=np.int32)
+        self._tmp_i32 = np.zeros(n, dtype=np.int32)
+        self._changed = np.zeros(n, dtype=bool)
+        self._b1 = np.zeros(n, dtype=bool)
+        self._b2 = np.zeros(n, dtype=bool)
+        self._pulse = np.zeros(n, dtype=bool)
+        self._goal_enable = np.zeros(n, dtype=bool)
+        self._goal_not_enable = np.ones(n, dtype=bool)
+        self._keep_mask = np.uint16(0xFFFF & ~CONTROLWORD_STATE_BITS)
+        self._hold = np.uint16(_HOLD)
+        self._bit7 = np.uint16(FAULT_RESET_BIT)
+        self._switch_on = np.uint16(CONTROLWORD[Trigger.SWITCH_ON])
+        self._zero_i32 = np.int32(0)
+
+    # -- goals (not in the cycle's hot path, but allocation-free too) --
+
+    def set_goal(self, goal: Goal, axes: Any = slice(None)) -> None:
+        """Set the goal of ``axes`` (an index, slice, or mask; default all) and restart their counters."""
+        self.goal[axes] = Goal(goal)
+        self._restart(axes)
+
+    def request_mode(self, mode: Mode | int, axes: Any = slice(None)) -> None:
+        """Ask ``axes`` to switch to ``mode`` (written to modes_of_operation each :meth:`step`)."""
+        self.mode_request[axes] = int(mode)
+        self._restart(axes)
+
+    def _restart(self, axes: Any) -> None:
+        self.transitions[axes] = 0
+        self.cycles[axes] = 0
+        self.since_progress[axes] = 0
+        self.stuck[axes] = False
+        self.reached[axes] = False
+        np.equal(self.goal, Goal.ENABLE, out=self._goal_enable)
+        np.logical_not(self._goal_enable, out=self._goal_not_enable)
+
+    # -- the cycle --
+
+    def step(
+        self,
+        statusword: npt.NDArray[Any],
+        controlword_out: npt.NDArray[Any],
+        modes_display: npt.NDArray[Any] | None = None,
+        modes_out: npt.NDArray[Any] | None = None,
+    ) -> None:
+        """One cycle: statusword (uint16, master inputs) -> controlword (uint16, master outputs, in place).
+
+        With ``modes_display`` (0x6061, master input) and ``modes_out`` (0x6060,
+        master output) the requested modes are written and an ENABLE goal waits
+        in SWITCHED_ON until the display matches (and is reached only then).
+        """
+        state, idx, sm = self.state, self._idx, self._sm
+        decode_states(statusword, state, idx)
+        np.not_equal(state, self._prev_state, out=self._changed)
+        np.add(self.transitions, self._changed, out=self.transitions)
+        np.copyto(self._prev_state, state)
+
+        # table lookup: flat index state * n_goals + goal; UNKNOWN (-1) wraps onto the last row
+        np.multiply(state, _N_GOALS, out=idx)
+        np.add(idx, self.goal, out=idx)
+        np.take(_CW_FLAT, idx, out=sm, mode="wrap")
+        np.take(_REACHED_FLAT, idx, out=self.reached, mode="wrap")
+        np.take(_PULSE_FLAT, idx, out=self._pulse, mode="wrap")
+        np.equal(sm, self._hold, out=self._b1)
+        np.copyto(sm, self._last_sm, where=self._b1)
+
+        # modes: write the request, compare the display, gate the enable on a match
+        if modes_out is not None:
+            np.copyto(modes_out, self.mode_request, casting="unsafe")
+        if modes_display is None:
+            self.mode_ok.fill(True)
+        else:
+            np.equal(modes_display, self.mode_request, out=self.mode_ok)
+            np.equal(state, np.int8(State402.SWITCHED_ON), out=self._b1)
+            np.logical_and(self._b1, self._goal_enable, out=self._b1)
+            np.logical_not(self.mode_ok, out=self._b2)
+            np.logical_and(self._b1, self._b2, out=self._b1)
+            np.copyto(sm, self._switch_on, where=self._b1)
+            np.logical_or(self.mode_ok, self._goal_not_enable, out=self._b2)
+            np.logical_and(self.reached, self._b2, out=self.reached)
+
+        # fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat
+        phase = self._phase
+        np.multiply(phase, self._pulse, out=phase)
+        np.remainder(phase, 2 * self.fault_reset_cycles, out=self._tmp_i32)
+        np.less(self._tmp_i32, self.fault_reset_cycles, out=self._b1)
+        np.logical_and(self._b1, self._pulse, out=self._b1)
+        np.bitwise_or(sm, self._bit7, out=sm, where=self._b1)
+        np.add(phase, self._pulse, out=phase)
+
+        # write bits 0-3, 7; keep the caller's other bits
+        np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
+        np.bitwise_or(controlword_out, sm, out=controlword_out)
+        np.copyto(self._last_sm, sm)
+
+        # progress bookkeeping
+        np.logical_not(self.reached, out=self._b2)
+        np.add(self.cycles, self._b2, out=self.cycles)
+        np.add(self.since_progress, self._b2, out=self.since_progress)
+        np.logical_or(self._changed, self.reached, out=self._b1)
+        np.copyto(self.since_progress, self._zero_i32, where=self._b1)
+        np.greater(self.since_progress, self.timeout_cycles, out=self.stuck)
+
+    def safe_stop(self, controlword_out: npt.NDArray[Any]) -> None:
+        """Write the safe-stop command into every controlword (master outputs) now, and make it the goal.
+
+        Quick stop (0x02) or disable voltage (0x00), per ``safe_stop_word``; bits
+        outside 0-3 and 7 are kept. Used when the working-counter policy
+        escalates and on close. Later :meth:`step` calls keep the axes stopped.
+        """
+        word = np.uint16(self.safe_stop_word)
+        self.goal.fill(Goal.QUICK_STOP if self.safe_stop_word is SafeStop.QUICK_STOP else Goal.DISABLE)
+        self._restart(slice(None))
+        np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
+        np.bitwise_or(controlword_out, word, out=controlword_out)
+        self._last_sm.fill(word)
+
+    @property
+    def all_reached(self) -> bool:
+        """Every axis is at its goal."""
+        return bool(self.reached.all())
+
+    @property
+    def any_stuck(self) -> bool:
+        """Some axis made no progress for more than ``timeout_cycles`` cycles."""
+        return bool(self.stuck.any())

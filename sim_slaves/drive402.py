@@ -1,0 +1,663 @@
+"""An emulated CiA 402 drive: the state machine of ``fieldbus.core.cia402`` plus rotor physics.
+
+Shared by the EtherCAT and CANopen emulators: each cycle the emulator calls
+:meth:`Cia402Drive.step` with the drive's object dictionary (anything with
+``get_value``/``set_value``, see :class:`ObjectStore`) and the cycle time.
+The drive reads what the master wrote (controlword 0x6040, modes 0x6060,
+targets 0x607A/0x60FF/0x6071 — the master's outputs, RxPDO here) and writes
+what the master reads (statusword 0x6041, modes display 0x6061, actual
+values 0x6064/0x606C/0x6077, following error 0x60F4, error code 0x603F —
+the master's inputs, TxPDO here).
+
+State machine: :data:`fieldbus.core.cia402.TRANSITIONS`, the same table the
+master's controller plans with. A commanded transition takes effect once the
+command has been seen for ``transition_cycles`` consecutive steps (default 1:
+on the step that first sees it). Fault reset acts on the rising edge of
+controlword bit 7; a held bit 7 is ignored.
+
+Physics (SI inside, counts at the object dictionary): a rigid rotor + load of
+inertia ``J`` [kg·m²] with viscous friction ``b`` [N·m·s/rad], integrated
+exactly for a torque held over each control substep (``control_rate_hz``).
+Torque limit from 0x6072 [‰ of rated torque]. CSP: cascaded position P ->
+velocity PI -> torque with velocity (and optional acceleration) feed-forward
+and linear interpolation of the target over the cycle, as real drives do.
+CSV: the velocity PI alone. CST: torque directly. Optional thermal model:
+winding temperature from I²R losses through a first-order thermal network;
+the torque constant falls by ``kt_temp_coeff_per_k`` (NdFeB: -0.1 %/K), so the
+shaft torque falls short of the demand, while 0x6077 reports the drive's own
+estimate (current x nominal kt), as a real drive does.
+
+Deterministic and pure: no randomness, no clock (``dt_s`` is a parameter).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Protocol
+
+from fieldbus.core.cia402 import (
+    COMMAND_BY_NIBBLE,
+    FAULT_RESET_BIT,
+    STATUSWORD_STATE_BITS,
+    TRANSITION_INDEX,
+    Mode,
+    State402,
+    StatusBit,
+    Transition,
+    Trigger,
+)
+from fieldbus.errors import FieldbusError
+
+TWO_PI = 2.0 * math.pi
+
+
+class ObjectStore(Protocol):
+    """The drive's object dictionary. ``get_value`` raises ``LookupError`` (e.g. ``KeyError``) for a missing object."""
+
+    def get_value(self, index: int, sub: int) -> int | float: ...
+
+    def set_value(self, index: int, sub: int, value: int | float) -> None: ...
+
+
+class Obj(IntEnum):
+    """CiA 402 objects the drive uses (all sub-index 0). Units at the OD: counts, counts/s, ‰, ms."""
+
+    ERROR_CODE = 0x603F  # UNSIGNED16, written by the drive
+    CONTROLWORD = 0x6040  # UNSIGNED16, master output (required)
+    STATUSWORD = 0x6041  # UNSIGNED16, master input (required)
+    QUICK_STOP_OPTION = 0x605A  # INTEGER16: 0 coast, 1/2 ramp -> SOD, 5/6 ramp and stay
+    FAULT_REACTION_OPTION = 0x605E  # INTEGER16: 0 coast, 1/2 ramp
+    MODES_OF_OPERATION = 0x6060  # INTEGER8, master output
+    MODES_DISPLAY = 0x6061  # INTEGER8, master input
+    POSITION_ACTUAL = 0x6064  # INTEGER32 counts, master input
+    FOLLOWING_ERROR_WINDOW = 0x6065  # UNSIGNED32 counts; 0xFFFFFFFF = off
+    FOLLOWING_ERROR_TIMEOUT = 0x6066  # UNSIGNED16 ms
+    POSITION_WINDOW = 0x6067  # UNSIGNED32 counts (target reached, CSP)
+    VELOCITY_ACTUAL = 0x606C  # INTEGER32 counts/s, master input
+    VELOCITY_WINDOW = 0x606D  # UNSIGNED16 counts/s (target reached, CSV)
+    TARGET_TORQUE = 0x6071  # INTEGER16 ‰ of rated torque, master output
+    MAX_TORQUE = 0x6072  # UNSIGNED16 ‰ of rated torque
+    TORQUE_ACTUAL = 0x6077  # INTEGER16 ‰ of rated torque, master input
+    TARGET_POSITION = 0x607A  # INTEGER32 counts, master output
+    QUICK_STOP_DECELERATION = 0x6085  # UNSIGNED32 counts/s²
+    FOLLOWING_ERROR_ACTUAL = 0x60F4  # INTEGER32 counts, master input
+    TARGET_VELOCITY = 0x60FF  # INTEGER32 counts/s, master output
+
+
+REQUIRED_OBJECTS: tuple[Obj, ...] = (Obj.CONTROLWORD, Obj.STATUSWORD)
+"""Objects a drive cannot run without; every other object is used when present."""
+
+FOLLOWING_ERROR_OFF = 0xFFFFFFFF
+
+ERROR_FOLLOWING = 0x8611  # CiA 402: following error
+ERROR_OVERTEMPERATURE = 0x4310  # CiA 402: excess temperature, drive
+
+
+class MissingObjectError(FieldbusError, LookupError):
+    """The object dictionary lacks an object the drive needs."""
+
+    def __init__(self, index: int, sub: int = 0) -> None:
+        self.index = index
+        self.sub = sub
+        super().__init__(f"CiA 402 drive needs object {index:#06x}:{sub} in its object dictionary")
+
+
+@dataclass(frozen=True)
+class DriveParams:
+    """Drive and motor parameters (SI units unless the name says otherwise).
+
+    Defaults: a small robot-joint servo, 17-bit encoder, 1 N·m rated, 3 N·m peak.
+    Objects present in the OD (0x6065, 0x6066, 0x6067, 0x606D, 0x6072, 0x6085,
+    0x605A, 0x605E) override the matching defaults here; they are read when the
+    drive binds to an OD (first step, or :meth:`Cia402Drive.bind`) and again on
+    every state transition, so an SDO write during PRE-OP takes effect by the
+    time the drive is enabled; call ``bind(od)`` to apply one at once.
+    """
+
+    counts_per_rev: int = 1 << 17  # encoder counts per revolution
+    inertia_kg_m2: float = 2.0e-4  # rotor + reflected load
+    friction_nm_s_per_rad: float = 1.0e-3  # viscous friction b
+    rated_torque_nm: float = 1.0  # 1000 ‰ in 0x6071/0x6072/0x6077
+    max_torque_permille: int = 3000  # default for 0x6072
+    torque_constant_nm_per_a: float = 0.1  # kt at ambient_c
+    resistance_ohm: float = 0.5  # winding (phase-equivalent) resistance at ambient_c
+    # control (cascade: position P -> velocity PI -> torque)
+    control_rate_hz: float = 4000.0  # internal loop rate; substeps = round(dt_s * rate)
+    velocity_bandwidth_hz: float = 100.0  # kv = J * 2π f; PI zero at f/4
+    position_gain_per_s: float = 150.0  # kp (rad/s per rad)
+    velocity_feedforward: float = 1.0  # CSP: gain on the target's velocity
+    torque_feedforward: float = 0.0  # CSP: gain on J * the target's acceleration
+    # defaults of objects the OD may lack
+    following_error_window_counts: int = 10_000  # 0x6065
+    following_error_timeout_ms: int = 0  # 0x6066: fault when exceeded for longer than this
+    position_window_counts: int = 100  # 0x6067
+    velocity_window_counts_s: int = 1000  # 0x606D
+    quick_stop_decel_counts_s2: int = 2_000_000  # 0x6085
+    quick_stop_option: int = 2  # 0x605A
+    fault_reaction_option: int = 0  # 0x605E
+    # state machine timing, in steps (cycles)
+    transition_cycles: int = 1  # steps a command must be seen before its transition
+    self_test_cycles: int = 1  # NOT_READY_TO_SWITCH_ON -> SWITCH_ON_DISABLED (transition 1)
+    fault_reaction_cycles: int = 1  # minimum steps in FAULT_REACTION_ACTIVE (transition 14)
+    mode_switch_cycles: int = 1  # steps before 0x6061 follows a new 0x6060
+    initial_mode: int = Mode.CSP
+    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.CSP, Mode.CSV, Mode.CST)
+    # thermal model
+    thermal: bool = False
+    ambient_c: float = 25.0
+    thermal_resistance_k_per_w: float = 1.0  # winding to ambient
+    thermal_capacitance_j_per_k: float = 60.0  # winding + stator
+    kt_temp_coeff_per_k: float = -0.001  # NdFeB remanence: -0.1 %/K
+    resistance_temp_coeff_per_k: float = 0.00393  # copper
+    warning_temperature_c: float = 100.0  # statusword bit 7
+    fault_temperature_c: float = 130.0  # fault 0x4310 (reset refused above the warning level)
+    standstill_rad_s: float = 0.01  # quick stop / fault reaction is done below this speed
+
+    def __post_init__(self) -> None:
+        positive = ("counts_per_rev", "inertia_kg_m2", "rated_torque_nm", "torque_constant_nm_per_a")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"DriveParams.{name} must be > 0")
+        if self.friction_nm_s_per_rad < 0:
+            raise ValueError("DriveParams.friction_nm_s_per_rad must be >= 0")
+        for name in ("transition_cycles", "self_test_cycles", "fault_reaction_cycles", "mode_switch_cycles"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"DriveParams.{name} must be >= 1")
+
+
+_POWERED = frozenset({State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE, State402.FAULT_REACTION_ACTIVE})
+_OE = State402.OPERATION_ENABLED
+_QSA = State402.QUICK_STOP_ACTIVE
+_FRA = State402.FAULT_REACTION_ACTIVE
+_FAULT = State402.FAULT
+_NOT_READY = State402.NOT_READY_TO_SWITCH_ON
+_CSP, _CSV, _CST = int(Mode.CSP), int(Mode.CSV), int(Mode.CST)
+# plain ints for the per-cycle path (enum attribute access costs ~100 ns each)
+_X_ERROR_CODE = int(Obj.ERROR_CODE)
+_X_CONTROLWORD = int(Obj.CONTROLWORD)
+_X_STATUSWORD = int(Obj.STATUSWORD)
+_X_MODES = int(Obj.MODES_OF_OPERATION)
+_X_MODES_DISPLAY = int(Obj.MODES_DISPLAY)
+_X_POSITION_ACTUAL = int(Obj.POSITION_ACTUAL)
+_X_VELOCITY_ACTUAL = int(Obj.VELOCITY_ACTUAL)
+_X_TORQUE_ACTUAL = int(Obj.TORQUE_ACTUAL)
+_X_TARGET_POSITION = int(Obj.TARGET_POSITION)
+_X_TARGET_VELOCITY = int(Obj.TARGET_VELOCITY)
+_X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
+_X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
+_SW_STATE = {s: int(v) for s, v in STATUSWORD_STATE_BITS.items()}
+_SW_REMOTE = int(StatusBit.REMOTE)
+_SW_VOLTAGE = int(StatusBit.VOLTAGE_ENABLED)
+_SW_FOLLOWS = int(StatusBit.FOLLOWS_TARGET)
+_SW_FOLLOWING_ERROR = int(StatusBit.FOLLOWING_ERROR)
+_SW_TARGET_REACHED = int(StatusBit.TARGET_REACHED)
+_SW_LIMIT = int(StatusBit.INTERNAL_LIMIT_ACTIVE)
+_SW_WARNING = int(StatusBit.WARNING)
+
+_OPTIONAL_INPUTS = (Obj.MODES_OF_OPERATION, Obj.TARGET_POSITION, Obj.TARGET_VELOCITY, Obj.TARGET_TORQUE)
+_OPTIONAL_OUTPUTS = (
+    Obj.MODES_DISPLAY,
+    Obj.POSITION_ACTUAL,
+    Obj.VELOCITY_ACTUAL,
+    Obj.TORQUE_ACTUAL,
+    Obj.FOLLOWING_ERROR_ACTUAL,
+    Obj.ERROR_CODE,
+)
+
+
+class Cia402Drive:
+    """One emulated CiA 402 servo drive. Call :meth:`step` once per cycle.
+
+    Public state (SI): ``state``, ``position_rad``, ``velocity_rad_s``,
+    ``torque_demand_nm`` (what the drive commands and reports in 0x6077),
+    ``shaft_torque_nm`` (what the motor delivers: demand x kt(T)/kt0),
+    ``load_torque_nm`` (external torque opposing motion, set by a test),
+    ``temperature_c``, ``error_code``, ``last_transition`` (number from the table).
+    """
+
+    def __init__(self, params: DriveParams | None = None, *, position_counts: int = 0) -> None:
+        p = params or DriveParams()
+        self.params = p
+        self.state = _NOT_READY
+        self.last_transition: int = 0  # transition 0: power on
+        self.transitions_taken: int = 0
+        self.rad_per_count = TWO_PI / p.counts_per_rev
+        self.counts_per_rad = p.counts_per_rev / TWO_PI
+        self.position_rad = position_counts * self.rad_per_count
+        self.velocity_rad_s = 0.0
+        self.torque_demand_nm = 0.0
+        self.shaft_torque_nm = 0.0
+        self.load_torque_nm = 0.0
+        self.temperature_c = p.ambient_c
+        self.error_code = 0
+        self.mode_display = int(p.initial_mode)
+        self.following_error_counts = 0
+        self.limit_active = False
+        # control internals
+        self._integral = 0.0
+        self._prev_target_rad = self.position_rad
+        self._prev_vff = 0.0
+        self._ramp_v = 0.0
+        self._prev_cw = 0
+        self._pending: Transition | None = None
+        self._pending_steps = 0
+        self._mode_pending = self.mode_display
+        self._mode_steps = 0
+        self._auto_steps = 0  # steps spent in a state left automatically
+        self._reset_latched = False
+        self._fault_pending = 0
+        self._fault_persistent = False
+        self._fe_time_s = 0.0
+        self._standstill = False
+        # integration coefficients, cached per substep length
+        self._h = -1.0
+        self._e = self._f = self._g = self._hh = 0.0
+        # object dictionary binding
+        self._od: ObjectStore | None = None
+        self._has: dict[int, bool] = {}
+        self._load_config_defaults()
+
+    # -- fault injection (tests) --
+
+    def inject_fault(self, code: int, *, persistent: bool = False) -> None:
+        """Raise a fault with error code ``code`` (0x603F) at the next step; a persistent one refuses reset."""
+        if not 0 < code <= 0xFFFF:
+            raise ValueError(f"error code must be 1..0xFFFF, got {code:#x}")
+        self._fault_pending = code
+        self._fault_persistent = persistent
+
+    def clear_fault_cause(self) -> None:
+        """Remove the cause of a persistent fault: a fault reset will now succeed."""
+        self._fault_persistent = False
+
+    # -- object dictionary --
+
+    def _probe(self, od: ObjectStore, index: int) -> bool:
+        try:
+            od.get_value(index, 0)
+        except LookupError:
+            return False
+        return True
+
+    def bind(self, od: ObjectStore) -> None:
+        """Check the OD (required objects present) and note which optional objects it has."""
+        for obj in REQUIRED_OBJECTS:
+            if not self._probe(od, obj):
+                raise MissingObjectError(obj)
+        self._has = {int(o): self._probe(od, o) for o in Obj}
+        self._od = od
+        self._read_config(od)
+
+    def _load_config_defaults(self) -> None:
+        p = self.params
+        self.fe_window = p.following_error_window_counts
+        self.fe_timeout_s = p.following_error_timeout_ms / 1000.0
+        self.position_window = p.position_window_counts
+        self.velocity_window = p.velocity_window_counts_s
+        self.max_torque_nm = p.max_torque_permille * p.rated_torque_nm / 1000.0
+        self.qs_decel = p.quick_stop_decel_counts_s2 * self.rad_per_count
+        self.qs_option = p.quick_stop_option
+        self.fr_option = p.fault_reaction_option
+
+    def _read_config(self, od: ObjectStore) -> None:
+        self._load_config_defaults()
+        has = self._has
+        p = self.params
+        if has[Obj.FOLLOWING_ERROR_WINDOW]:
+            self.fe_window = int(od.get_value(Obj.FOLLOWING_ERROR_WINDOW, 0))
+        if has[Obj.FOLLOWING_ERROR_TIMEOUT]:
+            self.fe_timeout_s = float(od.get_value(Obj.FOLLOWING_ERROR_TIMEOUT, 0)) / 1000.0
+        if has[Obj.POSITION_WINDOW]:
+            self.position_window = int(od.get_value(Obj.POSITION_WINDOW, 0))
+        if has[Obj.VELOCITY_WINDOW]:
+            self.velocity_window = int(od.get_value(Obj.VELOCITY_WINDOW, 0))
+        if has[Obj.MAX_TORQUE]:
+            self.max_torque_nm = float(od.get_value(Obj.MAX_TORQUE, 0)) * p.rated_torque_nm / 1000.0
+        if has[Obj.QUICK_STOP_DECELERATION]:
+            self.qs_decel = float(od.get_value(Obj.QUICK_STOP_DECELERATION, 0)) * self.rad_per_count
+        if has[Obj.QUICK_STOP_OPTION]:
+            self.qs_option = int(od.get_value(Obj.QUICK_STOP_OPTION, 0))
+        if has[Obj.FAULT_REACTION_OPTION]:
+            self.fr_option = int(od.get_value(Obj.FAULT_REACTION_OPTION, 0))
+
+    # -- the cycle --
+
+    def step(self, od: ObjectStore, dt_s: float) -> None:
+        """Advance one cycle of ``dt_s`` seconds: read the master's outputs from ``od``, write its inputs."""
+        if od is not self._od:
+            self.bind(od)
+        if dt_s <= 0.0:
+            raise ValueError(f"dt_s must be > 0, got {dt_s}")
+        has = self._has
+        get = od.get_value
+        cw = int(get(_X_CONTROLWORD, 0))
+        mode_req = int(get(_X_MODES, 0)) if has[_X_MODES] else self.mode_display
+
+        self._state_machine(cw)
+        self._modes(mode_req)
+
+        mode = self.mode_display
+        state = self.state
+        target_rad = self._prev_target_rad
+        target_v = 0.0
+        target_tau = 0.0
+        if state is _OE:
+            if mode == _CSP and has[_X_TARGET_POSITION]:
+                target_rad = float(get(_X_TARGET_POSITION, 0)) * self.rad_per_count
+            elif mode == _CSV and has[_X_TARGET_VELOCITY]:
+                target_v = float(get(_X_TARGET_VELOCITY, 0)) * self.rad_per_count
+            elif mode == _CST and has[_X_TARGET_TORQUE]:
+                target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.params.rated_torque_nm / 1000.0
+        self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
+        self._outputs(od, dt_s, state, mode, target_rad, target_v)
+        self._prev_cw = cw
+
+    # -- state machine (table-driven) --
+
+    def _take(self, t: Transition) -> None:
+        src = self.state
+        self.state = t.target
+        self.last_transition = t.number
+        self.transitions_taken += 1
+        self._pending = None
+        self._pending_steps = 0
+        self._auto_steps = 0
+        if t.target is _OE or t.target is _QSA or t.target is _FRA:
+            self._integral = 0.0 if t.target is _OE else self._integral
+            self._ramp_v = self.velocity_rad_s
+            self._standstill = False
+        if t.target is _OE:
+            self._prev_target_rad = self.position_rad
+            self._prev_vff = 0.0
+            self._fe_time_s = 0.0
+        if src is _FAULT:
+            self.error_code = 0
+        if self._od is not None:
+            self._read_config(self._od)
+
+    def _state_machine(self, cw: int) -> None:
+        p = self.params
+        state = self.state
+        if self._fault_pending and state is not _FRA and state is not _FAULT:
+            self.error_code = self._fault_pending
+            self._fault_pending = 0
+            self._take(TRANSITION_INDEX[(state, Trigger.FAULT)])
+            return
+        if state is _NOT_READY:
+            self._auto_steps += 1
+            if self._auto_steps >= p.self_test_cycles:
+                self._take(TRANSITION_INDEX[(state, Trigger.AUTO)])
+            return
+        if state is _FRA:
+            self._auto_steps += 1
+            if self._auto_steps >= p.fault_reaction_cycles and (self.fr_option == 0 or self._standstill):
+                self._take(TRANSITION_INDEX[(state, Trigger.AUTO)])
+            return
+        if state is _FAULT:
+            if cw & FAULT_RESET_BIT and not self._prev_cw & FAULT_RESET_BIT:
+                self._reset_latched = True
+                self._pending_steps = 0
+            if self._reset_latched:
+                if self._fault_persistent or (
+                    p.thermal
+                    and self.error_code == ERROR_OVERTEMPERATURE
+                    and self.temperature_c > p.warning_temperature_c
+                ):
+                    self._reset_latched = False  # cause still present: the reset is refused
+                    return
+                self._pending_steps += 1
+                if self._pending_steps >= p.transition_cycles:
+                    self._reset_latched = False
+                    self._take(TRANSITION_INDEX[(state, Trigger.FAULT_RESET)])
+            return
+        trigger = COMMAND_BY_NIBBLE[cw & 0x0F]
+        t = TRANSITION_INDEX.get((state, trigger))
+        if t is not None and t.condition and not 5 <= self.qs_option <= 8:
+            t = None  # transition 16 needs quick stop option code 5-8
+        if t is None:
+            self._pending = None
+            self._pending_steps = 0
+            if state is _QSA and self.qs_option <= 4 and (self._standstill or self.qs_option == 0):
+                self._take(TRANSITION_INDEX[(state, Trigger.AUTO)])
+            return
+        if t is self._pending:
+            self._pending_steps += 1
+        else:
+            self._pending = t
+            self._pending_steps = 1
+        if self._pending_steps >= p.transition_cycles:
+            self._take(t)
+
+    def _modes(self, mode_req: int) -> None:
+        if mode_req == self.mode_display or mode_req not in self.params.supported_modes:
+            self._mode_steps = 0
+            return
+        if mode_req != self._mode_pending:
+            self._mode_pending = mode_req
+            self._mode_steps = 0
+        self._mode_steps += 1
+        if self._mode_steps >= self.params.mode_switch_cycles:
+            self.mode_display = mode_req
+            self._mode_steps = 0
+            # bumpless: loops restart from the present motion
+            self._integral = 0.0
+            self._prev_target_rad = self.position_rad
+            self._prev_vff = self.velocity_rad_s
+
+    # -- physics --
+
+    def _coefficients(self, h: float) -> None:
+        p = self.params
+        j, b = p.inertia_kg_m2, p.friction_nm_s_per_rad
+        self._h = h
+        if b > 0.0:
+            e = math.exp(-b * h / j)
+            self._e = e  # velocity decay over h
+            self._f = (1.0 - e) / b  # velocity per unit torque
+            self._g = (1.0 - e) * j / b  # position per unit initial velocity
+            self._hh = (h - self._g) / b  # position per unit torque
+        else:
+            self._e, self._f, self._g, self._hh = 1.0, h / j, h, h * h / (2.0 * j)
+
+    def _physics(
+        self, dt_s: float, state: State402, mode: int, target_rad: float, target_v: float, target_tau: float
+    ) -> None:
+        p = self.params
+        n = max(1, round(dt_s * p.control_rate_hz))
+        h = dt_s / n
+        if h != self._h:
+            self._coefficients(h)
+        e_, f_, g_, hh_ = self._e, self._f, self._g, self._hh
+        j = p.inertia_kg_m2
+        wv = TWO_PI * p.velocity_bandwidth_hz
+        kv = j * wv
+        ki = kv * wv * 0.25
+        kp = p.position_gain_per_s
+        tmax = self.max_torque_nm
+        cpr, rpc = self.counts_per_rad, self.rad_per_count
+        kt_ratio = 1.0
+        if p.thermal:
+            kt_ratio = max(0.0, 1.0 + p.kt_temp_coeff_per_k * (self.temperature_c - p.ambient_c))
+        load = self.load_torque_nm
+        pos, vel, integ = self.position_rad, self.velocity_rad_s, self._integral
+        limit = False
+        tau = 0.0
+        tau_sq = 0.0
+        powered = state in _POWERED
+        ramp = powered and state is not _OE
+        if (state is _QSA and self.qs_option == 0) or (state is _FRA and self.fr_option == 0):
+            powered = ramp = False  # option 0: disable the drive function, the motor coasts
+        prev_t = self._prev_target_rad
+        vff = 0.0
+        aff = 0.0
+        if powered and not ramp and mode == _CSP:
+            vff = (target_rad - prev_t) / dt_s
+            aff = (vff - self._prev_vff) / dt_s
+            self._prev_vff = vff
+            vff *= p.velocity_feedforward
+            aff *= p.torque_feedforward * j
+        ramp_v = self._ramp_v
+        dv = self.qs_decel * h
+        for k in range(1, n + 1):
+            if not powered:
+                tau = 0.0
+            else:
+                if ramp:  # quick stop / fault reaction: ramp the speed to zero, then hold
+                    if ramp_v > dv:
+                        ramp_v -= dv
+                    elif ramp_v < -dv:
+                        ramp_v += dv
+                    else:
+                        ramp_v = 0.0
+                    v_ref = ramp_v
+                    ff = 0.0
+                elif mode == _CSP:
+                    ref = prev_t + (target_rad - prev_t) * (k / n)
+                    v_ref = vff + kp * (ref - math.floor(pos * cpr + 0.5) * rpc)
+                    ff = aff
+                elif mode == _CSV:
+                    v_ref = target_v
+                    ff = 0.0
+                else:
+                    v_ref = 0.0
+                    ff = 0.0
+                if mode == _CST and not ramp:
+                    tau = target_tau
+                elif mode in (_CSP, _CSV) or ramp:
+                    ev = v_ref - vel
+                    integ += ki * ev * h
+                    if integ > tmax:
+                        integ = tmax
+                    elif integ < -tmax:
+                        integ = -tmax
+                    tau = kv * ev + integ + ff
+                else:
+                    tau = 0.0
+                if tau > tmax:
+                    tau, limit = tmax, True
+                elif tau < -tmax:
+                    tau, limit = -tmax, True
+            net = tau * kt_ratio - load
+            pos += vel * g_ + net * hh_
+            vel = vel * e_ + net * f_
+            tau_sq += tau * tau
+        if ramp and ramp_v == 0.0 and abs(vel) < p.standstill_rad_s:
+            self._standstill = True
+        self.position_rad, self.velocity_rad_s, self._integral = pos, vel, integ
+        self._ramp_v = ramp_v
+        self._prev_target_rad = target_rad if state is _OE and mode == _CSP else pos
+        self.torque_demand_nm = tau
+        self.shaft_torque_nm = tau * kt_ratio
+        self.limit_active = limit
+        if p.thermal:
+            self._thermal(dt_s, tau_sq / n)
+
+    def _thermal(self, dt_s: float, tau_sq_mean: float) -> None:
+        p = self.params
+        t = self.temperature_c
+        r = p.resistance_ohm * (1.0 + p.resistance_temp_coeff_per_k * (t - p.ambient_c))
+        i_sq = tau_sq_mean / (p.torque_constant_nm_per_a * p.torque_constant_nm_per_a)
+        t_ss = p.ambient_c + i_sq * r * p.thermal_resistance_k_per_w
+        tau_th = p.thermal_resistance_k_per_w * p.thermal_capacitance_j_per_k
+        self.temperature_c = t_ss + (t - t_ss) * math.exp(-dt_s / tau_th)
+        hot = self.temperature_c > p.fault_temperature_c
+        if hot and not self._fault_pending and self.state is not _FRA and self.state is not _FAULT:
+            self._fault_pending = ERROR_OVERTEMPERATURE
+
+    # -- outputs (master inputs) --
+
+    def _outputs(
+        self, od: ObjectStore, dt_s: float, state: State402, mode: int, target_rad: float, target_v: float
+    ) -> None:
+        p = self.params
+        has = self._has
+        put = od.set_value
+        cpr = self.counts_per_rad
+        pos_counts = math.floor(self.position_rad * cpr + 0.5)
+        sw = _SW_STATE[state] | _SW_REMOTE
+        if state is not _NOT_READY:
+            sw |= _SW_VOLTAGE
+        fe = 0
+        if state is _OE:
+            if mode in (_CSP, _CSV, _CST):
+                sw |= _SW_FOLLOWS
+            if mode == _CSP:
+                fe = math.floor(target_rad * cpr + 0.5) - pos_counts
+                window = self.fe_window
+                if window != FOLLOWING_ERROR_OFF and abs(fe) > window:
+                    sw |= _SW_FOLLOWING_ERROR
+                    self._fe_time_s += dt_s
+                    if self._fe_time_s > self.fe_timeout_s + 1e-12 and not self._fault_pending:
+                        self._fault_pending = ERROR_FOLLOWING  # fault reaction starts next step
+                else:
+                    self._fe_time_s = 0.0
+                if abs(fe) <= self.position_window:
+                    sw |= _SW_TARGET_REACHED
+            elif mode == _CSV:
+                if abs(self.velocity_rad_s - target_v) * cpr <= self.velocity_window:
+                    sw |= _SW_TARGET_REACHED
+            elif mode == _CST:
+                sw |= _SW_TARGET_REACHED
+        elif state is _QSA and self._standstill:
+            sw |= _SW_TARGET_REACHED
+        if self.limit_active:
+            sw |= _SW_LIMIT
+        if p.thermal and self.temperature_c > p.warning_temperature_c:
+            sw |= _SW_WARNING
+        self.following_error_counts = fe
+        put(_X_STATUSWORD, 0, sw)
+        if has[_X_MODES_DISPLAY]:
+            put(_X_MODES_DISPLAY, 0, self.mode_display)
+        if has[_X_POSITION_ACTUAL]:
+            put(_X_POSITION_ACTUAL, 0, pos_counts)
+        if has[_X_VELOCITY_ACTUAL]:
+            put(_X_VELOCITY_ACTUAL, 0, math.floor(self.velocity_rad_s * cpr + 0.5))
+        if has[_X_TORQUE_ACTUAL]:
+            put(_X_TORQUE_ACTUAL, 0, math.floor(self.torque_demand_nm * 1000.0 / p.rated_torque_nm + 0.5))
+        if has[_X_FOLLOWING_ERROR]:
+            put(_X_FOLLOWING_ERROR, 0, fe)
+        if has[_X_ERROR_CODE]:
+            put(_X_ERROR_CODE, 0, self.error_code)
+
+
+def default_objects(params: DriveParams | None = None) -> dict[tuple[int, int], int | float]:
+    """Every object :class:`Cia402Drive` uses, at its default value (a starting OD for emulators and tests)."""
+    p = params or DriveParams()
+    values: dict[Obj, int | float] = {
+        Obj.ERROR_CODE: 0,
+        Obj.CONTROLWORD: 0,
+        Obj.STATUSWORD: 0,
+        Obj.QUICK_STOP_OPTION: p.quick_stop_option,
+        Obj.FAULT_REACTION_OPTION: p.fault_reaction_option,
+        Obj.MODES_OF_OPERATION: int(p.initial_mode),
+        Obj.MODES_DISPLAY: int(p.initial_mode),
+        Obj.POSITION_ACTUAL: 0,
+        Obj.FOLLOWING_ERROR_WINDOW: p.following_error_window_counts,
+        Obj.FOLLOWING_ERROR_TIMEOUT: p.following_error_timeout_ms,
+        Obj.POSITION_WINDOW: p.position_window_counts,
+        Obj.VELOCITY_ACTUAL: 0,
+        Obj.VELOCITY_WINDOW: p.velocity_window_counts_s,
+        Obj.TARGET_TORQUE: 0,
+        Obj.MAX_TORQUE: p.max_torque_permille,
+        Obj.TORQUE_ACTUAL: 0,
+        Obj.TARGET_POSITION: 0,
+        Obj.QUICK_STOP_DECELERATION: p.quick_stop_decel_counts_s2,
+        Obj.FOLLOWING_ERROR_ACTUAL: 0,
+        Obj.TARGET_VELOCITY: 0,
+    }
+    return {(int(index), 0): value for index, value in values.items()}
+
+
+class DictObjectStore:
+    """A minimal dict-backed :class:`ObjectStore` (tests, examples); missing objects raise ``KeyError``."""
+
+    def __init__(self, values: dict[tuple[int, int], int | float] | None = None) -> None:
+        self.values: dict[tuple[int, int], int | float] = default_objects() if values is None else values
+
+    def get_value(self, index: int, sub: int) -> int | float:
+        return self.values[(index, sub)]
+
+    def set_value(self, index: int, sub: int, value: int | float) -> None:
+        self.values[(index, sub)] = value

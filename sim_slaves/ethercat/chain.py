@@ -1,0 +1,308 @@
+"""A line of emulated ESCs, sans-IO: a master frame in, the returning frame out.
+
+Each datagram passes every slave in wire order (processing datagram by
+datagram is equivalent: a slave only changes its own memory). Working-counter
+rules (ETG.1000.4): a read adds 1, a write 1; APRW/FPRW/BRW add 3 per slave
+that reads and writes; LRW adds 1 per slave with a read FMMU hit and 2 per
+slave with a write hit (3 for both); ARMW/FRMW add 1 per slave. Auto-increment
+and broadcast commands increment ADP at every slave; a position command
+addresses the slave where ADP arrives as 0. BRD ORs the slaves' data.
+The reply has the request's length and the locally administered bit (0x02)
+set in the first source-MAC byte.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
+from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.esc import App, Esc
+from sim_slaves.ethercat.sii import SiiImage, build_sii
+from sim_slaves.od import ObjectDictionary
+
+WATCHDOG_CHECK_NS = 1_000_000  # process-data watchdogs are checked at most this often [ns]
+AppFactory = Callable[[DriveMap, ObjectDictionary], App | None]
+
+_APRD, _APWR, _APRW = 1, 2, 3
+_FPRD, _FPWR, _FPRW = 4, 5, 6
+_BRD, _BWR, _BRW = 7, 8, 9
+_LRD, _LWR, _LRW = 10, 11, 12
+_ARMW, _FRMW = 13, 14
+_ADDRESS_WRITERS = frozenset({_APWR, _APRW, _FPWR, _FPRW, _BWR, _BRW, _ARMW, _FRMW})
+
+
+@dataclass
+class Faults:
+    """Pending fault injections of a chain (see :class:`EscChain` fault hooks)."""
+
+    drop: int = 0
+    delay_frames: int = 0
+    delay_s: float = 0.0
+    corrupt_frames: int = 0
+    corrupt_delta: int = -1
+    corrupt_all: bool = False
+    log: list[str] = field(default_factory=list)
+
+
+class EscChain:
+    """N slaves in a line. ``process(frame, now_ns)`` is the whole wire interface."""
+
+    def __init__(self, slaves: Sequence[Esc]) -> None:
+        self.slaves = list(slaves)
+        self.faults = Faults()
+        self.frames = 0
+        self.pending_delay = 0.0
+        self._stations: dict[int, list[Esc]] | None = None
+        self._watchdog_checked = -WATCHDOG_CHECK_NS
+
+    @classmethod
+    def from_maps(
+        cls,
+        maps: Sequence[DriveMap],
+        *,
+        app: str | AppFactory | None = "auto",
+        sii: Sequence[SiiImage | None] | None = None,
+    ) -> EscChain:
+        """One slave per map, in wire order. ``app``: "auto" (CiA 402 drive for 402 maps), None, or a factory."""
+        n = len(maps)
+        slaves = []
+        for i, drive in enumerate(maps):
+            od = ObjectDictionary.from_drive_map(drive)
+            image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive)
+            assert image is not None
+            factory = default_app if app == "auto" else app
+            the_app = factory(drive, od) if callable(factory) else None
+            slaves.append(Esc(image, od, position=i, chain_length=n, app=the_app, name=drive.name))
+        return cls(slaves)
+
+    def __len__(self) -> int:
+        return len(self.slaves)
+
+    # -- wire --
+
+    def process(self, frame: bytes | bytearray, now_ns: int) -> bytes | None:
+        """The frame as it returns to the master, or None when it is lost (fault: drop)."""
+        buf = bytearray(frame)
+        n = self.process_into(buf, len(buf), now_ns)
+        return bytes(buf[:n]) if n else None
+
+    def process_into(self, buf: bytearray, n: int, now_ns: int, *, cycles: bool = True) -> int:
+        """In place: process the first ``n`` bytes of ``buf``; returns the reply length (0: drop).
+
+        ``cycles`` False leaves the slaves' application cycles (outputs -> OD,
+        app step, OD -> inputs) to :meth:`run_cycles`, so an I/O layer can
+        send the reply first: the inputs it computes travel in the next frame
+        either way. Raises :class:`~fieldbus.core.ecat.FrameError` for a
+        malformed frame.
+        """
+        view = memoryview(buf)[:n]
+        offsets = datagram_offsets(view)
+        self.frames += 1
+        faults = self.faults
+        slaves = self.slaves
+        if now_ns - self._watchdog_checked >= WATCHDOG_CHECK_NS:
+            self._watchdog_checked = now_ns
+            for s in slaves:
+                if s.state == AlState.OP:
+                    s.check_watchdog(now_ns)
+        if faults.drop:
+            faults.drop -= 1
+            return 0
+        count = len(slaves)
+        logical = False
+        for off in offsets:
+            cmd = buf[off]
+            adp = buf[off + 2] | buf[off + 3] << 8
+            ado = buf[off + 4] | buf[off + 5] << 8
+            length = (buf[off + 6] | buf[off + 7] << 8) & 0x7FF
+            doff = off + DATAGRAM_HEADER_SIZE
+            woff = doff + length
+            wkc = buf[woff] | buf[woff + 1] << 8
+            if _LRD <= cmd <= _LRW:
+                logical = True
+                laddr = adp | ado << 16
+                for s in slaves:
+                    if s.pd_active:
+                        wkc += s.logical(cmd, laddr, buf, doff, length)
+            elif cmd in (_FPRD, _FPWR, _FPRW, _FRMW):
+                targets = self._by_station(adp)
+                if cmd == _FRMW:
+                    wkc += self._rmw(targets, buf, doff, length, ado, now_ns)
+                else:
+                    for s in targets:
+                        wkc += _physical(s, cmd - 3, buf, doff, length, ado, now_ns)
+            elif cmd in (_APRD, _APWR, _APRW):
+                pos = (-adp) & 0xFFFF
+                if pos < count:
+                    wkc += _physical(slaves[pos], cmd, buf, doff, length, ado, now_ns)
+                _put16(buf, off + 2, adp + count)
+            elif cmd in (_BRD, _BWR, _BRW):
+                wkc += self._broadcast(cmd, buf, doff, length, ado, now_ns)
+                _put16(buf, off + 2, adp + count)
+            elif cmd == _ARMW:
+                pos = (-adp) & 0xFFFF
+                targets = [slaves[pos]] if pos < count else []
+                wkc += self._rmw(targets, buf, doff, length, ado, now_ns)
+                _put16(buf, off + 2, adp + count)
+            if cmd in _ADDRESS_WRITERS and ado <= 0x0103 and ado + length > 0x0010:
+                self._stations = None  # station address / alias / DL control may have changed
+            if faults.corrupt_frames and (logical or faults.corrupt_all):
+                wkc += faults.corrupt_delta
+            _put16(buf, woff, wkc)
+        if faults.corrupt_frames and (logical or faults.corrupt_all):
+            faults.corrupt_frames -= 1
+        buf[6] |= LOCALLY_ADMINISTERED
+        if logical and cycles:
+            self.run_cycles(now_ns)
+        if faults.delay_frames:
+            faults.delay_frames -= 1
+            self.pending_delay = faults.delay_s
+        return n
+
+    def run_cycles(self, now_ns: int) -> None:
+        """Application cycle of every slave whose process data the last frame exchanged."""
+        for s in self.slaves:
+            if s.touched:
+                s.cycle(now_ns)
+
+    def tick(self, now_ns: int) -> None:
+        """Time passes without frames (process-data watchdogs)."""
+        for s in self.slaves:
+            s.check_watchdog(now_ns)
+
+    def take_delay(self) -> float:
+        """Seconds the I/O layer should hold the last reply back (fault: delay), then 0."""
+        d, self.pending_delay = self.pending_delay, 0.0
+        return d
+
+    # -- addressing helpers --
+
+    def _by_station(self, adp: int) -> list[Esc]:
+        st = self._stations
+        if st is None:
+            st = {}
+            for s in self.slaves:
+                st.setdefault(s.station_address, []).append(s)
+                if s.alias_enabled and s.alias != s.station_address:
+                    st.setdefault(s.alias, []).append(s)
+            self._stations = st
+        return st.get(adp, [])
+
+    def _broadcast(self, cmd: int, buf: bytearray, doff: int, length: int, ado: int, now_ns: int) -> int:
+        inc = 0
+        data = bytes(buf[doff : doff + length])
+        acc = int.from_bytes(data, "little")
+        for s in self.slaves:
+            if cmd != _BWR:
+                got = s.read(ado, length, now_ns)
+                if got is not None:
+                    acc |= int.from_bytes(got, "little")
+                    inc += 1
+            if cmd != _BRD and s.write(ado, data, now_ns):
+                inc += 1 if cmd == _BWR else 2
+        if cmd != _BWR:
+            buf[doff : doff + length] = acc.to_bytes(length, "little")
+        return inc
+
+    def _rmw(self, targets: list[Esc], buf: bytearray, doff: int, length: int, ado: int, now_ns: int) -> int:
+        """ARMW/FRMW: the addressed slave reads into the datagram, every other slave writes it."""
+        inc = 0
+        if ado >= 0x0910 and ado + length <= 0x0918 and len(targets) == 1:
+            # DC system time distribution: the others' clock control loops take it; nothing is stored
+            got = targets[0].read(ado, length, now_ns)
+            if got is not None:
+                buf[doff : doff + length] = got
+            return len(self.slaves) - (got is None)
+        for s in self.slaves:
+            if s in targets:
+                got = s.read(ado, length, now_ns)
+                if got is not None:
+                    buf[doff : doff + length] = got
+                    inc += 1
+            elif s.write(ado, bytes(buf[doff : doff + length]), now_ns):
+                inc += 1
+        return inc
+
+    # -- fault hooks --
+
+    def drop_frames(self, count: int = 1) -> None:
+        """Lose the next ``count`` frames (no reply, nothing processed)."""
+        self.faults.drop += count
+
+    def delay_frames(self, seconds: float, count: int = 1) -> None:
+        """Hold back the replies of the next ``count`` frames by ``seconds`` (the I/O layer sleeps)."""
+        self.faults.delay_frames = count
+        self.faults.delay_s = seconds
+
+    def corrupt_wkc(self, delta: int = -1, count: int = 1, *, all_frames: bool = False) -> None:
+        """Add ``delta`` to every datagram WKC of the next ``count`` process-data frames (or any frames)."""
+        self.faults.corrupt_frames = count
+        self.faults.corrupt_delta = delta
+        self.faults.corrupt_all = all_frames
+
+    def power_cycle(self, slave: int) -> None:
+        """Slave ``slave`` (0-based) loses power and comes back: registers reset, state INIT."""
+        self.slaves[slave].power_on()
+        self._stations = None
+
+    def refuse_state(self, slave: int, state: AlState, code: int) -> None:
+        """Slave ``slave`` refuses to enter ``state`` with AL status code ``code`` (until cleared)."""
+        self.slaves[slave].refuse[state] = code
+
+    def abort_sdo(self, slave: int, index: int, sub: int | None, code: int) -> None:
+        """SDO accesses to ``index:sub`` on slave ``slave`` abort with ``code`` (until cleared)."""
+        self.slaves[slave].od.inject_abort(index, sub, code)
+
+    def emergency(self, slave: int, error_code: int, error_register: int = 0) -> None:
+        """Slave ``slave`` sends a CoE emergency message."""
+        self.slaves[slave].send_emergency(error_code, error_register)
+
+    def clear_faults(self) -> None:
+        """Undo every pending or persistent fault injection."""
+        self.faults = Faults()
+        self.pending_delay = 0.0
+        for s in self.slaves:
+            s.refuse.clear()
+            s.od.clear_aborts()
+
+
+def _physical(s: Esc, cmd: int, buf: bytearray, doff: int, length: int, ado: int, now_ns: int) -> int:
+    """APRD/APWR/APRW (FP* mapped onto them): one slave's read (+1), write (+1) or both (+3)."""
+    if cmd == _APRD:
+        got = s.read(ado, length, now_ns)
+        if got is None:
+            return 0
+        buf[doff : doff + length] = got
+        return 1
+    data = bytes(buf[doff : doff + length])
+    if cmd == _APWR:
+        return 1 if s.write(ado, data, now_ns) else 0
+    got = s.read(ado, length, now_ns)
+    inc = 0
+    if got is not None:
+        inc += 1
+    if s.write(ado, data, now_ns):
+        inc += 2
+    if got is not None:
+        buf[doff : doff + length] = got
+    return inc
+
+
+def _put16(buf: bytearray, off: int, value: int) -> None:
+    value &= 0xFFFF
+    buf[off] = value & 0xFF
+    buf[off + 1] = value >> 8
+
+
+def default_app(drive: DriveMap, od: ObjectDictionary) -> App | None:
+    """A CiA 402 drive (sim_slaves.drive402) for maps with a controlword, else None."""
+    if not (od.has(0x6040) and od.has(0x6041)):
+        return None
+    try:
+        from sim_slaves.drive402 import Cia402Drive
+    except ImportError:
+        return None
+    return Cia402Drive()

@@ -1,0 +1,498 @@
+"""One emulated EtherCAT slave controller (ESC): register memory, AL state, SII, mailbox, FMMU/SM.
+
+Sans-IO: the chain hands each slave the datagrams addressed to it as
+``read(ado, n, now)`` / ``write(ado, data, now)`` (physical) and
+``logical(...)`` (through the FMMUs); "now" is in ns. Directions from the
+master's side: outputs = SM2 (RxPDO), inputs = SM3 (TxPDO).
+
+Memory: 0x0000-0x0FFF registers, 0x1000-0x2FFF process RAM (8 KiB).
+Registers with behaviour: 0x0010 station address, 0x0012 alias, 0x0110 DL
+status, 0x0120 AL control -> 0x0130 AL status / 0x0134 AL status code,
+0x0400/0x0420 watchdog divider / process-data watchdog time, 0x0500-0x050F
+EEPROM interface, 0x0600 FMMUs (16 B each), 0x0800 SyncManagers (8 B each),
+0x0900-0x09A7 distributed clocks (:class:`~sim_slaves.ethercat.dc.DcClock`).
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Protocol
+
+from sim_slaves.ethercat.al import AL_ERROR_INDICATOR, TRANSITIONS, AlState, AlStatusCode, Check
+from sim_slaves.ethercat.coe import SdoServer, emergency_payload
+from sim_slaves.ethercat.dc import DcClock
+from sim_slaves.ethercat.mailbox import Mailbox
+from sim_slaves.ethercat.pdo import ProcessImage
+from sim_slaves.ethercat.sii import SM_TYPE_INPUTS, SM_TYPE_OUTPUTS, SiiImage
+from sim_slaves.od import CommState, ObjectDictionary
+
+MEM_SIZE = 0x3000
+RAM_START = 0x1000
+ESC_TYPE = 0x11  # ET1100-like
+FEATURES = 0x000C  # DC supported, 64-bit DC
+N_FMMU = 8
+N_SM = 8
+EEPROM_R64 = 0x0040  # EEPROM status: 8-byte reads
+WD_DIVIDER_DEFAULT = 2498  # (2498 + 2) x 40 ns = 100 us
+WD_PD_DEFAULT = 1000  # x 100 us = 100 ms
+DEFAULT_DT_S = 0.001
+
+_RO_RANGES = ((0x0000, 0x0010), (0x0110, 0x0112), (0x0130, 0x0136), (0x0900, 0x0920))
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_SM = struct.Struct("<HHBBBB")
+_FMMU = struct.Struct("<IHBBHBBB")
+_COMM_STATE = {
+    AlState.INIT: CommState.INIT,
+    AlState.BOOT: CommState.INIT,
+    AlState.PRE_OP: CommState.PRE_OPERATIONAL,
+    AlState.SAFE_OP: CommState.SAFE_OPERATIONAL,
+    AlState.OP: CommState.OPERATIONAL,
+}
+
+
+class App(Protocol):
+    """The slave's application: called once per process-data exchange with the OD and the cycle time [s]."""
+
+    def step(self, od: ObjectDictionary, dt_s: float) -> None: ...
+
+
+class LoopbackApp:
+    """Test application: copies each output (RxPDO) value to the input (TxPDO) entry at the same position."""
+
+    def __init__(self, pairs: list[tuple[tuple[int, int], tuple[int, int]]]) -> None:
+        self.pairs = pairs
+
+    def step(self, od: ObjectDictionary, dt_s: float) -> None:
+        for (oi, os_), (ii, is_) in self.pairs:
+            od.set_value(ii, is_, od.get_value(oi, os_))
+
+
+class Esc:
+    """One slave. ``position`` is 0-based in wire order of a chain of ``chain_length``."""
+
+    def __init__(
+        self,
+        sii: SiiImage,
+        od: ObjectDictionary,
+        *,
+        position: int = 0,
+        chain_length: int = 1,
+        app: App | None = None,
+        name: str = "",
+    ) -> None:
+        self.sii = sii
+        self.od = od
+        self.app = app
+        self.name = name or sii.name
+        self.position = position
+        self.chain_length = chain_length
+        self.dc = DcClock(position, chain_length)
+        mbx_out = sii.mailbox_out[1] if sii.protocols else 0
+        mbx_in = sii.mailbox_in[1] if sii.protocols else 0
+        self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in)
+        self.refuse: dict[AlState, int] = {}  # fault hook: refuse entering a state with this AL status code
+        self.cycles = 0
+        self.mem = bytearray(MEM_SIZE)
+        self.power_on()
+
+    # -- power / reset --
+
+    def power_on(self) -> None:
+        """Power-on reset: registers to defaults, state INIT, mailbox empty, FMMU/SM cleared."""
+        mem = self.mem
+        mem[:] = bytes(MEM_SIZE)
+        mem[0x0000] = ESC_TYPE
+        mem[0x0001] = 0x02
+        _U16.pack_into(mem, 0x0002, 0x0003)
+        mem[0x0004] = N_FMMU
+        mem[0x0005] = N_SM
+        mem[0x0006] = (MEM_SIZE - RAM_START) // 1024
+        mem[0x0007] = 0x0F  # ports 0 and 1: MII
+        _U16.pack_into(mem, 0x0008, FEATURES)
+        _U16.pack_into(mem, 0x0012, self.sii.word(0x0004))  # configured station alias from SII
+        _U16.pack_into(mem, 0x0110, self._dl_status())
+        mem[0x0120] = AlState.INIT
+        mem[0x0130] = AlState.INIT
+        mem[0x0140] = self.sii.word(0x0000) & 0xFF
+        _U16.pack_into(mem, 0x0400, WD_DIVIDER_DEFAULT)
+        _U16.pack_into(mem, 0x0410, WD_PD_DEFAULT)
+        _U16.pack_into(mem, 0x0420, WD_PD_DEFAULT)
+        _U16.pack_into(mem, 0x0502, EEPROM_R64)
+        self.state = AlState.INIT
+        self.error = False
+        self.status_code = 0
+        self.sm: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * N_SM  # start, length, control, activate
+        self.lmap: tuple[tuple[int, int, int, bool], ...] = ()  # log start, log end, phys start, is-write
+        self.pd_active = False
+        self.sm0_full = False
+        self.sm1_full = False
+        self.sm1_buf = b""
+        self._repeat_bit = 0
+        self.mailbox.reset()
+        self.image = ProcessImage(self.od, self.name)
+        self.last_output_ns: int | None = None
+        self.last_step_ns: int | None = None
+        self.outputs_written = False
+        self.touched = False
+
+    def _dl_status(self) -> int:
+        """DL status: PDI operational, port 0 link + communication; port 1 too unless last in line."""
+        last = self.position == self.chain_length - 1
+        port1 = 0x0400 if last else 0x0820  # closed loop / link + open with communication
+        return 0x0001 | 0x0010 | 0x0200 | port1 | 0x1000 | 0x4000
+
+    # -- addressing --
+
+    @property
+    def station_address(self) -> int:
+        return int(self.mem[0x0010] | self.mem[0x0011] << 8)
+
+    @property
+    def alias(self) -> int:
+        return int(self.mem[0x0012] | self.mem[0x0013] << 8)
+
+    @property
+    def alias_enabled(self) -> bool:
+        return bool(self.mem[0x0103] & 0x01)
+
+    # -- physical access --
+
+    def read(self, ado: int, n: int, now_ns: int) -> bytes | None:
+        """Register/RAM read by the master; None when the ESC denies it (no WKC)."""
+        end = ado + n
+        if end > MEM_SIZE:
+            return bytes(n)
+        if end > RAM_START:
+            return self._read_ram(ado, n)
+        if ado < 0x0918 and end > 0x0910:
+            self.dc.fill_system_time(self.mem, now_ns)
+        return bytes(self.mem[ado:end])
+
+    def write(self, ado: int, data: bytes | memoryview, now_ns: int) -> bool:
+        """Register/RAM write by the master; False when the ESC denies it (no WKC)."""
+        n = len(data)
+        end = ado + n
+        if end > MEM_SIZE:
+            return True
+        if ado >= RAM_START:
+            return self._write_ram(ado, data)
+        mem = self.mem
+        old = bytes(mem[ado:end])
+        mem[ado:end] = data
+        for s, e in _RO_RANGES:
+            if s < end and ado < e:
+                lo, hi = max(s, ado), min(e, end)
+                mem[lo:hi] = old[lo - ado : hi - ado]
+        if ado < 0x0122 and end > 0x0120:
+            self._al_control(now_ns)
+        if ado < 0x0504 and end > 0x0502:
+            self._eeprom_command()
+        if ado < 0x0600 + 16 * N_FMMU and end > 0x0600:
+            self._fmmu_written()
+        if ado < 0x0800 + 8 * N_SM and end > 0x0800:
+            self._sm_written()
+        if ado < 0x0904 and end > 0x0900:
+            self.dc.latch(mem, now_ns)
+        return True
+
+    # -- mailbox RAM --
+
+    def _read_ram(self, ado: int, n: int) -> bytes | None:
+        end = ado + n
+        if self.mailbox.size_in:
+            s1, l1, _, _ = self.sm[1]
+            if l1 and ado < s1 + l1 and end > s1:
+                if not self.sm1_full:
+                    return None
+                data = bytes(self.mem[ado:end])
+                if end >= s1 + l1:  # last byte read: buffer released
+                    self.sm1_full = False
+                    self._load_sm1()
+                return data
+        return bytes(self.mem[ado:end])
+
+    def _write_ram(self, ado: int, data: bytes | memoryview) -> bool:
+        end = ado + len(data)
+        if self.mailbox.size_out:
+            s0, l0, _, _ = self.sm[0]
+            if l0 and ado < s0 + l0 and end > s0:
+                if self.sm0_full:
+                    return False
+                self.mem[ado:end] = data
+                if end >= s0 + l0:
+                    self._mailbox_written(bytes(self.mem[s0 : s0 + l0]))
+                return True
+            s1, l1, _, _ = self.sm[1]
+            if l1 and ado < s1 + l1 and end > s1:
+                return False  # the master cannot write the slave's send mailbox
+        self.mem[ado:end] = data
+        return True
+
+    def _mailbox_active(self) -> bool:
+        return self.state in (AlState.PRE_OP, AlState.SAFE_OP, AlState.OP)
+
+    def _mailbox_written(self, buf: bytes) -> None:
+        if not self._mailbox_active():
+            return
+        self.sm0_full = True
+        self._sm_status()
+        self.mailbox.receive(buf, _COMM_STATE[self.state])
+        self.sm0_full = False  # the application took it at once
+        self._load_sm1()
+
+    def _load_sm1(self) -> None:
+        """Put the next queued answer into SM1 if it is free."""
+        if not self.sm1_full and self.mailbox.pending:
+            s1, l1, _, _ = self.sm[1]
+            buf = self.mailbox.pending.popleft()
+            self.mem[s1 : s1 + l1] = buf[:l1].ljust(l1, b"\x00")
+            self.sm1_buf = buf
+            self.sm1_full = True
+        self._sm_status()
+
+    def _repeat(self) -> None:
+        """Repeat request: deliver the last answer again."""
+        if self.sm1_buf:
+            s1, l1, _, _ = self.sm[1]
+            if self.sm1_full:
+                self.mailbox.pending.appendleft(bytes(self.mem[s1 : s1 + l1]))
+            self.mem[s1 : s1 + l1] = self.sm1_buf[:l1].ljust(l1, b"\x00")
+            self.sm1_full = True
+        self.mem[0x080F] = (self.mem[0x080F] & ~0x02) | self._repeat_bit
+        self._sm_status()
+
+    def _sm_status(self) -> None:
+        self.mem[0x0805] = 0x08 if self.sm0_full else 0x00
+        self.mem[0x080D] = 0x08 if self.sm1_full else 0x00
+
+    def send_emergency(self, error_code: int, error_register: int = 0, data: bytes = b"") -> None:
+        """Queue a CoE emergency message for the master (when the mailbox is in use)."""
+        if self.mailbox.size_in:
+            self.mailbox.send_coe(emergency_payload(error_code, error_register, data))
+            if self._mailbox_active():
+                self._load_sm1()
+
+    # -- SyncManagers and FMMUs --
+
+    def _sm_written(self) -> None:
+        mem = self.mem
+        old01 = self.sm[:2]
+        sms = []
+        for i in range(N_SM):
+            start, length, ctrl, _status, act, _pdi = _SM.unpack_from(mem, 0x0800 + 8 * i)
+            sms.append((start, length, ctrl, act))
+            mem[0x0807 + 8 * i] = 0
+        self.sm = sms
+        rep = mem[0x080E] & 0x02
+        if [(*x[:3], x[3] & 1) for x in sms[:2]] != [(*x[:3], x[3] & 1) for x in old01]:
+            self._reset_mailbox_buffers()
+        elif rep != self._repeat_bit:
+            self._repeat_bit = rep
+            self._repeat()
+        self._repeat_bit = rep
+        self._sm_status()
+        self._update_lmap()
+
+    def _reset_mailbox_buffers(self) -> None:
+        self.sm0_full = False
+        self.sm1_full = False
+        self.sm1_buf = b""
+        self.mem[0x080F] = 0
+
+    def _fmmu_written(self) -> None:
+        self._update_lmap()
+
+    def _fmmus(self) -> list[tuple[int, int, int, int, int]]:
+        """Active FMMUs: (logical start, length, physical start, type, activate)."""
+        out = []
+        for i in range(N_FMMU):
+            log, length, _sb, _eb, phys, _pb, kind, act = _FMMU.unpack_from(self.mem, 0x0600 + 16 * i)
+            if act & 0x01 and length and kind & 0x03:
+                out.append((log, length, phys, kind, act))
+        return out
+
+    def _update_lmap(self) -> None:
+        self.lmap = tuple(
+            (log, log + length, phys, bool(kind & 0x02)) for log, length, phys, kind, _ in self._fmmus()
+        )
+
+    # -- process data (hot path) --
+
+    def logical(self, cmd: int, laddr: int, buf: bytearray, doff: int, n: int) -> int:
+        """LRD (10) / LWR (11) / LRW (12) through the FMMUs; WKC increment: LRD/LWR 1, LRW read 1 + write 2."""
+        if not self.pd_active:
+            return 0
+        inc = 0
+        lend = laddr + n
+        mem = self.mem
+        for ls, le, ps, wr in self.lmap:
+            if ls >= lend or le <= laddr:
+                continue
+            s = ls if ls > laddr else laddr
+            e = le if le < lend else lend
+            po = ps + s - ls
+            fo = doff + s - laddr
+            if wr:
+                if cmd != 10:
+                    mem[po : po + e - s] = buf[fo : fo + e - s]
+                    inc |= 2
+            elif cmd != 11:
+                buf[fo : fo + e - s] = mem[po : po + e - s]
+                inc |= 1
+        if inc:
+            self.touched = True
+            if inc & 2:
+                self.outputs_written = True
+                if cmd == 11:
+                    return 1  # LWR counts a write as 1; LRW as 2
+        return inc
+
+    def cycle(self, now_ns: int) -> None:
+        """After a frame exchanged process data: outputs -> OD (in OP), app step, OD -> inputs."""
+        img = self.image
+        if self.outputs_written:
+            self.outputs_written = False
+            self.last_output_ns = now_ns
+            if self.state == AlState.OP:
+                img.outputs.to_od(self.mem, self.sm[2][0])
+        if self.app is not None:
+            last = self.last_step_ns
+            dt = DEFAULT_DT_S if last is None else (now_ns - last) * 1e-9
+            self.app.step(self.od, dt if 1e-6 < dt < 0.1 else (1e-6 if dt <= 1e-6 else 0.1))
+        self.last_step_ns = now_ns
+        if img.inputs.size:
+            img.inputs.from_od(self.mem, self.sm[3][0])
+        self.touched = False
+        self.cycles += 1
+
+    def check_watchdog(self, now_ns: int) -> None:
+        """Process-data watchdog: no output write for longer than 0x0420 x (0x0400 + 2) x 40 ns in OP."""
+        if self.state != AlState.OP or self.last_output_ns is None:
+            return
+        _start, length, ctrl, act = self.sm[2]
+        if not (length and act & 0x01 and ctrl & 0x40):
+            return
+        mem = self.mem
+        wd = (mem[0x0420] | mem[0x0421] << 8) * ((mem[0x0400] | mem[0x0401] << 8) + 2) * 40
+        if wd and now_ns - self.last_output_ns > wd:
+            self._fail(AlStatusCode.SYNC_MANAGER_WATCHDOG, AlState.SAFE_OP)
+
+    # -- AL state machine --
+
+    def _al_control(self, now_ns: int) -> None:
+        raw = self.mem[0x0120] | self.mem[0x0121] << 8
+        req = raw & 0x0F
+        if raw & AL_ERROR_INDICATOR:
+            self.error = False
+            self.status_code = 0
+        elif self.error and req > self.state:
+            self._publish()
+            return  # error not acknowledged: no way up
+        try:
+            target = AlState(req)
+        except ValueError:
+            self._fail(AlStatusCode.UNKNOWN_STATE)
+            return
+        if target == self.state:
+            self._publish()
+            return
+        check = TRANSITIONS.get((self.state, target))
+        if check is None:
+            self._fail(AlStatusCode.INVALID_STATE_CHANGE)
+            return
+        refused = self.refuse.get(target)
+        if refused is not None:
+            self._fail(refused)
+            return
+        if check is Check.MAILBOX and not self._mailbox_config_ok():
+            self._fail(AlStatusCode.INVALID_MAILBOX_CONFIG)
+            return
+        if check is Check.PROCESS_DATA:
+            code = self._process_data_config()
+            if code:
+                self._fail(code)
+                return
+        self._enter(target, now_ns)
+
+    def _fail(self, code: int, state: AlState | None = None) -> None:
+        """Set the error indicator and status code; optionally fall back to ``state``."""
+        self.error = True
+        self.status_code = code
+        if state is not None:
+            self._enter(state, None, keep_error=True)
+        self._publish()
+
+    def _enter(self, target: AlState, now_ns: int | None, *, keep_error: bool = False) -> None:
+        if target in (AlState.INIT, AlState.BOOT):
+            self.mailbox.reset()
+            self._reset_mailbox_buffers()
+            self._sm_status()
+        self.state = target
+        self.pd_active = target in (AlState.SAFE_OP, AlState.OP)
+        if target == AlState.OP:
+            self.last_output_ns = now_ns
+        if not keep_error:
+            self._publish()
+
+    def _publish(self) -> None:
+        _U16.pack_into(self.mem, 0x0130, int(self.state) | (AL_ERROR_INDICATOR if self.error else 0))
+        _U16.pack_into(self.mem, 0x0134, self.status_code)
+
+    def _mailbox_config_ok(self) -> bool:
+        if not self.mailbox.size_out:
+            return True
+        (o_start, o_len), (i_start, i_len) = self.sii.mailbox_out, self.sii.mailbox_in
+        s0, s1 = self.sm[0], self.sm[1]
+        return (
+            s0[0] == o_start
+            and s0[1] == o_len
+            and s0[2] & 0x0F == 0x06
+            and bool(s0[3] & 0x01)
+            and s1[0] == i_start
+            and s1[1] == i_len
+            and s1[2] & 0x0F == 0x02
+            and bool(s1[3] & 0x01)
+        )
+
+    def _process_data_config(self) -> int:
+        """PRE-OP -> SAFE-OP: re-layout from the OD, then check SM2/SM3 and FMMUs (0 = fine)."""
+        if self.image.version != self.od.mapping_version:
+            self.image = ProcessImage(self.od, self.name)
+        fmmus = self._fmmus()
+        for sm_index, sm_type, size, write, code in (
+            (2, SM_TYPE_OUTPUTS, self.image.outputs.size, True, AlStatusCode.INVALID_OUTPUT_CONFIG),
+            (3, SM_TYPE_INPUTS, self.image.inputs.size, False, AlStatusCode.INVALID_INPUT_CONFIG),
+        ):
+            start, length, ctrl, act = self.sm[sm_index]
+            expected = [s.start for s in self.sii.sms if s.type == sm_type]
+            if size == 0:
+                if length and act & 0x01:
+                    return code
+                continue
+            if length != size or not act & 0x01 or (expected and start != expected[0]):
+                return code
+            if bool(ctrl & 0x04) != write or ctrl & 0x03:
+                return code
+            covered = bytearray(size)
+            for _log, flen, phys, kind, _ in fmmus:
+                if bool(kind & 0x02) != write:
+                    continue
+                lo, hi = max(phys, start), min(phys + flen, start + size)
+                covered[lo - start : hi - start] = b"\x01" * max(0, hi - lo)
+            if not all(covered):
+                return code
+        return 0
+
+    # -- EEPROM interface --
+
+    def _eeprom_command(self) -> None:
+        mem = self.mem
+        ctrl = mem[0x0502] | mem[0x0503] << 8
+        cmd = (ctrl >> 8) & 0x07
+        addr = _U32.unpack_from(mem, 0x0504)[0] & 0xFFFF
+        if cmd == 1:  # read: 8 bytes (status bit 6 advertises it)
+            mem[0x0508:0x0510] = self.sii.read(addr, 8)
+        elif cmd == 2 and ctrl & 0x01:  # write one word (write enable set)
+            self.sii.write_word(addr, mem[0x0508] | mem[0x0509] << 8)
+        _U16.pack_into(mem, 0x0502, EEPROM_R64)  # done at once: never busy, no error

@@ -1,0 +1,254 @@
+"""Run an :class:`~sim_slaves.ethercat.chain.EscChain` on a network interface (AF_PACKET, ethertype 0x88A4).
+
+    python -m sim_slaves.ethercat --iface IFACE --map MAP.yaml [--map ...] [--count N]
+        [--pcap FILE] [--control PATH] [--app auto|loopback|none]
+
+Slaves are the maps in the order given, the whole list repeated ``--count``
+times. The process prints ``ready <iface> <n> slaves`` on stdout once it
+listens and runs until SIGTERM/SIGINT. It skips frames it sent itself
+(packet type PACKET_OUTGOING) and frames whose source MAC already has the
+locally administered bit (already answered by a slave).
+
+``--control PATH`` opens a UNIX datagram socket taking one JSON object per
+datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``)::
+
+    {"cmd": "drop", "count": 1}                         lose the next frames
+    {"cmd": "delay", "seconds": 0.01, "count": 1}       hold replies back
+    {"cmd": "corrupt_wkc", "delta": -1, "count": 1}     falsify process-data WKCs
+    {"cmd": "power_cycle", "slave": 0}                  back to INIT, registers reset
+    {"cmd": "refuse_state", "slave": 0, "state": "SAFE_OP", "code": 29}
+    {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
+    {"cmd": "emergency", "slave": 0, "code": 33297}
+    {"cmd": "clear"}                                    undo all injections
+    {"cmd": "status"}                                   states, AL status codes, frame count
+
+A sender with a bound address gets ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}`` back
+(:func:`send_control` does this).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import select
+import signal
+import socket
+import struct
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from fieldbus.core.ecat import ETHERTYPE_ECAT, LOCALLY_ADMINISTERED, FrameError
+from fieldbus.core.pdo.load import load_drive_map
+from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.chain import AppFactory, EscChain
+from sim_slaves.ethercat.esc import App, LoopbackApp
+from sim_slaves.od import ObjectDictionary
+
+PACKET_OUTGOING = 4
+SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
+PCAP_LINKTYPE_ETHERNET = 1
+_PCAP_HEADER = struct.Struct("<IHHiIII")
+_PCAP_RECORD = struct.Struct("<IIII")
+
+
+class PcapWriter:
+    """Classic pcap (microsecond timestamps, linktype 1 = Ethernet)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self._f: BinaryIO = open(path, "wb")  # noqa: SIM115 - closed in close()
+        self._f.write(_PCAP_HEADER.pack(0xA1B2C3D4, 2, 4, 0, 0, 65535, PCAP_LINKTYPE_ETHERNET))
+
+    def write(self, frame: bytes | memoryview, t_s: float) -> None:
+        sec = int(t_s)
+        self._f.write(_PCAP_RECORD.pack(sec, int((t_s - sec) * 1e6), len(frame), len(frame)))
+        self._f.write(frame)
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+
+def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
+    """Outputs copied to inputs entry by entry (same position, same bit length)."""
+    from sim_slaves.od import RXPDO_ASSIGN, TXPDO_ASSIGN
+
+    outs = [c for p in od.assigned_pdos(RXPDO_ASSIGN) for c in p.channels if not c.is_gap]
+    ins = [c for p in od.assigned_pdos(TXPDO_ASSIGN) for c in p.channels if not c.is_gap]
+    pairs = [
+        ((o.index, o.sub_index), (i.index, i.sub_index))
+        for o, i in zip(outs, ins, strict=False)
+        if o.bits == i.bits
+    ]
+    return LoopbackApp(pairs)
+
+
+def build_chain(maps: list[str], count: int, app: str) -> EscChain:
+    drives = [load_drive_map(m) for m in maps] * count
+    factory: str | AppFactory | None = {"auto": "auto", "none": None, "loopback": loopback_app}[app]
+    return EscChain.from_maps(drives, app=factory)
+
+
+def handle_control(chain: EscChain, msg: dict[str, Any]) -> dict[str, Any]:
+    """Apply one control command to ``chain``; the answer to send back."""
+    cmd = msg.get("cmd")
+    slave = int(msg.get("slave", 0))
+    if cmd == "drop":
+        chain.drop_frames(int(msg.get("count", 1)))
+    elif cmd == "delay":
+        chain.delay_frames(float(msg["seconds"]), int(msg.get("count", 1)))
+    elif cmd == "corrupt_wkc":
+        chain.corrupt_wkc(
+            int(msg.get("delta", -1)), int(msg.get("count", 1)), all_frames=bool(msg.get("all"))
+        )
+    elif cmd == "power_cycle":
+        chain.power_cycle(slave)
+    elif cmd == "refuse_state":
+        chain.refuse_state(slave, AlState[str(msg["state"]).upper()], int(msg["code"]))
+    elif cmd == "abort_sdo":
+        sub = msg.get("sub")
+        chain.abort_sdo(slave, int(msg["index"]), None if sub is None else int(sub), int(msg["code"]))
+    elif cmd == "emergency":
+        chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
+    elif cmd == "clear":
+        chain.clear_faults()
+    elif cmd == "status":
+        pass
+    else:
+        return {"ok": False, "error": f"unknown command {cmd!r}"}
+    return {
+        "ok": True,
+        "frames": chain.frames,
+        "states": [int(s.state) for s in chain.slaves],
+        "al_status_codes": [s.status_code for s in chain.slaves],
+    }
+
+
+def send_control(path: str | Path, msg: dict[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
+    """Send one command to a runner's ``--control`` socket and wait for its answer."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+        me = os.path.join(tempfile.gettempdir(), f"fbctl-{os.getpid()}-{time.monotonic_ns()}")
+        s.bind(me)
+        try:
+            s.settimeout(timeout_s)
+            s.sendto(json.dumps(msg).encode(), str(path))
+            answer: dict[str, Any] = json.loads(s.recv(65536))
+            return answer
+        finally:
+            os.unlink(me)
+
+
+def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str | None = None) -> None:
+    """Answer frames on ``iface`` until SIGTERM/SIGINT."""
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
+    sock.bind((iface, ETHERTYPE_ECAT))
+    sock.setblocking(False)
+    ctl: socket.socket | None = None
+    if control:
+        if os.path.exists(control):
+            os.unlink(control)
+        ctl = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        ctl.bind(control)
+        ctl.setblocking(False)
+    writer = PcapWriter(pcap) if pcap else None
+    stop = False
+
+    def _stop(_sig: int, _frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    poller = select.poll()
+    poller.register(sock.fileno(), select.POLLIN)
+    if ctl is not None:
+        poller.register(ctl.fileno(), select.POLLIN)
+    buf = bytearray(2048)
+    view = memoryview(buf)
+    recv_into = sock.recvfrom_into
+    send = sock.send
+    clock = time.monotonic_ns
+    print(f"ready {iface} {len(chain)} slaves", flush=True)
+    try:
+        while not stop:
+            events = poller.poll(20)
+            if not events:
+                chain.tick(clock())
+                continue
+            if ctl is not None:
+                _serve_control(chain, ctl)
+            spin_until = 0
+            while True:
+                try:
+                    n, addr = recv_into(buf)
+                except BlockingIOError:
+                    # busy-wait briefly for the master's next frame: a poll() wake-up costs more
+                    if not spin_until:
+                        spin_until = clock() + SPIN_NS
+                    if clock() < spin_until:
+                        continue
+                    break
+                spin_until = 0
+                if addr[2] == PACKET_OUTGOING or buf[6] & LOCALLY_ADMINISTERED or n < 16:
+                    continue
+                now = clock()
+                if writer is not None:
+                    writer.write(bytes(view[:n]), time.time())
+                try:
+                    m = chain.process_into(buf, n, now, cycles=False)
+                except FrameError as e:
+                    print(f"dropped malformed frame: {e}", file=sys.stderr, flush=True)
+                    continue
+                if not m:
+                    continue
+                delay = chain.take_delay()
+                if delay:
+                    time.sleep(delay)
+                send(view[:m])
+                if writer is not None:
+                    writer.write(bytes(view[:m]), time.time())
+                chain.run_cycles(now)
+    finally:
+        sock.close()
+        if writer is not None:
+            writer.close()
+        if ctl is not None:
+            ctl.close()
+            if control and os.path.exists(control):
+                os.unlink(control)
+
+
+def _serve_control(chain: EscChain, ctl: socket.socket) -> None:
+    while True:
+        try:
+            data, sender = ctl.recvfrom(65536)
+        except BlockingIOError:
+            return
+        try:
+            answer = handle_control(chain, json.loads(data))
+        except (ValueError, KeyError, IndexError, TypeError) as e:
+            answer = {"ok": False, "error": f"{type(e).__name__}: {e}"}
+        if sender:
+            with contextlib.suppress(OSError):
+                ctl.sendto(json.dumps(answer).encode(), sender)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m sim_slaves.ethercat", description=__doc__.split("\n\n")[0])
+    p.add_argument("--iface", required=True, help="network interface, e.g. one end of a veth pair")
+    p.add_argument("--map", action="append", required=True, help="drive map YAML (repeatable, wire order)")
+    p.add_argument("--count", type=int, default=1, help="repeat the list of maps this many times")
+    p.add_argument("--pcap", help="write requests and replies to this pcap file")
+    p.add_argument("--control", help="UNIX datagram socket path for fault-injection commands (JSON)")
+    p.add_argument("--app", choices=("auto", "loopback", "none"), default="auto", help="slave application")
+    args = p.parse_args(argv)
+    if args.count < 1:
+        p.error("--count must be >= 1")
+    chain = build_chain(args.map, args.count, args.app)
+    serve(chain, args.iface, pcap=args.pcap, control=args.control)
+    return 0

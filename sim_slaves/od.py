@@ -1,0 +1,383 @@
+"""A CiA 301 / ETG.1000.6 object dictionary for emulated drives, built from a drive map.
+
+Shared by the EtherCAT (CoE) emulator and, later, the CANopen emulator.
+Two faces:
+
+- the *bus* face :meth:`ObjectDictionary.read` / :meth:`ObjectDictionary.write`
+  works on little-endian bytes, checks access, lengths and the communication
+  state, and raises :class:`~fieldbus.errors.SdoAbortError` with a CiA 301
+  abort code;
+- the *application* face :meth:`get_value` / :meth:`set_value` (the
+  ``ObjectStore`` protocol of :mod:`sim_slaves.drive402`) works on numbers and
+  never checks access: it is how the drive model and the process data reach
+  the objects. A missing object raises ``KeyError``.
+
+PDO mapping objects (0x16xx RxPDO = master outputs, 0x1Axx TxPDO = master
+inputs) and PDO assignment (0x1C12 outputs, 0x1C13 inputs) are writable in
+PRE-OPERATIONAL only (abort 0x08000022 otherwise); sub-index 0 must be 0
+before entries are changed (abort 0x06010003). Every accepted write to them
+bumps :attr:`ObjectDictionary.mapping_version`, so the owner re-lays out its
+process data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+from fieldbus.core import datatypes
+from fieldbus.core.datatypes import DataType
+from fieldbus.core.pdo.model import Channel, DriveMap, Pdo
+from fieldbus.errors import SdoAbortError
+
+U8 = datatypes.lookup("uint8")
+U16 = datatypes.lookup("uint16")
+U32 = datatypes.lookup("uint32")
+assert U8 is not None and U16 is not None and U32 is not None
+
+# CiA 301 abort codes used here.
+ABORT_UNSUPPORTED = 0x06010000
+ABORT_READ_ONLY = 0x06010002
+ABORT_SI0_NOT_ZERO = 0x06010003
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_TOO_LONG = 0x06040042
+ABORT_LENGTH = 0x06070010
+ABORT_TOO_LONG = 0x06070012
+ABORT_TOO_SHORT = 0x06070013
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_VALUE_RANGE = 0x06090030
+ABORT_VALUE_HIGH = 0x06090031
+ABORT_STATE = 0x08000022
+
+RXPDO_MAP = range(0x1600, 0x1800)  # master outputs
+TXPDO_MAP = range(0x1A00, 0x1C00)  # master inputs
+RXPDO_ASSIGN = 0x1C12
+TXPDO_ASSIGN = 0x1C13
+SM_COMM_TYPE = 0x1C00
+MAX_PDO_BITS = 8 * 256  # longest PDO this emulator accepts
+MAPPING_CAPACITY = 16  # entries per mapping object
+ASSIGN_CAPACITY = 8  # PDOs per assignment object
+DEVICE_TYPE_402 = 0x00020192  # CiA 402 servo drive
+
+
+class CommState(IntEnum):
+    """Communication state of the device, for access rules (EtherCAT AL / CANopen NMT)."""
+
+    INIT = 1
+    PRE_OPERATIONAL = 2
+    SAFE_OPERATIONAL = 4
+    OPERATIONAL = 8
+
+
+class Access(IntEnum):
+    RO = 1
+    RW = 3
+    CONST = 5
+
+
+@dataclass
+class Entry:
+    """One sub-index. ``dtype`` None: a visible string held as bytes in ``value``."""
+
+    dtype: DataType | None
+    value: int | float | bytes
+    access: Access = Access.RW
+    name: str = ""
+    mappable: bool = False
+
+    @property
+    def size(self) -> int:
+        """Bytes of the value on the bus."""
+        if self.dtype is None:
+            assert isinstance(self.value, bytes)
+            return len(self.value)
+        return max(1, (self.dtype.bits + 7) // 8)
+
+    def encode(self) -> bytes:
+        if self.dtype is None:
+            assert isinstance(self.value, bytes)
+            return self.value
+        assert not isinstance(self.value, bytes)
+        return self.dtype.encode(self.value)
+
+
+# CiA 402 objects: type name and a fallback default (sim_slaves.drive402 supplies better ones).
+CIA402_TYPES: dict[int, str] = {
+    0x603F: "uint16",  # error code
+    0x6040: "uint16",  # controlword (master output)
+    0x6041: "uint16",  # statusword (master input)
+    0x605A: "int16",  # quick stop option
+    0x605E: "int16",  # fault reaction option
+    0x6060: "int8",  # modes of operation (master output)
+    0x6061: "int8",  # modes of operation display (master input)
+    0x6064: "int32",  # position actual [counts]
+    0x6065: "uint32",  # following error window [counts]
+    0x6066: "uint16",  # following error timeout [ms]
+    0x6067: "uint32",  # position window [counts]
+    0x606C: "int32",  # velocity actual [counts/s]
+    0x606D: "uint16",  # velocity window [counts/s]
+    0x6071: "int16",  # target torque [per mille]
+    0x6072: "uint16",  # max torque [per mille]
+    0x6077: "int16",  # torque actual [per mille]
+    0x607A: "int32",  # target position [counts]
+    0x6085: "uint32",  # quick stop deceleration [counts/s^2]
+    0x60F4: "int32",  # following error actual [counts]
+    0x60FF: "int32",  # target velocity [counts/s]
+    0x6502: "uint32",  # supported drive modes
+}
+SUPPORTED_MODES_CSP_CSV_CST = 0x00000380
+
+
+class ObjectDictionary:
+    """Objects by (index, sub-index); see the module docstring for the two faces."""
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[int, int], Entry] = {}
+        self._subs: dict[int, list[int]] = {}
+        self._aborts: dict[tuple[int, int | None], int] = {}
+        self.mapping_version = 0
+
+    # -- building --
+
+    def add(
+        self,
+        index: int,
+        sub: int,
+        dtype: DataType | None,
+        value: int | float | bytes = 0,
+        *,
+        access: Access = Access.RW,
+        name: str = "",
+        mappable: bool = False,
+    ) -> None:
+        """Add (or replace) one sub-index."""
+        if (index, sub) not in self._entries:
+            subs = self._subs.setdefault(index, [])
+            subs.append(sub)
+            subs.sort()
+        self._entries[(index, sub)] = Entry(dtype, value, access, name, mappable)
+
+    def add_string(self, index: int, text: str, name: str = "") -> None:
+        self.add(index, 0, None, text.encode(), access=Access.CONST, name=name)
+
+    def fix_subindex0(self) -> None:
+        """Give every object with sub-indices > 0 and no sub-index 0 an RO sub-index 0 = highest sub."""
+        for index, subs in list(self._subs.items()):
+            if 0 not in subs:
+                self.add(index, 0, U8, max(subs), access=Access.RO)
+
+    # -- queries --
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._entries
+
+    def has(self, index: int, sub: int = 0) -> bool:
+        return (index, sub) in self._entries
+
+    def indices(self) -> list[int]:
+        return sorted(self._subs)
+
+    def subindices(self, index: int) -> list[int]:
+        return list(self._subs.get(index, ()))
+
+    def entry(self, index: int, sub: int) -> Entry:
+        """The entry, or :class:`SdoAbortError` 0x06020000 / 0x06090011."""
+        e = self._entries.get((index, sub))
+        if e is None:
+            code = ABORT_NO_SUBINDEX if index in self._subs else ABORT_NO_OBJECT
+            raise SdoAbortError(code, index=index, subindex=sub)
+        return e
+
+    # -- application face (ObjectStore protocol) --
+
+    def get_value(self, index: int, sub: int) -> int | float:
+        """Numeric value of ``index:sub`` (``KeyError`` if missing; strings are not numbers)."""
+        v = self._entries[(index, sub)].value
+        if isinstance(v, bytes):
+            raise KeyError((index, sub))
+        return v
+
+    def set_value(self, index: int, sub: int, value: int | float) -> None:
+        """Set a numeric value without access checks (``KeyError`` if missing)."""
+        self._entries[(index, sub)].value = value
+
+    # -- fault injection --
+
+    def inject_abort(self, index: int, sub: int | None, code: int) -> None:
+        """Answer every SDO access to ``index:sub`` (``sub`` None: any sub-index) with ``code``."""
+        self._aborts[(index, sub)] = code
+
+    def clear_aborts(self) -> None:
+        self._aborts.clear()
+
+    def _injected(self, index: int, sub: int) -> None:
+        if self._aborts:
+            code = self._aborts.get((index, sub), self._aborts.get((index, None)))
+            if code is not None:
+                raise SdoAbortError(code, index=index, subindex=sub, detail="injected")
+
+    # -- bus face --
+
+    def read(self, index: int, sub: int) -> bytes:
+        """Little-endian bytes of ``index:sub`` (SDO upload)."""
+        self._injected(index, sub)
+        return self.entry(index, sub).encode()
+
+    def write(self, index: int, sub: int, data: bytes, *, state: CommState) -> None:
+        """SDO download of ``data`` into ``index:sub`` in communication state ``state``."""
+        self._injected(index, sub)
+        e = self.entry(index, sub)
+        if e.access is not Access.RW:
+            raise SdoAbortError(ABORT_READ_ONLY, index=index, subindex=sub)
+        if e.dtype is None:
+            e.value = bytes(data)
+            return
+        if len(data) > e.size:
+            raise SdoAbortError(ABORT_TOO_LONG, index=index, subindex=sub)
+        if len(data) < e.size:
+            raise SdoAbortError(ABORT_TOO_SHORT, index=index, subindex=sub)
+        value = e.dtype.decode(bytes(data))
+        if _is_mapping(index):
+            self._check_mapping_write(index, sub, int(value), state)
+            e.value = value
+            self.mapping_version += 1
+            return
+        e.value = value
+
+    def _check_mapping_write(self, index: int, sub: int, value: int, state: CommState) -> None:
+        if state is not CommState.PRE_OPERATIONAL:
+            raise SdoAbortError(ABORT_STATE, index=index, subindex=sub, detail="PDO mapping outside PRE-OP")
+        count = int(self.get_value(index, 0))
+        if sub > 0:
+            if count != 0:
+                raise SdoAbortError(ABORT_SI0_NOT_ZERO, index=index, subindex=sub)
+            if index in (RXPDO_ASSIGN, TXPDO_ASSIGN) and value != 0:
+                allowed = RXPDO_MAP if index == RXPDO_ASSIGN else TXPDO_MAP
+                if value not in allowed or not self.has(value, 0):
+                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, subindex=sub)
+            return
+        capacity = max(self._subs[index])
+        if value > capacity:
+            raise SdoAbortError(ABORT_VALUE_HIGH, index=index, subindex=sub)
+        if index in (RXPDO_ASSIGN, TXPDO_ASSIGN):
+            for s in range(1, value + 1):
+                pdo = int(self.get_value(index, s))
+                if not self.has(pdo, 0):
+                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, subindex=0)
+            return
+        bits = 0
+        for s in range(1, value + 1):
+            raw = int(self.get_value(index, s))
+            bits += self._mapped_channel(index, raw).bits
+        if bits > MAX_PDO_BITS:
+            raise SdoAbortError(ABORT_PDO_TOO_LONG, index=index, subindex=0)
+
+    def _mapped_channel(self, mapping: int, raw: int) -> Channel:
+        """The channel a 32-bit mapping entry names (gaps: index 0 or a dummy type 1..7)."""
+        obj, sub, bits = raw >> 16, (raw >> 8) & 0xFF, raw & 0xFF
+        if bits == 0:
+            raise SdoAbortError(ABORT_NOT_MAPPABLE, index=mapping, subindex=0, detail="zero bit length")
+        if obj <= 0x0007:
+            gap = datatypes.lookup(f"bit{bits}")
+            assert gap is not None
+            return Channel(obj, sub, gap, f"gap_{bits}")
+        e = self._entries.get((obj, sub))
+        if e is None or not e.mappable or e.dtype is None or e.dtype.bits != bits:
+            raise SdoAbortError(
+                ABORT_NOT_MAPPABLE, index=mapping, subindex=0, detail=f"0x{obj:04X}:{sub:02X}/{bits}"
+            )
+        return Channel(obj, sub, e.dtype, e.name or f"0x{obj:04X}_{sub:02X}")
+
+    # -- PDO mapping as a model --
+
+    def pdo(self, mapping: int) -> Pdo:
+        """The PDO described by mapping object ``mapping`` (0x16xx / 0x1Axx) as it stands."""
+        count = int(self.get_value(mapping, 0))
+        chans = tuple(
+            self._mapped_channel(mapping, int(self.get_value(mapping, s))) for s in range(1, count + 1)
+        )
+        return Pdo(mapping, chans)
+
+    def assigned_pdos(self, assign: int) -> tuple[Pdo, ...]:
+        """The PDOs assigned by 0x1C12 (outputs) or 0x1C13 (inputs), in order."""
+        count = int(self.get_value(assign, 0))
+        return tuple(self.pdo(int(self.get_value(assign, s))) for s in range(1, count + 1))
+
+    # -- from a drive map --
+
+    @classmethod
+    def from_drive_map(cls, drive: DriveMap) -> ObjectDictionary:
+        """The OD of an emulated device described by ``drive``.
+
+        Holds 0x1000 device type, 0x1008 name, 0x1018 identity, 0x1C00 SM
+        communication types, 0x1C12/0x1C13 assignment, the map's 0x16xx/0x1Axx
+        mapping objects, every mapped object with its type, the start-up SDO
+        objects, and the CiA 402 objects for ``profile: cia402`` maps (or maps
+        that map 0x6040).
+        """
+        od = cls()
+        rx_objs = {(c.index, c.sub_index) for p in drive.rpdo for c in p.channels}
+        is402 = drive.profile == "cia402" or any(i == 0x6040 for i, _ in rx_objs)
+        od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="device type")
+        od.add(0x1001, 0, U8, 0, access=Access.RO, name="error register")
+        od.add_string(0x1008, drive.name, "device name")
+        ident = (
+            drive.vendor_id,
+            drive.product_id,
+            drive.revision or drive.ethercat.revision,
+            drive.ethercat.serial,
+        )
+        for sub, v in enumerate(ident, start=1):
+            od.add(0x1018, sub, U32, v, access=Access.RO, name="identity")
+        od.add(0x1018, 0, U8, 4, access=Access.RO)
+        od.add(SM_COMM_TYPE, 0, U8, 4, access=Access.RO, name="SM communication type")
+        for sub, v in enumerate((1, 2, 3, 4), start=1):
+            od.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO)
+        if is402:
+            defaults = _cia402_defaults()
+            for index, tname in CIA402_TYPES.items():
+                dt = datatypes.lookup(tname)
+                assert dt is not None
+                value = SUPPORTED_MODES_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
+                od.add(index, 0, dt, value, name=f"0x{index:04X}", mappable=index != 0x6502)
+        for sdo in drive.sdo:
+            if not od.has(sdo.index, sdo.sub_index):
+                od.add(sdo.index, sdo.sub_index, sdo.type, 0, name=sdo.description)
+        for pdo in (*drive.rpdo, *drive.tpdo):
+            for ch in pdo.channels:
+                if ch.is_gap:
+                    continue
+                old = od._entries.get((ch.index, ch.sub_index))
+                keep = old is not None and old.dtype == ch.type
+                od.add(
+                    ch.index,
+                    ch.sub_index,
+                    ch.type,
+                    old.value if old and keep else 0,
+                    name=ch.name,
+                    mappable=True,
+                )
+        for assign, pdos in ((RXPDO_ASSIGN, drive.rpdo), (TXPDO_ASSIGN, drive.tpdo)):
+            od.add(assign, 0, U8, len(pdos), name="PDO assignment")
+            for sub in range(1, max(ASSIGN_CAPACITY, len(pdos)) + 1):
+                od.add(assign, sub, U16, pdos[sub - 1].index if sub <= len(pdos) else 0)
+            for pdo in pdos:
+                od.add(pdo.index, 0, U8, len(pdo.channels), name="PDO mapping")
+                for sub in range(1, max(MAPPING_CAPACITY, len(pdo.channels)) + 1):
+                    raw = pdo.channels[sub - 1].mapping_value if sub <= len(pdo.channels) else 0
+                    od.add(pdo.index, sub, U32, raw)
+        od.fix_subindex0()
+        return od
+
+
+def _is_mapping(index: int) -> bool:
+    return index in RXPDO_MAP or index in TXPDO_MAP or index in (RXPDO_ASSIGN, TXPDO_ASSIGN)
+
+
+def _cia402_defaults() -> dict[tuple[int, int], int | float]:
+    try:
+        from sim_slaves.drive402 import default_objects
+    except ImportError:  # the drive model is optional for the OD
+        return {}
+    return dict(default_objects())
