@@ -11,13 +11,14 @@ slave's area only as ``bytes``: a transient copy, nothing kept), one LRW is
 sent, the reply is awaited for at most the bus's receive timeout with the GIL
 released, inputs are copied back into the slaves' rows of the process images.
 
-Recovery (like SOEM's ``ecatcheck``) runs in a monitor thread woken by a miss,
-so the cycle never waits for it; see docs/backends.md for its limits.
+Recovery (like SOEM's ``ecatcheck``) is a generator advanced one pysoem call
+per cycle after a miss, and every cycle while a slave is known not to be in
+OP; see docs/backends.md for its limits (``reconfig`` is one long call).
 """
 
 from __future__ import annotations
 
-import threading
+from collections.abc import Generator
 from typing import Any
 
 from fieldbus.backends.base import Backend
@@ -41,6 +42,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 STATE_NAMES = {0x01: "INIT", 0x02: "PRE-OP", 0x03: "BOOT", 0x04: "SAFE-OP", 0x08: "OP"}
 STATE_TIMEOUT_US = 2_000_000
+RECONFIG_TIMEOUT_US = 500  # SOEM's EC_TIMEOUTMON for reconfig/recover steps
 
 
 def state_name(state: int) -> str:
@@ -63,11 +65,9 @@ class EthercatBackend(Backend):
         self._timeout_us = bus.receive_timeout_us
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
-        self._wake = threading.Event()
-        self._stop_monitor = threading.Event()
-        self._monitor: threading.Thread | None = None
-        self.recoveries = 0  # slaves brought back to OP by the monitor
-        self.monitor_errors: list[str] = []
+        self._recovery: Generator[None, None, bool] | None = None
+        self.recoveries = 0  # times every slave was brought back to OP
+        self.monitor_errors: list[str] = []  # recovery steps that failed (type: message)
 
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
@@ -178,10 +178,6 @@ class EthercatBackend(Backend):
                 break
         else:
             self._raise_state("OP", self.master.read_state())
-        self._monitor = threading.Thread(
-            target=self._monitor_loop, name=f"ecatcheck-{self.bus.name}", daemon=True
-        )
-        self._monitor.start()
 
     def _raise_state(self, target: str, lowest: int) -> None:
         self.master.read_state()
@@ -209,6 +205,8 @@ class EthercatBackend(Backend):
 
     def receive(self) -> int | None:
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
+        if self._recovery is not None and wkc >= 0:
+            self.recover_step()  # a slave is known not to be in OP: keep at it, one step per cycle
         if wkc < 0:
             return None
         for s, mv in self._in_views:
@@ -216,55 +214,68 @@ class EthercatBackend(Backend):
         return wkc
 
     def recover_step(self) -> bool:
-        self._wake.set()  # the monitor thread does the work; the cycle never waits for it
+        """One bounded recovery step (one pysoem call); True once every slave is back in OP.
+
+        Runs in the cycle's thread: pysoem holds the GIL in ``read_state``,
+        ``state_check``, ``reconfig`` and ``recover``, so a monitor thread would
+        stall the cycle at unpredictable moments instead. Never raises.
+        """
+        if self._recovery is None:
+            self._recovery = self._recover()
+        try:
+            next(self._recovery)
+        except StopIteration as stop:
+            self._recovery = None
+            return bool(stop.value)
+        except Exception as exc:  # a failed step ends this attempt; the next miss starts another
+            self._recovery = None
+            self.monitor_errors.append(f"{type(exc).__name__}: {exc}")
         return False
 
-    def _monitor_loop(self) -> None:
-        while not self._stop_monitor.is_set():
-            if not self._wake.wait(0.1):
-                continue
-            self._wake.clear()
-            try:
-                self._check_slaves()
-            except Exception as exc:  # keep monitoring; report what failed
-                self.monitor_errors.append(f"{type(exc).__name__}: {exc}")
-
-    def _check_slaves(self) -> None:
-        self.master.read_state()
-        for s in self._slaves:
-            if self._stop_monitor.is_set():
-                return
-            action = recovery_action(None if s.is_lost else s.state)
-            if action is Recovery.NONE:
-                continue
-            if action is Recovery.ACK_ERROR:
-                s.state = pysoem.SAFEOP_STATE + pysoem.STATE_ACK
-                s.write_state()
-            elif action is Recovery.REQUEST_OP:
-                s.state = pysoem.OP_STATE
-                s.write_state()
-            elif action is Recovery.RECONFIGURE:
-                if s.reconfig(timeout=500) >= pysoem.SAFEOP_STATE:
+    def _recover(self) -> Generator[None, None, bool]:
+        """SOEM's ecatcheck as steps; passes repeat until every slave is in OP (``docheckstate``)."""
+        while True:
+            self.master.read_state()
+            yield
+            all_ok = True
+            for s in self._slaves:
+                state = s.state
+                if not s.is_lost and state & 0x0F == 0:
+                    # no AL status in the broadcast read: ask this slave itself, as ecatcheck does;
+                    # only a slave that stays silent is treated as lost
+                    state = s.state_check(pysoem.OP_STATE, self._timeout_us)
+                    yield
+                action = recovery_action(None if s.is_lost or state & 0x0F == 0 else state)
+                if action is Recovery.NONE:
+                    continue
+                all_ok = False
+                if action is Recovery.ACK_ERROR:
+                    s.state = pysoem.SAFEOP_STATE + pysoem.STATE_ACK
+                    s.write_state()
+                elif action is Recovery.REQUEST_OP:
                     s.state = pysoem.OP_STATE
                     s.write_state()
-            elif action is Recovery.RECOVER:
-                if s.recover(timeout=500) > 0:
-                    s.is_lost = False
-                continue
-            if s.state_check(pysoem.OP_STATE, 20_000) == pysoem.OP_STATE:
-                self.recoveries += 1
+                elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle: the longest step
+                    if s.reconfig(timeout=RECONFIG_TIMEOUT_US) >= pysoem.SAFEOP_STATE:
+                        yield
+                        s.state = pysoem.OP_STATE
+                        s.write_state()
+                elif action is Recovery.RECOVER:
+                    s.is_lost = s.recover(timeout=RECONFIG_TIMEOUT_US) <= 0
+                yield
+            if all_ok:
+                return True
+            self.recoveries += 1 if self.master.read_state() == pysoem.OP_STATE else 0
+            yield
 
     # -- shut-down --------------------------------------------------------------------
     def stop(self) -> None:
-        self._stop_monitor.set()
-        if self._monitor is not None:
-            self._monitor.join(timeout=2.0)
+        self._recovery = None
         if self._open and self._slaves:
             self.master.state = pysoem.INIT_STATE
             self.master.write_state()
 
     def close(self) -> None:
-        self._stop_monitor.set()
         if self._open:
             self._open = False
             self.master.close()

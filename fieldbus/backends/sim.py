@@ -97,6 +97,7 @@ class SimBackend(Backend):
         self._wkc = 0
         self._lost = False
         self._recovery: Generator[None, None, bool] | None = None
+        self.recovery_errors: list[str] = []
         self._open = False
 
     # -- transport ----------------------------------------------------------------------
@@ -237,6 +238,8 @@ class SimBackend(Backend):
         self._wkc, self._lost = wkc, lost
 
     def receive(self) -> int | None:
+        if self._recovery is not None and not self._lost:
+            self.recover_step()  # a slave is known not to be in OP: keep at it, one frame per cycle
         if self._lost:
             return None
         for frame_np, row in self._in_copies:
@@ -244,7 +247,12 @@ class SimBackend(Backend):
         return self._wkc
 
     def recover_step(self) -> bool:
-        """Advance recovery by one frame exchange; True when every slave is back in OP."""
+        """Advance recovery by about one frame exchange; True when every slave is back in OP.
+
+        Never raises: a recovery frame that is lost just ends this attempt
+        (the next miss, or the next cycle while a slave is known not in OP,
+        starts another).
+        """
         if self._recovery is None:
             self._recovery = self._recover()
         try:
@@ -252,29 +260,38 @@ class SimBackend(Backend):
         except StopIteration as stop:
             self._recovery = None
             return bool(stop.value)
+        except FieldbusError as exc:
+            self._recovery = None
+            self.recovery_errors.append(f"{type(exc).__name__}: {exc}")
         return False
 
     def _recover(self) -> Generator[None, None, bool]:
-        """ecatcheck-like: ack SAFE-OP+ERROR, request OP, re-bring-up slaves back in INIT or lost."""
-        all_ok = True
-        for i, info in enumerate(self.infos):
-            got = self.master.al_status(info.station)
-            yield
-            action = recovery_action(None if got is None else got[0])
-            if action is Recovery.NONE:
-                continue
-            all_ok = False
-            if action is Recovery.ACK_ERROR:
-                self.master.request_state(info.station, AL_SAFEOP | AL_ACK)
-            elif action is Recovery.REQUEST_OP:
-                self.master.request_state(info.station, AL_OP)
-            else:  # RECONFIGURE / RECOVER: power-cycled (INIT, station address lost) or lost
-                yield from self._rebuild(i)
-            yield
-            back = self.master.al_status(info.station)
-            if back is not None and back[0] & 0x1F == AL_OP:
-                self.recoveries += 1
-        return all_ok
+        """ecatcheck-like: ack SAFE-OP+ERROR, request OP, re-bring-up slaves back in INIT or lost.
+
+        Passes repeat (one frame per step) until a pass finds every slave in OP,
+        like SOEM's ``docheckstate``: a slave may answer the LRW in SAFE-OP.
+        """
+        while True:
+            all_ok = True
+            for i, info in enumerate(self.infos):
+                got = self.master.al_status(info.station)
+                yield
+                action = recovery_action(None if got is None else got[0])
+                if action is Recovery.NONE:
+                    continue
+                all_ok = False
+                if action is Recovery.ACK_ERROR:
+                    self.master.request_state(info.station, AL_SAFEOP | AL_ACK)
+                elif action is Recovery.REQUEST_OP:
+                    self.master.request_state(info.station, AL_OP)
+                else:  # RECONFIGURE / RECOVER: power-cycled (INIT, station address lost) or lost
+                    yield from self._rebuild(i)
+                yield
+                back = self.master.al_status(info.station)
+                if back is not None and back[0] & 0x1F == AL_OP:
+                    self.recoveries += 1
+            if all_ok:
+                return True
 
     def _rebuild(self, i: int) -> Generator[None, None, None]:
         """Bring slave ``i`` from INIT (or a lost station address) back to OP, one step per yield."""

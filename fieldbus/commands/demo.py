@@ -155,9 +155,9 @@ class SineFollower:
     cycles after every joint is enabled.
     """
 
-    def __init__(self, op: Operational, axes: int, rate_hz: float) -> None:
+    def __init__(self, op: Operational, axes: int, rate_hz: float, group: str = "joints") -> None:
         self.op = op
-        img = op["joints"]
+        img = op[group]
         self.out, self.inp = img.outputs, img.inputs
         self.statusword = self.inp["statusword"]
         self.controlword = self.out["controlword"]

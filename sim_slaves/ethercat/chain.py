@@ -39,6 +39,7 @@ class Faults:
     """Pending fault injections of a chain (see :class:`EscChain` fault hooks)."""
 
     drop: int = 0
+    drop_pd: int = 0  # process-data frames only (frames with a logical datagram)
     delay_frames: int = 0
     delay_s: float = 0.0
     corrupt_frames: int = 0
@@ -110,6 +111,9 @@ class EscChain:
                     s.check_watchdog(now_ns)
         if faults.drop:
             faults.drop -= 1
+            return 0
+        if faults.drop_pd and any(_LRD <= buf[off] <= _LRW for off in offsets):
+            faults.drop_pd -= 1
             return 0
         count = len(slaves)
         logical = False
@@ -228,9 +232,16 @@ class EscChain:
 
     # -- fault hooks --
 
-    def drop_frames(self, count: int = 1) -> None:
-        """Lose the next ``count`` frames (no reply, nothing processed)."""
-        self.faults.drop += count
+    def drop_frames(self, count: int = 1, *, process_data: bool = False) -> None:
+        """Lose the next ``count`` frames (no reply, nothing processed).
+
+        ``process_data``: only frames carrying a logical datagram (the cycle's
+        LRW) count, so a master's acyclic frames in between are not lost.
+        """
+        if process_data:
+            self.faults.drop_pd += count
+        else:
+            self.faults.drop += count
 
     def delay_frames(self, seconds: float, count: int = 1) -> None:
         """Hold back the replies of the next ``count`` frames by ``seconds`` (the I/O layer sleeps)."""

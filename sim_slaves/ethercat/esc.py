@@ -456,7 +456,7 @@ class Esc:
         )
 
     def _process_data_config(self) -> int:
-        """PRE-OP -> SAFE-OP: re-layout from the OD, then check SM2/SM3 and FMMUs (0 = fine)."""
+        """PRE-OP -> SAFE-OP: re-layout from the OD, then check SM2/SM3 and any FMMUs set (0 = fine)."""
         if self.image.version != self.od.mapping_version:
             self.image = ProcessImage(self.od, self.name)
         fmmus = self._fmmus()
@@ -474,6 +474,10 @@ class Esc:
                 return code
             if bool(ctrl & 0x04) != write or ctrl & 0x03:
                 return code
+            if not any(bool(kind & 0x02) == write for _l, _f, _p, kind, _ in fmmus):
+                # no FMMU for this direction yet: SOEM's ecx_reconfig_slave requests SAFE-OP first
+                # and programs the FMMUs after; ESCs accept that (only a wrong FMMU is refused)
+                continue
             covered = bytearray(size)
             for _log, flen, phys, kind, _ in fmmus:
                 if bool(kind & 0x02) != write:

@@ -99,7 +99,7 @@ def handle_control(chain: EscChain, msg: dict[str, Any]) -> dict[str, Any]:
     cmd = msg.get("cmd")
     slave = int(msg.get("slave", 0))
     if cmd == "drop":
-        chain.drop_frames(int(msg.get("count", 1)))
+        chain.drop_frames(int(msg.get("count", 1)), process_data=bool(msg.get("pd")))
     elif cmd == "delay":
         chain.delay_frames(float(msg["seconds"]), int(msg.get("count", 1)))
     elif cmd == "corrupt_wkc":
