@@ -1,0 +1,247 @@
+"""Full cycle rate of fieldbus against pysoem's bare send/receive loop, on the same emulator, in one run.
+
+Over veth (root): one emulator process (``sim_slaves.ethercat``, N CiA 402
+drives of ``fieldbus/data/demo_joint.yaml``) serves both contenders in
+alternating rounds:
+
+- **bare pysoem**: ``slave.output = <prepacked bytes>`` per slave,
+  ``send_processdata``, ``receive_processdata``, ``slave.input`` per slave;
+- **fieldbus**: ``Operational.exchange()`` with scaled outputs written
+  (``target_position`` in rad) and scaled inputs decoded, the WKC policy
+  judged - the whole cycle a controller calls.
+
+Each round brings one master up, runs a batch of cycles as fast as the
+round trip allows, and closes it; the ratio fieldbus/bare is taken within
+each pair of rounds (target: at least 0.8). In-process, the ``sim`` backend's
+``exchange()`` is compared the same way with a bare LRW through the ESC chain.
+
+tracemalloc: net allocated blocks per cycle over 10,000 ``exchange()`` calls
+(target 0), for the sim backend and, with root, over veth.
+
+    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import struct
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._common import machine_note, table
+from fieldbus.commands.demo import DEMO_MAP
+from fieldbus.network import open_network
+from fieldbus.runtime.allocs import net_blocks
+
+RECEIVE_TIMEOUT_US = 10_000
+
+
+def _net_file(tmp: Path, iface: str, axes: int) -> Path:
+    f = tmp / "bench.yaml"
+    f.write_text(
+        f"cycle_time_us: 1000\nreceive_timeout_us: {RECEIVE_TIMEOUT_US}\nbuses:\n"
+        f"  - {{name: joints, type: ethercat, interface: {iface},\n"
+        f"     slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: {axes}}}]}}\n"
+    )
+    return f
+
+
+def _rate(step: Callable[[], object], seconds: float) -> float:
+    """Cycles per second of ``step`` over about ``seconds``."""
+    n = 0
+    t0 = time.perf_counter()
+    end = t0 + seconds
+    while True:
+        for _ in range(50):
+            step()
+        n += 50
+        if time.perf_counter() >= end:
+            return n / (time.perf_counter() - t0)
+
+
+def fieldbus_round(net_file: Path, seconds: float, backend: str | None = None) -> tuple[float, int]:
+    """(cycles/s of exchange(), cycles not fresh) for one bring-up of the network."""
+    with open_network(net_file, backend=backend) as net:
+        op = net.bring_up()
+        img = op["joints"]
+        target = img.outputs["target_position"]
+        position = img.inputs["position_actual_value"]
+        bad = 0
+
+        def step() -> None:
+            nonlocal bad
+            target[:] = position  # a controller's write (scaled, rad) from the last inputs
+            if not op.exchange().fresh:
+                bad += 1
+
+        for _ in range(200):
+            step()
+        bad = 0
+        return _rate(step, seconds), bad
+
+
+def bare_round(iface: str, axes: int, seconds: float) -> tuple[float, int]:
+    """(cycles/s, cycles with a wrong WKC) of pysoem's bare loop on the same emulator."""
+    import pysoem
+
+    m = pysoem.Master()
+    m.open(iface)
+    try:
+        if m.config_init() != axes:
+            raise RuntimeError("bare pysoem: slave count differs")
+        m.config_map()
+        m.state = pysoem.OP_STATE
+        m.write_state()
+        slaves = list(m.slaves)
+        out = [struct.pack("<HiHb", 0, 0, 0, 8)[: len(s.output)].ljust(len(s.output), b"\0") for s in slaves]
+        for _ in range(2000):
+            m.send_processdata()
+            m.receive_processdata(RECEIVE_TIMEOUT_US)
+            if m.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
+                break
+        expected = m.expected_wkc
+        bad = 0
+
+        def step() -> None:
+            nonlocal bad
+            for s, o in zip(slaves, out, strict=True):
+                s.output = o
+            m.send_processdata()
+            if m.receive_processdata(RECEIVE_TIMEOUT_US) != expected:
+                bad += 1
+            for s in slaves:
+                _ = s.input
+
+        for _ in range(200):
+            step()
+        bad = 0
+        return _rate(step, seconds), bad
+    finally:
+        m.state = pysoem.INIT_STATE
+        m.write_state()
+        m.close()
+
+
+def sim_bare_step(axes: int) -> Callable[[], object]:
+    """One LRW through an in-process ESC chain in OP, with no master logic around it."""
+    from fieldbus.core.pdo import load_drive_map
+    from sim_slaves.ethercat.bringup import bring_up
+    from sim_slaves.ethercat.chain import EscChain
+
+    chain = EscChain.from_maps([load_drive_map(DEMO_MAP)] * axes)
+    plan = bring_up(chain)
+    frame = bytearray(plan.lrw())
+
+    def step() -> object:
+        return chain.process_into(frame, len(frame), time.monotonic_ns())
+
+    return step
+
+
+def sim_exchange_step(net_file: Path) -> tuple[Callable[[], object], Any]:
+    net = open_network(net_file, backend="sim")
+    op = net.bring_up()
+    img = op["joints"]
+    target, position = img.outputs["target_position"], img.inputs["position_actual_value"]
+
+    def step() -> object:
+        target[:] = position
+        return op.exchange()
+
+    return step, net
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--axes", type=int, default=12)
+    p.add_argument("--rounds", type=int, default=5)
+    p.add_argument("--seconds", type=float, default=2.0, help="per round and contender")
+    p.add_argument("--alloc-cycles", type=int, default=10_000)
+    args = p.parse_args()
+    print(f"# cycle benchmark, {args.axes} CiA 402 axes ({machine_note()})\n")
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        # -- in-process: sim backend vs a bare LRW through the chain --
+        sim_file = _net_file(tmp, "sim", args.axes)
+        bare = sim_bare_step(args.axes)
+        ours, net = sim_exchange_step(sim_file)
+        try:
+            pairs = []
+            for _ in range(args.rounds):
+                b = _rate(bare, args.seconds / 2)
+                f = _rate(ours, args.seconds / 2)
+                pairs.append((f, b))
+            blocks = net_blocks(ours, args.alloc_cycles)
+        finally:
+            net.close()
+        results["sim"] = (pairs, blocks)
+        # -- over veth: fieldbus vs bare pysoem on one emulator --
+        if os.geteuid() == 0:
+            from sim_slaves.ethercat.veth import emulated_segment
+
+            with emulated_segment([DEMO_MAP], count=args.axes, workdir=tmp) as emu:
+                net_file = _net_file(tmp, emu.iface, args.axes)
+                pairs, bads = [], []
+                for k in range(args.rounds):
+                    order = ("bare", "fieldbus") if k % 2 == 0 else ("fieldbus", "bare")
+                    got: dict[str, tuple[float, int]] = {}
+                    for who in order:
+                        got[who] = (
+                            bare_round(emu.iface, args.axes, args.seconds)
+                            if who == "bare"
+                            else fieldbus_round(net_file, args.seconds)
+                        )
+                    pairs.append((got["fieldbus"][0], got["bare"][0]))
+                    bads.append((got["fieldbus"][1], got["bare"][1]))
+                with open_network(net_file) as vnet:
+                    vop = vnet.bring_up()
+                    vblocks = net_blocks(vop.exchange, args.alloc_cycles)
+            results["veth"] = (pairs, vblocks)
+            results["veth_bad"] = bads
+    rows = []
+    for name, label in (
+        ("sim", "in-process (sim backend vs bare LRW)"),
+        ("veth", "veth (fieldbus vs bare pysoem)"),
+    ):
+        if name not in results:
+            rows.append([label, "-", "-", "-", "(needs root)"])
+            continue
+        pairs, blocks = results[name]
+        f = statistics.median(x for x, _ in pairs)
+        b = statistics.median(y for _, y in pairs)
+        r = [x / y for x, y in pairs]
+        q1, q3 = np.percentile(r, [25, 75])
+        rows.append(
+            [
+                label,
+                f"{b:,.0f}",
+                f"{f:,.0f}",
+                f"{statistics.median(r):.2f} ({q1:.2f}-{q3:.2f})",
+                f"{blocks / args.alloc_cycles:.4f}",
+            ]
+        )
+    print(
+        table(
+            ["path", "bare [cycles/s]", "fieldbus [cycles/s]", "ratio (IQR)", "net blocks/cycle"],
+            rows,
+        )
+    )
+    if "veth_bad" in results:
+        print(f"\ncycles not fresh / wrong WKC per round (fieldbus, bare): {results['veth_bad']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
