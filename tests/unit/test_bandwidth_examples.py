@@ -36,3 +36,21 @@ def test_6_can_buses_of_5_cannot_run_1khz(capsys: pytest.CaptureFixture[str]) ->
     # even at 400 Hz each CAN bus is close to saturation
     r400 = bandwidth(capsys, "humanoid_can.yaml", "--rate", "400")
     assert all(80 < b["load_percent"] <= 100 for b in r400["buses"])
+
+
+def test_demo_network_on_ethercat_uses_a_few_percent_of_the_wire(capsys: pytest.CaptureFixture[str]) -> None:
+    r = bandwidth(capsys, "demo_network.yaml")
+    (bus,) = r["buses"]
+    assert bus["frames_per_cycle"] == 1
+    assert bus["bytes_per_cycle"] == 12 * (9 + 13)  # demo_joint: 9 output + 13 input bytes per joint
+    assert bus["load_percent"] < 5 and bus["max_rate_hz"] > 10_000
+
+
+def test_demo_joints_on_can_need_several_buses_and_a_lower_rate(capsys: pytest.CaptureFixture[str]) -> None:
+    r = bandwidth(capsys, "demo_canopen.yaml")
+    one, *legs = r["buses"]
+    assert r["bottleneck"] == one["name"] == "one_bus"
+    assert one["frames_per_cycle"] == 1 + 12 * 4  # SYNC + 12 x (2 RPDO + 2 TPDO)
+    assert one["max_rate_hz"] < 200
+    assert len(legs) == 4 and all(b["frames_per_cycle"] == 13 for b in legs)
+    assert all(600 < b["max_rate_hz"] < 1000 for b in legs)  # 4 buses of 3: about 700 Hz, not 1 kHz
