@@ -261,6 +261,15 @@ class Cia402Drive:
 
     # -- fault injection (tests) --
 
+    def power_cycle(self) -> None:
+        """Power lost and back: the state machine restarts (NOT READY TO SWITCH ON), motion stops.
+
+        The position is kept (an absolute encoder); configuration read from the
+        OD is read again on the next step.
+        """
+        position_counts = round(self.position_rad * self.counts_per_rad)
+        self.__init__(self.params, position_counts=position_counts)  # type: ignore[misc]
+
     def inject_fault(self, code: int, *, persistent: bool = False) -> None:
         """Raise a fault with error code ``code`` (0x603F) at the next step; a persistent one refuses reset."""
         if not 0 < code <= 0xFFFF:

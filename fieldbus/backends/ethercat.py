@@ -18,6 +18,7 @@ OP; see docs/backends.md for its limits (``reconfig`` is one long call).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Generator
 from typing import Any
 
@@ -28,6 +29,7 @@ from fieldbus.core.sdo import coe_plan
 from fieldbus.core.wkc import AL_ERROR, Recovery, recovery_action
 from fieldbus.errors import (
     BackendUnavailableError,
+    BusTimeoutError,
     FieldbusError,
     SdoAbortError,
     StateTransitionError,
@@ -42,7 +44,8 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 STATE_NAMES = {0x01: "INIT", 0x02: "PRE-OP", 0x03: "BOOT", 0x04: "SAFE-OP", 0x08: "OP"}
 STATE_TIMEOUT_US = 2_000_000
-RECONFIG_TIMEOUT_US = 500  # SOEM's EC_TIMEOUTMON for reconfig/recover steps
+RECONFIG_TIMEOUT_US = 500
+SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times  # SOEM's EC_TIMEOUTMON for reconfig/recover steps
 
 
 def state_name(state: int) -> str:
@@ -63,11 +66,17 @@ class EthercatBackend(Backend):
         self._slaves: list[Any] = []
         self._open = False
         self._timeout_us = bus.receive_timeout_us
+        self._timeout_ns = bus.receive_timeout_us * 1000
+        self._sent_ns = 0
+        self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
         self._recovery: Generator[None, None, bool] | None = None
         self.recoveries = 0  # times every slave was brought back to OP
-        self.monitor_errors: list[str] = []  # recovery steps that failed (type: message)
+        self.monitor_errors: list[str] = []
+        self.emergencies: list[
+            tuple[int, int, int]
+        ] = []  # (slave, error code, error register) seen in SDOs  # recovery steps that failed (type: message)
 
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
@@ -126,7 +135,12 @@ class EthercatBackend(Backend):
         return write, read
 
     def safe_op(self) -> None:
-        self.master.config_map()
+        try:
+            self.master.config_map()
+        except pysoem.ConfigMapError as exc:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': SOEM could not map process data: {exc}"
+            ) from None
         problems = []
         for i, (area, s) in enumerate(zip(self.areas, self._slaves, strict=True)):
             out_len, in_len = len(s.output), len(s.input)
@@ -201,10 +215,22 @@ class EthercatBackend(Backend):
     def send(self) -> None:
         for s, mv in self._out_views:
             s.output = bytes(mv)
+        self._sent_ns = time.perf_counter_ns()
         self.master.send_processdata(release_gil=True)
 
     def receive(self) -> int | None:
+        """The LRW's WKC, or None when no reply came back within the receive timeout.
+
+        SOEM's Linux NIC driver waits in ``recv`` with a 1 µs ``SO_RCVTIMEO``,
+        which the kernel rounds up to whole jiffies (4-8 ms at HZ=250), so a
+        reply can be accepted well after the timeout. A reply that arrives
+        later than the timeout after the send is therefore judged here: a
+        miss (counted in :attr:`late_replies`), its inputs held.
+        """
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
+        if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._timeout_ns:
+            self.late_replies += 1
+            wkc = -1
         if self._recovery is not None and wkc >= 0:
             self.recover_step()  # a slave is known not to be in OP: keep at it, one step per cycle
         if wkc < 0:
@@ -285,18 +311,39 @@ class EthercatBackend(Backend):
         return self._sdo_read_sized(slave, index, sub_index, 0)
 
     def _sdo_read_sized(self, slave: int, index: int, sub_index: int, size: int) -> bytes:
-        try:
-            data: bytes = self._slaves[slave].sdo_read(index, sub_index, size, release_gil=True)
-            return data
-        except pysoem.SdoError as exc:
-            raise SdoAbortError(
-                exc.abort_code, index=index, subindex=sub_index, slave=self.areas[slave].slave.name
-            ) from None
+        data: bytes = self._sdo(
+            slave, index, sub_index, "read", lambda s: s.sdo_read(index, sub_index, size, release_gil=True)
+        )
+        return data
 
     def sdo_write(self, slave: int, index: int, sub_index: int, data: bytes) -> None:
-        try:
-            self._slaves[slave].sdo_write(index, sub_index, data, release_gil=True)
-        except pysoem.SdoError as exc:
-            raise SdoAbortError(
-                exc.abort_code, index=index, subindex=sub_index, slave=self.areas[slave].slave.name
-            ) from None
+        self._sdo(
+            slave, index, sub_index, "write", lambda s: s.sdo_write(index, sub_index, data, release_gil=True)
+        )
+
+    def _sdo(self, slave: int, index: int, sub_index: int, what: str, call: Any) -> Any:
+        """One SDO transfer with pysoem's errors turned into ours.
+
+        An abort raises :class:`SdoAbortError` at once. No answer (pysoem
+        ``WkcError``, a mailbox or packet error) is retried ``SDO_RETRIES``
+        times - SDO transfers here are idempotent - then raised as
+        :class:`BusTimeoutError`. An emergency that arrives in the mailbox
+        instead of the answer is kept in :attr:`emergencies` and the transfer
+        retried.
+        """
+        name = self.areas[slave].slave.name
+        last = ""
+        for _ in range(SDO_RETRIES + 1):
+            try:
+                return call(self._slaves[slave])
+            except pysoem.SdoError as exc:
+                raise SdoAbortError(exc.abort_code, index=index, subindex=sub_index, slave=name) from None
+            except pysoem.Emergency as exc:
+                self.emergencies.append((slave, exc.error_code, exc.error_reg))
+                last = f"emergency 0x{exc.error_code:04X}"
+            except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
+                last = f"{type(exc).__name__}: {getattr(exc, 'message', None) or exc}"
+        raise BusTimeoutError(
+            f"bus '{self.bus.name}' slave {name}: no answer to SDO {what} 0x{index:04X}:{sub_index:02X} "
+            f"after {SDO_RETRIES + 1} tries ({last})"
+        )

@@ -19,6 +19,7 @@ import math
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.errors import FieldbusError
-from fieldbus.network import Operational, open_network
+from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.report import run_report
 
@@ -78,16 +79,38 @@ def describe(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+@dataclass
+class DemoSetup:
+    """The demo's network file, the backend to open it with, and its emulator (for fault hooks)."""
+
+    net_file: Path
+    backend: str | None
+    emulator: Any = (
+        None  # sim: None (the chain lives in the backend); ethercat: veth Emulator; canopen: simulator
+    )
+
+    def control(self, net: Network, **msg: Any) -> dict[str, Any]:
+        """An EtherCAT emulator command (``sim_slaves.ethercat.runner.handle_control``): drop, status, ..."""
+        if self.backend == "sim":
+            from sim_slaves.ethercat.runner import handle_control
+
+            return handle_control(net.backends[0].chain, msg)  # type: ignore[attr-defined]
+        if hasattr(self.emulator, "command"):
+            result: dict[str, Any] = self.emulator.command(**msg)
+            return result
+        raise FieldbusError("this demo backend has no EtherCAT emulator control")
+
+
 @contextmanager
-def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iterator[tuple[Path, str | None]]:
-    """Write the demo's network file (and start its emulator); yields (file, backend override)."""
+def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iterator[DemoSetup]:
+    """Write the demo's network file and start its emulator."""
     cycle_us = max(1, round(1e6 / rate_hz))
     head = f"name: demo\ncycle_time_us: {cycle_us}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US[backend]}\n"
     slaves = f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: {axes}}}]\n"
     net = workdir / "demo.yaml"
     if backend == "sim":
         net.write_text(head + "buses:\n  - name: joints\n    type: ethercat\n    interface: sim\n" + slaves)
-        yield net, "sim"
+        yield DemoSetup(net, "sim")
     elif backend == "ethercat":
         from sim_slaves.ethercat.veth import emulated_segment
 
@@ -95,14 +118,14 @@ def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iter
             net.write_text(
                 head + f"buses:\n  - name: joints\n    type: ethercat\n    interface: {emu.iface}\n" + slaves
             )
-            yield net, None
+            yield DemoSetup(net, None, emu)
     elif backend == "canopen":
         yield from _canopen_network(head, axes, net)
     else:
         raise FieldbusError(f"unknown demo backend '{backend}' (have: {', '.join(BACKENDS)})")
 
 
-def _canopen_network(head: str, axes: int, net: Path) -> Iterator[tuple[Path, str | None]]:
+def _canopen_network(head: str, axes: int, net: Path) -> Iterator[DemoSetup]:
     try:
         import can
         from sim_slaves.canopen import CanopenSimulator  # type: ignore[import-not-found,unused-ignore]
@@ -119,17 +142,17 @@ def _canopen_network(head: str, axes: int, net: Path) -> Iterator[tuple[Path, st
     )
     with (
         can.Bus(interface="virtual", channel=channel) as bus,
-        CanopenSimulator(bus, [(drive, n) for n in range(1, axes + 1)]),
+        CanopenSimulator(bus, [(drive, n) for n in range(1, axes + 1)]) as sim,
     ):
-        yield net, None
+        yield DemoSetup(net, None, sim)
 
 
 def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bool = False) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``, ...)."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
-        demo_network(backend, axes, rate_hz, Path(tmp)) as (net_file, override),
-        open_network(net_file, backend=override) as net,
+        demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
+        open_network(setup.net_file, backend=setup.backend) as net,
     ):
         op = net.bring_up()
         follower = SineFollower(op, axes, rate_hz)

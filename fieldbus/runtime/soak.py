@@ -1,0 +1,302 @@
+"""Soak harness: run the cycle against an emulator with scheduled and random faults, account for each.
+
+A fault spec is ``kind=value`` pairs separated by commas, for example
+``loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1``:
+
+- ``loss`` (probability per cycle): the cycle's process-data frame is lost;
+- ``delay`` (probability): the reply comes back later than the receive timeout;
+- ``wkc`` (probability): one slave's working-counter share goes missing;
+- ``power_cycles`` (count, spread evenly): a slave (chosen at random) loses power;
+- ``bursts`` (count, spread evenly): ``safe_stop_after`` frames lost in a row;
+- ``sdo_aborts`` (count): bring-up attempts where one drive refuses a start-up SDO.
+
+Invariants checked every cycle (a broken one is a *violation*, never an
+exception): an injected loss is reported as a miss in the same cycle and its
+inputs are not called fresh; the safe stop fires exactly when the
+consecutive-miss count reaches the threshold; after a safe stop, the first
+delivered cycle leaves no emulated drive in OPERATION ENABLED; a power-cycled
+slave is back in OP within ``recovery_cycles`` without user action; no
+exception escapes the loop; ``close()`` leaves every drive below OPERATION
+ENABLED and every slave in INIT.
+
+The emulator is driven through one callable, ``control(**msg)``, taking the
+commands of ``sim_slaves.ethercat.runner.handle_control`` (drop, delay,
+corrupt_wkc, power_cycle, abort_sdo, clear, status).
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fieldbus.core.cia402 import Cia402Controller, Goal, State402
+from fieldbus.errors import FieldbusError, SdoAbortError
+from fieldbus.network import Network, Operational
+from fieldbus.runtime.timing import CycleTimer
+
+Control = Callable[..., dict[str, Any]]
+Opener = Callable[[], tuple[Network, Control]]  # a fresh Network and the control of its emulator
+RATES = ("loss", "delay", "wkc")
+COUNTS = ("power_cycles", "bursts", "sdo_aborts")
+AL_INIT, AL_OP = 0x01, 0x08
+OE = int(State402.OPERATION_ENABLED)
+
+
+class FaultSpecError(FieldbusError, ValueError):
+    """A ``--faults`` string that does not parse."""
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    loss: float = 0.0
+    delay: float = 0.0
+    wkc: float = 0.0
+    power_cycles: int = 0
+    bursts: int = 0
+    sdo_aborts: int = 0
+
+    @classmethod
+    def parse(cls, text: str) -> FaultSpec:
+        """``loss=0.01,power_cycles=3`` -> FaultSpec; raises :class:`FaultSpecError` naming the bad part."""
+        values: dict[str, Any] = {}
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            key, sep, raw = part.partition("=")
+            key = key.strip()
+            if not sep or key not in RATES + COUNTS:
+                raise FaultSpecError(
+                    f"fault '{part}': expected one of {', '.join(RATES + COUNTS)} as kind=value"
+                )
+            try:
+                value: float | int = float(raw) if key in RATES else int(raw)
+            except ValueError:
+                raise FaultSpecError(f"fault '{part}': '{raw}' is not a number") from None
+            if value < 0 or (key in RATES and value > 0.5):
+                raise FaultSpecError(f"fault '{part}': out of range ({'0..0.5' if key in RATES else '>= 0'})")
+            values[key] = value
+        return cls(**values)
+
+
+@dataclass
+class SoakReport:
+    cycles: int = 0
+    injected: Counter[str] = field(default_factory=Counter)
+    detected: Counter[str] = field(default_factory=Counter)
+    violations: list[str] = field(default_factory=list)
+    violation_count: int = 0
+    safe_stops: int = 0
+    missed: int = 0
+    recovered: int = 0
+    reenabled: int = 0
+    seconds: float = 0.0
+
+    def violate(self, cycle: int, what: str) -> None:
+        self.violation_count += 1
+        if len(self.violations) < 20:
+            self.violations.append(f"cycle {cycle}: {what}")
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "cycles": self.cycles,
+            "missed": self.missed,
+            "safe_stops": self.safe_stops,
+            "injected": dict(self.injected),
+            "detected": dict(self.detected),
+            "violation_count": self.violation_count,
+            "violations": self.violations,
+            "recovered_power_cycles": self.recovered,
+            "reenabled_after_safe_stop": self.reenabled,
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def schedule(
+    spec: FaultSpec, cycles: int, n_slaves: int, rng: random.Random, warmup: int
+) -> dict[int, tuple[str, int]]:
+    """Cycle -> (fault kind, slave) for the run; counted faults spread evenly, rates drawn per cycle."""
+    plan: dict[int, tuple[str, int]] = {}
+    span = cycles - warmup
+    for kind, count in (("power_cycle", spec.power_cycles), ("burst", spec.bursts)):
+        for i in range(count):
+            k = warmup + (i + 1) * span // (count + 1) + (7 if kind == "burst" else 0)
+            plan[k] = (kind, rng.randrange(n_slaves))
+    for k in range(warmup, cycles):
+        if k in plan:
+            continue
+        r = rng.random()
+        for kind in RATES:
+            p = getattr(spec, kind)
+            if r < p:
+                plan[k] = (kind, rng.randrange(n_slaves))
+                break
+            r -= p
+    return plan
+
+
+class Soak:
+    """One soak run on a network whose single bus is emulated; ``opener`` opens it (again after an abort)."""
+
+    def __init__(
+        self,
+        opener: Opener,
+        spec: FaultSpec,
+        *,
+        seed: int = 0,
+        warmup: int = 200,
+        recovery_cycles: int = 5000,
+        cycle_time_us: float = 0.0,
+    ) -> None:
+        self.opener = opener
+        self.net, self.control = opener()
+        if len(self.net.backends) != 1:
+            raise FieldbusError("soak runs one bus at a time")
+        self.spec = spec
+        self.rng = random.Random(seed)
+        self.warmup = warmup
+        self.recovery_cycles = recovery_cycles
+        self.cycle_time_us = cycle_time_us
+        self.report = SoakReport()
+        self.timer = CycleTimer()
+
+    # -- bring-up with SDO aborts --------------------------------------------------------
+    def bring_up(self) -> Operational:
+        """Bring-up attempts with an injected SDO abort (each must fail, naming drive and object), then OP."""
+        for _ in range(self.spec.sdo_aborts):
+            backend = self.net.backends[0]
+            slave = self.rng.randrange(backend.n_slaves)
+            startup = backend.areas[slave].slave.map.sdo
+            index, sub = (startup[0].index, startup[0].sub_index) if startup else (0x1C12, 0)
+            self.control(cmd="abort_sdo", slave=slave, index=index, sub=sub, code=0x06090030)
+            self.report.injected["sdo_abort"] += 1
+            try:
+                self.net.pre_op()
+            except SdoAbortError as exc:
+                if exc.slave == backend.areas[slave].slave.name and exc.index == index:
+                    self.report.detected["sdo_abort"] += 1
+                else:
+                    self.report.violate(0, f"SDO abort on slave {slave} reported as {exc}")
+            else:
+                self.report.violate(0, f"SDO abort on slave {slave} 0x{index:04X} not reported")
+            states = self.control(cmd="status")["drive_states"]
+            if OE in states:
+                self.report.violate(0, f"a drive is enabled after a failed bring-up: {states}")
+            self.control(cmd="clear")
+            self.net.close()
+            self.net, self.control = self.opener()
+        return self.net.bring_up()
+
+    # -- the run ----------------------------------------------------------------------
+    def run(self, cycles: int) -> SoakReport:
+        rep = self.report
+        t_start = time.perf_counter()
+        op = self.bring_up()
+        backend, policy = self.net.backends[0], self.net.policies[0]
+        threshold = policy.config.safe_stop_after
+        n = backend.n_slaves
+        img = next(iter(self.net.groups.values())).image
+        sw, cw = img.inputs["statusword"], img.outputs["controlword"]
+        ctrl = Cia402Controller(n, timeout_cycles=100_000)
+        ctrl.set_goal(Goal.ENABLE)
+        plan = schedule(self.spec, cycles, n, self.rng, self.warmup)
+        burst_left = 0
+        consecutive = 0
+        stop_latched = False
+        check_quick_stop = False
+        recovering: list[int] = []  # cycles at which a power cycle is still being recovered
+        fresh_streak = 0
+        period_ns = int(self.cycle_time_us * 1000)
+        deadline = time.perf_counter_ns()
+        for k in range(cycles):
+            event = plan.get(k)
+            lost_now = False
+            if event is not None:
+                kind, slave = event
+                lost_now = True
+                if kind == "loss":
+                    self.control(cmd="drop", count=1, pd=True)
+                elif kind == "delay":
+                    timeout_s = backend.bus.receive_timeout_us / 1e6
+                    self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
+                elif kind == "wkc":
+                    self.control(cmd="corrupt_wkc", delta=-1, count=1)
+                elif kind == "power_cycle":
+                    self.control(cmd="power_cycle", slave=slave)
+                    recovering.append(k)
+                elif kind == "burst":
+                    self.control(cmd="drop", count=threshold, pd=True)
+                    burst_left = threshold
+                rep.injected[kind] += 1
+            if burst_left:
+                lost_now = True
+                burst_left -= 1
+            t0 = time.perf_counter_ns()
+            try:
+                res = op.exchange()
+            except Exception as exc:  # the invariant is that this never happens
+                rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
+                break
+            fresh = res.fresh
+            if fresh and not stop_latched:
+                ctrl.step(sw, cw)
+            self.timer.add(time.perf_counter_ns() - t0)
+            rep.cycles += 1
+            # -- invariants --
+            if lost_now and fresh:
+                rep.violate(k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh")
+            if event is not None and not fresh:
+                rep.detected[event[0]] += 1
+            consecutive = 0 if fresh else consecutive + 1
+            if not fresh:
+                rep.missed += 1
+            if res.safe_stop and not stop_latched:
+                rep.safe_stops += 1
+                stop_latched = True
+                check_quick_stop = True
+                if consecutive != threshold:
+                    rep.violate(k, f"safe stop after {consecutive} consecutive misses, threshold {threshold}")
+            elif not stop_latched and consecutive >= threshold:
+                rep.violate(k, f"{consecutive} consecutive misses and no safe stop (threshold {threshold})")
+            if check_quick_stop and fresh:
+                check_quick_stop = False
+                states = self.control(cmd="status")["drive_states"]
+                if OE in states:
+                    rep.violate(
+                        k, f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}"
+                    )
+            fresh_streak = fresh_streak + 1 if fresh else 0
+            if recovering and fresh_streak >= 20:
+                status = self.control(cmd="status")
+                if all(s == AL_OP for s in status["states"]):
+                    rep.recovered += len(recovering)
+                    recovering.clear()
+            if recovering and k - recovering[0] > self.recovery_cycles:
+                rep.violate(k, f"power-cycled slave not back in OP after {self.recovery_cycles} cycles")
+                recovering.clear()
+            if stop_latched and fresh_streak >= 20 and not recovering and not burst_left:
+                op.clear_safe_stop()  # what an operator or a supervisor would do: then re-enable
+                stop_latched = False
+                ctrl.set_goal(Goal.ENABLE)
+                rep.reenabled += 1
+            if period_ns:
+                deadline += period_ns
+                while time.perf_counter_ns() < deadline:
+                    pass
+        rep.seconds = time.perf_counter() - t_start
+        if recovering:
+            rep.violate(rep.cycles, "run ended while a power-cycled slave was still recovering")
+        return rep
+
+    def close(self) -> None:
+        """Close the network and check that every drive is down and every slave in INIT."""
+        try:
+            self.net.close()
+        except Exception as exc:
+            self.report.violate(self.report.cycles, f"close() raised {type(exc).__name__}: {exc}")
+        status = self.control(cmd="status")
+        if OE in status["drive_states"]:
+            self.report.violate(self.report.cycles, f"drive enabled after close(): {status['drive_states']}")
+        if any(s != AL_INIT for s in status["states"]):
+            self.report.violate(self.report.cycles, f"slaves not in INIT after close(): {status['states']}")
