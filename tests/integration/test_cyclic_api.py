@@ -27,6 +27,7 @@ from fieldbus.runtime.loop import run_cycles
 
 INTEROP = Path(__file__).resolve().parents[3] / "shared" / "interop" / "ethercat_driver_ros2"
 EPOS4 = INTEROP / "maxon_epos4_50_5.yaml"
+PDO_MAPS = Path(__file__).resolve().parents[2] / "pdo_maps"
 AL_OP, AL_PREOP = 0x08, 0x02
 
 pytestmark = pytest.mark.timeout(300)
@@ -124,7 +125,17 @@ def _run_until_fresh(op: Operational, cycles: int) -> None:
 # -- bring-up --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("map_file", [EPOS4, DEMO_MAP], ids=["interop-epos4", "demo-joint"])
+@pytest.mark.parametrize(
+    "map_file",
+    [
+        EPOS4,
+        DEMO_MAP,
+        PDO_MAPS / "generic_cia402.yaml",
+        PDO_MAPS / "maxon_epos4.yaml",
+        PDO_MAPS / "elmo_gold.yaml",
+    ],
+    ids=["interop-epos4", "demo-joint", "pdo_maps-generic", "pdo_maps-epos4", "pdo_maps-elmo"],
+)
 def test_bring_up_exchanges_with_full_working_counter(
     segment: Callable[..., Segment], map_file: Path
 ) -> None:
