@@ -167,6 +167,7 @@ class DriveParams:
                 raise ValueError(f"DriveParams.{name} must be >= 1")
 
 
+COMMUNICATION_FAULT = 0x8100  # CiA 301 emergency code: communication, generic
 _POWERED = frozenset({State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE, State402.FAULT_REACTION_ACTIVE})
 _OE = State402.OPERATION_ENABLED
 _QSA = State402.QUICK_STOP_ACTIVE
@@ -269,6 +270,16 @@ class Cia402Drive:
         """
         position_counts = round(self.position_rad * self.counts_per_rad)
         self.__init__(self.params, position_counts=position_counts)  # type: ignore[misc]
+
+    def connection_lost(self) -> None:
+        """The fieldbus left its operational state (EtherCAT OP, CANopen OPERATIONAL) while powered.
+
+        The drive reacts as with abort connection option code 0x6007 = 1 (the
+        usual default): a fault with error code 0x8100 (communication), so the
+        fault reaction stops the motor without waiting for the master.
+        """
+        if self.state in _POWERED:
+            self.inject_fault(COMMUNICATION_FAULT)
 
     def inject_fault(self, code: int, *, persistent: bool = False) -> None:
         """Raise a fault with error code ``code`` (0x603F) at the next step; a persistent one refuses reset."""

@@ -27,7 +27,7 @@ from fieldbus.core.pdo.model import (
     SyncManager,
 )
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD, default_name
-from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located
+from fieldbus.core.yamlsrc import Located, PathT, format_path, load_file, load_located
 from fieldbus.errors import PdoMapError
 
 CLASSIC_CAN_PDO_BYTES = 8
@@ -282,7 +282,7 @@ def _pdos(
                     raise r.err(
                         (*cpath, "name") if "name" in craw else cpath,
                         f"duplicate {direction.value} channel name '{ch.name}' "
-                        f"(also {'.'.join(str(p) for p in other)}); give one a 'name'",
+                        f"(also {format_path(other)}); give one a 'name'",
                     )
                 seen_names[ch.name] = cpath
             channels.append(ch)
@@ -394,7 +394,7 @@ def _place_bits(r: Reader, ch: Channel, path: PathT, cursor: int, owner: dict[in
                 raise r.err(
                     (*path, "mask"),
                     f"mask 0x{ch.mask:02X} overlaps bit {mask_bit} of byte {byte}, "
-                    f"already used by {'.'.join(str(p) for p in other)}",
+                    f"already used by {format_path(other)}",
                 )
             raise r.err(
                 (*path, "mask"),
