@@ -52,6 +52,8 @@ class BusStatus:
     wkc: int = -1
     consecutive_misses: int = 0
     safe_stop: bool = False
+    dc_time_ns: int | None = None  # DC system time of this cycle's frame (EtherCAT with DC), ns
+    dc_sync_error_ns: int | None = None  # host phase error against the DC cycle, ns
 
 
 @dataclass
@@ -256,6 +258,8 @@ class Operational(_Phase):
             st.wkc = policy.last_wkc
             st.consecutive_misses = policy.consecutive_misses
             st.safe_stop = policy.safe_stop
+            st.dc_time_ns = b.dc_time_ns
+            st.dc_sync_error_ns = b.dc_sync_error_ns
             if verdict is Verdict.OK or (verdict is Verdict.SHORT and b.arrived() is not None):
                 for g in b.groups:
                     g.image.inputs.from_wire()  # CAN: rows of silent nodes still hold their last bytes
@@ -271,6 +275,13 @@ class Operational(_Phase):
         res.cycle += 1
         res.exchange_ns = time.perf_counter_ns() - t0
         return res
+
+    def dc_correction_ns(self) -> int:
+        """Nanoseconds to add to the next cycle deadline so the host follows DC time (0 without DC).
+
+        Pass it to :func:`fieldbus.runtime.loop.run_cycles` as ``adjust``.
+        """
+        return sum(b.dc_correction_ns() for b in self._net.backends)
 
     def clear_safe_stop(self) -> None:
         """Release a latched safe stop (the controller then re-enables drives through CiA 402)."""

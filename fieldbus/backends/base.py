@@ -152,6 +152,14 @@ class Backend(abc.ABC):
         """Per-slave arrival of this cycle's inputs when the bus can tell (CAN); else None."""
         return None
 
+    # distributed clocks (EtherCAT buses with DC slaves; None elsewhere)
+    dc_time_ns: int | None = None  # DC system time read in this cycle's frame (reference clock), ns
+    dc_sync_error_ns: int | None = None  # host cycle phase minus its target within the DC cycle, ns
+
+    def dc_correction_ns(self) -> int:
+        """Nanoseconds to add to the next cycle deadline so the host follows DC time (0: no DC)."""
+        return 0
+
     def recover_step(self) -> bool:
         """One non-blocking recovery step for slaves not in OP (after a miss). True: all in OP."""
         return True

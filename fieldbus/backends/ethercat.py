@@ -24,6 +24,7 @@ from typing import Any
 
 from fieldbus.backends.base import Backend
 from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import coe_plan
 from fieldbus.core.wkc import AL_ERROR, Recovery, recovery_action
@@ -45,6 +46,8 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 STATE_NAMES = {0x01: "INIT", 0x02: "PRE-OP", 0x03: "BOOT", 0x04: "SAFE-OP", 0x08: "OP"}
 STATE_TIMEOUT_US = 2_000_000
 RECONFIG_TIMEOUT_US = 500
+SYNC1_ACTIVATE = 0x0400  # assign_activate bit: SYNC1 generation (0x0981 bit 2)
+HOST_OFFSET_FRACTION = 50  # host sends this % of a cycle after each SYNC0 (SOEM examples: 50 %)
 SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times  # SOEM's EC_TIMEOUTMON for reconfig/recover steps
 
 
@@ -68,6 +71,8 @@ class EthercatBackend(Backend):
         self._timeout_us = bus.receive_timeout_us
         self._timeout_ns = bus.receive_timeout_us * 1000
         self._sent_ns = 0
+        self._host_sync: HostSync | None = None
+        self._dc_correction = 0
         self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
@@ -167,9 +172,33 @@ class EthercatBackend(Backend):
         self._in_views = [
             (s, self.in_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].in_size
         ]
+        self._configure_dc()
         state = self.master.state_check(pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
+
+    def _configure_dc(self) -> None:
+        """DC for maps with ``assign_activate``: ``config_dc``, then SYNC0 (and SYNC1) per slave.
+
+        SYNC0 cycle = the bus cycle; shift and SYNC1 from the map's ``ethercat``
+        section. The host loop then follows DC time (:meth:`dc_correction_ns`).
+        """
+        dc_slaves = [i for i, a in enumerate(self.areas) if a.slave.map.assign_activate]
+        if not dc_slaves:
+            return
+        if not self.master.config_dc():
+            names = ", ".join(self.areas[i].slave.name for i in dc_slaves)
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': maps ask for DC ({names}) but no slave has DC"
+            )
+        cycle_ns = self.bus.cycle_time_us * 1000
+        for i in dc_slaves:
+            m = self.areas[i].slave.map
+            sync1 = m.ethercat.sync1_cycle_ns if m.assign_activate & SYNC1_ACTIVATE else None
+            self._slaves[i].dc_sync(True, cycle_ns, m.ethercat.sync0_shift_ns, sync1)
+        self._host_sync = HostSync(
+            HostSyncConfig(cycle_ns=cycle_ns, offset_ns=HOST_OFFSET_FRACTION * cycle_ns // 100)
+        )
 
     def _hook(self, i: int) -> Any:
         area = self.areas[i]
@@ -233,11 +262,21 @@ class EthercatBackend(Backend):
             wkc = -1
         if self._recovery is not None and wkc >= 0:
             self.recover_step()  # a slave is known not to be in OP: keep at it, one step per cycle
+        if self._host_sync is not None and wkc >= 0:
+            dc = int(self.master.dc_time)
+            self.dc_time_ns = dc
+            self._dc_correction = self._host_sync.step(dc)
+            self.dc_sync_error_ns = self._host_sync.delta_ns
         if wkc < 0:
             return None
         for s, mv in self._in_views:
             mv[:] = s.input
         return wkc
+
+    def dc_correction_ns(self) -> int:
+        """Correction for the next deadline from the host PI (SOEM's ec_sync), ns; 0 without DC."""
+        c, self._dc_correction = self._dc_correction, 0
+        return c
 
     def recover_step(self) -> bool:
         """One bounded recovery step (one pysoem call); True once every slave is back in OP.

@@ -60,6 +60,7 @@ def run_cycles(
     status: TextIO | None = None,
     status_every_s: float = 1.0,
     describe: Callable[[], str] | None = None,
+    adjust: Callable[[], int] | None = None,
     clock: Callable[[], int] = time.perf_counter_ns,
     sleep: Callable[[float], None] = time.sleep,
 ) -> CycleTimer:
@@ -67,8 +68,9 @@ def run_cycles(
 
     ``timer`` receives the duration of each ``step`` (ns). With ``status`` (e.g.
     ``sys.stderr``) a one-line status is rewritten about once per
-    ``status_every_s`` using ``describe()``. ``clock`` (ns) and ``sleep`` (s)
-    are injectable for tests.
+    ``status_every_s`` using ``describe()``. ``adjust()`` (ns) is added to each
+    next deadline: the DC host sync (``Operational.dc_correction_ns``). ``clock``
+    (ns) and ``sleep`` (s) are injectable for tests.
     """
     timer = timer or CycleTimer(capacity=max(1, min(cycles, 1_000_000)))
     period = int(cycle_time_us * 1000)
@@ -80,7 +82,7 @@ def run_cycles(
             t0 = clock()
             stop = step(k)
             t1 = clock()
-            deadline += period
+            deadline += period + (adjust() if adjust is not None else 0)
             overrun = t1 > deadline
             timer.add(t1 - t0, overrun=overrun)
             if stop:
