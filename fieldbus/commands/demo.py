@@ -32,13 +32,15 @@ from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.report import run_report
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
-BACKENDS = ("sim", "ethercat", "canopen")
+BACKENDS = ("sim", "ethercat", "canopen", "rawcan")
+MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 AMPLITUDE_RAD = 0.5  # sine amplitude per joint
 FREQUENCY_HZ = 0.5
 ENABLE_TIMEOUT_S = 3.0
 # A frame that returns later than this counts as a miss. The veth emulator is a
 # user-space process on a shared machine: give it more than the 500 us default.
-RECEIVE_TIMEOUT_US = {"sim": 500, "ethercat": 2000, "canopen": 20000}
+# python-can's virtual bus is threads in one process: not real time (GIL switch interval 5 ms).
+RECEIVE_TIMEOUT_US = {"sim": 500, "ethercat": 2000, "canopen": 20000, "rawcan": 20000}
 
 
 def register(sub: Any) -> None:
@@ -48,12 +50,22 @@ def register(sub: Any) -> None:
     p.add_argument("--backend", choices=BACKENDS, default="sim", help="bus to run on (default sim)")
     p.add_argument("--axes", type=int, default=12, help="number of joints (default 12)")
     p.add_argument("--cycles", type=int, default=3000, help="cycles to run (default 3000)")
-    p.add_argument("--rate", type=float, default=1000.0, help="cycle rate in Hz (default 1000)")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        help="cycle rate in Hz (default 1000; 250 on the CAN backends: python-can's virtual bus is threads)",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
 
+DEFAULT_RATE_HZ = {"sim": 1000.0, "ethercat": 1000.0, "canopen": 250.0, "rawcan": 250.0}
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.rate is None:
+        args.rate = DEFAULT_RATE_HZ[args.backend]
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
     report = run_demo(args.backend, args.axes, args.cycles, args.rate, status=not args.json)
@@ -67,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
 def describe(r: dict[str, Any]) -> str:
     t, e = r["cycle_time_us"], r["tracking_error"]
     lines = [
-        f"{r['axes']} CiA 402 joints on '{r['backend']}', {r['cycles']} cycles at {1e6 / r['period_us']:g} Hz",
+        f"{r['axes']} {'MIT-mode motors' if r['backend'] == 'rawcan' else 'CiA 402 joints'} on '{r['backend']}', "
+        f"{r['cycles']} cycles at {1e6 / r['period_us']:g} Hz",
         f"  enabled: {'all' if r['enabled'] else 'NOT all'} after {r['enable_cycles']} cycles",
         f"  tracking error (sine {AMPLITUDE_RAD} rad, {FREQUENCY_HZ} Hz): max {e['max_rad'] * 1e3:.3f} mrad, "
         f"rms {e['rms_rad'] * 1e3:.3f} mrad",
@@ -121,6 +134,8 @@ def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iter
             yield DemoSetup(net, None, emu)
     elif backend == "canopen":
         yield from _canopen_network(head, axes, net)
+    elif backend == "rawcan":
+        yield from _rawcan_network(head, axes, rate_hz, net)
     else:
         raise FieldbusError(f"unknown demo backend '{backend}' (have: {', '.join(BACKENDS)})")
 
@@ -147,6 +162,31 @@ def _canopen_network(head: str, axes: int, net: Path) -> Iterator[DemoSetup]:
         yield DemoSetup(net, None, sim)
 
 
+def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator[DemoSetup]:
+    """MIT-mode motors (CubeMars AK80-9 map) emulated on python-can's virtual bus."""
+    try:
+        import can
+
+        from fieldbus.core.pdo import load_drive_map
+        from sim_slaves.mit_motor import MitMotorSimulator
+    except ImportError as exc:
+        raise FieldbusError(f"the rawcan demo needs {exc.name}: pip install 'fieldbus[can]'") from None
+    if not MIT_MAP.exists():
+        raise FieldbusError(f"the rawcan demo needs {MIT_MAP} (run from a source checkout)")
+    channel = f"fieldbus-demo-mit-{id(net)}"
+    drive = load_drive_map(MIT_MAP)
+    net.write_text(
+        head + "buses:\n  - name: joints\n    type: rawcan\n"
+        f"    interface: {channel}\n    can_interface: virtual\n"
+        f"    slaves: [{{name: 'm{{i}}', map: {json.dumps(str(MIT_MAP))}, node_id: 1, count: {axes}}}]\n"
+    )
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        MitMotorSimulator(bus, [(drive, n) for n in range(1, axes + 1)], dt_s=1.0 / rate_hz) as sim,
+    ):
+        yield DemoSetup(net, None, sim)
+
+
 def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bool = False) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``, ...)."""
     with (
@@ -155,7 +195,9 @@ def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bo
         open_network(setup.net_file, backend=setup.backend) as net,
     ):
         op = net.bring_up()
-        follower = SineFollower(op, axes, rate_hz)
+        follower: SineFollower | MitFollower = (
+            MitFollower(op, axes, rate_hz) if backend == "rawcan" else SineFollower(op, axes, rate_hz)
+        )
         timer = run_cycles(
             follower.step,
             1e6 / rate_hz,
@@ -239,4 +281,73 @@ class SineFollower:
                 "samples": self.samples,
             },
             "states": [State402(int(s)).name if s >= 0 else "UNKNOWN" for s in self.ctrl.state],
+        }
+
+
+class MitFollower:
+    """MIT-mode motors: impedance control (kp, kd) towards ``start + A (1 - cos 2 pi f t)``.
+
+    The motors are in motor mode from bring-up (``op()`` sends enter-motor-mode);
+    "enabled" means every motor answered. Tracking error as in :class:`SineFollower`.
+    """
+
+    KP, KD = 40.0, 1.5  # N·m/rad, N·m·s/rad
+
+    def __init__(self, op: Operational, axes: int, rate_hz: float, group: str = "joints") -> None:
+        self.op = op
+        img = op[group]
+        self.out, self.inp = img.outputs, img.inputs
+        self.position = self.inp["position"]
+        self.target = self.out["position"]
+        self.velocity = self.out["velocity"]  # feed-forward: the trajectory's velocity, rad/s
+        self.out["kp"][:] = self.KP
+        self.out["kd"][:] = self.KD
+        self.dt = 1.0 / rate_hz
+        self.n = axes
+        self.start = np.zeros(axes)
+        self.prev_target = np.zeros(axes)
+        self.err = np.zeros(axes)
+        self.enabled_at: int | None = None
+        self.max_err = 0.0
+        self.sum_sq = 0.0
+        self.samples = 0
+        self.k = 0
+
+    def step(self, k: int) -> bool:
+        self.k = k
+        res = self.op.exchange()
+        if not res.fresh or res.safe_stop:
+            return False
+        if self.enabled_at is None:
+            self.enabled_at = k
+            self.start[:] = self.position
+            self.target[:] = self.position
+            self.prev_target[:] = self.position
+            return False
+        if k - self.enabled_at > 1:
+            np.subtract(self.position, self.prev_target, out=self.err)
+            np.abs(self.err, out=self.err)
+            self.max_err = max(self.max_err, float(self.err.max()))
+            self.sum_sq += float(np.dot(self.err, self.err))
+            self.samples += self.err.size
+        w = 2 * math.pi * FREQUENCY_HZ
+        t = (k - self.enabled_at) * self.dt
+        np.add(self.start, AMPLITUDE_RAD * (1.0 - math.cos(w * t)), out=self.target)
+        self.velocity.fill(AMPLITUDE_RAD * w * math.sin(w * t))
+        self.prev_target[:] = self.target
+        return False
+
+    def status(self) -> str:
+        return f"max error {self.max_err * 1e3:.2f} mrad"
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "enabled": self.enabled_at is not None,
+            "enable_cycles": self.enabled_at if self.enabled_at is not None else self.k + 1,
+            "tracking_error": {
+                "max_rad": self.max_err,
+                "rms_rad": math.sqrt(self.sum_sq / self.samples) if self.samples else 0.0,
+                "samples": self.samples,
+            },
+            "states": ["MOTOR_MODE" if self.enabled_at is not None else "NO_REPLY"] * self.n,
         }

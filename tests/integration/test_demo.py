@@ -48,3 +48,14 @@ def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str]) -> None:
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--axes", "0"]) == 1
     assert "--axes" in capsys.readouterr().err
+
+
+def test_demo_on_mit_mode_motors_over_the_virtual_can_bus(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("can")
+    code, r = _demo(capsys, "--backend", "rawcan", "--axes", "3", "--cycles", "500", "--rate", "250")
+    assert KEYS <= r.keys() and set(r["cycle_time_us"]) == {"mean", "p99", "max"}
+    assert (r["backend"], r["axes"], r["enabled"]) == ("rawcan", 3, True)
+    assert r["buses"][0]["type"] == "rawcan" and r["buses"][0]["slaves"] == 3
+    assert r["missed"] == 0 and r["safe_stops"] == 0 and code == 0
+    # impedance control with velocity feed-forward: within 10 mrad of a 0.5 rad, 0.5 Hz sine
+    assert r["tracking_error"]["samples"] > 3 * 400 and r["tracking_error"]["max_rad"] < 10e-3
