@@ -1,0 +1,351 @@
+"""One emulated CANopen device (CiA 301 + CiA 402), sans-IO: CAN frames in, CAN frames out.
+
+The object dictionary comes from the drive map (:mod:`sim_slaves.od`) plus
+the CiA 301 communication objects: 0x1005 SYNC COB-ID, 0x1017 producer
+heartbeat time, 0x1400-0x1403 / 0x1800-0x1803 PDO communication (COB-ID with
+bit 31 = PDO not valid, transmission type, inhibit time, event timer) and
+0x1600-0x1603 / 0x1A00-0x1A03 PDO mapping. PDO mapping can only change in
+PRE-OPERATIONAL with the PDO invalid, as CiA 301 says; what is mapped is what
+is sent and received (the PDO layout is rebuilt when the mapping or a COB-ID
+changes).
+
+Directions from the master's side: RPDOs (0x1400/0x1600) carry master
+outputs to the drive, TPDOs (0x1800/0x1A00) master inputs from it.
+
+Synchronous PDOs (transmission type 0-240): a received RPDO takes effect at
+the next SYNC; at each SYNC the drive model steps and every TPDO whose
+transmission type divides the SYNC count is sent.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Protocol
+
+from fieldbus.core import datatypes
+from fieldbus.core.pdo.model import Channel, DriveMap
+from fieldbus.errors import SdoAbortError
+from sim_slaves.od import Access, CommState, ObjectDictionary
+
+U8 = datatypes.lookup("uint8")
+U16 = datatypes.lookup("uint16")
+U32 = datatypes.lookup("uint32")
+assert U8 is not None and U16 is not None and U32 is not None
+
+COB_NMT, COB_SYNC, COB_EMCY, COB_TSDO, COB_RSDO, COB_HEARTBEAT = 0x000, 0x080, 0x080, 0x580, 0x600, 0x700
+RPDO_COB = (0x200, 0x300, 0x400, 0x500)
+TPDO_COB = (0x180, 0x280, 0x380, 0x480)
+INVALID = 0x80000000
+ABORT_TOGGLE = 0x05030000
+ABORT_COMMAND = 0x05040001
+ABORT_STATE = 0x08000022
+ABORT_GENERAL = 0x08000000
+
+Frame = tuple[int, bytes]  # (11-bit COB-ID, data)
+
+
+class NmtState(IntEnum):
+    """NMT states and their heartbeat byte (CiA 301)."""
+
+    BOOTUP = 0x00
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F
+
+
+_COMM = {
+    NmtState.PRE_OPERATIONAL: CommState.PRE_OPERATIONAL,
+    NmtState.OPERATIONAL: CommState.OPERATIONAL,
+    NmtState.STOPPED: CommState.INIT,
+    NmtState.BOOTUP: CommState.INIT,
+}
+
+
+class App(Protocol):
+    def step(self, od: ObjectDictionary, dt_s: float) -> None: ...
+
+
+@dataclass
+class _PdoRuntime:
+    number: int  # 1..4
+    cob_id: int
+    transmission_type: int
+    channels: tuple[Channel, ...]
+
+
+@dataclass
+class _Segmented:
+    index: int
+    sub: int
+    data: bytearray
+    toggle: int
+    size: int = 0
+
+
+def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: int) -> None:
+    """The CiA 301 communication objects of a node at ``node_id`` (defaults of the predefined set)."""
+    od.add(0x1005, 0, U32, COB_SYNC, name="COB-ID SYNC")
+    hb = drive.canopen.heartbeat_ms if drive.canopen is not None else 0
+    od.add(0x1017, 0, U16, hb, name="producer heartbeat time")
+    for direction, comm_base, map_base, cobs, pdos in (
+        ("rpdo", 0x1400, 0x1600, RPDO_COB, drive.rpdo),
+        ("tpdo", 0x1800, 0x1A00, TPDO_COB, drive.tpdo),
+    ):
+        by_number = {p.number: p for p in pdos}
+        for n in range(1, 5):
+            comm, mapping = comm_base + n - 1, map_base + n - 1
+            pdo = by_number.get(n)
+            od.add(comm, 1, U32, cobs[n - 1] + node_id, name=f"{direction}{n} COB-ID")
+            od.add(comm, 2, U8, 255 if pdo is None else 1, name=f"{direction}{n} transmission type")
+            if direction == "tpdo":
+                od.add(comm, 3, U16, 0, name="inhibit time")
+                od.add(comm, 5, U16, 0, name="event timer")
+            od.add(comm, 0, U8, 5 if direction == "tpdo" else 2, access=Access.RO)
+            if not od.has(mapping, 0):
+                od.add(mapping, 0, U8, 0, name="PDO mapping")
+                for sub in range(1, 9):
+                    od.add(mapping, sub, U32, 0)
+
+
+class CanopenNode:
+    """A CiA 301 device with a CiA 402 drive behind (when the map is a CiA 402 map)."""
+
+    def __init__(self, drive: DriveMap, node_id: int, app: App | None = None) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id} out of range 1..127")
+        self.drive = drive
+        self.node_id = node_id
+        self.od = ObjectDictionary.from_drive_map(drive)
+        add_communication_objects(self.od, drive, node_id)
+        self.app = app
+        self.state = NmtState.BOOTUP
+        self.sync_count = 0
+        self._rpdos: dict[int, _PdoRuntime] = {}
+        self._tpdos: list[_PdoRuntime] = []
+        self._pending: dict[int, bytes] = {}  # RPDO COB-ID -> data, applied at the next SYNC
+        self._layout_key: tuple[int, ...] = ()
+        self._seg: _Segmented | None = None
+        # fault hooks
+        self.drop_tpdos = 0
+        self.heartbeat_silent = False
+        self.bus_off = False
+        self.received_rpdos = 0
+        self.sent_tpdos = 0
+
+    # -- NMT ------------------------------------------------------------------------------
+    def boot(self) -> list[Frame]:
+        """Power-on: INITIALISING -> boot-up message -> PRE-OPERATIONAL."""
+        self.state = NmtState.PRE_OPERATIONAL
+        self._seg = None
+        self._pending.clear()
+        return [(COB_HEARTBEAT + self.node_id, b"\x00")]
+
+    def nmt(self, command: int) -> list[Frame]:
+        """NMT command (CiA 301): 1 start, 2 stop, 0x80 pre-operational, 0x81 reset node, 0x82 reset comm."""
+        was_operational = self.state == NmtState.OPERATIONAL
+        if command == 0x01:
+            self.state = NmtState.OPERATIONAL
+        elif command == 0x02:
+            self.state = NmtState.STOPPED
+        elif command == 0x80:
+            self.state = NmtState.PRE_OPERATIONAL
+        elif command in (0x81, 0x82):
+            if command == 0x81:
+                self.od = ObjectDictionary.from_drive_map(self.drive)
+                add_communication_objects(self.od, self.drive, self.node_id)
+                self._layout_key = ()
+                reset = getattr(self.app, "power_cycle", None)
+                if callable(reset):
+                    reset()
+            return self.boot()
+        if was_operational and self.state != NmtState.OPERATIONAL:
+            lost = getattr(self.app, "connection_lost", None)
+            if callable(lost):
+                lost()  # CiA 402: the drive stops itself when it leaves OPERATIONAL
+        return []
+
+    def heartbeat(self) -> Frame | None:
+        if self.heartbeat_silent or self.bus_off:
+            return None
+        return (COB_HEARTBEAT + self.node_id, bytes([int(self.state)]))
+
+    @property
+    def heartbeat_ms(self) -> int:
+        return int(self.od.get_value(0x1017, 0))
+
+    def emergency(self, code: int, register: int = 0, data: bytes = b"") -> Frame:
+        """An EMCY frame (0x80 + node id): u16 error code, u8 error register, 5 bytes manufacturer data."""
+        self.od.set_value(0x1001, 0, register)
+        return (COB_EMCY + self.node_id, struct.pack("<HB", code, register) + data[:5].ljust(5, b"\0"))
+
+    # -- SDO server (CiA 301 7.2.4) -----------------------------------------------------------
+    def sdo(self, req: bytes) -> Frame | None:
+        """Answer one SDO request (0x600 + id) with a response (0x580 + id)."""
+        if len(req) != 8 or self.state == NmtState.STOPPED:
+            return None
+        cmd = req[0]
+        ccs = cmd >> 5
+        index, sub = req[1] | req[2] << 8, req[3]
+        try:
+            if ccs == 1:
+                out = self._download_initiate(cmd, index, sub, req)
+            elif ccs == 0:
+                out = self._download_segment(cmd, req)
+            elif ccs == 2:
+                out = self._upload_initiate(index, sub)
+            elif ccs == 3:
+                out = self._upload_segment(cmd)
+            elif ccs == 4:
+                self._seg = None
+                return None
+            else:
+                raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub)
+        except SdoAbortError as exc:
+            self._seg = None
+            ai, asub = (exc.index, exc.subindex) if exc.index else (index, sub)
+            out = struct.pack("<BHBI", 0x80, ai, asub, exc.code)
+        return (COB_TSDO + self.node_id, out)
+
+    def _write(self, index: int, sub: int, data: bytes) -> None:
+        if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
+            comm = index - 0x200  # 0x16xx -> 0x14xx, 0x1Axx -> 0x18xx
+            if self.od.has(comm, 1) and not int(self.od.get_value(comm, 1)) & INVALID:
+                raise SdoAbortError(
+                    ABORT_STATE, index=index, subindex=sub, detail="PDO valid: set its COB-ID bit 31 first"
+                )
+        self.od.write(index, sub, data, state=_COMM[self.state])
+
+    def _download_initiate(self, cmd: int, index: int, sub: int, req: bytes) -> bytes:
+        self._seg = None
+        if cmd & 0x02:  # expedited
+            n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
+            self._write(index, sub, req[4 : 4 + n])
+        else:
+            self.od.entry(index, sub)  # abort now for a missing object
+            size = struct.unpack_from("<I", req, 4)[0] if cmd & 0x01 else 0
+            self._seg = _Segmented(index, sub, bytearray(), 0, size)
+        return struct.pack("<BHBI", 0x60, index, sub, 0)
+
+    def _download_segment(self, cmd: int, req: bytes) -> bytes:
+        seg = self._seg
+        if seg is None:
+            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no download in progress")
+        if cmd & 0x10 != seg.toggle:
+            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, subindex=seg.sub)
+        seg.data += req[1 : 8 - ((cmd >> 1) & 0x07)]
+        seg.toggle ^= 0x10
+        if cmd & 0x01:  # last segment
+            self._seg = None
+            self._write(seg.index, seg.sub, bytes(seg.data))
+        return bytes([0x20 | (cmd & 0x10)]) + bytes(7)
+
+    def _upload_initiate(self, index: int, sub: int) -> bytes:
+        self._seg = None
+        data = self.od.read(index, sub)
+        if len(data) <= 4:
+            return struct.pack("<BHB", 0x43 | (4 - len(data)) << 2, index, sub) + data.ljust(4, b"\0")
+        self._seg = _Segmented(index, sub, bytearray(data), 0)
+        return struct.pack("<BHBI", 0x41, index, sub, len(data))
+
+    def _upload_segment(self, cmd: int) -> bytes:
+        seg = self._seg
+        if seg is None:
+            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no upload in progress")
+        if cmd & 0x10 != seg.toggle:
+            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, subindex=seg.sub)
+        chunk, seg.data = bytes(seg.data[:7]), seg.data[7:]
+        last = not seg.data
+        head = seg.toggle | (7 - len(chunk)) << 1 | (0x01 if last else 0)
+        seg.toggle ^= 0x10
+        if last:
+            self._seg = None
+        return bytes([head]) + chunk.ljust(7, b"\0")
+
+    # -- PDOs -----------------------------------------------------------------------------
+    def _refresh_pdos(self) -> None:
+        od = self.od
+        key = (
+            od.mapping_version,
+            *(int(od.get_value(c, 1)) for c in (*range(0x1400, 0x1404), *range(0x1800, 0x1804))),
+        )
+        if key == self._layout_key:
+            return
+        self._layout_key = key
+        self._rpdos, self._tpdos = {}, []
+        for n in range(1, 5):
+            for comm, mapping, is_rx in ((0x13FF + n, 0x15FF + n, True), (0x17FF + n, 0x19FF + n, False)):
+                cob = int(od.get_value(comm, 1))
+                if cob & INVALID:
+                    continue
+                rt = _PdoRuntime(n, cob & 0x7FF, int(od.get_value(comm, 2)), od.pdo(mapping).channels)
+                if is_rx:
+                    self._rpdos[rt.cob_id] = rt
+                else:
+                    self._tpdos.append(rt)
+
+    def rpdo_cob_ids(self) -> set[int]:
+        self._refresh_pdos()
+        return set(self._rpdos)
+
+    def rpdo(self, cob_id: int, data: bytes) -> None:
+        """An RPDO arrived (master outputs); synchronous ones take effect at the next SYNC."""
+        if self.state != NmtState.OPERATIONAL or self.bus_off:
+            return
+        self._refresh_pdos()
+        rt = self._rpdos.get(cob_id)
+        if rt is None:
+            return
+        self.received_rpdos += 1
+        if rt.transmission_type <= 240:
+            self._pending[cob_id] = data
+        else:
+            self._apply(rt, data)
+
+    def _apply(self, rt: _PdoRuntime, data: bytes) -> None:
+        raw = int.from_bytes(data, "little")
+        bit = 0
+        for ch in rt.channels:
+            bits = ch.bits
+            if not ch.is_gap:
+                value = (raw >> bit) & ((1 << bits) - 1)
+                self.od.set_value(
+                    ch.index, ch.sub_index, ch.type.decode(value.to_bytes((bits + 7) // 8, "little"))
+                )
+            bit += bits
+
+    def _pack(self, rt: _PdoRuntime) -> bytes:
+        raw = 0
+        bit = 0
+        for ch in rt.channels:
+            bits = ch.bits
+            if not ch.is_gap:
+                enc = ch.type.encode(self.od.get_value(ch.index, ch.sub_index))
+                raw |= (int.from_bytes(enc, "little") & ((1 << bits) - 1)) << bit
+            bit += bits
+        return raw.to_bytes((bit + 7) // 8, "little")
+
+    def sync(self, dt_s: float) -> list[Frame]:
+        """A SYNC: apply synchronous RPDOs, step the drive, send due TPDOs (in OPERATIONAL)."""
+        if self.bus_off or self.state != NmtState.OPERATIONAL:
+            return []
+        self._refresh_pdos()
+        self.sync_count = self.sync_count % 240 + 1
+        for cob, data in self._pending.items():
+            rt = self._rpdos.get(cob)
+            if rt is not None:
+                self._apply(rt, data)
+        self._pending.clear()
+        if self.app is not None:
+            self.app.step(self.od, dt_s)
+        out: list[Frame] = []
+        for rt in self._tpdos:
+            t = rt.transmission_type
+            if t == 0 or (1 <= t <= 240 and self.sync_count % t == 0):
+                if self.drop_tpdos:
+                    self.drop_tpdos -= 1
+                    continue
+                out.append((rt.cob_id, self._pack(rt)))
+        self.sent_tpdos += len(out)
+        return out

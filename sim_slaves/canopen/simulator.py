@@ -1,0 +1,165 @@
+"""Emulated CANopen nodes behind ONE python-can bus instance, served by one thread.
+
+python-can's ``virtual`` bus copies every frame to every other instance on the
+channel, so all nodes share one instance here and frames are dispatched by
+COB-ID: NMT (0x000), SYNC (0x080), SDO requests (0x600 + id), RPDOs (by the
+COB-IDs each node's PDO communication objects hold). Heartbeats are produced
+from the same thread at each node's 0x1017 period.
+
+``dt_s``: the time step of the drive models per SYNC (default: measured
+between SYNCs, clamped to 0.1 ms..10 ms).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import can
+
+from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame
+
+
+def _default_app(drive: DriveMap) -> Any:
+    rx = {c.index for p in drive.rpdo for c in p.channels}
+    if drive.profile != "cia402" and 0x6040 not in rx:
+        return None
+    from sim_slaves.drive402 import Cia402Drive
+
+    return Cia402Drive()
+
+
+class CanopenSimulator:
+    """Nodes ``[(drive_map, node_id), ...]`` on ``bus``; a context manager (start/stop)."""
+
+    def __init__(
+        self, bus: can.BusABC, nodes: Sequence[tuple[DriveMap, int]], *, dt_s: float | None = None
+    ) -> None:
+        self.bus = bus
+        self.dt_s = dt_s
+        self.nodes: dict[int, CanopenNode] = {}
+        for drive, node_id in nodes:
+            if node_id in self.nodes:
+                raise ValueError(f"node id {node_id} used twice")
+            self.nodes[node_id] = CanopenNode(drive, node_id, _default_app(drive))
+        self.errors: list[str] = []
+        self.syncs = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._last_sync: float | None = None
+        self._next_hb: dict[int, float] = {}
+
+    def node(self, node_id: int) -> CanopenNode:
+        return self.nodes[node_id]
+
+    # -- life cycle ---------------------------------------------------------------------
+    def start(self) -> CanopenSimulator:
+        for n in self.nodes.values():
+            self._send(n.boot())
+        self._thread = threading.Thread(target=self._run, name="canopen-nodes", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> CanopenSimulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- fault hooks ------------------------------------------------------------------------
+    def drop_tpdos(self, node_id: int, count: int = 1) -> None:
+        """The node's next ``count`` TPDOs are not sent."""
+        self.nodes[node_id].drop_tpdos += count
+
+    def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
+        self.nodes[node_id].heartbeat_silent = silent
+
+    def send_emergency(self, node_id: int, code: int, register: int = 0x01) -> None:
+        with self._lock:
+            self._send([self.nodes[node_id].emergency(code, register)])
+
+    def abort_sdo(self, node_id: int, index: int, sub: int | None, code: int) -> None:
+        self.nodes[node_id].od.inject_abort(index, sub, code)
+
+    def bus_off(self, node_id: int, off: bool = True) -> None:
+        """The node stops sending and receiving (CAN bus-off); back on: it boots again."""
+        n = self.nodes[node_id]
+        n.bus_off = off
+        if not off:
+            with self._lock:
+                self._send(n.nmt(0x81))
+
+    def power_cycle(self, node_id: int) -> None:
+        """Reset node: object dictionary to defaults, drive restarts, boot-up message."""
+        with self._lock:
+            self._send(self.nodes[node_id].nmt(0x81))
+
+    # -- the thread --------------------------------------------------------------------------
+    def _send(self, frames: list[Frame]) -> None:
+        for cob, data in frames:
+            self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=0.005)
+            with self._lock:
+                try:
+                    if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
+                        self.handle(msg.arbitration_id, bytes(msg.data))
+                    self._heartbeats(time.monotonic())
+                except Exception as exc:  # keep serving; tests read .errors
+                    self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def handle(self, cob: int, data: bytes) -> None:
+        """One frame from the bus."""
+        if cob == COB_NMT and len(data) >= 2:
+            targets = (
+                list(self.nodes.values())
+                if data[1] == 0
+                else [self.nodes[data[1]]]
+                if data[1] in self.nodes
+                else []
+            )
+            for n in targets:
+                if not n.bus_off:
+                    self._send(n.nmt(data[0]))
+        elif cob == COB_SYNC:
+            now = time.monotonic()
+            dt = self.dt_s
+            if dt is None:
+                dt = 0.001 if self._last_sync is None else min(0.01, max(1e-4, now - self._last_sync))
+            self._last_sync = now
+            self.syncs += 1
+            for n in self.nodes.values():
+                self._send(n.sync(dt))
+        elif COB_RSDO < cob <= COB_RSDO + 127:
+            target = self.nodes.get(cob - COB_RSDO)
+            if target is not None and not target.bus_off:
+                reply = target.sdo(data)
+                if reply is not None:
+                    self._send([reply])
+        else:
+            for n in self.nodes.values():
+                if cob in n.rpdo_cob_ids():
+                    n.rpdo(cob, data)
+
+    def _heartbeats(self, now: float) -> None:
+        for node_id, n in self.nodes.items():
+            period = n.heartbeat_ms / 1000
+            if period <= 0:
+                continue
+            due = self._next_hb.get(node_id, 0.0)
+            if now >= due:
+                self._next_hb[node_id] = now + period
+                hb = n.heartbeat()
+                if hb is not None:
+                    self._send([hb])
