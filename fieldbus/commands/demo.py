@@ -54,13 +54,13 @@ def register(sub: Any) -> None:
         "--rate",
         type=float,
         default=None,
-        help="cycle rate in Hz (default 1000; 250 on the CAN backends: python-can's virtual bus is threads)",
+        help="cycle rate in Hz (default 1000; canopen 100, rawcan 250: python-can's virtual bus is threads)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
 
-DEFAULT_RATE_HZ = {"sim": 1000.0, "ethercat": 1000.0, "canopen": 250.0, "rawcan": 250.0}
+DEFAULT_RATE_HZ = {"sim": 1000.0, "ethercat": 1000.0, "canopen": 100.0, "rawcan": 250.0}
 
 
 def run(args: argparse.Namespace) -> int:

@@ -39,6 +39,7 @@ class Segment:
 
     net_file: Path
     backend: str | None
+    kind: str = "ethercat"
     _control: Callable[[dict[str, Any]], dict[str, Any]] | None = None
     _net: Network | None = None
 
@@ -56,20 +57,49 @@ class Segment:
         return handle_control(self._net.backends[0].chain, msg)  # type: ignore[attr-defined]
 
 
-def _network_yaml(path: Path, maps: list[Path], count: int, iface: str, safe_stop_after: int) -> None:
+def _network_yaml(
+    path: Path, maps: list[Path], count: int, iface: str, safe_stop_after: int, kind: str = "ethercat"
+) -> None:
+    node = ", node_id: 1" if kind == "canopen" else ""
     slaves = ", ".join(
-        f"{{name: 'j{{i}}', map: {json.dumps(str(m))}, count: {count}}}"
+        f"{{name: 'j{{i}}', map: {json.dumps(str(m))}, count: {count}{node}}}"
         if len(maps) == 1
-        else f"{{name: 's{k}', map: {json.dumps(str(m))}}}"
+        else f"{{name: 's{k}', map: {json.dumps(str(m))}" + (f", node_id: {k + 1}" if node else "") + "}"
         for k, m in enumerate(maps)
     )
+    extra = ", can_interface: virtual" if kind == "canopen" else ""
+    timeout = 20_000 if kind == "canopen" else 5000  # python-can's virtual bus is threads: not real time
     path.write_text(
-        f"cycle_time_us: 1000\nreceive_timeout_us: 5000\nsafe_stop_after: {safe_stop_after}\n"
-        f"buses:\n  - {{name: bus, type: ethercat, interface: {iface}, slaves: [{slaves}]}}\n"
+        f"cycle_time_us: 1000\nreceive_timeout_us: {timeout}\nsafe_stop_after: {safe_stop_after}\n"
+        f"buses:\n  - {{name: bus, type: {kind}, interface: {iface}{extra}, slaves: [{slaves}]}}\n"
     )
 
 
-@pytest.fixture(params=["sim", pytest.param("ethercat", marks=pytest.mark.veth)])
+def _canopen_control(sim: Any) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """The EtherCAT emulator's control commands, done with the CANopen simulator's fault hooks."""
+    nmt_to_al = {0x05: AL_OP, 0x7F: AL_PREOP, 0x04: 0x04, 0x00: 0x01}
+    ids = sorted(sim.nodes)
+
+    def control(msg: dict[str, Any]) -> dict[str, Any]:
+        cmd = msg.get("cmd")
+        if cmd == "drop":  # a lost cycle: every node's TPDOs of the next `count` SYNCs
+            for n in ids:
+                sim.drop_tpdos(n, int(msg.get("count", 1)) * len(sim.node(n).drive.tpdo))
+        elif cmd == "power_cycle":
+            sim.power_cycle(ids[int(msg["slave"])])
+        elif cmd == "abort_sdo":
+            sim.abort_sdo(ids[int(msg["slave"])], int(msg["index"]), msg.get("sub"), int(msg["code"]))
+        elif cmd != "status":
+            raise ValueError(f"no CANopen equivalent for {cmd}")
+        return {
+            "states": [nmt_to_al[int(sim.node(n).state)] for n in ids],
+            "drive_states": [int(getattr(sim.node(n).app, "state", -1)) for n in ids],
+        }
+
+    return control
+
+
+@pytest.fixture(params=["sim", pytest.param("ethercat", marks=pytest.mark.veth), "canopen"])
 def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable[..., Segment]]:
     """``segment(maps, count=1, chain_maps=None, safe_stop_after=10)``: emulated slaves and a network file.
 
@@ -86,9 +116,22 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
             safe_stop_after: int = 10,
         ) -> Segment:
             net_file = tmp_path / "net.yaml"
+            if kind == "canopen":
+                can = pytest.importorskip("can")
+                from sim_slaves.canopen import CanopenSimulator
+
+                drives = [load_drive_map(m) for m in (chain_maps or maps * count)]
+                for d in (*drives, *(load_drive_map(m) for m in maps)):
+                    if d.canopen is None:
+                        pytest.skip(f"{d.name} has no canopen section")
+                channel = f"fb-cyclic-{id(tmp_path)}"
+                bus = stack.enter_context(can.Bus(interface="virtual", channel=channel))
+                sim = stack.enter_context(CanopenSimulator(bus, [(d, k + 1) for k, d in enumerate(drives)]))
+                _network_yaml(net_file, maps, count, channel, safe_stop_after, "canopen")
+                return Segment(net_file, None, "canopen", _canopen_control(sim))
             if kind == "sim":
                 _network_yaml(net_file, maps, count, "sim", safe_stop_after)
-                seg = Segment(net_file, "sim")
+                seg = Segment(net_file, "sim", "sim")
                 if chain_maps is not None:
                     drives = [load_drive_map(m) for m in chain_maps]
                     seg.open = lambda: _open_sim(seg, drives)  # type: ignore[method-assign]
@@ -105,7 +148,7 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
             except VethUnavailable as exc:
                 pytest.skip(str(exc))
             _network_yaml(net_file, maps, count, emu.iface, safe_stop_after)
-            return Segment(net_file, None, lambda msg: emu.command(**msg))
+            return Segment(net_file, None, "ethercat", lambda msg: emu.command(**msg))
 
         yield make
 
@@ -147,19 +190,22 @@ def test_bring_up_exchanges_with_full_working_counter(
             res = op.exchange()
             assert res.fresh, res.buses[0]
         bus = res.buses[0]
-        assert bus.wkc == bus.expected_wkc == 9  # 3 slaves x (2 outputs + 1 inputs)
+        per_slave = len(load_drive_map(map_file).tpdo) if seg.kind == "canopen" else 3
+        # EtherCAT: 2 per slave with outputs + 1 with inputs; CANopen: the TPDOs that came per SYNC
+        assert bus.wkc == bus.expected_wkc == 3 * per_slave
         assert bus.verdict is Verdict.OK and bus.fresh.all()
         assert seg.control(cmd="status")["states"] == [AL_OP] * 3
 
 
-def test_identity_mismatch_names_position_and_what_was_found(segment: Callable[..., Segment]) -> None:
-    seg = segment([EPOS4, EPOS4], chain_maps=[EPOS4, DEMO_MAP])
+def test_identity_mismatch_names_the_slave_and_what_was_found(segment: Callable[..., Segment]) -> None:
+    generic = PDO_MAPS / "generic_cia402.yaml"
+    seg = segment([DEMO_MAP, DEMO_MAP], chain_maps=[DEMO_MAP, generic])
     with pytest.raises(StateTransitionError) as exc, seg.open() as net:
         net.bring_up()
     msg = str(exc.value)
-    assert "position 1 (s1)" in msg and "maxon_epos4_50_5" in msg
-    assert "vendor 0x00000FB1 product 0x00000D01" in msg  # what is really there
-    assert "position 0" not in msg
+    assert "(s1)" in msg and "demo_joint" in msg and ("position 1" in msg or "node 2" in msg)
+    assert "product 0x00000402" in msg  # what is really there
+    assert "(s0)" not in msg
 
 
 def test_sdo_abort_at_bring_up_names_slave_object_code_and_enables_nothing(
