@@ -46,6 +46,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 COB_SYNC, COB_EMCY, COB_HEARTBEAT = 0x080, 0x080, 0x700
+NMT_OPERATIONAL = 0x05  # heartbeat state byte
 HEARTBEAT_FACTOR = 1.5  # consumer time = this x the producer time
 BOOT_WAIT_S = 0.2
 MAX_EMERGENCIES = 1000
@@ -178,10 +179,27 @@ class CanopenBackend(Backend):
         self._seen = np.zeros(k, dtype=bool)
 
     def op(self) -> None:
+        """NMT start; every node with a heartbeat must report OPERATIONAL within two periods."""
         self._drain()
-        now = time.monotonic()
-        self._last_hb[:] = now
+        self.nmt_state.fill(-1)
         self._nmt(NMT_START)
+        watched = self._hb_limit > 0
+        deadline = time.monotonic() + max(0.3, 2 * float(self._hb_limit.max()) / HEARTBEAT_FACTOR)
+        while time.monotonic() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
+            msg = self._bus.recv(timeout=0.01)
+            if msg is not None:
+                self._other(msg)
+        late = [
+            self.areas[i].slave.name
+            for i in range(self.n_slaves)
+            if watched[i] and self.nmt_state[i] != NMT_OPERATIONAL
+        ]
+        if late:
+            self._nmt(NMT_PRE_OP)
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': no OPERATIONAL heartbeat after NMT start from {', '.join(late)}"
+            )
+        self._last_hb[:] = time.monotonic()
         self._operational = True
 
     # -- cycle ------------------------------------------------------------------------------
@@ -340,5 +358,9 @@ class CanopenBackend(Backend):
     def _named(self, exc: SdoAbortError, slave: int) -> SdoAbortError:
         detail = f"node {self.node_ids[slave]}" + (f", {exc.detail}" if exc.detail else "")
         return SdoAbortError(
-            exc.code, index=exc.index, subindex=exc.subindex, slave=self.areas[slave].slave.name, detail=detail
+            exc.code,
+            index=exc.index,
+            subindex=exc.subindex,
+            slave=self.areas[slave].slave.name,
+            detail=detail,
         )
