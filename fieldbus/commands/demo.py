@@ -108,6 +108,10 @@ class DemoSetup:
             from sim_slaves.ethercat.runner import handle_control
 
             return handle_control(net.backends[0].chain, msg)  # type: ignore[attr-defined]
+        if self.backend is None and type(self.emulator).__name__ == "CanopenSimulator":
+            from sim_slaves.canopen.control import handle_control as canopen_control
+
+            return canopen_control(self.emulator, msg)
         if hasattr(self.emulator, "command"):
             result: dict[str, Any] = self.emulator.command(**msg)
             return result
@@ -143,9 +147,9 @@ def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iter
 def _canopen_network(head: str, axes: int, net: Path) -> Iterator[DemoSetup]:
     try:
         import can
-        from sim_slaves.canopen import CanopenSimulator  # type: ignore[import-not-found,unused-ignore]
 
         from fieldbus.core.pdo import load_drive_map
+        from sim_slaves.canopen import CanopenSimulator  # type: ignore[import-not-found,unused-ignore]
     except ImportError as exc:
         raise FieldbusError(f"the canopen demo needs {exc.name}: pip install 'fieldbus[can]'") from None
     channel = f"fieldbus-demo-{id(net)}"

@@ -32,7 +32,9 @@ def register(sub: Any) -> None:
         "network", nargs="?", metavar="NETWORK.yaml", help="a network with one EtherCAT bus (run on sim)"
     )
     p.add_argument("--demo", action="store_true", help="the demo's joints instead of a network file")
-    p.add_argument("--backend", choices=("sim", "ethercat"), default="sim", help="with --demo (default sim)")
+    p.add_argument(
+        "--backend", choices=("sim", "ethercat", "canopen"), default="sim", help="with --demo (default sim)"
+    )
     p.add_argument("--axes", type=int, default=12, help="with --demo (default 12)")
     p.add_argument("--cycles", type=int, default=10_000)
     p.add_argument("--faults", default=DEFAULT_FAULTS, help=f"fault spec (default {DEFAULT_FAULTS})")

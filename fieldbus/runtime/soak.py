@@ -8,7 +8,12 @@ A fault spec is ``kind=value`` pairs separated by commas, for example
 - ``wkc`` (probability): one slave's working-counter share goes missing;
 - ``power_cycles`` (count, spread evenly): a slave (chosen at random) loses power;
 - ``bursts`` (count, spread evenly): ``safe_stop_after`` frames lost in a row;
-- ``sdo_aborts`` (count): bring-up attempts where one drive refuses a start-up SDO.
+- ``sdo_aborts`` (count): bring-up attempts where one drive refuses a start-up SDO;
+- ``emcys`` (count, CANopen): a node sends an EMCY; it must be reported with its name;
+- ``heartbeats`` (count, CANopen): a node's heartbeat goes silent until the loss is reported.
+
+On CANopen ``loss`` drops one TPDO of one node (that node is stale, the others
+fresh, the cycle not fresh); ``delay`` and ``wkc`` are EtherCAT faults.
 
 Invariants checked every cycle (a broken one is a *violation*, never an
 exception): an injected loss is reported as a miss in the same cycle and its
@@ -41,7 +46,11 @@ from fieldbus.runtime.timing import CycleTimer
 Control = Callable[..., dict[str, Any]]
 Opener = Callable[[], tuple[Network, Control]]  # a fresh Network and the control of its emulator
 RATES = ("loss", "delay", "wkc")
-COUNTS = ("power_cycles", "bursts", "sdo_aborts")
+COUNTS = ("power_cycles", "bursts", "sdo_aborts", "emcys", "heartbeats")
+CAN_ONLY = ("emcys", "heartbeats")  # EMCY frames and heartbeat silence: CANopen faults
+ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: EtherCAT faults
+EMCY_CODE = 0x2310  # continuous over-current
+NOTICE_CYCLES = 200  # an EMCY or a heartbeat loss must be noticed within this many cycles
 AL_INIT, AL_OP = 0x01, 0x08
 OE = int(State402.OPERATION_ENABLED)
 
@@ -58,6 +67,8 @@ class FaultSpec:
     power_cycles: int = 0
     bursts: int = 0
     sdo_aborts: int = 0
+    emcys: int = 0
+    heartbeats: int = 0
 
     @classmethod
     def parse(cls, text: str) -> FaultSpec:
@@ -119,9 +130,19 @@ def schedule(
     """Cycle -> (fault kind, slave) for the run; counted faults spread evenly, rates drawn per cycle."""
     plan: dict[int, tuple[str, int]] = {}
     span = cycles - warmup
-    for kind, count in (("power_cycle", spec.power_cycles), ("burst", spec.bursts)):
+    counted = (
+        ("power_cycle", spec.power_cycles),
+        ("burst", spec.bursts),
+        ("emcy", spec.emcys),
+        ("heartbeat", spec.heartbeats),
+    )
+    for kind, count in counted:
         for i in range(count):
-            k = warmup + (i + 1) * span // (count + 1) + (7 if kind == "burst" else 0)
+            k = (
+                warmup
+                + (i + 1) * span // (count + 1)
+                + {"burst": 7, "emcy": 13, "heartbeat": 29}.get(kind, 0)
+            )
             plan[k] = (kind, rng.randrange(n_slaves))
     for k in range(warmup, cycles):
         if k in plan:
@@ -200,7 +221,12 @@ class Soak:
         sw, cw = img.inputs["statusword"], img.outputs["controlword"]
         ctrl = Cia402Controller(n, timeout_cycles=100_000)
         ctrl.set_goal(Goal.ENABLE)
+        can = backend.kind == "canopen"
+        for kind in CAN_ONLY if not can else ETHERCAT_ONLY:
+            if getattr(self.spec, kind):
+                raise FaultSpecError(f"fault '{kind}' has no meaning on a {backend.kind} bus")
         plan = schedule(self.spec, cycles, n, self.rng, self.warmup)
+        notices: list[tuple[str, int, int, int]] = []  # (kind, slave, injected at cycle, emcy count before)
         burst_left = 0
         consecutive = 0
         stop_latched = False
@@ -214,9 +240,19 @@ class Soak:
             lost_now = False
             if event is not None:
                 kind, slave = event
-                lost_now = True
+                lost_now = kind not in ("emcy", "heartbeat")
                 if kind == "loss":
-                    self.control(cmd="drop", count=1, pd=True)
+                    if can:
+                        self.control(cmd="drop_frame", slave=slave)
+                    else:
+                        self.control(cmd="drop", count=1, pd=True)
+                elif kind == "emcy":
+                    before = len(getattr(backend, "emergencies", []))
+                    self.control(cmd="emergency", slave=slave, code=EMCY_CODE)
+                    notices.append((kind, slave, k, before))
+                elif kind == "heartbeat":
+                    self.control(cmd="heartbeat", slave=slave, silent=True)
+                    notices.append((kind, slave, k, 0))
                 elif kind == "delay":
                     timeout_s = backend.bus.receive_timeout_us / 1e6
                     self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
@@ -246,8 +282,24 @@ class Soak:
             # -- invariants --
             if lost_now and fresh:
                 rep.violate(k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh")
-            if event is not None and not fresh:
+            if event is not None and not fresh and lost_now:
                 rep.detected[event[0]] += 1
+            for note in list(notices):
+                kind, slave, at, before = note
+                if kind == "emcy":
+                    seen = [e for e in backend.emergencies[before:] if e.code == EMCY_CODE]  # type: ignore[attr-defined]
+                    done = bool(seen) and "over-current" in seen[0].name
+                else:
+                    done = bool(backend.heartbeat_lost[slave])  # type: ignore[attr-defined]
+                    if done:
+                        self.control(cmd="heartbeat", slave=slave, silent=False)
+                        recovering.append(k)  # the node is configured again when it comes back
+                if done:
+                    rep.detected[kind] += 1
+                    notices.remove(note)
+                elif k - at > NOTICE_CYCLES:
+                    rep.violate(k, f"{kind} on slave {slave} not reported within {NOTICE_CYCLES} cycles")
+                    notices.remove(note)
             consecutive = 0 if fresh else consecutive + 1
             if not fresh:
                 rep.missed += 1
@@ -295,8 +347,20 @@ class Soak:
             self.net.close()
         except Exception as exc:
             self.report.violate(self.report.cycles, f"close() raised {type(exc).__name__}: {exc}")
-        status = self.control(cmd="status")
+        can = self.net.backends[0].kind == "canopen"
+        deadline = time.monotonic() + 0.5  # CAN emulators run in a thread: let them take the NMT command
+        while True:
+            status = self.control(cmd="status")
+            down = (
+                all(s != AL_OP for s in status["states"])
+                if can
+                else all(s == AL_INIT for s in status["states"])
+            )
+            if (down and OE not in status["drive_states"]) or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
         if OE in status["drive_states"]:
             self.report.violate(self.report.cycles, f"drive enabled after close(): {status['drive_states']}")
-        if any(s != AL_INIT for s in status["states"]):
-            self.report.violate(self.report.cycles, f"slaves not in INIT after close(): {status['states']}")
+        if not down:
+            want = "below OPERATIONAL" if can else "in INIT"
+            self.report.violate(self.report.cycles, f"slaves not {want} after close(): {status['states']}")

@@ -75,30 +75,6 @@ def _network_yaml(
     )
 
 
-def _canopen_control(sim: Any) -> Callable[[dict[str, Any]], dict[str, Any]]:
-    """The EtherCAT emulator's control commands, done with the CANopen simulator's fault hooks."""
-    nmt_to_al = {0x05: AL_OP, 0x7F: AL_PREOP, 0x04: 0x04, 0x00: 0x01}
-    ids = sorted(sim.nodes)
-
-    def control(msg: dict[str, Any]) -> dict[str, Any]:
-        cmd = msg.get("cmd")
-        if cmd == "drop":  # a lost cycle: every node's TPDOs of the next `count` SYNCs
-            for n in ids:
-                sim.drop_tpdos(n, int(msg.get("count", 1)) * len(sim.node(n).drive.tpdo))
-        elif cmd == "power_cycle":
-            sim.power_cycle(ids[int(msg["slave"])])
-        elif cmd == "abort_sdo":
-            sim.abort_sdo(ids[int(msg["slave"])], int(msg["index"]), msg.get("sub"), int(msg["code"]))
-        elif cmd != "status":
-            raise ValueError(f"no CANopen equivalent for {cmd}")
-        return {
-            "states": [nmt_to_al[int(sim.node(n).state)] for n in ids],
-            "drive_states": [int(getattr(sim.node(n).app, "state", -1)) for n in ids],
-        }
-
-    return control
-
-
 @pytest.fixture(params=["sim", pytest.param("ethercat", marks=pytest.mark.veth), "canopen"])
 def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable[..., Segment]]:
     """``segment(maps, count=1, chain_maps=None, safe_stop_after=10)``: emulated slaves and a network file.
@@ -128,7 +104,9 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
                 bus = stack.enter_context(can.Bus(interface="virtual", channel=channel))
                 sim = stack.enter_context(CanopenSimulator(bus, [(d, k + 1) for k, d in enumerate(drives)]))
                 _network_yaml(net_file, maps, count, channel, safe_stop_after, "canopen")
-                return Segment(net_file, None, "canopen", _canopen_control(sim))
+                from sim_slaves.canopen.control import handle_control
+
+                return Segment(net_file, None, "canopen", lambda msg: handle_control(sim, msg))
             if kind == "sim":
                 _network_yaml(net_file, maps, count, "sim", safe_stop_after)
                 seg = Segment(net_file, "sim", "sim")

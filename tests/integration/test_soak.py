@@ -34,6 +34,7 @@ def _args(backend: str, **kw: object) -> argparse.Namespace:
 
 @pytest.mark.parametrize("backend", ["sim", pytest.param("ethercat", marks=pytest.mark.veth)])
 def test_soak_accounts_for_every_fault(backend: str) -> None:
+    """EtherCAT: frame loss, late replies, WKC errors, power cycles, a loss burst, an SDO abort at bring-up."""
     if backend == "ethercat":
         pytest.importorskip("pysoem")
         from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
@@ -70,3 +71,25 @@ def test_the_checker_catches_a_loss_that_never_happened(monkeypatch: pytest.Monk
     assert r["violation_count"] >= r["injected"]["loss"] > 0
     assert "reported fresh" in r["violations"][0]
     assert r["detected"].get("loss", 0) == 0
+
+
+def test_soak_on_canopen_accounts_for_every_fault() -> None:
+    """CANopen on the virtual bus: TPDO loss, node resets, a burst, SDO abort, EMCYs, heartbeat loss."""
+    pytest.importorskip("can")
+    faults = "loss=0.01,power_cycles=2,bursts=1,sdo_aborts=1,emcys=2,heartbeats=1"
+    cycles = max(1000, CYCLES // 3)  # a CAN cycle on the virtual bus costs ~2 ms: keep CI short
+    r = soak(_args("canopen", axes=6, cycles=cycles, faults=faults), FaultSpec.parse(faults))
+    assert r["violation_count"] == 0, r["violations"]
+    assert r["injected"] == r["detected"]
+    assert (
+        r["injected"]["emcy"] == 2 and r["injected"]["heartbeat"] == 1 and r["injected"]["power_cycle"] == 2
+    )
+    assert r["recovered_power_cycles"] >= 2  # heartbeat losses are recovered the same way
+    assert r["cycles"] == cycles
+
+
+def test_faults_without_meaning_on_a_bus_are_refused() -> None:
+    from fieldbus.runtime.soak import FaultSpecError
+
+    with pytest.raises(FaultSpecError, match="emcys"):
+        soak(_args("sim", cycles=300, faults="emcys=1"), FaultSpec.parse("emcys=1"))
