@@ -24,6 +24,7 @@ from fieldbus.commands.demo import DEMO_MAP  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
 from fieldbus.network import open_network  # noqa: E402
 from sim_slaves.canopen import CanopenSimulator, NmtState  # noqa: E402
+from sim_slaves.canopen.eds import to_canopen_od  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 _channels = itertools.count()
@@ -138,29 +139,6 @@ def test_a_dropped_tpdo_makes_only_that_node_stale(
 # -- interop ------------------------------------------------------------------------------
 
 
-def _canopen_od(ours: Any) -> Any:
-    """A canopen ObjectDictionary describing our emulated node's objects (what an EDS would say)."""
-    from canopen.objectdictionary import ODRecord, ODVariable
-
-    od = canopen.ObjectDictionary()
-    for index in ours.indices():
-        subs = ours.subindices(index)
-        if subs == [0]:
-            e = ours.entry(index, 0)
-            var = ODVariable(e.name or f"x{index:04X}", index, 0)
-            var.data_type = e.dtype.coe_code if e.dtype is not None else 9  # 9: VISIBLE_STRING
-            od.add_object(var)
-            continue
-        rec = ODRecord(f"x{index:04X}", index)
-        for sub in subs:
-            e = ours.entry(index, sub)
-            var = ODVariable(e.name or f"x{index:04X}_{sub}", index, sub)
-            var.data_type = e.dtype.coe_code if e.dtype is not None else 9
-            rec.add_member(var)
-        od.add_object(rec)
-    return od
-
-
 def test_canopen_remote_node_drives_our_emulator(channel: str) -> None:
     """canopen's own master: SDO, pdo.read()/pdo.save(), NMT, SYNC then a TPDO."""
     drive = load_drive_map(DEMO_MAP)
@@ -168,7 +146,7 @@ def test_canopen_remote_node_drives_our_emulator(channel: str) -> None:
         network = canopen.Network()
         network.connect(interface="virtual", channel=channel)
         try:
-            node = canopen.RemoteNode(9, _canopen_od(sim.node(9).od))
+            node = canopen.RemoteNode(9, to_canopen_od(sim.node(9).od))
             network.add_node(node)
             assert int.from_bytes(node.sdo.upload(0x1018, 1), "little") == drive.vendor_id
             assert node.sdo.upload(0x1008, 0) == b"demo_joint"  # segmented upload
