@@ -97,6 +97,7 @@ class CanopenBackend(Backend):
         self._recovery: Generator[None, None, bool] | None = None
         self.recoveries = 0
         self.recovery_errors: list[str] = []
+        self.late_tpdos = 0  # TPDOs that arrived after their cycle's receive timeout (discarded)
         self._operational = False
 
     @property
@@ -205,6 +206,13 @@ class CanopenBackend(Backend):
     # -- cycle ------------------------------------------------------------------------------
     def send(self) -> None:
         bus = self._bus
+        # TPDOs still queued answer an earlier SYNC (late): they must not pass for this cycle's.
+        # Heartbeats and EMCYs among them are kept.
+        while (msg := bus.recv(timeout=0)) is not None:
+            if msg.arbitration_id in self._tpdos:
+                self.late_tpdos += 1
+            else:
+                self._other(msg)
         for msg, row, data in self._rpdos:
             np.copyto(data, row)
             bus.send(msg)

@@ -50,6 +50,7 @@ COUNTS = ("power_cycles", "bursts", "sdo_aborts", "emcys", "heartbeats")
 CAN_ONLY = ("emcys", "heartbeats")  # EMCY frames and heartbeat silence: CANopen faults
 ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: EtherCAT faults
 EMCY_CODE = 0x2310  # continuous over-current
+NOTICED = ("emcy", "heartbeat")  # faults that are reported, not seen as a lost cycle
 NOTICE_CYCLES = 200  # an EMCY or a heartbeat loss must be noticed within this many cycles
 AL_INIT, AL_OP = 0x01, 0x08
 OE = int(State402.OPERATION_ENABLED)
@@ -240,7 +241,7 @@ class Soak:
             lost_now = False
             if event is not None:
                 kind, slave = event
-                lost_now = kind not in ("emcy", "heartbeat")
+                lost_now = kind not in NOTICED
                 if kind == "loss":
                     if can:
                         self.control(cmd="drop_frame", slave=slave)
@@ -282,7 +283,7 @@ class Soak:
             # -- invariants --
             if lost_now and fresh:
                 rep.violate(k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh")
-            if event is not None and not fresh and lost_now:
+            if event is not None and not fresh and event[0] not in NOTICED:
                 rep.detected[event[0]] += 1
             for note in list(notices):
                 kind, slave, at, before = note
