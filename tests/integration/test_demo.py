@@ -59,3 +59,14 @@ def test_demo_on_mit_mode_motors_over_the_virtual_can_bus(capsys: pytest.Capture
     assert r["missed"] == 0 and r["safe_stops"] == 0 and code == 0
     # impedance control with velocity feed-forward: within 10 mrad of a 0.5 rad, 0.5 Hz sine
     assert r["tracking_error"]["samples"] > 3 * 400 and r["tracking_error"]["max_rad"] < 10e-3
+
+
+def test_demo_on_canopen_nodes_over_the_virtual_can_bus(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("can")
+    code, r = _demo(capsys, "--backend", "canopen", "--axes", "4", "--cycles", "300")
+    assert r.keys() >= KEYS and set(r["cycle_time_us"]) == {"mean", "p99", "max"}
+    assert (r["backend"], r["axes"], r["period_us"]) == ("canopen", 4, 10_000.0)  # 100 Hz by default
+    assert r["enabled"] and r["states"] == ["OPERATION_ENABLED"] * 4
+    assert r["buses"][0]["type"] == "canopen" and r["buses"][0]["expected_wkc"] == 8  # 2 TPDOs per node
+    assert r["missed"] == 0 and r["safe_stops"] == 0 and code == 0
+    assert r["tracking_error"]["max_rad"] < 10e-3
