@@ -211,3 +211,34 @@ def test_our_sdo_client_against_canopen_local_node(channel: str) -> None:
             assert exc.value.code == 0x06020000
     finally:
         network.disconnect()
+
+
+def test_two_can_buses_under_one_network(tmp_path: Path) -> None:
+    """Seed 000, 62.4: split the joints over several buses; one exchange() serves them all."""
+    drive = load_drive_map(DEMO_MAP)
+    a, b = (f"fb-two-{k}-{time.monotonic_ns()}" for k in range(2))
+    net_file = tmp_path / "two.yaml"
+    net_file.write_text(
+        "cycle_time_us: 5000\nreceive_timeout_us: 20000\nbuses:\n"
+        + "".join(
+            f"  - {{name: {name}, type: canopen, interface: {ch}, can_interface: virtual,\n"
+            f"     slaves: [{{name: '{name}{{i}}', map: {json.dumps(str(DEMO_MAP))}, node_id: 1, count: 3}}]}}\n"
+            for name, ch in (("left", a), ("right", b))
+        )
+    )
+    with (
+        can.Bus(interface="virtual", channel=a) as bus_a,
+        can.Bus(interface="virtual", channel=b) as bus_b,
+        CanopenSimulator(bus_a, [(drive, n) for n in (1, 2, 3)]) as sim_a,
+        CanopenSimulator(bus_b, [(drive, n) for n in (1, 2, 3)]) as sim_b,
+        open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        assert set(op) == {"left", "right"}
+        for _ in range(10):
+            res = op.exchange()
+        assert res.fresh and [s.wkc for s in res.buses] == [6, 6]
+        sim_b.drop_tpdos(2, 2)
+        res = op.exchange()
+        assert res.bus("left").fresh.all() and list(res.bus("right").fresh) == [True, False, True]
+        assert not sim_a.errors and not sim_b.errors
