@@ -10,7 +10,8 @@ A fault spec is ``kind=value`` pairs separated by commas, for example
 - ``bursts`` (count, spread evenly): ``safe_stop_after`` frames lost in a row;
 - ``sdo_aborts`` (count): bring-up attempts where one drive refuses a start-up SDO;
 - ``emcys`` (count, CANopen): a node sends an EMCY; it must be reported with its name;
-- ``heartbeats`` (count, CANopen): a node's heartbeat goes silent until the loss is reported.
+- ``heartbeats`` (count, CANopen): a node's heartbeat goes silent until the loss is reported;
+- ``bus_offs`` (count, CANopen): a node goes bus-off for 20 cycles, then recovers and boots.
 
 On CANopen ``loss`` drops one TPDO of one node (that node is stale, the others
 fresh, the cycle not fresh); ``delay`` and ``wkc`` are EtherCAT faults.
@@ -46,8 +47,9 @@ from fieldbus.runtime.timing import CycleTimer
 Control = Callable[..., dict[str, Any]]
 Opener = Callable[[], tuple[Network, Control]]  # a fresh Network and the control of its emulator
 RATES = ("loss", "delay", "wkc")
-COUNTS = ("power_cycles", "bursts", "sdo_aborts", "emcys", "heartbeats")
-CAN_ONLY = ("emcys", "heartbeats")  # EMCY frames and heartbeat silence: CANopen faults
+COUNTS = ("power_cycles", "bursts", "sdo_aborts", "emcys", "heartbeats", "bus_offs")
+CAN_ONLY = ("emcys", "heartbeats", "bus_offs")
+BUS_OFF_CYCLES = 20  # a node stays off the bus this long, then recovers and boots  # EMCY frames and heartbeat silence: CANopen faults
 ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: EtherCAT faults
 EMCY_CODE = 0x2310  # continuous over-current
 NOTICED = ("emcy", "heartbeat")  # faults that are reported, not seen as a lost cycle
@@ -70,6 +72,7 @@ class FaultSpec:
     sdo_aborts: int = 0
     emcys: int = 0
     heartbeats: int = 0
+    bus_offs: int = 0
 
     @classmethod
     def parse(cls, text: str) -> FaultSpec:
@@ -136,13 +139,14 @@ def schedule(
         ("burst", spec.bursts),
         ("emcy", spec.emcys),
         ("heartbeat", spec.heartbeats),
+        ("bus_off", spec.bus_offs),
     )
     for kind, count in counted:
         for i in range(count):
             k = (
                 warmup
                 + (i + 1) * span // (count + 1)
-                + {"burst": 7, "emcy": 13, "heartbeat": 29}.get(kind, 0)
+                + {"burst": 7, "emcy": 13, "heartbeat": 29, "bus_off": 41}.get(kind, 0)
             )
             plan[k] = (kind, rng.randrange(n_slaves))
     for k in range(warmup, cycles):
@@ -228,6 +232,7 @@ class Soak:
                 raise FaultSpecError(f"fault '{kind}' has no meaning on a {backend.kind} bus")
         plan = schedule(self.spec, cycles, n, self.rng, self.warmup)
         notices: list[tuple[str, int, int, int]] = []  # (kind, slave, injected at cycle, emcy count before)
+        bus_off_until: list[tuple[int, int]] = []  # (cycle, slave): back on the bus then
         burst_left = 0
         consecutive = 0
         stop_latched = False
@@ -254,6 +259,9 @@ class Soak:
                 elif kind == "heartbeat":
                     self.control(cmd="heartbeat", slave=slave, silent=True)
                     notices.append((kind, slave, k, 0))
+                elif kind == "bus_off":
+                    self.control(cmd="bus_off", slave=slave, off=True)
+                    bus_off_until.append((k + BUS_OFF_CYCLES, slave))
                 elif kind == "delay":
                     timeout_s = backend.bus.receive_timeout_us / 1e6
                     self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
@@ -269,6 +277,11 @@ class Soak:
             if burst_left:
                 lost_now = True
                 burst_left -= 1
+            for until, slave_off in list(bus_off_until):
+                if k >= until:
+                    self.control(cmd="bus_off", slave=slave_off, off=False)
+                    bus_off_until.remove((until, slave_off))
+                    recovering.append(k)
             t0 = time.perf_counter_ns()
             try:
                 res = op.exchange()

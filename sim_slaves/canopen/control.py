@@ -15,7 +15,7 @@ NMT_TO_AL = {0x05: 0x08, 0x7F: 0x02, 0x04: 0x04, 0x00: 0x01}
 
 
 def handle_control(sim: CanopenSimulator, msg: dict[str, Any]) -> dict[str, Any]:
-    """drop (a whole SYNC's TPDOs, or ``node``'s only), power_cycle, abort_sdo, emergency, heartbeat, clear, status."""
+    """drop, drop_frame, power_cycle, abort_sdo, emergency, heartbeat, bus_off, clear, status."""
     ids = sorted(sim.nodes)
     cmd = msg.get("cmd")
     count = int(msg.get("count", 1))
@@ -34,6 +34,8 @@ def handle_control(sim: CanopenSimulator, msg: dict[str, Any]) -> dict[str, Any]
         )
     elif cmd == "emergency":
         sim.send_emergency(ids[int(msg.get("slave", 0))], int(msg["code"]), int(msg.get("register", 1)))
+    elif cmd == "bus_off":  # off=True: the node leaves the bus; off=False: it recovers and boots
+        sim.bus_off(ids[int(msg.get("slave", 0))], bool(msg.get("off", True)))
     elif cmd == "heartbeat":
         sim.silence_heartbeat(ids[int(msg.get("slave", 0))], bool(msg.get("silent", True)))
     elif cmd == "clear":

@@ -74,9 +74,9 @@ def test_the_checker_catches_a_loss_that_never_happened(monkeypatch: pytest.Monk
 
 
 def test_soak_on_canopen_accounts_for_every_fault() -> None:
-    """CANopen on the virtual bus: TPDO loss, node resets, a burst, SDO abort, EMCYs, heartbeat loss."""
+    """CANopen on the virtual bus: TPDO loss, node resets, a burst, SDO abort, EMCYs, heartbeat loss, bus-off."""
     pytest.importorskip("can")
-    faults = "loss=0.01,power_cycles=2,bursts=1,sdo_aborts=1,emcys=2,heartbeats=1"
+    faults = "loss=0.01,power_cycles=2,bursts=1,sdo_aborts=1,emcys=2,heartbeats=1,bus_offs=1"
     cycles = max(1000, CYCLES // 3)  # a CAN cycle on the virtual bus costs ~2 ms: keep CI short
     r = soak(_args("canopen", axes=6, cycles=cycles, faults=faults), FaultSpec.parse(faults))
     assert r["violation_count"] == 0, r["violations"]
@@ -84,7 +84,8 @@ def test_soak_on_canopen_accounts_for_every_fault() -> None:
     assert (
         r["injected"]["emcy"] == 2 and r["injected"]["heartbeat"] == 1 and r["injected"]["power_cycle"] == 2
     )
-    assert r["recovered_power_cycles"] >= 2  # heartbeat losses are recovered the same way
+    assert r["injected"]["bus_off"] == 1
+    assert r["recovered_power_cycles"] >= 2  # heartbeat losses and bus-off are recovered the same way
     assert r["cycles"] == cycles
 
 
