@@ -123,7 +123,7 @@ def test_emergency_reported_with_its_name(nodes: CanopenSimulator, channel: str,
 def test_a_dropped_tpdo_makes_only_that_node_stale(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, timeout_us=10_000)) as net:
+    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, timeout_us=50_000)) as net:
         op = net.bring_up()
         img = op["bus"].inputs
         for _ in range(5):

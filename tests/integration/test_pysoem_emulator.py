@@ -137,8 +137,9 @@ def test_pysoem_configures_emulated_drives(ethercat_emulator: Any, n: int) -> No
                 wrong += 1
         assert wrong == 0, f"{wrong} of {CYCLES} cycles had a WKC other than {master.expected_wkc}"
         # A user-space emulator on a shared 2-core machine may miss a deadline now and then;
-        # a wrong WKC never is acceptable, a rare lost frame is (SOEM reports it as no frame).
-        assert lost <= CYCLES // 1000, f"{lost} of {CYCLES} frames came back later than 10 ms"
+        # a wrong WKC never is acceptable, a rare late frame is (SOEM reports it as no frame):
+        # at most 0.5 % (64 slaves with drive models answer in ~1.6 ms; a busy CI neighbour adds the rest).
+        assert lost <= CYCLES // 200, f"{lost} of {CYCLES} frames came back later than 10 ms"
         assert start is not None, "the drives never reached 'operation enabled'"
         for s in master.slaves:
             status, pos = struct.unpack_from("<Hi", s.input)
