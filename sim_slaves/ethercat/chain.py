@@ -9,21 +9,38 @@ and broadcast commands increment ADP at every slave; a position command
 addresses the slave where ADP arrives as 0. BRD ORs the slaves' data.
 The reply has the request's length and the locally administered bit (0x02)
 set in the first source-MAC byte.
+
+Distributed clocks: each slave's :class:`~sim_slaves.ethercat.dc.EscDc` sits
+on the line as :func:`fieldbus.core.dc.master.line_timing` puts it (cable
+``cable_m`` per hop, ESC delays ``dc_timing``), so a BWR to 0x0900 latches
+per-port receive times consistent with the line. An ARMW/FRMW of 4 or 8 bytes
+at 0x0910 is the system-time distribution: the addressed slave (the reference
+clock) puts its system time into the datagram as the frame passes it, every
+later slave gives that time to its time-control loop, every earlier one the
+master's original data (as on the wire). The loop samples are queued with
+their times and applied, in order, when the I/O layer is idle or before the
+next access to a clock (:class:`~sim_slaves.ethercat.dc.DcLine`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
+from fieldbus.core.dc.model import DcRegister, EscTiming, SyncActivation, wrap_signed
 from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
 from sim_slaves.ethercat.esc import App, Esc
 from sim_slaves.ethercat.sii import SiiImage, build_sii
 from sim_slaves.od import ObjectDictionary
 
 WATCHDOG_CHECK_NS = 1_000_000  # process-data watchdogs are checked at most this often [ns]
+#: ``from_maps``: slave i's local clock reads i x this at true time 0 (ESCs power up at different moments)
+DC_POWER_UP_STAGGER_NS = 1_000_000
+_SYSTEM_TIME = int(DcRegister.SYSTEM_TIME)
 AppFactory = Callable[[DriveMap, ObjectDictionary], App | None]
 
 _APRD, _APWR, _APRW = 1, 2, 3
@@ -49,15 +66,34 @@ class Faults:
 
 
 class EscChain:
-    """N slaves in a line. ``process(frame, now_ns)`` is the whole wire interface."""
+    """N slaves in a line. ``process(frame, now_ns)`` is the whole wire interface.
 
-    def __init__(self, slaves: Sequence[Esc]) -> None:
+    ``dc_timing``: every ESC's processing/forwarding delay (default
+    :class:`~fieldbus.core.dc.model.EscTiming`), ``cable_m``: metres of cable
+    master -> slave 0 and between neighbours (5 ns/m);
+    ``dc_min_sample_interval_ns``: see :class:`~sim_slaves.ethercat.dc.DcLine`
+    (0: every ARMW/FRMW feeds the loops).
+    """
+
+    def __init__(
+        self,
+        slaves: Sequence[Esc],
+        *,
+        dc_timing: EscTiming | None = None,
+        cable_m: float = 1.0,
+        dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
+    ) -> None:
         self.slaves = list(slaves)
         self.faults = Faults()
         self.frames = 0
         self.pending_delay = 0.0
         self._stations: dict[int, list[Esc]] | None = None
         self._watchdog_checked = -WATCHDOG_CHECK_NS
+        self._wire_index = {id(s): i for i, s in enumerate(self.slaves)}
+        self.dc_line = DcLine([s.dc for s in self.slaves], min_sample_interval_ns=dc_min_sample_interval_ns)
+        self.dc_timing = dc_timing or EscTiming()
+        self.cable_m = float(cable_m)
+        self.dc_line.place(self.dc_timing, self.cable_m)
 
     @classmethod
     def from_maps(
@@ -66,9 +102,19 @@ class EscChain:
         *,
         app: str | AppFactory | None = "auto",
         sii: Sequence[SiiImage | None] | None = None,
+        drift_ppm: Sequence[float] | None = None,
+        dc_timing: EscTiming | None = None,
+        cable_m: float = 1.0,
+        dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
     ) -> EscChain:
-        """One slave per map, in wire order. ``app``: "auto" (CiA 402 drive for 402 maps), None, or a factory."""
+        """One slave per map, in wire order. ``app``: "auto" (CiA 402 drive for 402 maps), None, or a factory.
+
+        ``drift_ppm``: each slave's clock drift (default 0); slave i's local
+        time starts at i x :data:`DC_POWER_UP_STAGGER_NS`.
+        """
         n = len(maps)
+        if drift_ppm is not None and len(drift_ppm) != n:
+            raise ValueError(f"need {n} drifts (one per slave), got {len(drift_ppm)}")
         slaves = []
         for i, drive in enumerate(maps):
             od = ObjectDictionary.from_drive_map(drive)
@@ -76,8 +122,15 @@ class EscChain:
             assert image is not None
             factory = default_app if app == "auto" else app
             the_app = factory(drive, od) if callable(factory) else None
-            slaves.append(Esc(image, od, position=i, chain_length=n, app=the_app, name=drive.name))
-        return cls(slaves)
+            dc = EscDc(
+                drift_ppm=0.0 if drift_ppm is None else float(drift_ppm[i]),
+                initial_local_ns=i * DC_POWER_UP_STAGGER_NS,
+                timing=dc_timing,
+            )
+            slaves.append(Esc(image, od, position=i, chain_length=n, app=the_app, name=drive.name, dc=dc))
+        return cls(
+            slaves, dc_timing=dc_timing, cable_m=cable_m, dc_min_sample_interval_ns=dc_min_sample_interval_ns
+        )
 
     def __len__(self) -> int:
         return len(self.slaves)
@@ -159,8 +212,11 @@ class EscChain:
         if faults.corrupt_frames and (logical or faults.corrupt_all):
             faults.corrupt_frames -= 1
         buf[6] |= LOCALLY_ADMINISTERED
-        if logical and cycles:
-            self.run_cycles(now_ns)
+        if cycles:
+            if logical:
+                self.run_cycles(now_ns)
+            if self.dc_line.pending:
+                self.dc_line.flush()
         if faults.delay_frames:
             faults.delay_frames -= 1
             self.pending_delay = faults.delay_s
@@ -213,13 +269,9 @@ class EscChain:
 
     def _rmw(self, targets: list[Esc], buf: bytearray, doff: int, length: int, ado: int, now_ns: int) -> int:
         """ARMW/FRMW: the addressed slave reads into the datagram, every other slave writes it."""
+        if ado == _SYSTEM_TIME and (length == 8 or length == 4) and len(targets) == 1:
+            return self._distribute_system_time(targets[0], buf, doff, length, now_ns)
         inc = 0
-        if ado >= 0x0910 and ado + length <= 0x0918 and len(targets) == 1:
-            # DC system time distribution: the others' clock control loops take it; nothing is stored
-            got = targets[0].read(ado, length, now_ns)
-            if got is not None:
-                buf[doff : doff + length] = got
-            return len(self.slaves) - (got is None)
         for s in self.slaves:
             if s in targets:
                 got = s.read(ado, length, now_ns)
@@ -229,6 +281,80 @@ class EscChain:
             elif s.write(ado, bytes(buf[doff : doff + length]), now_ns):
                 inc += 1
         return inc
+
+    def _distribute_system_time(self, ref: Esc, buf: bytearray, doff: int, length: int, now_ns: int) -> int:
+        """ARMW/FRMW on 0x0910 (the cycle's DC datagram): the reference's time in, the others' loops fed.
+
+        The loop samples are queued on :attr:`dc_line`: :meth:`process` applies
+        them before it returns, an I/O layer that uses ``process_into(...,
+        cycles=False)`` calls ``dc_line.flush()`` when idle; any other DC access
+        applies them first anyway.
+        """
+        sent = buf[doff] | buf[doff + 1] << 8 | buf[doff + 2] << 16 | buf[doff + 3] << 24
+        i_ref = self._wire_index[id(ref)]
+        line = self.dc_line
+        t = line.reference_time(i_ref, now_ns)
+        buf[doff : doff + length] = t.to_bytes(8, "little")[:length]
+        line.distribute(i_ref, sent, t & 0xFFFF_FFFF, now_ns)
+        return len(self.slaves)
+
+    # -- distributed clocks --
+
+    def set_dc_line(self, timing: EscTiming | None = None, cable_m: float | None = None) -> None:
+        """Put the slaves on a line: ESC delays ``timing``, ``cable_m`` metres per hop (None: keep)."""
+        if timing is not None:
+            self.dc_timing = timing
+        if cable_m is not None:
+            self.cable_m = float(cable_m)
+        self.dc_line.place(self.dc_timing, self.cable_m)
+
+    def set_dc_drift(self, drift_ppm: Sequence[float], now_ns: int) -> None:
+        """Slave i's crystal runs ``drift_ppm[i]`` off from true time ``now_ns`` on."""
+        if len(drift_ppm) != len(self.slaves):
+            raise ValueError(f"need {len(self.slaves)} drifts (one per slave), got {len(drift_ppm)}")
+        for s, d in zip(self.slaves, drift_ppm, strict=True):
+            s.dc.set_drift(float(d), now_ns)
+
+    def dc_status(self, now_ns: int) -> list[dict[str, Any]]:
+        """Every slave's DC registers and clock at one true instant ``now_ns`` (JSON-friendly).
+
+        ``system_time``/``local_time``: the clocks at ``now_ns`` itself (not
+        shifted by the slave's place on the line), so their spread is how well
+        the clocks agree. Register values as the master would read them;
+        ``sync0_next_ns``: true time of the next SYNC0 pulse (None if off).
+        """
+        out: list[dict[str, Any]] = []
+        for s in self.slaves:
+            c = s.dc.clock
+            mem = c.read_register(DC_FIRST, DC_END - DC_FIRST, now_ns)
+
+            def u(reg: int, size: int, mem: bytes = mem) -> int:
+                return int.from_bytes(mem[reg - DC_FIRST : reg - DC_FIRST + size], "little")
+
+            diff = u(DcRegister.SYSTEM_TIME_DIFF, 4)
+            out.append(
+                {
+                    "system_time": c.system_time(now_ns),
+                    "local_time": c.local_time(now_ns),
+                    "receive_time_ports": [u(DcRegister.RECEIVE_TIME_PORT0 + 4 * p, 4) for p in range(4)],
+                    "receive_time_epu": u(DcRegister.RECEIVE_TIME_EPU, 8),
+                    "offset": u(DcRegister.SYSTEM_TIME_OFFSET, 8),
+                    "delay": u(DcRegister.SYSTEM_TIME_DELAY, 4),
+                    "system_time_diff": -(diff & 0x7FFF_FFFF) if diff & 0x8000_0000 else diff,
+                    "speed_counter_start": u(DcRegister.SPEED_COUNTER_START, 2),
+                    "cyclic_unit_control": u(DcRegister.CYCLIC_UNIT_CONTROL, 1),
+                    "activation": u(DcRegister.ACTIVATION, 1),
+                    "start_time": u(DcRegister.START_TIME_CYCLIC, 8),
+                    "sync0_cycle": u(DcRegister.SYNC0_CYCLE_TIME, 4),
+                    "sync1_cycle": u(DcRegister.SYNC1_CYCLE_TIME, 4),
+                    "sync0_next_ns": _next_sync0(s.dc, now_ns),
+                    "drift_ppm": c.drift_ppm,
+                    "rate_ppm": (c.rate - 1.0) * 1e6,
+                    "port0_ns": s.dc.port0_ns,
+                    "port1_ns": s.dc.port1_ns,
+                }
+            )
+        return out
 
     # -- fault hooks --
 
@@ -255,8 +381,16 @@ class EscChain:
         self.faults.corrupt_all = all_frames
 
     def power_cycle(self, slave: int) -> None:
-        """Slave ``slave`` (0-based) loses power and comes back: registers reset, state INIT."""
-        self.slaves[slave].power_on()
+        """Slave ``slave`` (0-based) loses power and comes back: registers reset, state INIT.
+
+        Its drive application restarts too (CiA 402: NOT READY TO SWITCH ON).
+        The object dictionary keeps its values (as if stored in non-volatile memory).
+        """
+        esc = self.slaves[slave]
+        esc.power_on()
+        reset = getattr(esc.app, "power_cycle", None)
+        if callable(reset):
+            reset()
         self._stations = None
 
     def refuse_state(self, slave: int, state: AlState, code: int) -> None:
@@ -300,6 +434,20 @@ def _physical(s: Esc, cmd: int, buf: bytearray, doff: int, length: int, ado: int
     if got is not None:
         buf[doff : doff + length] = got
     return inc
+
+
+def _next_sync0(dc: EscDc, now_ns: int) -> int | None:
+    """True time of the first SYNC0 pulse at or after ``now_ns`` (None: SYNC0 off)."""
+    c = dc.clock
+    need = SyncActivation.CYCLIC_OPERATION | SyncActivation.SYNC0
+    if c.activation & need != need:
+        return None
+    ahead = wrap_signed(c.system_time(now_ns) - c.start_time_ns, 64)  # > 0: past the start time
+    cycle = c.sync0_cycle_ns
+    k = 0 if ahead <= 0 or cycle <= 0 else -(-ahead // cycle)
+    if ahead > 0 and cycle <= 0:
+        return None  # the single pulse has gone
+    return c.true_time_of_system(c.start_time_ns + k * cycle, now_ns)
 
 
 def _put16(buf: bytearray, off: int, value: int) -> None:

@@ -10,7 +10,8 @@ Registers with behaviour: 0x0010 station address, 0x0012 alias, 0x0110 DL
 status, 0x0120 AL control -> 0x0130 AL status / 0x0134 AL status code,
 0x0400/0x0420 watchdog divider / process-data watchdog time, 0x0500-0x050F
 EEPROM interface, 0x0600 FMMUs (16 B each), 0x0800 SyncManagers (8 B each),
-0x0900-0x09A7 distributed clocks (:class:`~sim_slaves.ethercat.dc.DcClock`).
+0x0900-0x09AF distributed clocks (:class:`~sim_slaves.ethercat.dc.EscDc`, backed by the
+model in :mod:`fieldbus.core.dc`; the bytes of ``mem`` in that range are not used).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Protocol
 
 from sim_slaves.ethercat.al import AL_ERROR_INDICATOR, TRANSITIONS, AlState, AlStatusCode, Check
 from sim_slaves.ethercat.coe import SdoServer, emergency_payload
-from sim_slaves.ethercat.dc import DcClock
+from sim_slaves.ethercat.dc import DC_END, DC_FIRST, EscDc
 from sim_slaves.ethercat.mailbox import Mailbox
 from sim_slaves.ethercat.pdo import ProcessImage
 from sim_slaves.ethercat.sii import SM_TYPE_INPUTS, SM_TYPE_OUTPUTS, SiiImage
@@ -37,7 +38,7 @@ WD_DIVIDER_DEFAULT = 2498  # (2498 + 2) x 40 ns = 100 us
 WD_PD_DEFAULT = 1000  # x 100 us = 100 ms
 DEFAULT_DT_S = 0.001
 
-_RO_RANGES = ((0x0000, 0x0010), (0x0110, 0x0112), (0x0130, 0x0136), (0x0900, 0x0920))
+_RO_RANGES = ((0x0000, 0x0010), (0x0110, 0x0112), (0x0130, 0x0136))
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _SM = struct.Struct("<HHBBBB")
@@ -69,7 +70,11 @@ class LoopbackApp:
 
 
 class Esc:
-    """One slave. ``position`` is 0-based in wire order of a chain of ``chain_length``."""
+    """One slave. ``position`` is 0-based in wire order of a chain of ``chain_length``.
+
+    ``dc``: its distributed-clock unit (default: no drift, placed at the
+    master; :class:`~sim_slaves.ethercat.chain.EscChain` places it on the line).
+    """
 
     def __init__(
         self,
@@ -80,6 +85,7 @@ class Esc:
         chain_length: int = 1,
         app: App | None = None,
         name: str = "",
+        dc: EscDc | None = None,
     ) -> None:
         self.sii = sii
         self.od = od
@@ -87,7 +93,7 @@ class Esc:
         self.name = name or sii.name
         self.position = position
         self.chain_length = chain_length
-        self.dc = DcClock(position, chain_length)
+        self.dc = dc or EscDc()
         mbx_out = sii.mailbox_out[1] if sii.protocols else 0
         mbx_in = sii.mailbox_in[1] if sii.protocols else 0
         self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in)
@@ -119,6 +125,7 @@ class Esc:
         _U16.pack_into(mem, 0x0410, WD_PD_DEFAULT)
         _U16.pack_into(mem, 0x0420, WD_PD_DEFAULT)
         _U16.pack_into(mem, 0x0502, EEPROM_R64)
+        self.dc.power_on()
         self.state = AlState.INIT
         self.error = False
         self.status_code = 0
@@ -165,9 +172,15 @@ class Esc:
             return bytes(n)
         if end > RAM_START:
             return self._read_ram(ado, n)
-        if ado < 0x0918 and end > 0x0910:
-            self.dc.fill_system_time(self.mem, now_ns)
+        if ado < DC_END and end > DC_FIRST:
+            return self._read_dc(ado, end, now_ns)
         return bytes(self.mem[ado:end])
+
+    def _read_dc(self, ado: int, end: int, now_ns: int) -> bytes:
+        out = bytearray(self.mem[ado:end])
+        lo, hi = max(ado, DC_FIRST), min(end, DC_END)
+        out[lo - ado : hi - ado] = self.dc.read(lo, hi - lo, now_ns)
+        return bytes(out)
 
     def write(self, ado: int, data: bytes | memoryview, now_ns: int) -> bool:
         """Register/RAM write by the master; False when the ESC denies it (no WKC)."""
@@ -192,8 +205,9 @@ class Esc:
             self._fmmu_written()
         if ado < 0x0800 + 8 * N_SM and end > 0x0800:
             self._sm_written()
-        if ado < 0x0904 and end > 0x0900:
-            self.dc.latch(mem, now_ns)
+        if ado < DC_END and end > DC_FIRST:
+            lo, hi = max(ado, DC_FIRST), min(end, DC_END)
+            self.dc.write(lo, data[lo - ado : hi - ado], now_ns)
         return True
 
     # -- mailbox RAM --
@@ -424,6 +438,10 @@ class Esc:
         self._publish()
 
     def _enter(self, target: AlState, now_ns: int | None, *, keep_error: bool = False) -> None:
+        if self.state == AlState.OP and target != AlState.OP:
+            lost = getattr(self.app, "connection_lost", None)
+            if callable(lost):
+                lost()  # a CiA 402 drive stops by itself when the ESC leaves OP (watchdog, master)
         if target in (AlState.INIT, AlState.BOOT):
             self.mailbox.reset()
             self._reset_mailbox_buffers()

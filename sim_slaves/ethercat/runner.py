@@ -2,12 +2,20 @@
 
     python -m sim_slaves.ethercat --iface IFACE --map MAP.yaml [--map ...] [--count N]
         [--pcap FILE] [--control PATH] [--app auto|loopback|none]
+        [--drift-ppm X [--drift-seed N]] [--esc-delays-ns TP TF] [--cable-m M] [--dc-min-sample-us US]
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
 times. The process prints ``ready <iface> <n> slaves`` on stdout once it
 listens and runs until SIGTERM/SIGINT. It skips frames it sent itself
 (packet type PACKET_OUTGOING) and frames whose source MAC already has the
 locally administered bit (already answered by a slave).
+
+Distributed clocks (docs/dc.md, "In the emulator"): ``--drift-ppm X`` spreads
+the slaves' crystal drifts evenly over ±X ppm (order shuffled by
+``--drift-seed``); ``--esc-delays-ns TP TF`` sets every ESC's processing and
+forwarding delay, ``--cable-m`` the cable per hop; ``--dc-min-sample-us``
+the least time between two FRMW samples the clocks' loops take (default 500,
+0: every one, see :class:`~sim_slaves.ethercat.dc.DcLine`).
 
 ``--control PATH`` opens a UNIX datagram socket taking one JSON object per
 datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``)::
@@ -21,6 +29,10 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "emergency", "slave": 0, "code": 33297}
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
+    {"cmd": "dc"}                                       every slave's DC registers and clock at one instant
+    {"cmd": "dc_config", "drift_ppm": 100, "seed": 0}   drifts (±X spread, or a list), from now on;
+        optional "processing_ns", "forwarding_ns", "cable_m": the line,
+        "min_sample_interval_ns": FRMW samples
 
 A sender with a bound address gets ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}`` back
 (:func:`send_control` does this).
@@ -42,11 +54,14 @@ import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from fieldbus.core.dc.model import EscTiming
+from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, LOCALLY_ADMINISTERED, FrameError
 from fieldbus.core.pdo.load import load_drive_map
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.chain import AppFactory, EscChain
+from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
 from sim_slaves.ethercat.esc import App, LoopbackApp
 from sim_slaves.od import ObjectDictionary
 
@@ -88,15 +103,72 @@ def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
     return LoopbackApp(pairs)
 
 
-def build_chain(maps: list[str], count: int, app: str) -> EscChain:
+def build_chain(
+    maps: list[str],
+    count: int,
+    app: str,
+    *,
+    drift_ppm: float = 0.0,
+    drift_seed: int = 0,
+    dc_timing: EscTiming | None = None,
+    cable_m: float = 1.0,
+    dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
+) -> EscChain:
     drives = [load_drive_map(m) for m in maps] * count
     factory: str | AppFactory | None = {"auto": "auto", "none": None, "loopback": loopback_app}[app]
-    return EscChain.from_maps(drives, app=factory)
+    drifts = spread_drifts(len(drives), drift_ppm, drift_seed).tolist() if drift_ppm else None
+    return EscChain.from_maps(
+        drives,
+        app=factory,
+        drift_ppm=drifts,
+        dc_timing=dc_timing,
+        cable_m=cable_m,
+        dc_min_sample_interval_ns=dc_min_sample_interval_ns,
+    )
 
 
-def handle_control(chain: EscChain, msg: dict[str, Any]) -> dict[str, Any]:
-    """Apply one control command to ``chain``; the answer to send back."""
+def _dc_command(chain: EscChain, msg: dict[str, Any], now_ns: int) -> dict[str, Any]:
+    """``dc``: the DC status at ``now_ns``; ``dc_config``: change drifts / line first, then the status."""
+    if msg.get("cmd") == "dc_config":
+        drift = msg.get("drift_ppm")
+        if isinstance(drift, list):
+            chain.set_dc_drift([float(d) for d in drift], now_ns)
+        elif drift is not None:
+            drifts = spread_drifts(len(chain), float(drift), int(msg.get("seed", 0)))
+            chain.set_dc_drift(drifts.tolist(), now_ns)
+        if "processing_ns" in msg or "forwarding_ns" in msg or "cable_m" in msg:
+            t = chain.dc_timing
+            timing = EscTiming(
+                processing_ns=float(msg.get("processing_ns", t.processing_ns)),
+                forwarding_ns=float(msg.get("forwarding_ns", t.forwarding_ns)),
+            )
+            cable = msg.get("cable_m")
+            chain.set_dc_line(timing, None if cable is None else float(cable))
+        if "min_sample_interval_ns" in msg:
+            chain.dc_line.min_sample_interval_ns = int(msg["min_sample_interval_ns"])
+    line = chain.dc_line
+    return {
+        "ok": True,
+        "frames": chain.frames,
+        "dc": {
+            "now_ns": now_ns,
+            "slaves": chain.dc_status(now_ns),
+            "samples": line.samples,
+            "skipped": line.skipped,
+            "min_sample_interval_ns": line.min_sample_interval_ns,
+        },
+    }
+
+
+def handle_control(chain: EscChain, msg: dict[str, Any], now_ns: int | None = None) -> dict[str, Any]:
+    """Apply one control command to ``chain``; the answer to send back.
+
+    ``now_ns``: the chain's time line (default ``time.monotonic_ns()``, the
+    runner's frame clock), used by the DC commands.
+    """
     cmd = msg.get("cmd")
+    if cmd in ("dc", "dc_config"):
+        return _dc_command(chain, msg, time.monotonic_ns() if now_ns is None else now_ns)
     slave = int(msg.get("slave", 0))
     if cmd == "drop":
         chain.drop_frames(int(msg.get("count", 1)), process_data=bool(msg.get("pd")))
@@ -126,6 +198,8 @@ def handle_control(chain: EscChain, msg: dict[str, Any]) -> dict[str, Any]:
         "frames": chain.frames,
         "states": [int(s.state) for s in chain.slaves],
         "al_status_codes": [s.status_code for s in chain.slaves],
+        # CiA 402 State402 of each emulated drive, -1: no drive application
+        "drive_states": [int(getattr(s.app, "state", -1)) for s in chain.slaves],
     }
 
 
@@ -173,6 +247,7 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
     recv_into = sock.recvfrom_into
     send = sock.send
     clock = time.monotonic_ns
+    dc_line = chain.dc_line
     print(f"ready {iface} {len(chain)} slaves", flush=True)
     try:
         while not stop:
@@ -187,6 +262,9 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                 try:
                     n, addr = recv_into(buf)
                 except BlockingIOError:
+                    if dc_line.pending:  # idle: the queued DC loop samples of the last FRMWs
+                        dc_line.flush()
+                        continue
                     # busy-wait briefly for the master's next frame: a poll() wake-up costs more
                     if not spin_until:
                         spin_until = clock() + SPIN_NS
@@ -246,9 +324,37 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pcap", help="write requests and replies to this pcap file")
     p.add_argument("--control", help="UNIX datagram socket path for fault-injection commands (JSON)")
     p.add_argument("--app", choices=("auto", "loopback", "none"), default="auto", help="slave application")
+    p.add_argument("--drift-ppm", type=float, default=0.0, help="DC: spread clock drifts over ±X ppm")
+    p.add_argument("--drift-seed", type=int, default=0, help="DC: seed of the order of the drifts")
+    p.add_argument(
+        "--esc-delays-ns",
+        type=float,
+        nargs=2,
+        metavar=("TP", "TF"),
+        help="DC: ESC processing and forwarding delay (default 320 280)",
+    )
+    p.add_argument("--cable-m", type=float, default=1.0, help="DC: cable per hop in metres (5 ns/m)")
+    p.add_argument(
+        "--dc-min-sample-us",
+        type=float,
+        default=DC_MIN_SAMPLE_INTERVAL_NS / 1000,
+        help="DC: least time between FRMW samples the clocks' loops take (0: every one)",
+    )
     args = p.parse_args(argv)
     if args.count < 1:
         p.error("--count must be >= 1")
-    chain = build_chain(args.map, args.count, args.app)
+    if args.drift_ppm < 0 or args.cable_m < 0 or args.dc_min_sample_us < 0:
+        p.error("--drift-ppm, --cable-m and --dc-min-sample-us must be >= 0")
+    timing = EscTiming(*args.esc_delays_ns) if args.esc_delays_ns else None
+    chain = build_chain(
+        args.map,
+        args.count,
+        args.app,
+        drift_ppm=args.drift_ppm,
+        drift_seed=args.drift_seed,
+        dc_timing=timing,
+        cable_m=args.cable_m,
+        dc_min_sample_interval_ns=round(args.dc_min_sample_us * 1000),
+    )
     serve(chain, args.iface, pcap=args.pcap, control=args.control)
     return 0
