@@ -23,7 +23,7 @@ import numpy.typing as npt
 from fieldbus.core.network import Bus, Slave
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
-from fieldbus.errors import FieldbusError
+from fieldbus.errors import FieldbusError, StateTransitionError
 
 
 @dataclass(frozen=True)
@@ -110,6 +110,30 @@ class Backend(abc.ABC):
         from fieldbus.core.wkc import expected_wkc
 
         return expected_wkc([a.layout for a in self.areas])
+
+    def check_identities(self, found: list[tuple[str, int, int] | None], where: str) -> None:
+        """Compare what sits at each wire position, ``(name, vendor id, product id)``, with the maps.
+
+        Raises :class:`StateTransitionError` listing every position that differs
+        (expected map and identity, and what was found).
+        """
+        lines = []
+        for i in range(max(len(found), len(self.areas))):
+            have = found[i] if i < len(found) else None
+            exp = self.areas[i].slave if i < len(self.areas) else None
+            have_txt = f"'{have[0]}' vendor 0x{have[1]:08X} product 0x{have[2]:08X}" if have else "nothing"
+            if exp is None:
+                lines.append(f"  position {i}: found {have_txt}, not in the network file")
+            elif have is None or have[1:] != (exp.map.vendor_id, exp.map.product_id):
+                lines.append(
+                    f"  position {i} ({exp.name}): expected {exp.map.name} vendor 0x{exp.map.vendor_id:08X} "
+                    f"product 0x{exp.map.product_id:08X}, found {have_txt}"
+                )
+        if lines:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}' {where}: {len(found)} slaves found, {len(self.areas)} expected; "
+                "mismatches:\n" + "\n".join(lines)
+            )
 
     def slave_index(self, name: str) -> int:
         for i, a in enumerate(self.areas):

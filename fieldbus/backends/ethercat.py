@@ -98,28 +98,9 @@ class EthercatBackend(Backend):
         self._check_identity(found)
 
     def _check_identity(self, found: int) -> None:
-        want = self.areas
-        lines = []
-        for i in range(max(found, 0, len(want))):
-            have = self._slaves[i] if i < len(self._slaves) else None
-            exp = want[i].slave if i < len(want) else None
-            have_txt = (
-                f"'{have.name}' vendor 0x{have.man:08X} product 0x{have.id:08X} rev 0x{have.rev:08X}"
-                if have is not None
-                else "nothing"
-            )
-            if exp is None:
-                lines.append(f"  position {i}: found {have_txt}, not in the network file")
-            elif have is None or (have.man, have.id) != (exp.map.vendor_id, exp.map.product_id):
-                lines.append(
-                    f"  position {i} ({exp.name}): expected {exp.map.name} vendor 0x{exp.map.vendor_id:08X} "
-                    f"product 0x{exp.map.product_id:08X}, found {have_txt}"
-                )
-        if lines:
-            raise StateTransitionError(
-                f"bus '{self.bus.name}' on {self.bus.interface}: {max(found, 0)} slaves found, "
-                f"{len(want)} expected; mismatches:\n" + "\n".join(lines)
-            )
+        self.check_identities(
+            [(s.name, s.man, s.id) for s in self._slaves[: max(found, 0)]], f"on {self.bus.interface}"
+        )
 
     def configure(self) -> None:
         state = self.master.state_check(pysoem.PREOP_STATE, STATE_TIMEOUT_US)

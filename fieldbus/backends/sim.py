@@ -112,27 +112,7 @@ class SimBackend(Backend):
         found = self.master.scan()
         self._open = True
         self.infos = [self.master.read_sii(p, self.master.assign_station(p)) for p in range(found)]
-        lines = []
-        for i in range(max(found, len(self.areas))):
-            have = self.infos[i] if i < found else None
-            exp = self.areas[i].slave if i < len(self.areas) else None
-            have_txt = (
-                f"'{have.name}' vendor 0x{have.vendor_id:08X} product 0x{have.product_id:08X}"
-                if have is not None
-                else "nothing"
-            )
-            if exp is None:
-                lines.append(f"  position {i}: found {have_txt}, not in the network file")
-            elif have is None or (have.vendor_id, have.product_id) != (exp.map.vendor_id, exp.map.product_id):
-                lines.append(
-                    f"  position {i} ({exp.name}): expected {exp.map.name} vendor 0x{exp.map.vendor_id:08X} "
-                    f"product 0x{exp.map.product_id:08X}, found {have_txt}"
-                )
-        if lines:
-            raise StateTransitionError(
-                f"bus '{self.bus.name}' (sim): {found} slaves found, {len(self.areas)} expected; "
-                "mismatches:\n" + "\n".join(lines)
-            )
+        self.check_identities([(x.name, x.vendor_id, x.product_id) for x in self.infos], "(sim)")
         for info in self.infos:
             self.master.setup_mailbox(info)
         self._go(AL_PREOP, "PRE-OP")

@@ -216,7 +216,74 @@ def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bo
     return report
 
 
-class SineFollower:
+class TrackingError:
+    """Running max and RMS of |actual - target sent one cycle earlier| over all axes (rad); no allocation."""
+
+    def __init__(self, axes: int) -> None:
+        self.err = np.zeros(axes)
+        self.max_rad = 0.0
+        self.sum_sq = 0.0
+        self.samples = 0
+
+    def add(self, actual: Any, target: Any) -> None:
+        np.subtract(actual, target, out=self.err)
+        np.abs(self.err, out=self.err)
+        self.max_rad = max(self.max_rad, float(self.err.max()))
+        self.sum_sq += float(np.dot(self.err, self.err))
+        self.samples += self.err.size
+
+    def to_json(self) -> dict[str, Any]:
+        rms = math.sqrt(self.sum_sq / self.samples) if self.samples else 0.0
+        return {"max_rad": self.max_rad, "rms_rad": rms, "samples": self.samples}
+
+
+class _SineJob:
+    """What both followers share: the trajectory ``start + A (1 - cos 2 pi f t)`` and its tracking error."""
+
+    def __init__(self, op: Operational, axes: int, rate_hz: float, group: str) -> None:
+        self.op = op
+        img = op[group]
+        self.out, self.inp = img.outputs, img.inputs
+        self.dt = 1.0 / rate_hz
+        self.n = axes
+        self.start = np.zeros(axes)
+        self.prev_target = np.zeros(axes)
+        self.tracking = TrackingError(axes)
+        self.enabled_at: int | None = None
+        self.k = 0
+
+    def begin(self, k: int, position: Any, target: Any) -> None:
+        """Every axis ready at cycle ``k``: the trajectory starts where the joints are."""
+        self.enabled_at = k
+        self.start[:] = position
+        target[:] = position
+        self.prev_target[:] = position
+
+    def advance(self, k: int, target: Any) -> float:
+        """Write this cycle's target (rad); returns the trajectory's velocity (rad/s)."""
+        assert self.enabled_at is not None
+        w = 2 * math.pi * FREQUENCY_HZ
+        t = (k - self.enabled_at) * self.dt
+        np.add(self.start, AMPLITUDE_RAD * (1.0 - math.cos(w * t)), out=target)
+        self.prev_target[:] = target
+        return AMPLITUDE_RAD * w * math.sin(w * t)
+
+    def status(self) -> str:
+        return f"max error {self.tracking.max_rad * 1e3:.2f} mrad"
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "enabled": self.enabled_at is not None,
+            "enable_cycles": self.enabled_at if self.enabled_at is not None else self.k + 1,
+            "tracking_error": self.tracking.to_json(),
+            "states": self.states(),
+        }
+
+    def states(self) -> list[str]:
+        return []
+
+
+class SineFollower(_SineJob):
     """Enable every joint through CiA 402, then follow ``start + A (1 - cos 2 pi f t)`` in CSP.
 
     Tracking error is the actual position minus the target sent one cycle
@@ -225,9 +292,7 @@ class SineFollower:
     """
 
     def __init__(self, op: Operational, axes: int, rate_hz: float, group: str = "joints") -> None:
-        self.op = op
-        img = op[group]
-        self.out, self.inp = img.outputs, img.inputs
+        super().__init__(op, axes, rate_hz, group)
         self.statusword = self.inp["statusword"]
         self.controlword = self.out["controlword"]
         self.position = self.inp["position_actual_value"]
@@ -236,15 +301,6 @@ class SineFollower:
         self.mode_display = self.inp["modes_of_operation_display"]
         self.ctrl = Cia402Controller(axes, mode=Mode.CSP, timeout_cycles=int(ENABLE_TIMEOUT_S * rate_hz))
         self.ctrl.set_goal(Goal.ENABLE)
-        self.dt = 1.0 / rate_hz
-        self.start = np.zeros(axes)
-        self.prev_target = np.zeros(axes)
-        self.err = np.zeros(axes)
-        self.enabled_at: int | None = None
-        self.max_err = 0.0
-        self.sum_sq = 0.0
-        self.samples = 0
-        self.k = 0
 
     def step(self, k: int) -> bool:
         self.k = k
@@ -255,40 +311,22 @@ class SineFollower:
         if self.enabled_at is None:
             self.target[:] = self.position  # follow the joint while enabling: no jump on enable
             if self.ctrl.all_reached:
-                self.enabled_at = k
-                self.start[:] = self.position
-                self.prev_target[:] = self.position
+                self.begin(k, self.position, self.target)
             return False
-        np.subtract(self.position, self.prev_target, out=self.err)
-        np.abs(self.err, out=self.err)
-        e = float(self.err.max())
-        self.max_err = max(self.max_err, e)
-        self.sum_sq += float(np.dot(self.err, self.err))
-        self.samples += self.err.size
-        t = (k - self.enabled_at) * self.dt
-        np.add(self.start, AMPLITUDE_RAD * (1.0 - math.cos(2 * math.pi * FREQUENCY_HZ * t)), out=self.target)
-        self.prev_target[:] = self.target
+        self.tracking.add(self.position, self.prev_target)
+        self.advance(k, self.target)
         return False
 
     def status(self) -> str:
         if self.enabled_at is None:
             return f"enabling ({int(self.ctrl.reached.sum())}/{self.ctrl.n_axes})"
-        return f"max error {self.max_err * 1e3:.2f} mrad"
+        return super().status()
 
-    def summary(self) -> dict[str, Any]:
-        return {
-            "enabled": self.enabled_at is not None,
-            "enable_cycles": self.enabled_at if self.enabled_at is not None else self.k + 1,
-            "tracking_error": {
-                "max_rad": self.max_err,
-                "rms_rad": math.sqrt(self.sum_sq / self.samples) if self.samples else 0.0,
-                "samples": self.samples,
-            },
-            "states": [State402(int(s)).name if s >= 0 else "UNKNOWN" for s in self.ctrl.state],
-        }
+    def states(self) -> list[str]:
+        return [State402(int(s)).name if s >= 0 else "UNKNOWN" for s in self.ctrl.state]
 
 
-class MitFollower:
+class MitFollower(_SineJob):
     """MIT-mode motors: impedance control (kp, kd) towards ``start + A (1 - cos 2 pi f t)``.
 
     The motors are in motor mode from bring-up (``op()`` sends enter-motor-mode);
@@ -298,24 +336,12 @@ class MitFollower:
     KP, KD = 40.0, 1.5  # N·m/rad, N·m·s/rad
 
     def __init__(self, op: Operational, axes: int, rate_hz: float, group: str = "joints") -> None:
-        self.op = op
-        img = op[group]
-        self.out, self.inp = img.outputs, img.inputs
+        super().__init__(op, axes, rate_hz, group)
         self.position = self.inp["position"]
         self.target = self.out["position"]
         self.velocity = self.out["velocity"]  # feed-forward: the trajectory's velocity, rad/s
         self.out["kp"][:] = self.KP
         self.out["kd"][:] = self.KD
-        self.dt = 1.0 / rate_hz
-        self.n = axes
-        self.start = np.zeros(axes)
-        self.prev_target = np.zeros(axes)
-        self.err = np.zeros(axes)
-        self.enabled_at: int | None = None
-        self.max_err = 0.0
-        self.sum_sq = 0.0
-        self.samples = 0
-        self.k = 0
 
     def step(self, k: int) -> bool:
         self.k = k
@@ -323,35 +349,12 @@ class MitFollower:
         if not res.fresh or res.safe_stop:
             return False
         if self.enabled_at is None:
-            self.enabled_at = k
-            self.start[:] = self.position
-            self.target[:] = self.position
-            self.prev_target[:] = self.position
+            self.begin(k, self.position, self.target)
             return False
         if k - self.enabled_at > 1:
-            np.subtract(self.position, self.prev_target, out=self.err)
-            np.abs(self.err, out=self.err)
-            self.max_err = max(self.max_err, float(self.err.max()))
-            self.sum_sq += float(np.dot(self.err, self.err))
-            self.samples += self.err.size
-        w = 2 * math.pi * FREQUENCY_HZ
-        t = (k - self.enabled_at) * self.dt
-        np.add(self.start, AMPLITUDE_RAD * (1.0 - math.cos(w * t)), out=self.target)
-        self.velocity.fill(AMPLITUDE_RAD * w * math.sin(w * t))
-        self.prev_target[:] = self.target
+            self.tracking.add(self.position, self.prev_target)
+        self.velocity.fill(self.advance(k, self.target))
         return False
 
-    def status(self) -> str:
-        return f"max error {self.max_err * 1e3:.2f} mrad"
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            "enabled": self.enabled_at is not None,
-            "enable_cycles": self.enabled_at if self.enabled_at is not None else self.k + 1,
-            "tracking_error": {
-                "max_rad": self.max_err,
-                "rms_rad": math.sqrt(self.sum_sq / self.samples) if self.samples else 0.0,
-                "samples": self.samples,
-            },
-            "states": ["MOTOR_MODE" if self.enabled_at is not None else "NO_REPLY"] * self.n,
-        }
+    def states(self) -> list[str]:
+        return ["MOTOR_MODE" if self.enabled_at is not None else "NO_REPLY"] * self.n
