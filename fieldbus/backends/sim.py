@@ -78,6 +78,11 @@ class SimBackend(Backend):
     kind = "sim"
 
     def __init__(self, bus: Bus, **options: object) -> None:
+        if bus.type != "ethercat":
+            raise FieldbusError(
+                f"bus '{bus.name}' is {bus.type}: the sim backend emulates EtherCAT segments "
+                "(CAN buses run on python-can's virtual interface: fieldbus demo --backend canopen|rawcan)"
+            )
         super().__init__(bus, **options)
         from sim_slaves.ethercat.chain import EscChain
 
