@@ -233,3 +233,32 @@ def test_error_inside_a_referenced_map_names_that_map(tmp_path: Path) -> None:
         load_network(net)
     assert info.value.file is not None and info.value.file.endswith("bad.yaml")
     assert info.value.line == 3 and info.value.path == "rpdo"
+
+
+def test_pdo_name_must_be_text_and_yaml_booleans_are_explained(tmp_path: Path) -> None:
+    from fieldbus.core.pdo import drive_map_from_text
+    from fieldbus.errors import PdoMapError
+
+    base = (
+        "name: d\nvendor_id: 1\nproduct_id: 2\nrpdo:\n  - index: 0x1600\n    name: {bad: 1}\n"
+        "    channels: [{index: 0x6040, sub_index: 0, type: uint16}]\n"
+    )
+    with pytest.raises(PdoMapError) as exc:
+        drive_map_from_text(base, "d.yaml")
+    assert (
+        "d.yaml:6:" in str(exc.value)
+        and "rpdo[0].name" in str(exc.value)
+        and "expected a string" in str(exc.value)
+    )
+    sm = (
+        "name: d\nvendor_id: 1\nproduct_id: 2\nrpdo:\n  - index: 0x1600\n"
+        "    channels: [{index: 0x6040, sub_index: 0, type: uint16}]\n"
+        "sm:\n  - {index: 2, type: output, pdo: rpdo, watchdog: on}\n"
+    )
+    with pytest.raises(PdoMapError) as exc:
+        drive_map_from_text(sm, "d.yaml")
+    assert (
+        "sm[0].watchdog" in str(exc.value)
+        and "YAML boolean" in str(exc.value)
+        and "'on'" not in str(exc.value)
+    )

@@ -127,6 +127,11 @@ class Reader:
 
     def choice(self, value: Any, path: PathT, options: Iterable[str]) -> str:
         options = tuple(options)
+        if isinstance(value, bool):  # YAML 1.1 reads on/off/yes/no as booleans
+            raise self.err(
+                path,
+                f"'{str(value).lower()}' is a YAML boolean here; write one of {', '.join(options)} in quotes",
+            )
         if not isinstance(value, str) or value not in options:
             near = difflib.get_close_matches(str(value), options, n=1, cutoff=0.5)
             hint = f" (did you mean {near[0]}?)" if near else ""
@@ -254,6 +259,9 @@ def _pdos(
     for i, item in enumerate(r.sequence(raw, (key,))):
         ppath: PathT = (key, i)
         m = r.mapping(item, ppath, _PDO_KEYS, required=("index", "channels"))
+        for text_key in ("name", "description"):  # documentation only, but checked like every key
+            if text_key in m:
+                r.string(m[text_key], (*ppath, text_key))
         index = r.integer(m["index"], (*ppath, "index"), 0, 0xFFFF)
         if not lo <= index <= hi:
             what = "RxPDO (master outputs)" if direction is Direction.OUTPUTS else "TxPDO (master inputs)"
