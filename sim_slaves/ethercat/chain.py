@@ -88,6 +88,7 @@ class EscChain:
         self.frames = 0
         self.pending_delay = 0.0
         self._stations: dict[int, list[Esc]] | None = None
+        self.drive_maps: list[DriveMap] | None = None  # set by from_maps: what a power cycle resets to
         self._watchdog_checked = -WATCHDOG_CHECK_NS
         self._wire_index = {id(s): i for i, s in enumerate(self.slaves)}
         self.dc_line = DcLine([s.dc for s in self.slaves], min_sample_interval_ns=dc_min_sample_interval_ns)
@@ -128,9 +129,11 @@ class EscChain:
                 timing=dc_timing,
             )
             slaves.append(Esc(image, od, position=i, chain_length=n, app=the_app, name=drive.name, dc=dc))
-        return cls(
+        chain = cls(
             slaves, dc_timing=dc_timing, cable_m=cable_m, dc_min_sample_interval_ns=dc_min_sample_interval_ns
         )
+        chain.drive_maps = list(maps)
+        return chain
 
     def __len__(self) -> int:
         return len(self.slaves)
@@ -383,10 +386,17 @@ class EscChain:
     def power_cycle(self, slave: int) -> None:
         """Slave ``slave`` (0-based) loses power and comes back: registers reset, state INIT.
 
-        Its drive application restarts too (CiA 402: NOT READY TO SWITCH ON).
-        The object dictionary keeps its values (as if stored in non-volatile memory).
+        Its drive application restarts too (CiA 402: NOT READY TO SWITCH ON),
+        and, for a chain built from drive maps, its object dictionary goes back
+        to the map's defaults: PDO mapping and start-up values written by SDO are
+        lost, as on a drive that did not store them, so the master must apply
+        its SDO plan again (SOEM's reconfig hook, our recovery).
         """
         esc = self.slaves[slave]
+        if self.drive_maps is not None:
+            od = ObjectDictionary.from_drive_map(self.drive_maps[slave])
+            esc.od = od
+            esc.mailbox.sdo.od = od
         esc.power_on()
         reset = getattr(esc.app, "power_cycle", None)
         if callable(reset):

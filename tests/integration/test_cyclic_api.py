@@ -280,3 +280,31 @@ def test_a_power_cycled_slave_comes_back_to_op_without_user_action(segment: Call
         assert net.policies[0].stats.recoveries >= 1
         # recovery steps run inside the cycle; none may hold it near the 100 ms process-data watchdog
         assert longest_ns < 50e6, longest_ns
+
+
+def test_power_cycle_loses_the_remapping_and_recovery_applies_the_plan_again(
+    segment: Callable[..., Segment], tmp_path: Path
+) -> None:
+    """The network remaps TPDO2 (no velocity); a power-cycled drive comes back with its default mapping.
+
+    Only a recovery that writes the SDO plan again gets fresh, full cycles back:
+    otherwise SAFE-OP is refused (EtherCAT: SM3 length) or the TPDO has the wrong length (CANopen).
+    """
+    text = DEMO_MAP.read_text().replace(
+        "      - {index: 0x606C, sub_index: 0, type: int32, factor: 4.79369e-5, unit: rad/s}\n", ""
+    )
+    variant = tmp_path / "demo_joint_remapped.yaml"
+    variant.write_text(text)
+    seg = segment([variant], count=3, chain_maps=[DEMO_MAP] * 3, safe_stop_after=100_000)
+    with seg.open() as net:
+        op = net.bring_up()
+        _run_until_fresh(op, 20)
+        assert "velocity_actual_value" not in op["bus"].inputs.values.dtype.names
+        seg.control(cmd="power_cycle", slave=2)
+        streak = 0
+        for _ in range(3000):
+            streak = streak + 1 if op.exchange().fresh else 0
+            if streak == 50:
+                break
+        assert streak == 50, "not back with the network's mapping after 3000 cycles"
+        assert seg.control(cmd="status")["states"] == [AL_OP] * 3
