@@ -1,41 +1,64 @@
 """CANopen backend on python-can: CiA 301 bring-up, then a SYNC cycle packed with our layout.
 
-Bring-up: NMT pre-operational to every node; identity (0x1018:1/2) per node
-against its map; each node's CANopen SDO plan (CiA 301 order) written and
-read back; NMT start. The SDO client is :mod:`fieldbus.backends.can_sdo`;
-canopen's per-variable PDO objects are not used anywhere.
+Bring-up (blocking, outside the cycle): NMT pre-operational to every node;
+identity (0x1018:1/2) per node against its map; each node's CANopen SDO plan
+(CiA 301 order, :func:`fieldbus.core.sdo.canopen_plan`) written and read back
+through :func:`~fieldbus.backends.sdo_exec.apply_plan`; NMT start, confirmed by
+each node's heartbeat. The SDO client is this module's own (expedited and
+segmented, :func:`sdo_upload` / :func:`sdo_download` as sans-IO generators);
+the ``canopen`` package is not used, and no per-variable PDO object anywhere.
 
-Cycle: ``send()`` copies each RPDO's bytes from the slave's output row into a
-preallocated frame and sends it, then SYNC. ``receive()`` waits up to the
-receive timeout for every synchronous TPDO and copies each into the slave's
+Cycle (the hot path): ``send()`` copies each RPDO's bytes from the slave's
+output row into a preallocated frame and sends it, then SYNC. ``receive()``
+waits up to the receive timeout for every *expected* TPDO - those with
+transmission type 1, due at every SYNC - and copies each into the slave's
 input row. Its "working counter" is the number of expected TPDOs that came;
-``arrived()`` says which nodes delivered all of theirs, so the shared policy
-gives per-node freshness (a silent node is stale, the others fresh).
+``arrived()`` says which nodes delivered all of theirs (and whose heartbeat
+is not lost), so the shared policy gives per-node freshness. TPDOs of other
+transmission types (0, 2-240, 254/255) are copied into the input row whenever
+they come, but not counted: when they are due is the node's business.
 
-Heartbeat consumer: a node whose heartbeat is older than 1.5x its producer
-time (``heartbeat_ms`` of its map) is reported in :attr:`heartbeat_lost` and
-is stale. EMCY frames are decoded with their names into :attr:`emergencies`.
-A node that reboots (boot-up message) or comes back after a heartbeat loss is
-reconfigured and started again by :meth:`recover_step`, one SDO per cycle.
+Directions from the master's side: outputs are RPDOs (master -> node), inputs
+TPDOs (node -> master).
+
+Heartbeat consumer: a node whose heartbeat is older than its consumer time
+(1.5 x the producer time ``heartbeat_ms`` of its map, or the backend option
+``heartbeat_consumer_ms``) is flagged in :attr:`heartbeat_lost` and stale.
+EMCY frames are decoded with their names into :attr:`emergencies` (and the
+last one per node in :attr:`last_emergency`).
+
+Recovery: a node that boots (boot-up message), or whose heartbeat comes back
+in a state other than OPERATIONAL, is put in PRE-OPERATIONAL, its identity
+checked, its plan written and read back, and started again - by
+:meth:`recover_step`, which never waits: each call sends at most one frame
+and the answer is picked up by the cycle's own receive path.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import struct
 import time
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.backends.base import Backend
-from fieldbus.backends.can_sdo import SdoClient
+from fieldbus.backends.base import Backend, SlaveArea
+from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.emcy import Emergency
 from fieldbus.core.network import Bus
-from fieldbus.core.sdo import canopen_plan
-from fieldbus.errors import BackendUnavailableError, FieldbusError, SdoAbortError, StateTransitionError
+from fieldbus.core.pdo.model import Pdo
+from fieldbus.core.sdo import StepKind, canopen_plan
+from fieldbus.errors import (
+    BackendUnavailableError,
+    BusTimeoutError,
+    FieldbusError,
+    SdoAbortError,
+    SdoMismatchError,
+    StateTransitionError,
+)
 
 try:
     import can
@@ -45,15 +68,23 @@ except ImportError as exc:  # pragma: no cover - depends on the install
     ) from None
 
 NMT_START, NMT_STOP, NMT_PRE_OP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
-COB_SYNC, COB_EMCY, COB_HEARTBEAT = 0x080, 0x080, 0x700
+COB_NMT, COB_SYNC, COB_EMCY, COB_TSDO, COB_RSDO, COB_HEARTBEAT = 0x000, 0x080, 0x080, 0x580, 0x600, 0x700
 NMT_OPERATIONAL = 0x05  # heartbeat state byte
 HEARTBEAT_FACTOR = 1.5  # consumer time = this x the producer time
-BOOT_WAIT_S = 0.2
+SDO_TIMEOUT_S = 0.5  # per SDO request / response
+RETRY_AFTER_S = 1.0  # a node whose recovery failed is tried again after this
 MAX_EMERGENCIES = 1000
+MAX_BOOTS = 1000
+EVERY_SYNC = 1  # transmission type of the TPDOs a cycle waits for
 
 
 class CanopenBackend(Backend):
-    """CANopen nodes on one CAN bus (``interface`` = python-can channel, ``can_interface`` its type)."""
+    """CANopen nodes on one CAN bus (``interface`` = python-can channel, ``can_interface`` its type).
+
+    Options: ``can_bus`` (a python-can bus instance to use instead of opening
+    one), ``heartbeat_consumer_ms`` (consumer time for every node; 0 turns the
+    check off; default 1.5 x each map's ``heartbeat_ms``), ``sdo_timeout_s``.
+    """
 
     kind = "canopen"
     pdo_align = 8
@@ -63,6 +94,7 @@ class CanopenBackend(Backend):
         self._bus: Any = options.get("can_bus")
         self._own_bus = self._bus is None
         self._timeout_s = bus.receive_timeout_us / 1e6
+        self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
         self.node_ids: list[int] = []
         for a in self.areas:
@@ -74,39 +106,55 @@ class CanopenBackend(Backend):
                 )
             self.node_ids.append(a.slave.node_id)
         self._index = {node: i for i, node in enumerate(self.node_ids)}
+        # cycle tables (filled by safe_op)
         self._rpdos: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
-        self._tpdos: dict[int, tuple[int, npt.NDArray[np.uint8], int]] = {}  # cob -> (slave, row slice, k)
-        self._tpdo_count = np.zeros(n, dtype=np.int32)  # expected TPDOs per node
+        # TPDO COB-ID -> (slave, its bytes in the input row, k: index among expected TPDOs, -1: extra)
+        self._tpdos: dict[int, tuple[int, npt.NDArray[np.uint8], int]] = {}
+        self._tpdo_count = np.zeros(n, dtype=np.int32)  # expected TPDOs per node per SYNC
+        for i, a in enumerate(self.areas):
+            self._tpdo_count[i] = sum(1 for p in a.slave.map.tpdo if _expected(p))
         self._got = np.zeros(n, dtype=np.int32)
         self._seen = np.zeros(0, dtype=bool)  # per expected TPDO, this cycle
         self._arrived = np.zeros(n, dtype=bool)
+        self.extra_tpdos = 0  # TPDOs of other transmission types received (copied, not counted)
+        self.late_tpdos = 0  # expected TPDOs that came after their cycle's receive timeout (discarded)
+        # heartbeat consumer
         self.heartbeat_lost = np.zeros(n, dtype=bool)
         self.nmt_state = np.full(n, -1, dtype=np.int16)  # last heartbeat state byte per node
         self._last_hb = np.zeros(n)
+        consumer = options.get("heartbeat_consumer_ms")
         self._hb_limit = np.array(
             [
-                HEARTBEAT_FACTOR * (a.slave.map.canopen.heartbeat_ms if a.slave.map.canopen else 0) / 1000
+                float(consumer) / 1000 if consumer is not None else HEARTBEAT_FACTOR * _producer_ms(a) / 1000
                 for a in self.areas
             ]
         )
-        self._needs_setup = np.zeros(n, dtype=bool)
+        self._hb_watched = self._hb_limit > 0
+        # EMCY, boot-ups
         self.emergencies: list[Emergency] = []
-        self.boots: list[int] = []  # node ids seen booting (in order)
-        self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
-        self._sdo: SdoClient | None = None
+        self.last_emergency: dict[int, Emergency] = {}  # node id -> its last EMCY
+        self.boots: list[int] = []  # node ids seen booting while OPERATIONAL (in order)
+        # recovery
+        self._needs_setup = np.zeros(n, dtype=bool)
+        self._retry_at = np.zeros(n)
         self._recovery: Generator[None, None, bool] | None = None
+        self._recovering: int | None = None  # node id whose SDO answer the recovery awaits
+        self._reply: bytes | None = None
         self.recoveries = 0
         self.recovery_errors: list[str] = []
-        self.late_tpdos = 0  # TPDOs that arrived after their cycle's receive timeout (discarded)
+        self.sdo_transfers = 0
+        self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
+        self._open = False
         self._operational = False
 
     @property
     def expected_wkc(self) -> int:
-        """Synchronous TPDOs expected per SYNC (all nodes)."""
-        return int(sum(len(a.slave.map.tpdo) for a in self.areas))
+        """TPDOs expected per SYNC (transmission type 1, all nodes)."""
+        return int(self._tpdo_count.sum())
 
     # -- bring-up ---------------------------------------------------------------------
     def open(self) -> None:
+        """Open the CAN bus, NMT pre-operational to all, identity 0x1018:1/2 of every node against its map."""
         if self._bus is None:
             try:
                 self._bus = can.Bus(
@@ -118,15 +166,15 @@ class CanopenBackend(Backend):
                 raise FieldbusError(
                     f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
                 ) from None
-        self._sdo = SdoClient(self._bus, on_other=self._other)
+        self._open = True
         self._nmt(NMT_PRE_OP)
         time.sleep(0.01)
         lines = []
         for i, a in enumerate(self.areas):
             node = self.node_ids[i]
             try:
-                vendor = int.from_bytes(self._sdo.upload(node, 0x1018, 1), "little")
-                product = int.from_bytes(self._sdo.upload(node, 0x1018, 2), "little")
+                vendor = int.from_bytes(self._sdo_blocking(node, sdo_upload(0x1018, 1)), "little")
+                product = int.from_bytes(self._sdo_blocking(node, sdo_upload(0x1018, 2)), "little")
             except FieldbusError as exc:
                 lines.append(f"  node {node} ({a.slave.name}): no identity ({exc})")
                 continue
@@ -139,14 +187,16 @@ class CanopenBackend(Backend):
             raise StateTransitionError(f"bus '{self.bus.name}': identity check failed:\n" + "\n".join(lines))
 
     def configure(self) -> None:
+        """Every node's CiA 301 plan, written and read back; the first abort or mismatch stops bring-up.
+
+        No node has been started then (all stay PRE-OPERATIONAL, no drive is enabled).
+        """
         for i in range(self.n_slaves):
-            self._configure_node(i)
+            a = self.areas[i]
+            write, read = self._sdo_pair(i)
+            apply_plan(canopen_plan(a.slave.map, self.node_ids[i]), write, read, slave=a.slave.name)
 
-    def _configure_node(self, i: int) -> None:
-        a = self.areas[i]
-        apply_plan(canopen_plan(a.slave.map, self.node_ids[i]), *self._sdo_pair(i), slave=a.slave.name)
-
-    def _sdo_pair(self, i: int) -> tuple[Any, Any]:
+    def _sdo_pair(self, i: int) -> tuple[Callable[[int, int, bytes], None], Callable[[int, int, int], bytes]]:
         def write(index: int, sub: int, data: bytes) -> None:
             self.sdo_write(i, index, sub, data)
 
@@ -174,9 +224,14 @@ class CanopenBackend(Backend):
             for pdo, place in zip(a.slave.map.tpdo, a.layout.inputs.pdos, strict=True):
                 assert pdo.canopen is not None
                 cob = pdo.canopen.cob_id_for(node)
-                self._tpdos[cob] = (i, inp[place.byte_offset : place.byte_offset + place.size], k)
-                k += 1
-            self._tpdo_count[i] = len(a.slave.map.tpdo)
+                if cob in self._tpdos:
+                    raise FieldbusError(f"bus '{self.bus.name}': two TPDOs use COB-ID 0x{cob:03X}")
+                row = inp[place.byte_offset : place.byte_offset + place.size]
+                if _expected(pdo):
+                    self._tpdos[cob] = (i, row, k)
+                    k += 1
+                else:
+                    self._tpdos[cob] = (i, row, -1)
         self._seen = np.zeros(k, dtype=bool)
 
     def op(self) -> None:
@@ -184,21 +239,23 @@ class CanopenBackend(Backend):
         self._drain()
         self.nmt_state.fill(-1)
         self._nmt(NMT_START)
-        watched = self._hb_limit > 0
-        deadline = time.monotonic() + max(0.3, 2 * float(self._hb_limit.max()) / HEARTBEAT_FACTOR)
+        watched = self._hb_watched
+        wait = max(0.3, 2 * float(self._hb_limit.max(initial=0.0)) / HEARTBEAT_FACTOR)
+        deadline = time.monotonic() + wait
         while time.monotonic() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
             msg = self._bus.recv(timeout=0.01)
             if msg is not None:
                 self._other(msg)
         late = [
-            self.areas[i].slave.name
+            f"{self.areas[i].slave.name} (node {self.node_ids[i]}, state {int(self.nmt_state[i])})"
             for i in range(self.n_slaves)
             if watched[i] and self.nmt_state[i] != NMT_OPERATIONAL
         ]
         if late:
             self._nmt(NMT_PRE_OP)
             raise StateTransitionError(
-                f"bus '{self.bus.name}': no OPERATIONAL heartbeat after NMT start from {', '.join(late)}"
+                f"bus '{self.bus.name}': no OPERATIONAL heartbeat within {wait * 1e3:.0f} ms of NMT start "
+                f"from {', '.join(late)}"
             )
         self._last_hb[:] = time.monotonic()
         self._operational = True
@@ -206,13 +263,16 @@ class CanopenBackend(Backend):
     # -- cycle ------------------------------------------------------------------------------
     def send(self) -> None:
         bus = self._bus
-        # TPDOs still queued answer an earlier SYNC (late): they must not pass for this cycle's.
-        # Heartbeats and EMCYs among them are kept.
+        # What is still queued came after the last receive(): an expected TPDO there answers an
+        # earlier SYNC (late) and must not pass for this cycle's; other frames are handled.
         while (msg := bus.recv(timeout=0)) is not None:
-            if msg.arbitration_id in self._tpdos:
-                self.late_tpdos += 1
-            else:
+            hit = self._tpdos.get(msg.arbitration_id)
+            if hit is None or msg.is_extended_id:
                 self._other(msg)
+            elif hit[2] < 0:
+                self._extra(hit[1], msg.data)
+            else:
+                self.late_tpdos += 1
         for msg, row, data in self._rpdos:
             np.copyto(data, row)
             bus.send(msg)
@@ -237,6 +297,9 @@ class CanopenBackend(Backend):
                 self._other(msg)
                 continue
             i, row, k = hit
+            if k < 0:
+                self._extra(row, msg.data)
+                continue
             if self._seen[k] or len(msg.data) != row.size:
                 continue
             row[:] = np.frombuffer(msg.data, dtype=np.uint8)
@@ -246,25 +309,35 @@ class CanopenBackend(Backend):
         self._check_heartbeats()
         np.equal(self._got, self._tpdo_count, out=self._arrived)
         self._arrived &= ~self.heartbeat_lost
-        if self._recovery is not None:
+        if self._recovery is not None or self._needs_setup.any():
             self.recover_step()
+        if expected == 0:
+            return 0
         return count if count else None
 
+    def _extra(self, row: npt.NDArray[np.uint8], data: Any) -> None:
+        if len(data) == row.size:
+            row[:] = np.frombuffer(data, dtype=np.uint8)
+            self.extra_tpdos += 1
+
     def _other(self, msg: Any) -> None:
-        """Heartbeats, boot-ups and EMCYs (any time a frame is not the one awaited)."""
+        """Heartbeats, boot-ups, EMCYs and SDO answers (any frame that is not an awaited TPDO)."""
         if msg is None or msg.is_extended_id:
             return
         cob = msg.arbitration_id
-        if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 127 and len(msg.data) >= 1:
+        if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 127:
             i = self._index.get(cob - COB_HEARTBEAT)
-            if i is None:
+            if i is None or len(msg.data) < 1:
                 return
             state = msg.data[0] & 0x7F
             if state == 0 and self._operational:  # boot-up: the node was reset
+                if len(self.boots) >= MAX_BOOTS:
+                    del self.boots[: MAX_BOOTS // 2]
                 self.boots.append(self.node_ids[i])
                 self._needs_setup[i] = True
-                if self._recovery is None:
-                    self._recovery = self._recover()
+                self._retry_at[i] = 0.0
+            elif self.heartbeat_lost[i] and state != NMT_OPERATIONAL and self._operational:
+                self._needs_setup[i] = True  # back, but not as we left it
             self.nmt_state[i] = state
             self._last_hb[i] = time.monotonic()
         elif COB_EMCY < cob <= COB_EMCY + 127:
@@ -272,60 +345,127 @@ class CanopenBackend(Backend):
             if node in self._index:
                 if len(self.emergencies) >= MAX_EMERGENCIES:
                     del self.emergencies[: MAX_EMERGENCIES // 2]
-                self.emergencies.append(Emergency.decode(node, bytes(msg.data), time.monotonic()))
+                emcy = Emergency.decode(node, bytes(msg.data), time.monotonic())
+                self.emergencies.append(emcy)
+                self.last_emergency[node] = emcy
+        elif self._recovering is not None and cob == COB_TSDO + self._recovering:
+            self._reply = bytes(msg.data)
 
     def _check_heartbeats(self) -> None:
-        now = time.monotonic()
-        for i in range(self.n_slaves):
-            limit = self._hb_limit[i]
-            lost = bool(limit) and now - self._last_hb[i] > limit
-            if lost and not self.heartbeat_lost[i]:
-                self._needs_setup[i] = True  # when it answers again, it is configured again
-            self.heartbeat_lost[i] = lost
+        lost = self.heartbeat_lost
+        np.greater(time.monotonic() - self._last_hb, self._hb_limit, out=lost)
+        lost &= self._hb_watched
 
     def arrived(self) -> npt.NDArray[np.bool_]:
         return self._arrived
 
+    def heartbeat_lost_slaves(self) -> list[str]:
+        """Names of the slaves whose heartbeat is older than their consumer time (as of the last cycle)."""
+        return [self.areas[i].slave.name for i in np.flatnonzero(self.heartbeat_lost)]
+
+    # -- recovery -------------------------------------------------------------------------------
     def recover_step(self) -> bool:
-        """One step (one SDO or NMT) of bringing rebooted or returning nodes back; never raises."""
-        if not self._needs_setup.any():
-            return True
+        """One step of bringing rebooted nodes back: sends at most one frame, never waits, never raises.
+
+        Returns True when no node needs it.
+        """
         if self._recovery is None:
+            if not self._needs_setup.any():
+                return True
             self._recovery = self._recover()
         try:
             next(self._recovery)
         except StopIteration as stop:
             self._recovery = None
             return bool(stop.value)
-        except FieldbusError as exc:
+        except Exception as exc:  # one failed attempt; the node is tried again after RETRY_AFTER_S
             self._recovery = None
+            self._recovering = None
             self.recovery_errors.append(f"{type(exc).__name__}: {exc}")
+            del self.recovery_errors[:-100]
         return False
 
     def _recover(self) -> Generator[None, None, bool]:
         while True:
-            todo = [i for i in range(self.n_slaves) if self._needs_setup[i] and not self.heartbeat_lost[i]]
+            now = time.monotonic()
+            todo = [
+                i
+                for i in range(self.n_slaves)
+                if self._needs_setup[i] and not self.heartbeat_lost[i] and now >= self._retry_at[i]
+            ]
             if not todo:
                 return not self._needs_setup.any()
             i = todo[0]
+            self._retry_at[i] = now + RETRY_AFTER_S  # until it succeeds
+            a = self.areas[i]
             node = self.node_ids[i]
             self._nmt(NMT_PRE_OP, node)
             yield
-            plan = canopen_plan(self.areas[i].slave.map, node)
-            write, read = self._sdo_pair(i)
-            for step in plan.steps:
-                apply_plan(
-                    dataclasses.replace(plan, steps=(step,)), write, read, slave=self.areas[i].slave.name
-                )
-                yield
+            try:
+                ident = []
+                for sub in (1, 2):
+                    raw = yield from self._sdo_async(node, sdo_upload(0x1018, sub))
+                    ident.append(int.from_bytes(raw, "little"))
+                if tuple(ident) != (a.slave.map.vendor_id, a.slave.map.product_id):
+                    raise StateTransitionError(
+                        f"bus '{self.bus.name}': node {node} ({a.slave.name}) came back as vendor "
+                        f"0x{ident[0]:08X} product 0x{ident[1]:08X}, expected {a.slave.map.name}"
+                    )
+                plan = canopen_plan(a.slave.map, node)
+                for step in plan.steps:  # as apply_plan: every write, then every read-back
+                    if step.kind is StepKind.WRITE:
+                        yield from self._sdo_async(node, sdo_download(step.index, step.sub_index, step.data))
+                for step in plan.checks:
+                    assert step.readback is not None
+                    got = yield from self._sdo_async(node, sdo_upload(step.index, step.sub_index))
+                    want = step.readback
+                    if got[: len(want)] != want or any(got[len(want) :]):
+                        raise SdoMismatchError(
+                            index=step.index,
+                            subindex=step.sub_index,
+                            expected=want,
+                            received=got,
+                            slave=a.slave.name,
+                        )
+            except SdoAbortError as exc:
+                raise self._named(exc, i) from None
             self._nmt(NMT_START, node)
             self._needs_setup[i] = False
             self.recoveries += 1
             yield
 
+    def _sdo_async(self, node: int, steps: SdoSteps) -> Generator[None, None, bytes]:
+        """Run an SDO transfer without waiting: yields until each answer has come in through ``_other``."""
+        req = next(steps)
+        while True:
+            self._reply = None
+            self._recovering = node
+            self._send_sdo(node, req)
+            deadline = time.monotonic() + self._sdo_timeout_s
+            while self._reply is None:
+                if time.monotonic() > deadline:
+                    self._recovering = None
+                    self._send_sdo_abort(node, req, ABORT_TIMEOUT)
+                    raise BusTimeoutError(
+                        f"bus '{self.bus.name}': node {node}: no SDO answer within "
+                        f"{self._sdo_timeout_s * 1e3:.0f} ms"
+                    )
+                yield
+            resp, self._reply, self._recovering = self._reply, None, None
+            try:
+                req = steps.send(resp)
+            except StopIteration as stop:
+                return bytes(stop.value)
+            except SdoAbortError as exc:
+                if resp[:1] != b"\x80":  # our side gave up: tell the server
+                    self._send_sdo_abort(node, req, exc.code)
+                raise
+
     # -- shut-down ------------------------------------------------------------------------------
     def stop(self) -> None:
+        """NMT pre-operational to every node (they stop their PDOs; drives react per CiA 402)."""
         self._recovery = None
+        self._recovering = None
         if self._bus is not None and self._operational:
             self._operational = False
             self._nmt(NMT_PRE_OP)
@@ -334,10 +474,18 @@ class CanopenBackend(Backend):
         if self._bus is not None and self._own_bus:
             self._bus.shutdown()
         self._bus = None
+        self._open = False
 
     # -- acyclic ------------------------------------------------------------------------------
     def _nmt(self, command: int, node: int = 0) -> None:
-        self._bus.send(can.Message(arbitration_id=0x000, data=bytes([command, node]), is_extended_id=False))
+        self._bus.send(can.Message(arbitration_id=COB_NMT, data=bytes([command, node]), is_extended_id=False))
+
+    def _send_sdo(self, node: int, payload: bytes) -> None:
+        self._bus.send(can.Message(arbitration_id=COB_RSDO + node, data=payload, is_extended_id=False))
+        self.sdo_transfers += 1
+
+    def _send_sdo_abort(self, node: int, req: bytes, code: int) -> None:
+        self._send_sdo(node, b"\x80" + req[1:4] + struct.pack("<I", code))
 
     def _drain(self) -> None:
         while True:
@@ -346,20 +494,55 @@ class CanopenBackend(Backend):
                 return
             self._other(msg)
 
-    def _client(self) -> SdoClient:
-        if self._sdo is None:
+    def _sdo_blocking(self, node: int, steps: SdoSteps) -> bytes:
+        """Run an SDO transfer, waiting for each answer (bring-up and the user's SDO verbs)."""
+        if self._bus is None or not self._open:
             raise FieldbusError(f"bus '{self.bus.name}': not open")
-        return self._sdo
+        if self._recovering == node:
+            raise FieldbusError(f"bus '{self.bus.name}': node {node} is being configured again (recovery)")
+        req = next(steps)
+        while True:
+            self._send_sdo(node, req)
+            deadline = time.monotonic() + self._sdo_timeout_s
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._send_sdo_abort(node, req, ABORT_TIMEOUT)
+                    raise BusTimeoutError(
+                        f"bus '{self.bus.name}': node {node}: no SDO answer within "
+                        f"{self._sdo_timeout_s * 1e3:.0f} ms"
+                    )
+                msg = self._bus.recv(timeout=remaining)
+                if msg is None:
+                    continue
+                if msg.arbitration_id == COB_TSDO + node and not msg.is_extended_id:
+                    break
+                hit = self._tpdos.get(msg.arbitration_id)
+                if hit is not None and hit[2] < 0:
+                    self._extra(hit[1], msg.data)
+                elif hit is None:
+                    self._other(msg)
+            resp = bytes(msg.data)
+            try:
+                req = steps.send(resp)
+            except StopIteration as stop:
+                return bytes(stop.value)
+            except SdoAbortError as exc:
+                if resp[:1] != b"\x80":
+                    self._send_sdo_abort(node, req, exc.code)
+                raise
 
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
+        """Upload ``index:sub_index`` of slave ``slave`` (an index into this bus's slaves)."""
         try:
-            return self._client().upload(self.node_ids[slave], index, sub_index)
+            return self._sdo_blocking(self.node_ids[slave], sdo_upload(index, sub_index))
         except SdoAbortError as exc:
             raise self._named(exc, slave) from None
 
     def sdo_write(self, slave: int, index: int, sub_index: int, data: bytes) -> None:
+        """Download ``data`` to ``index:sub_index`` of slave ``slave``."""
         try:
-            self._client().download(self.node_ids[slave], index, sub_index, data)
+            self._sdo_blocking(self.node_ids[slave], sdo_download(index, sub_index, data))
         except SdoAbortError as exc:
             raise self._named(exc, slave) from None
 
@@ -372,3 +555,13 @@ class CanopenBackend(Backend):
             slave=self.areas[slave].slave.name,
             detail=detail,
         )
+
+
+def _expected(pdo: Pdo) -> bool:
+    """A TPDO the cycle waits for: transmission type 1 (sent after every SYNC)."""
+    return pdo.canopen is not None and pdo.canopen.transmission_type == EVERY_SYNC
+
+
+def _producer_ms(area: SlaveArea) -> int:
+    cfg = area.slave.map.canopen
+    return cfg.heartbeat_ms if cfg is not None else 0

@@ -1,14 +1,17 @@
 """Describe an emulated node's object dictionary to the ``canopen`` package (what an EDS file would say).
 
 For interop: ``canopen.RemoteNode(node_id, to_canopen_od(node.od))`` lets
-canopen's own master read and remap the emulated node's PDOs.
+canopen's own master read and remap the emulated node's PDOs, and
+``canopen.LocalNode(node_id, to_canopen_od(node.od))`` serves the same
+objects (access types and current values as defaults) from canopen's own SDO
+server.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from sim_slaves.od import ObjectDictionary
+from sim_slaves.od import Access, ObjectDictionary
 
 VISIBLE_STRING = 0x0009  # CiA 301 data type index
 
@@ -35,4 +38,10 @@ def _variable(ours: ObjectDictionary, index: int, sub: int, cls: Any) -> Any:
     e = ours.entry(index, sub)
     var = cls(e.name or f"x{index:04X}_{sub:02X}", index, sub)
     var.data_type = e.dtype.coe_code if e.dtype is not None else VISIBLE_STRING
+    var.access_type = _ACCESS[e.access]
+    value = e.value
+    var.default = value.decode("latin-1") if isinstance(value, bytes) else value
     return var
+
+
+_ACCESS = {Access.RO: "ro", Access.RW: "rw", Access.CONST: "const"}

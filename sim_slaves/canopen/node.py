@@ -5,16 +5,19 @@ the CiA 301 communication objects: 0x1005 SYNC COB-ID, 0x1017 producer
 heartbeat time, 0x1400-0x1403 / 0x1800-0x1803 PDO communication (COB-ID with
 bit 31 = PDO not valid, transmission type, inhibit time, event timer) and
 0x1600-0x1603 / 0x1A00-0x1A03 PDO mapping. PDO mapping can only change in
-PRE-OPERATIONAL with the PDO invalid, as CiA 301 says; what is mapped is what
-is sent and received (the PDO layout is rebuilt when the mapping or a COB-ID
-changes).
+PRE-OPERATIONAL with the PDO invalid, as CiA 301 says, and a valid PDO's
+CAN-ID cannot change (0x06090030); what is mapped is what is sent and received
+(the PDO layout is rebuilt when the mapping or a communication object changes).
 
 Directions from the master's side: RPDOs (0x1400/0x1600) carry master
 outputs to the drive, TPDOs (0x1800/0x1A00) master inputs from it.
 
-Synchronous PDOs (transmission type 0-240): a received RPDO takes effect at
-the next SYNC; at each SYNC the drive model steps and every TPDO whose
-transmission type divides the SYNC count is sent.
+Transmission types (CiA 301 7.2.2): a received synchronous RPDO (0-240) takes
+effect at the next SYNC, an asynchronous one (254/255) at once. At each SYNC
+the drive model steps, then TPDOs go out: type 1-240 every n-th SYNC since
+the node entered OPERATIONAL, type 0 (acyclic synchronous) when its data
+changed, type 254/255 (event driven) when its data changed and the inhibit
+time has passed, and on its event timer (:meth:`CanopenNode.timers`).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from typing import Protocol
 from fieldbus.core import datatypes
 from fieldbus.core.pdo.model import Channel, DriveMap
 from fieldbus.errors import SdoAbortError
-from sim_slaves.od import Access, CommState, ObjectDictionary
+from sim_slaves.od import Access, CommState, Entry, ObjectDictionary
 
 U8 = datatypes.lookup("uint8")
 U16 = datatypes.lookup("uint16")
@@ -38,10 +41,15 @@ COB_NMT, COB_SYNC, COB_EMCY, COB_TSDO, COB_RSDO, COB_HEARTBEAT = 0x000, 0x080, 0
 RPDO_COB = (0x200, 0x300, 0x400, 0x500)
 TPDO_COB = (0x180, 0x280, 0x380, 0x480)
 INVALID = 0x80000000
+CAN_ID_MASK = 0x1FFFFFFF
 ABORT_TOGGLE = 0x05030000
 ABORT_COMMAND = 0x05040001
+ABORT_LENGTH = 0x06070010
+ABORT_VALUE_RANGE = 0x06090030
 ABORT_STATE = 0x08000022
 ABORT_GENERAL = 0x08000000
+COMM_AREA = range(0x1000, 0x2000)  # restored by NMT reset communication
+PDO_OBJECTS = range(0x1400, 0x1C00)  # communication and mapping objects of PDOs
 
 Frame = tuple[int, bytes]  # (11-bit COB-ID, data)
 
@@ -62,9 +70,95 @@ _COMM = {
     NmtState.BOOTUP: CommState.INIT,
 }
 
+# byte-aligned types packed with struct (the fast path); others bit by bit
+_STRUCT_CODE = {
+    ("int", 8): "b",
+    ("uint", 8): "B",
+    ("int", 16): "h",
+    ("uint", 16): "H",
+    ("int", 32): "i",
+    ("uint", 32): "I",
+    ("int", 64): "q",
+    ("uint", 64): "Q",
+    ("float", 32): "f",
+    ("float", 64): "d",
+}
+
 
 class App(Protocol):
     def step(self, od: ObjectDictionary, dt_s: float) -> None: ...
+
+
+class _Codec:
+    """Packs / unpacks one PDO's mapped objects straight from / into their OD entries."""
+
+    def __init__(self, od: ObjectDictionary, channels: tuple[Channel, ...]) -> None:
+        self.channels = channels
+        self.entries: list[Entry] = []
+        self.floats: list[bool] = []
+        fmt = "<"
+        fast = True
+        for ch in channels:
+            if ch.is_gap:
+                if ch.bits % 8:
+                    fast = False
+                fmt += f"{ch.bits // 8}x"
+                continue
+            self.entries.append(od.entry(ch.index, ch.sub_index))
+            self.floats.append(ch.type.is_float)
+            code = _STRUCT_CODE.get((ch.type.kind, ch.type.bits))
+            if code is None:
+                fast = False
+            fmt += code or "x"
+        self.bits = sum(ch.bits for ch in channels)
+        self.size = (self.bits + 7) // 8
+        self.struct = struct.Struct(fmt) if fast else None
+        self.all_int = not any(self.floats)
+
+    def pack(self) -> bytes:
+        st = self.struct
+        if st is not None:
+            if self.all_int:
+                return st.pack(*[int(e.value) for e in self.entries])
+            return st.pack(
+                *[
+                    float(e.value) if f else int(e.value)
+                    for e, f in zip(self.entries, self.floats, strict=True)
+                ]
+            )
+        raw = 0
+        bit = 0
+        k = 0
+        for ch in self.channels:
+            bits = ch.bits
+            if not ch.is_gap:
+                value = self.entries[k].value
+                k += 1
+                assert not isinstance(value, bytes)
+                enc = ch.type.encode(value)
+                raw |= (int.from_bytes(enc, "little") & ((1 << bits) - 1)) << bit
+            bit += bits
+        return raw.to_bytes(self.size, "little")
+
+    def unpack(self, data: bytes) -> None:
+        """Write ``data`` into the mapped objects (a frame of another length is ignored, as CiA 301 allows)."""
+        if len(data) < self.size:
+            return
+        st = self.struct
+        if st is not None:
+            for e, v in zip(self.entries, st.unpack_from(data), strict=True):
+                e.value = v
+            return
+        raw = int.from_bytes(data, "little")
+        bit = 0
+        k = 0
+        for ch in self.channels:
+            bits = ch.bits
+            if not ch.is_gap:
+                value = (raw >> bit) & ((1 << bits) - 1)
+                self.entries[k].value = ch.type.decode(value.to_bytes((bits + 7) // 8, "little"))
+                k += 1
+            bit += bits
 
 
 @dataclass
@@ -72,7 +166,11 @@ class _PdoRuntime:
     number: int  # 1..4
     cob_id: int
     transmission_type: int
-    channels: tuple[Channel, ...]
+    codec: _Codec
+    inhibit_s: float = 0.0
+    event_s: float = 0.0
+    last: bytes | None = None  # data last sent (TPDO)
+    last_t: float = float("-inf")  # when (s, the caller's clock)
 
 
 @dataclass
@@ -81,11 +179,14 @@ class _Segmented:
     sub: int
     data: bytearray
     toggle: int
-    size: int = 0
+    size: int = -1  # indicated size of a download; -1: not indicated
 
 
 def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: int) -> None:
-    """The CiA 301 communication objects of a node at ``node_id`` (defaults of the predefined set)."""
+    """The CiA 301 communication objects of a node at ``node_id`` (COB-IDs of the predefined set).
+
+    PDOs the map does not have are not valid (COB-ID bit 31 set) and asynchronous (255).
+    """
     od.add(0x1005, 0, U32, COB_SYNC, name="COB-ID SYNC")
     hb = drive.canopen.heartbeat_ms if drive.canopen is not None else 0
     od.add(0x1017, 0, U16, hb, name="producer heartbeat time")
@@ -97,7 +198,8 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
         for n in range(1, 5):
             comm, mapping = comm_base + n - 1, map_base + n - 1
             pdo = by_number.get(n)
-            od.add(comm, 1, U32, cobs[n - 1] + node_id, name=f"{direction}{n} COB-ID")
+            cob = cobs[n - 1] + node_id if pdo is not None else INVALID | (cobs[n - 1] + node_id)
+            od.add(comm, 1, U32, cob, name=f"{direction}{n} COB-ID")
             od.add(comm, 2, U8, 255 if pdo is None else 1, name=f"{direction}{n} transmission type")
             if direction == "tpdo":
                 od.add(comm, 3, U16, 0, name="inhibit time")
@@ -109,6 +211,12 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
                     od.add(mapping, sub, U32, 0)
 
 
+def _fresh_od(drive: DriveMap, node_id: int) -> ObjectDictionary:
+    od = ObjectDictionary.from_drive_map(drive)
+    add_communication_objects(od, drive, node_id)
+    return od
+
+
 class CanopenNode:
     """A CiA 301 device with a CiA 402 drive behind (when the map is a CiA 402 map)."""
 
@@ -117,15 +225,16 @@ class CanopenNode:
             raise ValueError(f"node id {node_id} out of range 1..127")
         self.drive = drive
         self.node_id = node_id
-        self.od = ObjectDictionary.from_drive_map(drive)
-        add_communication_objects(self.od, drive, node_id)
+        self.od = _fresh_od(drive, node_id)
         self.app = app
         self.state = NmtState.BOOTUP
-        self.sync_count = 0
+        self.sync_count = 0  # SYNCs since the node entered OPERATIONAL
         self._rpdos: dict[int, _PdoRuntime] = {}
         self._tpdos: list[_PdoRuntime] = []
+        self._timed: list[_PdoRuntime] = []  # event-driven TPDOs with an event timer
         self._pending: dict[int, bytes] = {}  # RPDO COB-ID -> data, applied at the next SYNC
-        self._layout_key: tuple[int, ...] = ()
+        self._pdo_dirty = True  # PDO objects changed: rebuild the runtime before the next PDO
+        self._mapping_seen = -1
         self._seg: _Segmented | None = None
         # fault hooks
         self.drop_tpdos = 0
@@ -140,31 +249,43 @@ class CanopenNode:
         self.state = NmtState.PRE_OPERATIONAL
         self._seg = None
         self._pending.clear()
+        self._pdo_dirty = True
         return [(COB_HEARTBEAT + self.node_id, b"\x00")]
 
     def nmt(self, command: int) -> list[Frame]:
         """NMT command (CiA 301): 1 start, 2 stop, 0x80 pre-operational, 0x81 reset node, 0x82 reset comm."""
         was_operational = self.state == NmtState.OPERATIONAL
         if command == 0x01:
+            if not was_operational:
+                self.sync_count = 0
             self.state = NmtState.OPERATIONAL
         elif command == 0x02:
             self.state = NmtState.STOPPED
         elif command == 0x80:
             self.state = NmtState.PRE_OPERATIONAL
         elif command in (0x81, 0x82):
-            if command == 0x81:
-                self.od = ObjectDictionary.from_drive_map(self.drive)
-                add_communication_objects(self.od, self.drive, self.node_id)
-                self._layout_key = ()
+            if was_operational:
+                self._connection_lost()
+            fresh = _fresh_od(self.drive, self.node_id)
+            if command == 0x81:  # reset node: every object back to its power-on value
+                self.od = fresh
                 reset = getattr(self.app, "power_cycle", None)
                 if callable(reset):
                     reset()
+            else:  # reset communication: 0x1000-0x1FFF only
+                for index in fresh.indices():
+                    if index in COMM_AREA:
+                        for sub in fresh.subindices(index):
+                            self.od.entry(index, sub).value = fresh.entry(index, sub).value
             return self.boot()
         if was_operational and self.state != NmtState.OPERATIONAL:
-            lost = getattr(self.app, "connection_lost", None)
-            if callable(lost):
-                lost()  # CiA 402: the drive stops itself when it leaves OPERATIONAL
+            self._connection_lost()
         return []
+
+    def _connection_lost(self) -> None:
+        lost = getattr(self.app, "connection_lost", None)
+        if callable(lost):
+            lost()  # CiA 402: the drive stops itself when it leaves OPERATIONAL
 
     def heartbeat(self) -> Frame | None:
         if self.heartbeat_silent or self.bus_off:
@@ -197,7 +318,7 @@ class CanopenNode:
                 out = self._upload_initiate(index, sub)
             elif ccs == 3:
                 out = self._upload_segment(cmd)
-            elif ccs == 4:
+            elif ccs == 4:  # abort from the client: drop the transfer, no answer
                 self._seg = None
                 return None
             else:
@@ -209,12 +330,26 @@ class CanopenNode:
         return (COB_TSDO + self.node_id, out)
 
     def _write(self, index: int, sub: int, data: bytes) -> None:
-        if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
-            comm = index - 0x200  # 0x16xx -> 0x14xx, 0x1Axx -> 0x18xx
-            if self.od.has(comm, 1) and not int(self.od.get_value(comm, 1)) & INVALID:
-                raise SdoAbortError(
-                    ABORT_STATE, index=index, subindex=sub, detail="PDO valid: set its COB-ID bit 31 first"
-                )
+        if index in PDO_OBJECTS:
+            if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
+                comm = index - 0x200  # 0x16xx -> 0x14xx, 0x1Axx -> 0x18xx
+                if self.od.has(comm, 1) and not int(self.od.get_value(comm, 1)) & INVALID:
+                    raise SdoAbortError(
+                        ABORT_STATE,
+                        index=index,
+                        subindex=sub,
+                        detail="PDO valid: set its COB-ID bit 31 first",
+                    )
+            elif sub == 1 and len(data) == 4 and self.od.has(index, 1):
+                old = int(self.od.get_value(index, 1))
+                new = int.from_bytes(data, "little")
+                if not (old | new) & INVALID and (old ^ new) & CAN_ID_MASK:
+                    raise SdoAbortError(
+                        ABORT_VALUE_RANGE, index=index, subindex=sub, detail="CAN-ID of a valid PDO"
+                    )
+            self.od.write(index, sub, data, state=_COMM[self.state])
+            self._pdo_dirty = True
+            return
         self.od.write(index, sub, data, state=_COMM[self.state])
 
     def _download_initiate(self, cmd: int, index: int, sub: int, req: bytes) -> bytes:
@@ -224,7 +359,7 @@ class CanopenNode:
             self._write(index, sub, req[4 : 4 + n])
         else:
             self.od.entry(index, sub)  # abort now for a missing object
-            size = struct.unpack_from("<I", req, 4)[0] if cmd & 0x01 else 0
+            size = struct.unpack_from("<I", req, 4)[0] if cmd & 0x01 else -1
             self._seg = _Segmented(index, sub, bytearray(), 0, size)
         return struct.pack("<BHBI", 0x60, index, sub, 0)
 
@@ -235,9 +370,15 @@ class CanopenNode:
         if cmd & 0x10 != seg.toggle:
             raise SdoAbortError(ABORT_TOGGLE, index=seg.index, subindex=seg.sub)
         seg.data += req[1 : 8 - ((cmd >> 1) & 0x07)]
+        if seg.size >= 0 and len(seg.data) > seg.size:
+            raise SdoAbortError(ABORT_LENGTH, index=seg.index, subindex=seg.sub, detail="more than indicated")
         seg.toggle ^= 0x10
         if cmd & 0x01:  # last segment
             self._seg = None
+            if seg.size >= 0 and len(seg.data) != seg.size:
+                raise SdoAbortError(
+                    ABORT_LENGTH, index=seg.index, subindex=seg.sub, detail="less than indicated"
+                )
             self._write(seg.index, seg.sub, bytes(seg.data))
         return bytes([0x20 | (cmd & 0x10)]) + bytes(7)
 
@@ -264,30 +405,42 @@ class CanopenNode:
         return bytes([head]) + chunk.ljust(7, b"\0")
 
     # -- PDOs -----------------------------------------------------------------------------
+    def pdo_changed(self) -> None:
+        """Rebuild the PDOs before the next one (after PDO objects were set through the app face)."""
+        self._pdo_dirty = True
+
     def _refresh_pdos(self) -> None:
         od = self.od
-        key = (
-            od.mapping_version,
-            *(int(od.get_value(c, 1)) for c in (*range(0x1400, 0x1404), *range(0x1800, 0x1804))),
-        )
-        if key == self._layout_key:
+        if not self._pdo_dirty and od.mapping_version == self._mapping_seen:
             return
-        self._layout_key = key
-        self._rpdos, self._tpdos = {}, []
+        self._pdo_dirty = False
+        self._mapping_seen = od.mapping_version
+        self._rpdos, self._tpdos, self._timed = {}, [], []
         for n in range(1, 5):
             for comm, mapping, is_rx in ((0x13FF + n, 0x15FF + n, True), (0x17FF + n, 0x19FF + n, False)):
                 cob = int(od.get_value(comm, 1))
                 if cob & INVALID:
                     continue
-                rt = _PdoRuntime(n, cob & 0x7FF, int(od.get_value(comm, 2)), od.pdo(mapping).channels)
+                rt = _PdoRuntime(
+                    n, cob & 0x7FF, int(od.get_value(comm, 2)), _Codec(od, od.pdo(mapping).channels)
+                )
                 if is_rx:
                     self._rpdos[rt.cob_id] = rt
-                else:
-                    self._tpdos.append(rt)
+                    continue
+                rt.inhibit_s = int(od.get_value(comm, 3)) * 100e-6
+                rt.event_s = int(od.get_value(comm, 5)) * 1e-3
+                self._tpdos.append(rt)
+                if rt.transmission_type >= 254 and rt.event_s > 0:
+                    self._timed.append(rt)
 
     def rpdo_cob_ids(self) -> set[int]:
         self._refresh_pdos()
         return set(self._rpdos)
+
+    def tpdo_sizes(self) -> dict[int, int]:
+        """Valid TPDOs as they are mapped now: COB-ID -> data bytes."""
+        self._refresh_pdos()
+        return {rt.cob_id: rt.codec.size for rt in self._tpdos}
 
     def rpdo(self, cob_id: int, data: bytes) -> None:
         """An RPDO arrived (master outputs); synchronous ones take effect at the next SYNC."""
@@ -301,51 +454,55 @@ class CanopenNode:
         if rt.transmission_type <= 240:
             self._pending[cob_id] = data
         else:
-            self._apply(rt, data)
+            rt.codec.unpack(data)
 
-    def _apply(self, rt: _PdoRuntime, data: bytes) -> None:
-        raw = int.from_bytes(data, "little")
-        bit = 0
-        for ch in rt.channels:
-            bits = ch.bits
-            if not ch.is_gap:
-                value = (raw >> bit) & ((1 << bits) - 1)
-                self.od.set_value(
-                    ch.index, ch.sub_index, ch.type.decode(value.to_bytes((bits + 7) // 8, "little"))
-                )
-            bit += bits
+    def sync(self, dt_s: float, now: float = 0.0) -> list[Frame]:
+        """A SYNC: apply synchronous RPDOs, step the drive, send due TPDOs (in OPERATIONAL).
 
-    def _pack(self, rt: _PdoRuntime) -> bytes:
-        raw = 0
-        bit = 0
-        for ch in rt.channels:
-            bits = ch.bits
-            if not ch.is_gap:
-                enc = ch.type.encode(self.od.get_value(ch.index, ch.sub_index))
-                raw |= (int.from_bytes(enc, "little") & ((1 << bits) - 1)) << bit
-            bit += bits
-        return raw.to_bytes((bit + 7) // 8, "little")
-
-    def sync(self, dt_s: float) -> list[Frame]:
-        """A SYNC: apply synchronous RPDOs, step the drive, send due TPDOs (in OPERATIONAL)."""
+        ``now``: the caller's clock in seconds (inhibit time and event timer of event-driven TPDOs).
+        """
         if self.bus_off or self.state != NmtState.OPERATIONAL:
             return []
         self._refresh_pdos()
-        self.sync_count = self.sync_count % 240 + 1
-        for cob, data in self._pending.items():
-            rt = self._rpdos.get(cob)
-            if rt is not None:
-                self._apply(rt, data)
-        self._pending.clear()
+        self.sync_count += 1
+        if self._pending:
+            for cob, data in self._pending.items():
+                rt = self._rpdos.get(cob)
+                if rt is not None:
+                    rt.codec.unpack(data)
+            self._pending.clear()
         if self.app is not None:
             self.app.step(self.od, dt_s)
         out: list[Frame] = []
         for rt in self._tpdos:
             t = rt.transmission_type
-            if t == 0 or (1 <= t <= 240 and self.sync_count % t == 0):
-                if self.drop_tpdos:
-                    self.drop_tpdos -= 1
+            if 1 <= t <= 240:
+                if self.sync_count % t:
                     continue
-                out.append((rt.cob_id, self._pack(rt)))
-        self.sent_tpdos += len(out)
+                data = rt.codec.pack()
+            elif t == 0 or t >= 254:
+                data = rt.codec.pack()
+                if data == rt.last or (t >= 254 and now - rt.last_t < rt.inhibit_s):
+                    continue
+            else:  # 241-251 reserved, 252/253 RTR only: never on SYNC
+                continue
+            self._send_tpdo(rt, data, now, out)
         return out
+
+    def timers(self, now: float) -> list[Frame]:
+        """Event-driven TPDOs (254/255) whose event timer expired at ``now`` (s)."""
+        if not self._timed or self.bus_off or self.state != NmtState.OPERATIONAL:
+            return []
+        out: list[Frame] = []
+        for rt in self._timed:
+            if now - rt.last_t >= rt.event_s:
+                self._send_tpdo(rt, rt.codec.pack(), now, out)
+        return out
+
+    def _send_tpdo(self, rt: _PdoRuntime, data: bytes, now: float, out: list[Frame]) -> None:
+        rt.last, rt.last_t = data, now
+        if self.drop_tpdos:
+            self.drop_tpdos -= 1
+            return
+        out.append((rt.cob_id, data))
+        self.sent_tpdos += 1

@@ -2,9 +2,10 @@
 
 python-can's ``virtual`` bus copies every frame to every other instance on the
 channel, so all nodes share one instance here and frames are dispatched by
-COB-ID: NMT (0x000), SYNC (0x080), SDO requests (0x600 + id), RPDOs (by the
-COB-IDs each node's PDO communication objects hold). Heartbeats are produced
-from the same thread at each node's 0x1017 period.
+COB-ID: SYNC (0x080), RPDOs (a table from COB-ID to the nodes that consume it,
+rebuilt after any NMT or SDO frame, the only ones that can change it), NMT
+(0x000), SDO requests (0x600 + id). Heartbeats and event-timer TPDOs are
+produced from the same thread (checked every millisecond at most).
 
 ``dt_s``: the time step of the drive models per SYNC (default: measured
 between SYNCs, clamped to 0.1 ms..10 ms).
@@ -20,7 +21,10 @@ from typing import Any
 import can
 
 from fieldbus.core.pdo.model import DriveMap
-from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame
+from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
+
+TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
+IDLE_WAIT_S = 0.005  # longest wait for a frame before the timers are looked at again
 
 
 def _default_app(drive: DriveMap) -> Any:
@@ -33,7 +37,11 @@ def _default_app(drive: DriveMap) -> Any:
 
 
 class CanopenSimulator:
-    """Nodes ``[(drive_map, node_id), ...]`` on ``bus``; a context manager (start/stop)."""
+    """Nodes ``[(drive_map, node_id), ...]`` on ``bus``; a context manager (start/stop).
+
+    Fault hooks (thread-safe): :meth:`drop_tpdos`, :meth:`silence_heartbeat`,
+    :meth:`send_emergency`, :meth:`abort_sdo`, :meth:`bus_off`, :meth:`power_cycle`.
+    """
 
     def __init__(
         self, bus: can.BusABC, nodes: Sequence[tuple[DriveMap, int]], *, dt_s: float | None = None
@@ -47,19 +55,25 @@ class CanopenSimulator:
             self.nodes[node_id] = CanopenNode(drive, node_id, _default_app(drive))
         self.errors: list[str] = []
         self.syncs = 0
+        self.sync_cpu_s = 0.0  # thread CPU time on SYNCs (RPDOs applied, drives stepped, TPDOs sent)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self._last_sync: float | None = None
         self._next_hb: dict[int, float] = {}
+        self._next_tick = 0.0
+        self._routes: dict[int, list[CanopenNode]] | None = None  # RPDO COB-ID -> consumers
 
     def node(self, node_id: int) -> CanopenNode:
         return self.nodes[node_id]
 
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> CanopenSimulator:
-        for n in self.nodes.values():
-            self._send(n.boot())
+        """Boot every node (boot-up messages) and serve the bus from a thread."""
+        with self._lock:
+            for n in self.nodes.values():
+                self._send(n.boot())
+        self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="canopen-nodes", daemon=True)
         self._thread.start()
         return self
@@ -68,6 +82,7 @@ class CanopenSimulator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+            self._thread = None
 
     def __enter__(self) -> CanopenSimulator:
         return self.start()
@@ -78,30 +93,39 @@ class CanopenSimulator:
     # -- fault hooks ------------------------------------------------------------------------
     def drop_tpdos(self, node_id: int, count: int = 1) -> None:
         """The node's next ``count`` TPDOs are not sent."""
-        self.nodes[node_id].drop_tpdos += count
+        with self._lock:
+            self.nodes[node_id].drop_tpdos += count
 
     def silence_heartbeat(self, node_id: int, silent: bool = True) -> None:
+        """The node stops (or resumes) producing heartbeats; everything else goes on."""
         self.nodes[node_id].heartbeat_silent = silent
 
-    def send_emergency(self, node_id: int, code: int, register: int = 0x01) -> None:
+    def send_emergency(self, node_id: int, code: int, register: int = 0x01, data: bytes = b"") -> None:
+        """The node sends an EMCY (not when STOPPED or bus-off, as CiA 301 says)."""
         with self._lock:
-            self._send([self.nodes[node_id].emergency(code, register)])
+            n = self.nodes[node_id]
+            if not n.bus_off and n.state != NmtState.STOPPED:
+                self._send([n.emergency(code, register, data)])
 
     def abort_sdo(self, node_id: int, index: int, sub: int | None, code: int) -> None:
-        self.nodes[node_id].od.inject_abort(index, sub, code)
+        """Every SDO access to ``index:sub`` (None: any sub-index) of the node aborts with ``code``."""
+        with self._lock:
+            self.nodes[node_id].od.inject_abort(index, sub, code)
 
     def bus_off(self, node_id: int, off: bool = True) -> None:
-        """The node stops sending and receiving (CAN bus-off); back on: it boots again."""
-        n = self.nodes[node_id]
-        n.bus_off = off
-        if not off:
-            with self._lock:
+        """The node stops sending and receiving (CAN bus-off); back on: it boots again (reset node)."""
+        with self._lock:
+            n = self.nodes[node_id]
+            n.bus_off = off
+            if not off:
                 self._send(n.nmt(0x81))
+            self._routes = None
 
     def power_cycle(self, node_id: int) -> None:
         """Reset node: object dictionary to defaults, drive restarts, boot-up message."""
         with self._lock:
             self._send(self.nodes[node_id].nmt(0x81))
+            self._routes = None
 
     # -- the thread --------------------------------------------------------------------------
     def _send(self, frames: list[Frame]) -> None:
@@ -110,18 +134,38 @@ class CanopenSimulator:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            msg = self.bus.recv(timeout=0.005)
+            msg = self.bus.recv(timeout=IDLE_WAIT_S)
             with self._lock:
                 try:
                     if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
                         self.handle(msg.arbitration_id, bytes(msg.data))
-                    self._heartbeats(time.monotonic())
+                    now = time.monotonic()
+                    if now >= self._next_tick:
+                        self._next_tick = now + TIMER_TICK_S
+                        self.tick(now)
                 except Exception as exc:  # keep serving; tests read .errors
                     self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def handle(self, cob: int, data: bytes) -> None:
-        """One frame from the bus."""
-        if cob == COB_NMT and len(data) >= 2:
+        """One frame from the bus (without the thread: tests and fuzzing call this directly)."""
+        if cob == COB_SYNC:
+            t0 = time.thread_time()
+            now = time.monotonic()
+            dt = self.dt_s
+            if dt is None:
+                dt = 0.001 if self._last_sync is None else min(0.01, max(1e-4, now - self._last_sync))
+            self._last_sync = now
+            self.syncs += 1
+            for n in self.nodes.values():
+                frames = n.sync(dt, now)
+                if frames:
+                    self._send(frames)
+            self.sync_cpu_s += time.thread_time() - t0
+            return
+        if cob == COB_NMT:
+            self._routes = None
+            if len(data) < 2:
+                return
             targets = (
                 list(self.nodes.values())
                 if data[1] == 0
@@ -132,28 +176,37 @@ class CanopenSimulator:
             for n in targets:
                 if not n.bus_off:
                     self._send(n.nmt(data[0]))
-        elif cob == COB_SYNC:
-            now = time.monotonic()
-            dt = self.dt_s
-            if dt is None:
-                dt = 0.001 if self._last_sync is None else min(0.01, max(1e-4, now - self._last_sync))
-            self._last_sync = now
-            self.syncs += 1
-            for n in self.nodes.values():
-                self._send(n.sync(dt))
-        elif COB_RSDO < cob <= COB_RSDO + 127:
+            return
+        if COB_RSDO < cob <= COB_RSDO + 127:
+            self._routes = None
             target = self.nodes.get(cob - COB_RSDO)
             if target is not None and not target.bus_off:
                 reply = target.sdo(data)
                 if reply is not None:
                     self._send([reply])
-        else:
-            for n in self.nodes.values():
-                if cob in n.rpdo_cob_ids():
-                    n.rpdo(cob, data)
+            return
+        routes = self._routes
+        if routes is None:
+            routes = self._routes = self._build_routes()
+        consumers = routes.get(cob)
+        if consumers is not None:
+            for n in consumers:
+                n.rpdo(cob, data)
 
-    def _heartbeats(self, now: float) -> None:
+    def _build_routes(self) -> dict[int, list[CanopenNode]]:
+        routes: dict[int, list[CanopenNode]] = {}
+        for n in self.nodes.values():
+            for cob in n.rpdo_cob_ids():
+                if cob not in (COB_NMT, COB_SYNC) and not COB_RSDO < cob <= COB_RSDO + 127:
+                    routes.setdefault(cob, []).append(n)
+        return routes
+
+    def tick(self, now: float) -> None:
+        """Heartbeats and event-timer TPDOs due at ``now`` (time.monotonic seconds)."""
         for node_id, n in self.nodes.items():
+            frames = n.timers(now)
+            if frames:
+                self._send(frames)
             period = n.heartbeat_ms / 1000
             if period <= 0:
                 continue

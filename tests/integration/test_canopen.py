@@ -1,8 +1,13 @@
-"""CANopen specifics on python-can's virtual bus: mapping by SDO, heartbeat, EMCY, interop with canopen.
+"""CANopen specifics on python-can's virtual bus: mapping by SDO, CiA 402 tracking, heartbeat, EMCY,
+bring-up errors, stale inputs, recovery, transmission types, interop with canopen both ways.
 
-The shared cyclic-API module (test_cyclic_api.py) covers bring-up, identity,
-SDO aborts, tracking, stale inputs, the safe stop and node-reset recovery on
-this backend too.
+The shared cyclic-API module (test_cyclic_api.py) runs its backend-neutral
+tests (bring-up, identity, SDO aborts, tracking, stale inputs, the safe stop,
+node-reset recovery) on this backend too.
+
+Timing: the virtual bus is threads in one process (GIL switch interval 5 ms),
+not real time, so networks here use a receive timeout of 20 ms (50 ms where a
+miss must not come from load); on socketcan the seed's 500 µs is the default.
 """
 
 from __future__ import annotations
@@ -21,14 +26,17 @@ can = pytest.importorskip("can")
 canopen = pytest.importorskip("canopen")
 
 from fieldbus.commands.demo import DEMO_MAP  # noqa: E402
+from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
+from fieldbus.errors import SdoAbortError, StateTransitionError  # noqa: E402
 from fieldbus.network import open_network  # noqa: E402
-from sim_slaves.canopen import CanopenSimulator, NmtState  # noqa: E402
+from sim_slaves.canopen import CanopenNode, CanopenSimulator, NmtState  # noqa: E402
 from sim_slaves.canopen.eds import to_canopen_od  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 _channels = itertools.count()
 HEARTBEAT_MS = 100  # demo_joint.yaml
+CYCLE_S = 0.005  # the networks' cycle_time_us; the emulated drives step this much per SYNC
 
 
 @pytest.fixture
@@ -36,10 +44,17 @@ def channel() -> str:
     return f"fb-canopen-{next(_channels)}-{time.monotonic_ns()}"
 
 
-def _net(tmp_path: Path, channel: str, map_file: Path, count: int, timeout_us: int = 20_000) -> Path:
+def _net(
+    tmp_path: Path,
+    channel: str,
+    map_file: Path,
+    count: int,
+    timeout_us: int = 20_000,
+    safe_stop_after: int = 10,
+) -> Path:
     f = tmp_path / "net.yaml"
     f.write_text(
-        f"cycle_time_us: 5000\nreceive_timeout_us: {timeout_us}\nbuses:\n"
+        f"cycle_time_us: 5000\nreceive_timeout_us: {timeout_us}\nsafe_stop_after: {safe_stop_after}\nbuses:\n"
         f"  - {{name: bus, type: canopen, interface: {channel}, can_interface: virtual,\n"
         f"     slaves: [{{name: 'j{{i}}', map: {json.dumps(str(map_file))}, node_id: 1, count: {count}}}]}}\n"
     )
@@ -51,7 +66,7 @@ def nodes(channel: str) -> Iterator[CanopenSimulator]:
     drive = load_drive_map(DEMO_MAP)
     with (
         can.Bus(interface="virtual", channel=channel) as bus,
-        CanopenSimulator(bus, [(drive, n) for n in range(1, 13)]) as sim,
+        CanopenSimulator(bus, [(drive, n) for n in range(1, 13)], dt_s=CYCLE_S) as sim,
     ):
         yield sim
     assert not sim.errors
@@ -76,6 +91,8 @@ def test_mapping_changed_by_sdo_is_what_the_nodes_send(
                 (0x6077, 0),
                 (0x6061, 0),
             ]
+            # what the node sends follows: TPDO2 is 3 bytes now (int16 + int8), TPDO1 still 6
+            assert node.tpdo_sizes() == {0x180 + n: 6, 0x280 + n: 3}
         # read back through the backend too
         assert net.backends[0].sdo_read(4, 0x1A01, 0) == b"\x02"
         for _ in range(10):
@@ -85,6 +102,83 @@ def test_mapping_changed_by_sdo_is_what_the_nodes_send(
         assert "velocity_actual_value" not in img.inputs.values.dtype.names
         assert np.all(img.inputs["modes_of_operation_display"] == 8)
         assert nodes.syncs >= 10 and nodes.node(12).received_rpdos >= 20
+
+
+def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
+    nodes: CanopenSimulator, channel: str, tmp_path: Path
+) -> None:
+    """Bound: targets start + A (1 - cos 2 pi f t) / 2 with A = 0.5-1.05 rad, f = 0.5 Hz, 5 ms per SYNC
+    (peak A pi f = 1.65 rad/s, 8.2 mrad per cycle): |actual - target sent in the same cycle| < 2 mrad.
+
+    The RPDO is applied at the SYNC that follows it and the drive's CSP interpolation reaches it
+    within that cycle, so the TPDO of the same SYNC reports it (measured: 0.45 mrad worst).
+    """
+    with open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+        op = net.bring_up()
+        img = op["bus"]
+        sw, cw = img.inputs["statusword"], img.outputs["controlword"]
+        display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
+        pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
+        ctrl = Cia402Controller(12, mode=Mode.CSP)
+        ctrl.set_goal(Goal.ENABLE)
+        for _ in range(100):
+            assert op.exchange().fresh
+            ctrl.step(sw, cw, display, mode)
+            target[:] = pos  # follow the joint while enabling: no jump on enable
+            if ctrl.all_reached:
+                break
+        assert ctrl.all_reached, ctrl.state
+        assert [nodes.node(n).app.state for n in range(1, 13)] == [State402.OPERATION_ENABLED] * 12
+        start = pos.copy()
+        amplitude = 0.5 * (1 + 0.1 * np.arange(12))
+        worst = 0.0
+        for k in range(1, 401):  # one period: up and back
+            target[:] = start + amplitude * (1 - np.cos(2 * np.pi * 0.5 * k * CYCLE_S)) / 2
+            res = op.exchange()
+            assert res.fresh and not res.safe_stop
+            ctrl.step(sw, cw, display, mode)
+            worst = max(worst, float(np.abs(pos - target).max()))
+            if k == 200:
+                assert np.allclose(pos - start, amplitude, atol=2e-3)  # half way: at the top
+        assert worst < 2e-3, worst
+        assert ctrl.all_reached and np.all(np.abs(pos - start) < 2e-3)
+
+
+def test_sdo_abort_at_bring_up_names_node_object_code_and_enables_nothing(
+    nodes: CanopenSimulator, channel: str, tmp_path: Path
+) -> None:
+    nodes.abort_sdo(3, 0x6060, 0, 0x06090030)  # node 3 refuses the map's start-up SDO (modes of operation)
+    with pytest.raises(SdoAbortError) as exc, open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+        net.bring_up()
+    err = exc.value
+    assert (err.code, err.index, err.subindex, err.slave) == (0x06090030, 0x6060, 0, "j2")
+    text = str(err)
+    assert "node 3" in text and "0x6060:00" in text and "0x06090030" in text and "j2" in text
+    time.sleep(0.15)  # a heartbeat period: every node has reported its state since
+    assert {nodes.node(n).state for n in range(1, 13)} == {NmtState.PRE_OPERATIONAL}  # nobody started
+    assert all(nodes.node(n).app.state != State402.OPERATION_ENABLED for n in range(1, 13))
+    assert nodes.syncs == 0  # no cycle ran
+
+
+def test_identity_mismatch_lists_node_expected_and_found(channel: str, tmp_path: Path) -> None:
+    other = tmp_path / "other_joint.yaml"
+    other.write_text(DEMO_MAP.read_text().replace("product_id: 0x00000D01", "product_id: 0x00000D02"))
+    demo = load_drive_map(DEMO_MAP)
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        CanopenSimulator(bus, [(demo, 1), (load_drive_map(other), 2), (demo, 3)]) as sim,
+    ):
+        with (
+            pytest.raises(StateTransitionError) as exc,
+            open_network(_net(tmp_path, channel, DEMO_MAP, 3)) as net,
+        ):
+            net.bring_up()
+        text = str(exc.value)
+        assert "node 2 (j1): expected demo_joint vendor 0x00000FB1 product 0x00000D01" in text
+        assert "found vendor 0x00000FB1 product 0x00000D02" in text
+        assert "node 1 " not in text and "node 3 " not in text
+        assert {n.state for n in sim.nodes.values()} == {NmtState.PRE_OPERATIONAL}
+        assert not sim.errors
 
 
 def test_heartbeat_loss_is_seen_within_consumer_time_plus_a_cycle(
@@ -105,7 +199,27 @@ def test_heartbeat_loss_is_seen_within_consumer_time_plus_a_cycle(
         # the last heartbeat came up to one period before the silence, and one cycle may pass unseen
         assert consumer - HEARTBEAT_MS / 1000 <= seen <= consumer + 0.05, seen
         assert not res.buses[0].fresh[6] and res.buses[0].fresh[[0, 1, 5, 7, 11]].all()
-        assert backend.heartbeat_lost.sum() == 1
+        assert backend.heartbeat_lost.sum() == 1 and backend.heartbeat_lost_slaves() == ["j6"]
+        # the heartbeat comes back saying OPERATIONAL: fresh again, nothing to reconfigure
+        nodes.silence_heartbeat(7, False)
+        for _ in range(100):
+            if op.exchange().fresh:
+                break
+        assert op.result.fresh and not backend.heartbeat_lost.any() and backend.recoveries == 0
+
+
+def test_heartbeat_consumer_time_from_the_backend_option(
+    nodes: CanopenSimulator, channel: str, tmp_path: Path
+) -> None:
+    with open_network(_net(tmp_path, channel, DEMO_MAP, 12), heartbeat_consumer_ms=400) as net:
+        op = net.bring_up()
+        backend = net.backends[0]
+        nodes.silence_heartbeat(2)
+        t0 = time.monotonic()
+        while not backend.heartbeat_lost[1]:
+            op.exchange()
+            assert time.monotonic() - t0 < 2.0
+        assert 0.4 - HEARTBEAT_MS / 1000 <= time.monotonic() - t0 <= 0.4 + 0.05
 
 
 def test_emergency_reported_with_its_name(nodes: CanopenSimulator, channel: str, tmp_path: Path) -> None:
@@ -118,6 +232,11 @@ def test_emergency_reported_with_its_name(nodes: CanopenSimulator, channel: str,
         (emcy,) = [e for e in backend.emergencies if e.node_id == 3]
         assert (emcy.code, emcy.register, emcy.name) == (0x2310, 0x03, "continuous over-current")
         assert "node 3: EMCY 0x2310 continuous over-current" in str(emcy)
+        assert backend.last_emergency[3] is emcy and set(backend.last_emergency) == {3}
+        nodes.send_emergency(3, 0x8611, register=0x21)
+        for _ in range(5):
+            op.exchange()
+        assert backend.last_emergency[3].name == "following error"
 
 
 def test_a_dropped_tpdo_makes_only_that_node_stale(
@@ -134,6 +253,72 @@ def test_a_dropped_tpdo_makes_only_that_node_stale(
         fresh = res.buses[0].fresh
         assert not fresh[4] and fresh.sum() == 11 and res.buses[0].wkc == 23
         assert img.values[4] == held  # node 5's row held as it was
+
+
+def test_recovery_never_holds_the_cycle_when_a_rebooted_node_stops_answering(
+    nodes: CanopenSimulator, channel: str, tmp_path: Path
+) -> None:
+    """A node boots, then goes bus-off in the middle of being configured again: its SDO answer never
+    comes. Recovery waits for it without holding a single cycle (its SDO timeout is 0.5 s), records the
+    timeout, and configures the node when it boots again."""
+    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=100_000)) as net:
+        op = net.bring_up()
+        backend = net.backends[0]
+        for _ in range(5):
+            op.exchange()
+        nodes.power_cycle(4)
+        while 4 not in backend.boots:
+            op.exchange()
+        nodes.bus_off(4)  # gone while the recovery talks to it
+        longest = 0
+        t0 = time.monotonic()
+        while not backend.recovery_errors:
+            res = op.exchange()
+            longest = max(longest, res.exchange_ns)
+            assert time.monotonic() - t0 < 3.0, "the SDO timeout never came"
+            assert res.buses[0].fresh[[0, 1, 2, 4, 11]].all() and not res.buses[0].fresh[3]
+        assert "node 4: no SDO answer within 500 ms" in backend.recovery_errors[0]
+        # each cycle waited at most its receive timeout (node 4's TPDOs are missing), never for the SDO
+        assert longest < 45e6, longest
+        nodes.bus_off(4, False)  # back: it boots
+        streak = 0
+        for _ in range(1000):
+            streak = streak + 1 if op.exchange().fresh else 0
+            if streak == 20:
+                break
+        assert streak == 20 and backend.recoveries == 1
+        assert nodes.node(4).state is NmtState.OPERATIONAL
+
+
+def test_tpdos_of_other_transmission_types_are_taken_but_not_awaited(channel: str, tmp_path: Path) -> None:
+    """TPDO2 every 2nd SYNC (type 2): a cycle waits for TPDO1 only; TPDO2 lands in the inputs when it comes."""
+    variant = tmp_path / "demo_joint_tt2.yaml"
+    variant.write_text(
+        DEMO_MAP.read_text().replace(
+            "  heartbeat_ms: 100\n",
+            "  heartbeat_ms: 100\n  pdo:\n    - {index: 0x1A01, transmission_type: 2}\n",
+        )
+    )
+    drive = load_drive_map(variant)
+    assert drive.tpdo[1].canopen is not None and drive.tpdo[1].canopen.transmission_type == 2
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        CanopenSimulator(bus, [(drive, n) for n in (1, 2, 3)], dt_s=CYCLE_S) as sim,
+        open_network(_net(tmp_path, channel, variant, 3, timeout_us=50_000)) as net,
+    ):
+        op = net.bring_up()
+        backend = net.backends[0]
+        assert backend.expected_wkc == 3
+        assert int(sim.node(2).od.get_value(0x1801, 2)) == 2  # the plan wrote it
+        for _ in range(20):
+            res = op.exchange()
+            assert res.fresh and res.buses[0].wkc == 3
+        assert sim.node(1).sent_tpdos == 20 + 10  # TPDO1 at every SYNC, TPDO2 at every other
+        time.sleep(0.02)
+        op.exchange()  # the last TPDO2s are taken from the queue at the next send()
+        assert backend.extra_tpdos == 30 and backend.late_tpdos == 0
+        assert np.all(op["bus"].inputs["modes_of_operation_display"] == 8)  # from TPDO2
+        assert not sim.errors
 
 
 # -- interop ------------------------------------------------------------------------------
@@ -176,39 +361,41 @@ def test_canopen_remote_node_drives_our_emulator(channel: str) -> None:
         assert not sim.errors
 
 
-def test_our_sdo_client_against_canopen_local_node(channel: str) -> None:
-    """canopen's LocalNode is an SDO server only (no SYNC-triggered TPDOs): identity and a write."""
-    from canopen.objectdictionary import ODRecord, ODVariable, datatypes
+def test_our_backend_brings_up_a_canopen_local_node(channel: str, tmp_path: Path) -> None:
+    """canopen's LocalNode (its own SDO server and NMT slave) serves the demo joint's objects.
 
-    from fieldbus.backends.can_sdo import SdoClient
-    from fieldbus.errors import SdoAbortError
-
-    od = canopen.ObjectDictionary()
-    ident = ODRecord("identity", 0x1018)
-    for sub, name in ((1, "vendor"), (2, "product")):
-        var = ODVariable(name, 0x1018, sub)
-        var.data_type = datatypes.UNSIGNED32
-        var.default = 0xFB1 if sub == 1 else 0xD01
-        ident.add_member(var)
-    od.add_object(ident)
-    mode = ODVariable("modes of operation", 0x6060, 0)
-    mode.data_type = datatypes.INTEGER8
-    mode.default = 0
-    od.add_object(mode)
+    Our backend checks its identity, writes and reads back the whole CiA 301
+    plan, starts it (LocalNode's heartbeat reports OPERATIONAL) and reads a
+    segmented string. Not testable: the cycle. LocalNode sends no TPDO on SYNC
+    (canopen issue #166) and keeps received RPDOs in its PdoMap, so a cycle
+    against it times out - which is what is checked last.
+    """
+    od = to_canopen_od(CanopenNode(load_drive_map(DEMO_MAP), 11).od)  # what our emulated node holds
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel)
     try:
         local = canopen.LocalNode(11, od)
         network.add_node(local)
-        with can.Bus(interface="virtual", channel=channel) as bus:
-            client = SdoClient(bus)
-            assert int.from_bytes(client.upload(11, 0x1018, 1), "little") == 0xFB1
-            assert int.from_bytes(client.upload(11, 0x1018, 2), "little") == 0xD01
-            client.download(11, 0x6060, 0, b"\x08")
-            assert local.sdo[0x6060].raw == 8
+        f = tmp_path / "net.yaml"
+        f.write_text(
+            "cycle_time_us: 5000\nreceive_timeout_us: 20000\nbuses:\n"
+            f"  - {{name: bus, type: canopen, interface: {channel}, can_interface: virtual,\n"
+            f"     slaves: [{{name: j, map: {json.dumps(str(DEMO_MAP))}, node_id: 11}}]}}\n"
+        )
+        with open_network(f) as net:
+            op = net.bring_up()
+            backend = net.backends[0]
+            # the plan landed in LocalNode's data store, as written
+            assert local.sdo[0x1A01][0].raw == 3 and local.sdo[0x1A01][1].raw == 0x606C0020
+            assert local.sdo[0x1800][1].raw == 0x18B and local.sdo[0x1802][1].raw & 0x80000000
+            assert local.sdo[0x1017].raw == HEARTBEAT_MS and local.sdo[0x6060].raw == 8
+            assert local.nmt.state == "OPERATIONAL"
+            assert backend.sdo_read(0, 0x1008, 0) == b"demo_joint"  # segmented upload from canopen's server
             with pytest.raises(SdoAbortError) as exc:
-                client.upload(11, 0x1234, 0)
-            assert exc.value.code == 0x06020000
+                backend.sdo_read(0, 0x1234, 0)
+            assert exc.value.code == 0x06020000 and "node 11" in str(exc.value)
+            res = op.exchange()
+            assert not res.fresh and res.buses[0].wkc == -1  # no SYNC-triggered TPDOs from LocalNode
     finally:
         network.disconnect()
 
