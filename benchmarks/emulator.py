@@ -26,7 +26,7 @@ from sim_slaves.ethercat import EscChain
 from sim_slaves.ethercat.bringup import bring_up
 
 REPO = Path(__file__).resolve().parent.parent
-MAXON = REPO.parent / "shared" / "interop" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
+MAXON = REPO / "tests" / "data" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
 
 
 def in_process(n: int, app: str, seconds: float) -> float:

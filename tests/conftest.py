@@ -7,12 +7,12 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-INTEROP = REPO.parent / "shared" / "interop" / "ethercat_driver_ros2"
+INTEROP = REPO / "tests" / "data" / "ethercat_driver_ros2"  # ICube ethercat_driver_ros2 files, unchanged
 PDO_MAPS = REPO / "pdo_maps"
 
 
 @pytest.fixture
 def interop_dir() -> Path:
     if not INTEROP.is_dir():
-        pytest.fail(f"interop files missing: {INTEROP} (the shared/ folder must sit beside the repo)")
+        pytest.fail(f"interop files missing: {INTEROP}")
     return INTEROP

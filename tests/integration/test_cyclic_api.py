@@ -25,7 +25,7 @@ from fieldbus.errors import SdoAbortError, StateTransitionError
 from fieldbus.network import QUICK_STOP, Network, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 
-INTEROP = Path(__file__).resolve().parents[3] / "shared" / "interop" / "ethercat_driver_ros2"
+INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"
 EPOS4 = INTEROP / "maxon_epos4_50_5.yaml"
 PDO_MAPS = Path(__file__).resolve().parents[2] / "pdo_maps"
 AL_OP, AL_PREOP = 0x08, 0x02

@@ -22,7 +22,7 @@ import pytest
 
 pysoem = pytest.importorskip("pysoem")
 
-INTEROP = Path(__file__).resolve().parents[3] / "shared" / "interop" / "ethercat_driver_ros2"
+INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"
 MAXON = INTEROP / "maxon_epos4_50_5.yaml"
 MS = 1_000_000
 SOEM_SYNC_DELAY_NS = 100 * MS  # ecx_dcsync0: first pulse 100 ms after the system time read

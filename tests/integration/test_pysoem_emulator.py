@@ -18,7 +18,7 @@ import pytest
 
 pysoem = pytest.importorskip("pysoem")
 
-INTEROP = Path(__file__).resolve().parents[3] / "shared" / "interop" / "ethercat_driver_ros2"
+INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"
 MAXON = INTEROP / "maxon_epos4_50_5.yaml"
 NAME = "maxon_epos4_50_5"
 VENDOR, PRODUCT = 0x000000FB, 0x63500000

@@ -313,7 +313,7 @@ def test_seed_62_5_1_with_the_seeds_assumptions() -> None:
 
 # ------------------------------------------------------ adapters and network
 
-EPOS4 = Path("/work/shared/interop/ethercat_driver_ros2/maxon_epos4_50_5.yaml")
+EPOS4 = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
 
 CAN_MAP = """
 name: can_drive

@@ -16,13 +16,7 @@ from sim_slaves.ethercat.bringup import STATION_BASE, bring_up, exchange
 from sim_slaves.ethercat.sii import SiiImage
 from sim_slaves.od import CommState, ObjectDictionary
 
-MAXON = (
-    Path(__file__).resolve().parents[3]
-    / "shared"
-    / "interop"
-    / "ethercat_driver_ros2"
-    / "maxon_epos4_50_5.yaml"
-)
+MAXON = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
 IO16 = """
 name: io16
 vendor_id: 0x2

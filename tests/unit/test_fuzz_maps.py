@@ -23,8 +23,11 @@ from fieldbus.core.sdo import canopen_plan, coe_plan
 from fieldbus.errors import FieldbusError, PdoMapError
 
 EXAMPLES = int(os.environ.get("FIELDBUS_FUZZ_EXAMPLES", "2000"))
-INTEROP = Path(__file__).resolve().parents[2].parent / "shared" / "interop" / "ethercat_driver_ros2"
-SEEDS = [p.read_text() for p in sorted(INTEROP.glob("*.yaml"))] + [
+INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"
+SEEDS = [
+    (INTEROP / f).read_text()
+    for f in ("beckhoff_ek1914.yaml", "beckhoff_el1918.yaml", "maxon_epos4_50_5.yaml")
+] + [
     """
 name: can_servo
 vendor_id: 0x9
