@@ -1,9 +1,29 @@
 """fieldbus: EtherCAT / CANopen master and PDO mapping for robots.
 
+Everything a controller needs is here, without knowing the package's layout::
+
+    import fieldbus
+
+    with fieldbus.open_network("robot.yaml") as net:
+        op = net.bring_up()                  # SDO plans written and read back, then OP
+        legs = op["legs"]                    # fieldbus.ProcessImage, one row per axis
+        ctrl = fieldbus.Cia402Controller(legs.n_axes)
+        ...
+        result = op.exchange()               # one call per cycle, every bus
+
 Directions: the API speaks from the master's side (``inputs``, ``outputs``);
 drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
+:data:`PDO_MAPS` is the folder of drive maps shipped with the package.
 """
 
+from pathlib import Path
+
+from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.network import load_network
+from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.layout import layout
+from fieldbus.core.sdo import canopen_plan, coe_plan
 from fieldbus.errors import (
     BackendUnavailableError,
     BusTimeoutError,
@@ -15,18 +35,43 @@ from fieldbus.errors import (
     StateTransitionError,
     WorkingCounterError,
 )
+from fieldbus.network import BusStatus, CycleResult, Operational, open_network
+from fieldbus.runtime.loop import run_cycles
+from fieldbus.runtime.timing import CycleTimer
 
 __version__ = "0.1.0"
 
+PDO_MAPS = Path(__file__).resolve().parent / "pdo_maps"
+"""Drive maps shipped with the package (Maxon EPOS4, Elmo Gold, Synapticon, Beckhoff EL7201, ...)."""
+
 __all__ = [
+    "PDO_MAPS",
     "BackendUnavailableError",
+    "BusStatus",
     "BusTimeoutError",
+    "Cia402Controller",
+    "CycleResult",
+    "CycleTimer",
+    "DriveMap",
     "FieldbusError",
+    "Goal",
+    "Mode",
+    "Operational",
     "PdoMapError",
     "PhaseError",
+    "ProcessImage",
     "SdoAbortError",
     "SdoMismatchError",
+    "State402",
     "StateTransitionError",
     "WorkingCounterError",
     "__version__",
+    "canopen_plan",
+    "coe_plan",
+    "drive_map_from_text",
+    "layout",
+    "load_drive_map",
+    "load_network",
+    "open_network",
+    "run_cycles",
 ]

@@ -33,7 +33,7 @@ from fieldbus.runtime.report import run_report
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
 BACKENDS = ("sim", "ethercat", "canopen", "rawcan")
-MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
+MIT_MAP = Path(__file__).resolve().parents[1] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"  # package data
 AMPLITUDE_RAD = 0.5  # sine amplitude per joint
 FREQUENCY_HZ = 0.5
 ENABLE_TIMEOUT_S = 3.0
@@ -43,9 +43,23 @@ ENABLE_TIMEOUT_S = 3.0
 RECEIVE_TIMEOUT_US = {"sim": 500, "ethercat": 2000, "canopen": 20000, "rawcan": 20000}
 
 
+EXIT_CODES = """exit codes:
+  0  every axis reached OPERATION ENABLED and no safe stop was triggered
+     (misses the policy absorbed - late or lost frames, inputs held - are counted
+     in the output, "missed", and do not fail the demo)
+  1  bring-up or argument error (the message names the drive, object or option)
+  3  an axis never reached OPERATION ENABLED, or a safe stop was triggered
+  130 interrupted (Ctrl-C); the drives were stopped and the buses closed"""
+
+
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
-        "demo", help="enable emulated CiA 402 joints and follow a sine (the main job)"
+        "demo",
+        help="enable emulated CiA 402 joints and follow a sine (the main job)",
+        description="Bring up emulated drives, enable every axis through CiA 402, follow a 0.5 rad / 0.5 Hz "
+        "sine and print tracking error and cycle statistics.",
+        epilog=EXIT_CODES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--backend", choices=BACKENDS, default="sim", help="bus to run on (default sim)")
     p.add_argument("--axes", type=int, default=12, help="number of joints (default 12)")
@@ -73,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(report))
     else:
         print(describe(report))
-    return 0 if report["enabled"] and report["missed"] == 0 and report["safe_stops"] == 0 else 3
+    return 0 if report["enabled"] and report["safe_stops"] == 0 else 3
 
 
 def describe(r: dict[str, Any]) -> str:
@@ -175,8 +189,6 @@ def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator
         from sim_slaves.mit_motor import MitMotorSimulator
     except ImportError as exc:
         raise FieldbusError(f"the rawcan demo needs {exc.name}: pip install 'fieldbus[can]'") from None
-    if not MIT_MAP.exists():
-        raise FieldbusError(f"the rawcan demo needs {MIT_MAP} (run from a source checkout)")
     channel = f"fieldbus-demo-mit-{id(net)}"
     drive = load_drive_map(MIT_MAP)
     net.write_text(

@@ -16,7 +16,15 @@ from fieldbus.runtime.report import run_report
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser("run", help="bring a network up and run N cycles")
+    p: argparse.ArgumentParser = sub.add_parser(
+        "run",
+        help="bring a network up and run N cycles",
+        description=__doc__.splitlines()[0].strip("`"),
+        epilog="exit codes:\n  0  every cycle fresh on every bus\n  1  bring-up or file error (the message names "
+        "file, drive, object)\n  3  at least one miss (late, lost or short frame; counted per bus in the output)"
+        "\n  130 interrupted (Ctrl-C); the drives were stopped and the buses closed",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("network", metavar="NETWORK.yaml")
     p.add_argument("--cycles", type=int, default=1000, help="number of cycles (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")

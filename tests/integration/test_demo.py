@@ -42,7 +42,7 @@ def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str]) -> None:
     assert r["tracking_error"]["max_rad"] < 10e-3, r["tracking_error"]
     # a user-space emulator on a shared machine may lose a frame; each one is counted, none silently
     assert r["missed"] <= 10 and r["safe_stops"] == 0
-    assert code == (0 if r["missed"] == 0 else 3)
+    assert code == 0  # misses the policy absorbed do not fail the demo (see --help)
 
 
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
@@ -70,3 +70,10 @@ def test_demo_on_canopen_nodes_over_the_virtual_can_bus(capsys: pytest.CaptureFi
     assert r["buses"][0]["type"] == "canopen" and r["buses"][0]["expected_wkc"] == 8  # 2 TPDOs per node
     assert r["missed"] == 0 and r["safe_stops"] == 0 and code == 0
     assert r["tracking_error"]["max_rad"] < 10e-3
+
+
+def test_demo_help_documents_its_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    text = capsys.readouterr().out
+    assert "exit codes:" in text and "  3  an axis never reached OPERATION ENABLED" in text
