@@ -18,9 +18,12 @@ disables it, and closes the buses.
 
 from __future__ import annotations
 
-import contextlib
+import threading
 import time
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Iterator, Mapping
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -29,16 +32,16 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends import backend_class
-from fieldbus.backends.base import AxisGroup, Backend
+from fieldbus.backends.base import AxisGroup, Backend, SdoRequest
 from fieldbus.core import network as netfile
+from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.pdo.image import ProcessImage
-from fieldbus.core.pdo.names import CONTROLWORD
+from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.wkc import PolicyConfig, Verdict, WkcPolicy
-from fieldbus.errors import FieldbusError, PhaseError
+from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError
 
-QUICK_STOP = 0x0002  # CiA 402 controlword "quick stop" (bits 1=1, 2=0): leaves OPERATION ENABLED
-DISABLE_VOLTAGE = 0x0000  # CiA 402 "disable voltage": to SWITCH ON DISABLED
 CLOSE_CYCLES = 5  # cycles of quick stop, then of disable voltage, sent on close
+PER_BUS_OPTIONS = ("can_bus",)  # options that name one bus's own interface instance
 
 
 @dataclass
@@ -54,6 +57,10 @@ class BusStatus:
     safe_stop: bool = False
     dc_time_ns: int | None = None  # DC system time of this cycle's frame (EtherCAT with DC), ns
     dc_sync_error_ns: int | None = None  # host phase error against the DC cycle, ns
+    ran: bool = True  # the bus exchanged this cycle (a bus with a longer cycle_time_us skips cycles)
+    recovering: bool = False  # a slave is being brought back to OP
+    recoveries: int = 0  # slaves / passes brought back to OP since bring-up
+    recovery_error: str | None = None  # the last failed recovery attempt, if any
 
 
 @dataclass
@@ -72,11 +79,20 @@ class CycleResult:
 
 
 def open_network(
-    source: str | Path | netfile.Network, *, backend: str | None = None, **backend_options: object
+    source: str | Path | netfile.Network,
+    *,
+    backend: str | None = None,
+    bus_options: Mapping[str, Mapping[str, object]] | None = None,
+    **backend_options: object,
 ) -> Network:
-    """Load a network file (or use a loaded one); ``backend`` overrides every bus's type."""
+    """Load a network file (or use a loaded one) and create its backends; nothing is opened yet.
+
+    ``backend`` overrides every bus's type. ``backend_options`` go to every
+    bus; ``bus_options`` maps a bus name to options for that bus only (they
+    win over the shared ones), e.g. ``bus_options={"arm": {"can_bus": bus}}``.
+    """
     net = source if isinstance(source, netfile.Network) else netfile.load_network(source)
-    return Network(net, backend=backend, **backend_options)
+    return Network(net, backend=backend, bus_options=bus_options, **backend_options)
 
 
 class _Phase:
@@ -94,27 +110,60 @@ class Network(_Phase):
     """Configured: the network file is loaded and its backends created, nothing opened yet."""
 
     def __init__(
-        self, model: netfile.Network, *, backend: str | None = None, **backend_options: object
+        self,
+        model: netfile.Network,
+        *,
+        backend: str | None = None,
+        bus_options: Mapping[str, Mapping[str, object]] | None = None,
+        **backend_options: object,
     ) -> None:
         super().__init__(self)
         self.model = model
+        names = [bus.name for bus in model.buses]
+        unknown = sorted(set(bus_options or {}) - set(names))
+        if unknown:
+            raise FieldbusError(
+                f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
+            )
+        per_instance = [k for k in backend_options if k in PER_BUS_OPTIONS]
+        if per_instance and len(names) > 1:
+            raise FieldbusError(
+                f"option {per_instance[0]!r} is one bus's own (an interface instance) and this network has "
+                f"{len(names)} buses: pass it per bus, bus_options={{'{names[0]}': {{'{per_instance[0]}': ...}}}}"
+            )
         self.backends: list[Backend] = []
         for bus in model.buses:
             cls = backend_class(backend or bus.type)
-            self.backends.append(cls(bus, **backend_options))
+            self.backends.append(cls(bus, **{**backend_options, **(bus_options or {}).get(bus.name, {})}))
         self.policies = [
             WkcPolicy(b.expected_wkc, b.n_slaves, PolicyConfig(b.bus.safe_stop_after)) for b in self.backends
         ]
+        base = min(bus.cycle_time_us for bus in model.buses)
+        for bus in model.buses:
+            if bus.cycle_time_us % base:
+                raise FieldbusError(
+                    f"{model.source}: bus '{bus.name}' cycle_time_us {bus.cycle_time_us} is not a whole multiple "
+                    f"of the shortest bus cycle ({base} us): a bus runs every n-th cycle of the fastest"
+                )
         self.groups: dict[str, AxisGroup] = {g.name: g for b in self.backends for g in b.groups}
         self._phase: _Phase = self
         self._opened = False
         self._closed = False
+        self._open_backends: list[Backend] = []  # every backend whose close() has not succeeded yet
+
+    def backend(self, bus: str) -> Backend:
+        """The backend of bus ``bus`` (by name)."""
+        for b in self.backends:
+            if b.bus.name == bus:
+                return b
+        raise FieldbusError(f"no bus '{bus}' (have: {', '.join(b.bus.name for b in self.backends)})")
 
     # -- phases -------------------------------------------------------------------------
     def pre_op(self) -> PreOp:
         """Open every bus, check identities, apply and read back every SDO plan."""
         self._check()
         self._opened = True
+        self._open_backends = list(self.backends)
         try:
             for b in self.backends:
                 b.open()
@@ -141,20 +190,37 @@ class Network(_Phase):
         self.close()
 
     def close(self) -> None:
-        """Bring every drive down (quick stop, disable voltage), leave OP, close. Idempotent."""
-        if self._closed:
+        """Bring every drive down (safe outputs, then disable voltage), leave OP, close every bus.
+
+        Whatever raises on the way (a dead bus, a second Ctrl-C), every bus is
+        still stopped and closed; afterwards the first error is raised again.
+        Calling it again retries what did not close; once all closed it does nothing.
+        """
+        if self._closed and not self._open_backends:
             return
         self._closed = True
+        first: BaseException | None = None
         phase = self._phase
+        self._phase = _Closed(self)  # no verb of the old phase runs from now on
         if isinstance(phase, Operational):
-            phase._wind_down()
-        for b in self.backends:
-            if self._opened:
-                with contextlib.suppress(Exception):  # a dead bus must not keep the others open
-                    b.stop()
-        for b in self.backends:
-            b.close()
-        self._phase = _Closed(self)
+            phase._fail_pending_sdo()
+            try:
+                phase._wind_down()
+            except BaseException as exc:  # KeyboardInterrupt included: keep going, re-raise at the end
+                first = exc
+        for b in list(self._open_backends):
+            try:
+                b.stop()
+            except BaseException as exc:
+                first = first or exc
+        for b in list(self._open_backends):
+            try:
+                b.close()
+                self._open_backends.remove(b)
+            except BaseException as exc:
+                first = first or exc
+        if first is not None:
+            raise first
 
 
 class _Closed(_Phase):
@@ -165,13 +231,15 @@ class PreOp(_Phase):
     """PRE-OP: SDO plans applied; acyclic SDO access allowed; no process data yet."""
 
     def sdo_read(self, bus: str, slave: str, index: int, sub_index: int) -> bytes:
+        """Upload ``index:sub_index`` from slave ``slave`` of bus ``bus`` (blocking; raw bytes)."""
         self._check()
-        b = self._net.backends[[x.bus.name for x in self._net.backends].index(bus)]
+        b = self._net.backend(bus)
         return b.sdo_read(b.slave_index(slave), index, sub_index)
 
     def sdo_write(self, bus: str, slave: str, index: int, sub_index: int, data: bytes) -> None:
+        """Download ``data`` to ``index:sub_index`` of slave ``slave`` of bus ``bus`` (blocking)."""
         self._check()
-        b = self._net.backends[[x.bus.name for x in self._net.backends].index(bus)]
+        b = self._net.backend(bus)
         b.sdo_write(b.slave_index(slave), index, sub_index, data)
 
     def safe_op(self) -> SafeOp:
@@ -214,14 +282,20 @@ class Operational(_Phase):
             for b, p in zip(net.backends, net.policies, strict=True)
         )
         self.result = CycleResult(statuses, _by_name={s.name: s for s in statuses})
-        self._pairs = list(zip(net.backends, net.policies, statuses, strict=True))
-        # controlword views of CiA 402 groups (for the safe stop)
-        self._controlwords: list[npt.NDArray[np.uint16]] = []
-        self._safe_stop_applied = False
-        for g in net.groups.values():
-            e = g.image.layout.outputs.find(CONTROLWORD)
-            if e is not None and not e.channel.scaled:
-                self._controlwords.append(g.image.outputs.values[e.name])
+        # a bus runs every n-th call: n = its cycle_time_us / the shortest one (the call rate)
+        self.cycle_time_us = min(b.bus.cycle_time_us for b in net.backends)
+        self._every = [b.bus.cycle_time_us // self.cycle_time_us for b in net.backends]
+        self._pairs = list(zip(net.backends, net.policies, statuses, self._every, strict=True))
+        # SDO transfers asked for while the cycle runs (any thread), served by the cycle, one per bus at a time
+        self._sdo_pending: list[deque[SdoRequest]] = [deque() for _ in net.backends]
+        self._sdo_current: list[SdoRequest | None] = [None] * len(net.backends)
+        self._cycle_thread: int | None = None
+        # what the safe stop writes, per axis group (chosen by its drive map)
+        self.safe_stops: dict[str, SafeStopWriter] = {}
+        for name, g in net.groups.items():
+            plan = safe_stop_plan(g.slaves[0].map, g.image.layout)
+            self.safe_stops[name] = SafeStopWriter(plan, g.image)
+        self._writers = list(self.safe_stops.values())
 
     @property
     def groups(self) -> dict[str, AxisGroup]:
@@ -238,54 +312,147 @@ class Operational(_Phase):
         return iter(self._net.groups)
 
     def exchange(self) -> CycleResult:
-        """One cycle on every bus: encode outputs, send, receive, judge, decode fresh inputs."""
+        """One cycle on every bus that is due: encode outputs, send, receive, judge, decode fresh inputs.
+
+        While a safe stop is latched, every group's safe outputs overwrite what
+        the controller wrote. Recovery of lost slaves advances here - its one
+        caller - by one bounded step per bus per cycle, after a miss and while
+        the bus reports it is recovering.
+        """
         self._check()
         t0 = time.perf_counter_ns()
+        if self._cycle_thread is None:
+            self._cycle_thread = threading.get_ident()
         res = self.result
+        cycle = res.cycle
         if res.safe_stop:
-            for cw in self._controlwords:
-                cw.fill(QUICK_STOP)
-        for b, _, _ in self._pairs:
-            for g in b.groups:
-                g.image.outputs.to_wire()
-            b.send()
+            for w in self._writers:
+                w.apply()
+        for b, _, st, every in self._pairs:
+            st.ran = cycle % every == 0
+            if st.ran:
+                for g in b.groups:
+                    g.image.outputs.to_wire()
+                b.send()
         all_fresh = True
         any_stop = False
-        for b, policy, st in self._pairs:
-            wkc = b.receive()
-            verdict = policy.judge(wkc, b.arrived())
-            st.verdict = verdict
-            st.wkc = policy.last_wkc
-            st.consecutive_misses = policy.consecutive_misses
-            st.safe_stop = policy.safe_stop
-            st.dc_time_ns = b.dc_time_ns
-            st.dc_sync_error_ns = b.dc_sync_error_ns
-            if verdict is Verdict.OK or (verdict is Verdict.SHORT and b.arrived() is not None):
-                for g in b.groups:
-                    g.image.inputs.from_wire()  # CAN: rows of silent nodes still hold their last bytes
-            if verdict is not Verdict.OK:
-                all_fresh = False
-                b.recover_step()
+        for k, (b, policy, st, _) in enumerate(self._pairs):
+            if st.ran:
+                wkc = b.receive()
+                verdict = policy.judge(wkc, b.arrived())
+                st.verdict = verdict
+                st.wkc = policy.last_wkc
+                st.consecutive_misses = policy.consecutive_misses
+                st.safe_stop = policy.safe_stop
+                st.dc_time_ns = b.dc_time_ns
+                st.dc_sync_error_ns = b.dc_sync_error_ns
+                if verdict is Verdict.OK or (verdict is Verdict.SHORT and b.arrived() is not None):
+                    for g in b.groups:
+                        g.image.inputs.from_wire()  # CAN: rows of silent nodes still hold their last bytes
+                if verdict is not Verdict.OK or b.recovering:
+                    b.recover_step()
+                st.recovering = b.recovering
+                st.recoveries = b.recoveries
+                st.recovery_error = b.last_recovery_error
+                if not st.recovering and (self._sdo_current[k] is not None or self._sdo_pending[k]):
+                    self._serve_sdo(k, b)
+            all_fresh = all_fresh and st.verdict is Verdict.OK
             any_stop = any_stop or policy.safe_stop
         res.fresh = all_fresh
         if any_stop and not res.safe_stop:
-            for cw in self._controlwords:  # effective from the next cycle's outputs
-                cw.fill(QUICK_STOP)
+            for w in self._writers:  # effective from the next cycle's outputs
+                w.apply()
         res.safe_stop = any_stop
-        res.cycle += 1
+        res.cycle = cycle + 1
         res.exchange_ns = time.perf_counter_ns() - t0
         return res
+
+    # -- acyclic access in OP --------------------------------------------------------------
+    def submit_sdo_read(self, bus: str, slave: str, index: int, sub_index: int) -> Future[bytes | None]:
+        """Queue an SDO upload for the running cycle to serve; its future gives the bytes read.
+
+        Any thread may call it. The cycle serves one transfer per bus at a time,
+        one bounded step per cycle, never while the bus is recovering.
+        """
+        return self._submit(bus, slave, index, sub_index, None)
+
+    def submit_sdo_write(
+        self, bus: str, slave: str, index: int, sub_index: int, data: bytes
+    ) -> Future[bytes | None]:
+        """Queue an SDO download of ``data`` for the running cycle to serve (see :meth:`submit_sdo_read`)."""
+        return self._submit(bus, slave, index, sub_index, bytes(data))
+
+    def sdo_read(self, bus: str, slave: str, index: int, sub_index: int, *, timeout_s: float = 2.0) -> bytes:
+        """Read an object while the cycle runs in another thread: waits until the cycle has served it."""
+        data = self._wait(self.submit_sdo_read(bus, slave, index, sub_index), timeout_s)
+        assert data is not None
+        return data
+
+    def sdo_write(
+        self, bus: str, slave: str, index: int, sub_index: int, data: bytes, *, timeout_s: float = 2.0
+    ) -> None:
+        """Write an object while the cycle runs in another thread: waits until the cycle has served it."""
+        self._wait(self.submit_sdo_write(bus, slave, index, sub_index, data), timeout_s)
+
+    def _submit(
+        self, bus: str, slave: str, index: int, sub_index: int, data: bytes | None
+    ) -> Future[bytes | None]:
+        self._check()
+        b = self._net.backend(bus)
+        req = SdoRequest(b.slave_index(slave), index, sub_index, data)
+        self._sdo_pending[self._net.backends.index(b)].append(req)
+        return req.future
+
+    def _wait(self, future: Future[bytes | None], timeout_s: float) -> bytes | None:
+        if threading.get_ident() == self._cycle_thread:
+            future.cancel()
+            raise FieldbusError(
+                "sdo_read/sdo_write in OP wait for the cycle, and this thread runs the cycle: call them from "
+                "another thread, or use submit_sdo_read/submit_sdo_write and look at the future in later cycles"
+            )
+        try:
+            return future.result(timeout_s)
+        except FutureTimeout:
+            raise BusTimeoutError(
+                f"SDO transfer not served within {timeout_s:g} s: is exchange() being called?"
+            ) from None
+
+    def _serve_sdo(self, k: int, b: Backend) -> None:
+        req = self._sdo_current[k]
+        if req is None:
+            req = self._sdo_current[k] = self._sdo_pending[k].popleft()
+            if not req.future.set_running_or_notify_cancel():
+                self._sdo_current[k] = None
+                return
+        if b.acyclic_step(req):
+            self._sdo_current[k] = None
+
+    def _fail_pending_sdo(self) -> None:
+        for k, pending in enumerate(self._sdo_pending):
+            cur = self._sdo_current[k]
+            if cur is not None:
+                cur.finish(error=PhaseError("the network left OP before this SDO transfer finished"))
+                self._sdo_current[k] = None
+            while pending:
+                req = pending.popleft()
+                if req.future.set_running_or_notify_cancel():
+                    req.finish(error=PhaseError("the network left OP before this SDO transfer was served"))
 
     def dc_correction_ns(self) -> int:
         """Nanoseconds to add to the next cycle deadline so the host follows DC time (0 without DC).
 
-        Pass it to :func:`fieldbus.runtime.loop.run_cycles` as ``adjust``.
+        The host follows one clock: the reference clock of the first bus with
+        DC (each other bus keeps its own slaves in step with its reference slave).
+        Pass it to :func:`fieldbus.run_cycles` as ``adjust``.
         """
-        return sum(b.dc_correction_ns() for b in self._net.backends)
+        for b in self._net.backends:
+            if b.dc_time_ns is not None:
+                return b.dc_correction_ns()
+        return 0
 
     def clear_safe_stop(self) -> None:
         """Release a latched safe stop (the controller then re-enables drives through CiA 402)."""
-        for _, policy, st in self._pairs:
+        for _, policy, st, _ in self._pairs:
             policy.clear_safe_stop()
             st.safe_stop = False
         self.result.safe_stop = False
@@ -294,18 +461,30 @@ class Operational(_Phase):
         self._net.close()
 
     def _wind_down(self) -> None:
-        """Quick stop then disable voltage on every CiA 402 axis, a few cycles each; never raises."""
-        for word in (QUICK_STOP, DISABLE_VOLTAGE):
+        """Safe outputs (CiA 402 quick stop), then disable voltage, a few cycles each, on every bus.
+
+        A bus that fails on the way is left out of the remaining cycles; the
+        others still get theirs. A KeyboardInterrupt meanwhile does not cut the
+        wind-down short (it takes 2 x CLOSE_CYCLES cycles). Raises the first
+        error or interrupt afterwards.
+        """
+        first: BaseException | None = None
+        alive = [b for b, _, _, _ in self._pairs]
+        for word in (SafeStop.QUICK_STOP, SafeStop.DISABLE_VOLTAGE):
             for _ in range(CLOSE_CYCLES):
-                for cw in self._controlwords:
-                    cw.fill(word)
-                try:
-                    for b, _, _ in self._pairs:
+                for w in self._writers:
+                    w.apply(word)
+                for b in list(alive):
+                    try:
                         for g in b.groups:
                             g.image.outputs.to_wire()
                         b.send()
-                    for b, _, _ in self._pairs:
                         b.receive()
-                except Exception:
-                    return
-                time.sleep(self._net.model.cycle_time_us / 1e6)
+                    except Exception as exc:  # this bus failed: the others still get their cycles
+                        first = first or exc
+                        alive.remove(b)
+                    except BaseException as exc:  # a second Ctrl-C: finish stopping the drives first
+                        first = first or exc
+                time.sleep(self.cycle_time_us / 1e6)
+        if first is not None:
+            raise first

@@ -42,6 +42,8 @@ class MotorState:
     silent: bool = False
     last_t: float | None = None
     history: list[tuple[float, float]] = field(default_factory=list)
+    # the last command received, in engineering units: position, velocity, kp, kd, torque (feed-forward)
+    command: tuple[float, float, float, float, float] | None = None
 
 
 class MitMotorSimulator:
@@ -60,6 +62,7 @@ class MitMotorSimulator:
             img = ProcessImage(layout(drive), 1, engine="numpy")
             self._by_id[cfg.command_id + node] = (MotorState(node), img, cfg)
         self._stop = threading.Event()
+        self._lock = threading.Lock()  # fault hooks (test thread) against the serving thread
         self._thread: threading.Thread | None = None
         self.errors: list[str] = []
 
@@ -87,10 +90,13 @@ class MitMotorSimulator:
 
     # fault hooks
     def drop_replies(self, node_id: int, n: int) -> None:
-        self.motor(node_id).drop += n
+        """The motor does not answer its next ``n`` commands (it still applies them)."""
+        with self._lock:
+            self.motor(node_id).drop += n
 
     def silence(self, node_id: int, silent: bool = True) -> None:
-        self.motor(node_id).silent = silent
+        with self._lock:
+            self.motor(node_id).silent = silent
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -98,7 +104,8 @@ class MitMotorSimulator:
             if msg is None or msg.is_extended_id or msg.arbitration_id not in self._by_id:
                 continue
             try:
-                self.handle(msg)
+                with self._lock:
+                    self.handle(msg)
             except Exception as exc:  # keep serving; a test reads .errors
                 self.errors.append(f"{type(exc).__name__}: {exc}")
 
@@ -118,21 +125,19 @@ class MitMotorSimulator:
             img.outputs.wire[0, :] = np.frombuffer(data[::-1], dtype=np.uint8)
             img.outputs.from_wire()
             v = img.outputs.values[0]
-            dt = (
-                self.dt_s
-                if self.dt_s is not None
-                else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
-            )
-            self._step(
-                st,
-                cfg,
+            st.command = (
                 float(v["position"]),
                 float(v["velocity"]),
                 float(v["kp"]),
                 float(v["kd"]),
                 float(v["torque"]),
-                dt,
             )
+            dt = (
+                self.dt_s
+                if self.dt_s is not None
+                else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
+            )
+            self._step(st, cfg, *st.command, dt)
             st.commands += 1
         else:
             return None

@@ -15,7 +15,9 @@ into ``in_row(i)``; both are contiguous uint8 views of that slave's wire bytes.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -23,7 +25,10 @@ import numpy.typing as npt
 from fieldbus.core.network import Bus, Slave
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
-from fieldbus.errors import FieldbusError, StateTransitionError
+from fieldbus.errors import FieldbusError, StateTransitionError, WorkingCounterError
+
+RECOVERY_LOG = 100  # recovery errors kept per backend (oldest dropped)
+OP_CONFIRM_CYCLES = 20  # cycles after OP in which one must return the expected working counter
 
 
 @dataclass(frozen=True)
@@ -42,6 +47,31 @@ class SlaveArea:
     @property
     def in_size(self) -> int:
         return self.layout.inputs.size
+
+
+@dataclass
+class SdoRequest:
+    """An SDO transfer asked for while the cycle runs; served by the cycle thread, answered through ``future``.
+
+    ``data`` None: an upload (read), the future's result is the bytes read;
+    otherwise a download (write) of ``data``, the result is None. ``slave`` is
+    the index of the slave on its bus.
+    """
+
+    slave: int
+    index: int
+    sub_index: int
+    data: bytes | None
+    future: Future[bytes | None] = field(default_factory=Future)
+
+    def finish(self, result: bytes | None = None, error: BaseException | None = None) -> None:
+        """Hand the outcome to whoever waits on :attr:`future` (once)."""
+        if self.future.done():
+            return
+        if error is not None:
+            self.future.set_exception(error)
+        else:
+            self.future.set_result(result)
 
 
 @dataclass
@@ -87,6 +117,10 @@ class Backend(abc.ABC):
             self.groups.append(AxisGroup(name, tuple(bus.slaves[i] for i in run), image, run[0]))
         self.out_bytes = sum(a.out_size for a in self.areas)
         self.in_bytes = sum(a.in_size for a in self.areas)
+        # recovery bookkeeping, bounded (the cycle reports it in BusStatus)
+        self.recoveries = 0  # slaves (or whole passes, EtherCAT) brought back to OP
+        self.recovery_errors: deque[str] = deque(maxlen=RECOVERY_LOG)  # newest last
+        self.last_recovery_error: str | None = None
 
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
         """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
@@ -158,6 +192,27 @@ class Backend(abc.ABC):
     def op(self) -> None:
         """Go to OP / OPERATIONAL; raise :class:`StateTransitionError` with the reason on failure."""
 
+    def _confirm_wkc(self, cycles: int = OP_CONFIRM_CYCLES) -> None:
+        """After OP: within ``cycles`` cycles one must return the expected working counter.
+
+        Every slave can report OP while the process data still do not reach
+        one of them (a mapping SOEM and the slave disagree on): bring-up stops
+        here with :class:`WorkingCounterError` instead of starting a cycle that
+        would never be fresh.
+        """
+        got: int | None = None
+        for _ in range(cycles):
+            self.send()
+            got = self.receive()
+            if got == self.expected_wkc:
+                return
+        raise WorkingCounterError(
+            self.expected_wkc,
+            -1 if got is None else got,
+            f"bus '{self.bus.name}': every slave reports OP, but no cycle of {cycles} returned the expected "
+            "working counter (None: no reply)",
+        )
+
     # -- cycle ----------------------------------------------------------------------
     @abc.abstractmethod
     def send(self) -> None:
@@ -184,9 +239,24 @@ class Backend(abc.ABC):
         """Nanoseconds to add to the next cycle deadline so the host follows DC time (0: no DC)."""
         return 0
 
+    @property
+    def recovering(self) -> bool:
+        """A recovery is under way (a slave is known not to be in OP, or is being configured again)."""
+        return False
+
     def recover_step(self) -> bool:
-        """One non-blocking recovery step for slaves not in OP (after a miss). True: all in OP."""
+        """One bounded recovery step for slaves not in OP; True: nothing (more) to do. Never raises.
+
+        Called by :meth:`fieldbus.network.Operational.exchange` - the only caller
+        in the cycle - once per cycle after a miss and every cycle while
+        :attr:`recovering`.
+        """
         return True
+
+    def _recovery_failed(self, exc: BaseException) -> None:
+        """Record a failed recovery attempt (kept bounded in :attr:`recovery_errors`)."""
+        self.last_recovery_error = f"{type(exc).__name__}: {exc}"
+        self.recovery_errors.append(self.last_recovery_error)
 
     # -- shut-down ----------------------------------------------------------------------
     @abc.abstractmethod
@@ -198,6 +268,26 @@ class Backend(abc.ABC):
         """Release the interface. Idempotent."""
 
     # -- acyclic access ---------------------------------------------------------------
+    def acyclic_step(self, request: SdoRequest) -> bool:
+        """Serve (or advance) an SDO transfer asked for in OP, from the cycle thread; True when finished.
+
+        Called by :meth:`fieldbus.network.Operational.exchange` at most once per
+        bus per cycle, never while the bus is recovering. This default runs the
+        transfer at once (fine where it takes microseconds: the in-process
+        emulator); a backend whose transfers wait on the wire overrides it with
+        a bounded or non-blocking version. Never raises: the outcome goes to
+        the request's future.
+        """
+        try:
+            if request.data is None:
+                request.finish(self.sdo_read(request.slave, request.index, request.sub_index))
+            else:
+                self.sdo_write(request.slave, request.index, request.sub_index, request.data)
+                request.finish(None)
+        except FieldbusError as exc:
+            request.finish(error=exc)
+        return True
+
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
         raise FieldbusError(f"{self.kind} backend has no SDO access")
 

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.backends.base import Backend, SlaveArea
+from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.emcy import Emergency
@@ -138,10 +138,10 @@ class CanopenBackend(Backend):
         self._needs_setup = np.zeros(n, dtype=bool)
         self._retry_at = np.zeros(n)
         self._recovery: Generator[None, None, bool] | None = None
-        self._recovering: int | None = None  # node id whose SDO answer the recovery awaits
+        self._recovering: int | None = None  # node id whose SDO answer the recovery (or acyclic) awaits
+        self._acyclic: Generator[None, None, bytes] | None = None  # an SDO asked for in OP, under way
+        self._acyclic_request: SdoRequest | None = None
         self._reply: bytes | None = None
-        self.recoveries = 0
-        self.recovery_errors: list[str] = []
         self.sdo_transfers = 0
         self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
         self._open = False
@@ -165,7 +165,7 @@ class CanopenBackend(Backend):
             except Exception as exc:
                 raise FieldbusError(
                     f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
-                ) from None
+                ) from exc
         self._open = True
         self._nmt(NMT_PRE_OP)
         time.sleep(0.01)
@@ -309,8 +309,6 @@ class CanopenBackend(Backend):
         self._check_heartbeats()
         np.equal(self._got, self._tpdo_count, out=self._arrived)
         self._arrived &= ~self.heartbeat_lost
-        if self._recovery is not None or self._needs_setup.any():
-            self.recover_step()
         if expected == 0:
             return 0
         return count if count else None
@@ -372,6 +370,7 @@ class CanopenBackend(Backend):
         if self._recovery is None:
             if not self._needs_setup.any():
                 return True
+            self._abort_acyclic("a node is being configured again (recovery)")
             self._recovery = self._recover()
         try:
             next(self._recovery)
@@ -381,9 +380,12 @@ class CanopenBackend(Backend):
         except Exception as exc:  # one failed attempt; the node is tried again after RETRY_AFTER_S
             self._recovery = None
             self._recovering = None
-            self.recovery_errors.append(f"{type(exc).__name__}: {exc}")
-            del self.recovery_errors[:-100]
+            self._recovery_failed(exc)
         return False
+
+    @property
+    def recovering(self) -> bool:
+        return self._recovery is not None or bool(self._needs_setup.any())
 
     def _recover(self) -> Generator[None, None, bool]:
         while True:
@@ -433,6 +435,42 @@ class CanopenBackend(Backend):
             self._needs_setup[i] = False
             self.recoveries += 1
             yield
+
+    # -- acyclic SDO in OP -------------------------------------------------------------------------
+    def acyclic_step(self, request: SdoRequest) -> bool:
+        """Advance an SDO asked for in OP by at most one frame, never waiting; True when finished.
+
+        The answer is picked up by the cycle's own receive path; a node that
+        does not answer within ``sdo_timeout_s`` fails the request with
+        :class:`BusTimeoutError`.
+        """
+        if self._acyclic is None:
+            node = self.node_ids[request.slave]
+            steps = (
+                sdo_upload(request.index, request.sub_index)
+                if request.data is None
+                else sdo_download(request.index, request.sub_index, request.data)
+            )
+            self._acyclic, self._acyclic_request = self._sdo_async(node, steps), request
+        try:
+            next(self._acyclic)
+            return False
+        except StopIteration as stop:
+            request.finish(None if request.data is not None else bytes(stop.value))
+        except SdoAbortError as exc:
+            request.finish(error=self._named(exc, request.slave))
+        except FieldbusError as exc:
+            request.finish(error=exc)
+        self._acyclic = self._acyclic_request = None
+        return True
+
+    def _abort_acyclic(self, why: str) -> None:
+        if self._acyclic is not None and self._acyclic_request is not None:
+            self._acyclic_request.finish(
+                error=FieldbusError(f"bus '{self.bus.name}': SDO transfer cut short: {why}")
+            )
+        self._acyclic = self._acyclic_request = None
+        self._recovering = None
 
     def _sdo_async(self, node: int, steps: SdoSteps) -> Generator[None, None, bytes]:
         """Run an SDO transfer without waiting: yields until each answer has come in through ``_other``."""

@@ -19,10 +19,11 @@ OP; see docs/backends.md for its limits (``reconfig`` is one long call).
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Generator
 from typing import Any
 
-from fieldbus.backends.base import Backend
+from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.network import Bus
@@ -48,7 +49,10 @@ STATE_TIMEOUT_US = 2_000_000
 RECONFIG_TIMEOUT_US = 500
 SYNC1_ACTIVATE = 0x0400  # assign_activate bit: SYNC1 generation (0x0981 bit 2)
 HOST_OFFSET_FRACTION = 50  # host sends this % of a cycle after each SYNC0 (SOEM examples: 50 %)
-SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times  # SOEM's EC_TIMEOUTMON for reconfig/recover steps
+SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times
+MAX_EMERGENCIES = 1000  # emergencies kept (oldest dropped)
+ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
+PLAN_RETRY_S = 1.0  # a slave whose SDO plan failed in reconfig is tried again after this
 
 
 def state_name(state: int) -> str:
@@ -77,11 +81,10 @@ class EthercatBackend(Backend):
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
         self._recovery: Generator[None, None, bool] | None = None
-        self.recoveries = 0  # times every slave was brought back to OP
-        self.monitor_errors: list[str] = []
-        self.emergencies: list[
-            tuple[int, int, int]
-        ] = []  # (slave, error code, error register) seen in SDOs  # recovery steps that failed (type: message)
+        self._plan_failed: list[BaseException | None] = [None] * self.n_slaves  # in the reconfig hook
+        self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose plan failed waits till then
+        # (slave, error code, error register) seen in SDO answers, newest last
+        self.emergencies: deque[tuple[int, int, int]] = deque(maxlen=MAX_EMERGENCIES)
 
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
@@ -91,7 +94,7 @@ class EthercatBackend(Backend):
             raise FieldbusError(
                 f"bus '{self.bus.name}': cannot open interface '{self.bus.interface}' ({exc}); "
                 "raw sockets need root (or CAP_NET_RAW) and the link must be up"
-            ) from None
+            ) from exc
         self._open = True
         found = self.master.config_init()
         self._slaves = list(self.master.slaves) if found > 0 else []
@@ -182,10 +185,20 @@ class EthercatBackend(Backend):
         )
 
     def _hook(self, i: int) -> Any:
+        """The slave's PRE-OP -> SAFE-OP hook, run by SOEM's ``reconfig``: the SDO plan again.
+
+        pysoem checks exceptions from this hook only in ``config_map``, not in
+        ``reconfig``, so a failure is kept here and judged after ``reconfig``
+        returns (:meth:`_recover`): it must not vanish and leave the slave
+        running with its default mapping.
+        """
         area = self.areas[i]
 
         def hook(_pos: int) -> None:
-            apply_plan(coe_plan(area.slave.map), *self._sdo_pair(i), slave=area.slave.name)
+            try:
+                apply_plan(coe_plan(area.slave.map), *self._sdo_pair(i), slave=area.slave.name)
+            except Exception as exc:
+                self._plan_failed[i] = exc
 
         return hook
 
@@ -202,6 +215,7 @@ class EthercatBackend(Backend):
                 break
         else:
             self._raise_state("OP", self.master.read_state())
+        self._confirm_wkc()
 
     def _raise_state(self, target: str, lowest: int) -> None:
         self.master.read_state()
@@ -241,8 +255,6 @@ class EthercatBackend(Backend):
         if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._timeout_ns:
             self.late_replies += 1
             wkc = -1
-        if self._recovery is not None and wkc >= 0:
-            self.recover_step()  # a slave is known not to be in OP: keep at it, one step per cycle
         if self._host_sync is not None and wkc >= 0:
             dc = int(self.master.dc_time)
             self.dc_time_ns = dc
@@ -275,8 +287,12 @@ class EthercatBackend(Backend):
             return bool(stop.value)
         except Exception as exc:  # a failed step ends this attempt; the next miss starts another
             self._recovery = None
-            self.monitor_errors.append(f"{type(exc).__name__}: {exc}")
+            self._recovery_failed(exc)
         return False
+
+    @property
+    def recovering(self) -> bool:
+        return self._recovery is not None
 
     def _recover(self) -> Generator[None, None, bool]:
         """SOEM's ecatcheck as steps; passes repeat until every slave is in OP (``docheckstate``)."""
@@ -302,7 +318,22 @@ class EthercatBackend(Backend):
                     s.state = pysoem.OP_STATE
                     s.write_state()
                 elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle: the longest step
-                    if s.reconfig(timeout=RECONFIG_TIMEOUT_US) >= pysoem.SAFEOP_STATE:
+                    i = self._slaves.index(s)
+                    if time.monotonic() < self._retry_at[i]:
+                        continue  # its plan failed a moment ago: not every cycle
+                    self._plan_failed[i] = None
+                    reached = s.reconfig(timeout=RECONFIG_TIMEOUT_US)
+                    failed = self._plan_failed[i]
+                    if failed is not None:  # back to INIT: never OP with a mapping we did not write
+                        self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
+                        s.state = pysoem.INIT_STATE
+                        s.write_state()
+                        raise StateTransitionError(
+                            f"bus '{self.bus.name}': position {i} ({self.areas[i].slave.name}) came back from a "
+                            f"power cycle but its SDO plan failed, left in INIT (next try in {PLAN_RETRY_S:g} s): "
+                            f"{failed}"
+                        ) from failed
+                    if reached >= pysoem.SAFEOP_STATE:
                         yield
                         s.state = pysoem.OP_STATE
                         s.write_state()
@@ -330,9 +361,16 @@ class EthercatBackend(Backend):
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
         return self._sdo_read_sized(slave, index, sub_index, 0)
 
-    def _sdo_read_sized(self, slave: int, index: int, sub_index: int, size: int) -> bytes:
+    def _sdo_read_sized(
+        self, slave: int, index: int, sub_index: int, size: int, tries: int = SDO_RETRIES + 1
+    ) -> bytes:
         data: bytes = self._sdo(
-            slave, index, sub_index, "read", lambda s: s.sdo_read(index, sub_index, size, release_gil=True)
+            slave,
+            index,
+            sub_index,
+            "read",
+            lambda s: s.sdo_read(index, sub_index, size, release_gil=True),
+            tries,
         )
         return data
 
@@ -341,7 +379,40 @@ class EthercatBackend(Backend):
             slave, index, sub_index, "write", lambda s: s.sdo_write(index, sub_index, data, release_gil=True)
         )
 
-    def _sdo(self, slave: int, index: int, sub_index: int, what: str, call: Any) -> Any:
+    def acyclic_step(self, request: SdoRequest) -> bool:
+        """An SDO asked for in OP, run in the cycle thread with SOEM's mailbox timeout cut to
+        ``ACYCLIC_SDO_TIMEOUT_US`` and no retry, so it holds the cycle at most about that long.
+
+        A drive slower than that to answer gets a :class:`BusTimeoutError` (ask again).
+        """
+        m = self.master
+        saved = m.sdo_read_timeout, m.sdo_write_timeout
+        m.sdo_read_timeout = m.sdo_write_timeout = ACYCLIC_SDO_TIMEOUT_US
+        try:
+            if request.data is None:
+                request.finish(
+                    self._sdo_read_sized(request.slave, request.index, request.sub_index, 0, tries=1)
+                )
+            else:
+                data = request.data
+                self._sdo(
+                    request.slave,
+                    request.index,
+                    request.sub_index,
+                    "write",
+                    lambda s: s.sdo_write(request.index, request.sub_index, data, release_gil=True),
+                    tries=1,
+                )
+                request.finish(None)
+        except FieldbusError as exc:
+            request.finish(error=exc)
+        finally:
+            m.sdo_read_timeout, m.sdo_write_timeout = saved
+        return True
+
+    def _sdo(
+        self, slave: int, index: int, sub_index: int, what: str, call: Any, tries: int = SDO_RETRIES + 1
+    ) -> Any:
         """One SDO transfer with pysoem's errors turned into ours.
 
         An abort raises :class:`SdoAbortError` at once. No answer (pysoem
@@ -353,7 +424,7 @@ class EthercatBackend(Backend):
         """
         name = self.areas[slave].slave.name
         last = ""
-        for _ in range(SDO_RETRIES + 1):
+        for _ in range(tries):
             try:
                 return call(self._slaves[slave])
             except pysoem.SdoError as exc:
@@ -365,5 +436,5 @@ class EthercatBackend(Backend):
                 last = f"{type(exc).__name__}: {getattr(exc, 'message', None) or exc}"
         raise BusTimeoutError(
             f"bus '{self.bus.name}' slave {name}: no answer to SDO {what} 0x{index:04X}:{sub_index:02X} "
-            f"after {SDO_RETRIES + 1} tries ({last})"
+            f"after {tries} {'try' if tries == 1 else 'tries'} ({last})"
         )

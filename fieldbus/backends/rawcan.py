@@ -96,7 +96,7 @@ class RawCanBackend(Backend):
             except Exception as exc:
                 raise FieldbusError(
                     f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
-                ) from None
+                ) from exc
 
     def configure(self) -> None:
         """MIT-mode motors have no object dictionary: nothing to configure."""

@@ -94,7 +94,6 @@ class SimBackend(Backend):
         self.master = FrameMaster(self._transport)
         self.infos: list[SlaveInfo] = []
         self.mappings: list[Mapping] = []
-        self.recoveries = 0
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._segments: list[_Segment] = []
         self._out_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
@@ -102,7 +101,6 @@ class SimBackend(Backend):
         self._wkc = 0
         self._lost = False
         self._recovery: Generator[None, None, bool] | None = None
-        self.recovery_errors: list[str] = []
         self._open = False
 
     # -- transport ----------------------------------------------------------------------
@@ -204,8 +202,10 @@ class SimBackend(Backend):
             self.send()
             self.receive()
             if not self.master.wait_state(stations, AL_OP, 1):
-                return
-        self._go(AL_OP, "OP")
+                break
+        else:
+            self._go(AL_OP, "OP")
+        self._confirm_wkc()
 
     # -- cycle ----------------------------------------------------------------------------
     def send(self) -> None:
@@ -223,13 +223,15 @@ class SimBackend(Backend):
         self._wkc, self._lost = wkc, lost
 
     def receive(self) -> int | None:
-        if self._recovery is not None and not self._lost:
-            self.recover_step()  # a slave is known not to be in OP: keep at it, one frame per cycle
         if self._lost:
             return None
         for frame_np, row in self._in_copies:
             np.copyto(row, frame_np)
         return self._wkc
+
+    @property
+    def recovering(self) -> bool:
+        return self._recovery is not None
 
     def recover_step(self) -> bool:
         """Advance recovery by about one frame exchange; True when every slave is back in OP.
@@ -247,7 +249,7 @@ class SimBackend(Backend):
             return bool(stop.value)
         except FieldbusError as exc:
             self._recovery = None
-            self.recovery_errors.append(f"{type(exc).__name__}: {exc}")
+            self._recovery_failed(exc)
         return False
 
     def _recover(self) -> Generator[None, None, bool]:
@@ -303,8 +305,8 @@ class SimBackend(Backend):
             master.request_state(info.station, AL_SAFEOP)
             yield
             master.request_state(info.station, AL_OP)
-        except FieldbusError:
-            return  # try again after the next miss
+        except FieldbusError as exc:  # reported; the slave stays out of OP and is tried again
+            self._recovery_failed(exc)
 
     # -- shut-down ------------------------------------------------------------------------
     def stop(self) -> None:

@@ -109,6 +109,12 @@ def describe(r: dict[str, Any]) -> str:
         ),
         f"  missed {r['missed']}, safe stops {r['safe_stops']} (re-enabled {r['reenabled_after_safe_stop']}), "
         f"power cycles recovered {r['recovered_power_cycles']}",
+        "  exchange() time, us: "
+        + "; ".join(
+            f"{k} {v['cycles']} cycles p50 {v['p50']} p99 {v['p99']} max {v['max']}"
+            for k, v in r["exchange_us"].items()
+            if v["cycles"]
+        ),
         f"  invariant violations: {r['violation_count']}",
     ]
     lines += [f"    {v}" for v in r["violations"]]

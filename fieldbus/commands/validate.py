@@ -16,6 +16,7 @@ from fieldbus.core.network import Network, is_network_document, parse_network
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.safestop import safe_stop_plan
 from fieldbus.core.yamlsrc import load_file
 from fieldbus.errors import PdoMapError
 
@@ -40,6 +41,7 @@ def map_summary(drive: DriveMap) -> dict[str, Any]:
         "profile": drive.profile,
         "sdo_writes": len(drive.sdo),
         "canopen": drive.canopen is not None,
+        "safe_stop": safe_stop_plan(drive, lay).describe(),
     }
     for dl in (lay.outputs, lay.inputs):
         out[dl.direction.value] = {
@@ -108,6 +110,7 @@ def _print_map(path: str, s: dict[str, Any]) -> None:
             name = e["name"] or "(gap)"
             unit = f" [{e['unit']}]" if e["unit"] else ""
             print(f"    bit {e['bit_offset']:4d} +{e['bits']:<2d} {e['object']} {e['type']:<7} {name}{unit}")
+    print(f"  safe stop: {s['safe_stop']}")
 
 
 def _print_network(path: str, s: dict[str, Any]) -> None:

@@ -388,10 +388,25 @@ class Goal(IntEnum):
 
 
 class SafeStop(IntEnum):
-    """Controlword :meth:`Cia402Controller.safe_stop` writes (master output)."""
+    """Controlword command of a safe stop (master output): the network's safe stop and close use it."""
 
     QUICK_STOP = 0x0002
     DISABLE_VOLTAGE = 0x0000
+
+
+_KEEP_BITS = np.uint16(0xFFFF & ~CONTROLWORD_STATE_BITS)
+_SAFE_WORDS = {w: np.uint16(w) for w in SafeStop}
+
+
+def write_command_word(controlword_out: npt.NDArray[np.uint16], word: SafeStop) -> None:
+    """Write a safe-stop command into the state-machine bits (0-3, 7) of every controlword, in place.
+
+    The other bits (mode specific, halt, manufacturer) are kept. This is the one
+    implementation of the safe stop's controlword: the network writes it every
+    cycle while a safe stop is latched, and :meth:`Cia402Controller.safe_stop` uses it.
+    """
+    np.bitwise_and(controlword_out, _KEEP_BITS, out=controlword_out)
+    np.bitwise_or(controlword_out, _SAFE_WORDS[word], out=controlword_out)
 
 
 _HOLD = 0xFFFF  # table marker: keep the last state-machine bits (unknown statusword)
@@ -610,15 +625,15 @@ class Cia402Controller:
         """Write the safe-stop command into every controlword (master outputs) now, and make it the goal.
 
         Quick stop (0x02) or disable voltage (0x00), per ``safe_stop_word``; bits
-        outside 0-3 and 7 are kept. Used when the working-counter policy
-        escalates and on close. Later :meth:`step` calls keep the axes stopped.
+        outside 0-3 and 7 are kept (:func:`write_command_word`, the same code the
+        network's safe stop runs). Call it when ``CycleResult.safe_stop`` turns
+        True, so that this controller's goal agrees with what the network sends;
+        later :meth:`step` calls keep the axes stopped.
         """
-        word = np.uint16(self.safe_stop_word)
         self.goal.fill(Goal.QUICK_STOP if self.safe_stop_word is SafeStop.QUICK_STOP else Goal.DISABLE)
         self._restart(slice(None))
-        np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
-        np.bitwise_or(controlword_out, word, out=controlword_out)
-        self._last_sm.fill(word)
+        write_command_word(controlword_out, self.safe_stop_word)
+        self._last_sm.fill(self.safe_stop_word)
 
     @property
     def all_reached(self) -> bool:

@@ -18,7 +18,7 @@ library). That is an affine map, i.e. a ``factor``/``offset`` of the PDO model.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from fieldbus.core import datatypes
@@ -26,7 +26,9 @@ from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
 RAWCAN_KEYS = ("command_id", "reply_id", "node_field", "span", "enter", "exit", "zero", "command", "reply")
-FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description")
+FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value")
+# MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
+MIT_SAFE_FIELDS = ("kp", "kd", "torque", "t_ff", "tau", "tau_ff")
 COMMAND_OBJECT = 0x2000  # pseudo object indices: the fields have no object dictionary
 REPLY_OBJECT = 0x2001
 MIT_ENTER = bytes([0xFF] * 7 + [0xFC])
@@ -43,6 +45,7 @@ class RawCanField:
     min: float | None = None
     max: float | None = None
     unit: str | None = None
+    safe_value: float | None = None  # command fields: what the safe stop sends (engineering units)
 
     @property
     def scaled(self) -> bool:
@@ -81,11 +84,15 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
     command = _fields(r, m["command"], (*path, "command"))
     reply = _fields(r, m["reply"], (*path, "reply"))
+    for i, f in enumerate(reply):
+        if f.safe_value is not None:
+            raise r.err((*path, "reply", i, "safe_value"), "safe_value belongs to command fields (outputs)")
     node_field = None
     if "node_field" in m:
         node_field = r.string(m["node_field"], (*path, "node_field"))
         if node_field not in {f.name for f in reply} or any(f.scaled for f in reply if f.name == node_field):
             raise r.err((*path, "node_field"), f"'{node_field}' is not an unscaled reply field")
+    command = _safe_defaults(r, command, (*path, "command"))
     cfg = RawCanConfig(
         command=command,
         reply=reply,
@@ -100,6 +107,25 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
     rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True)),)
     tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False)),)
     return cfg, rpdo, tpdo
+
+
+def _safe_defaults(r: Any, fields: tuple[RawCanField, ...], path: PathT) -> tuple[RawCanField, ...]:
+    """Without any ``safe_value`` in the command, the MIT default: kp, kd and torque fields to 0."""
+    if any(f.safe_value is not None for f in fields):
+        return fields
+    if not any(f.name in MIT_SAFE_FIELDS for f in fields):
+        raise r.err(
+            path,
+            "no command field has a safe_value and none is named "
+            f"{'/'.join(MIT_SAFE_FIELDS)}: say what the safe stop sends (safe_value on the fields)",
+        )
+    return tuple(
+        replace(f, safe_value=0.0) if f.name in MIT_SAFE_FIELDS and _holds_zero(f) else f for f in fields
+    )
+
+
+def _holds_zero(f: RawCanField) -> bool:
+    return f.min is None or f.max is None or f.min <= 0.0 <= f.max
 
 
 def _frame(r: Any, raw: Any, path: PathT, default: bytes) -> bytes:
@@ -129,7 +155,10 @@ def _fields(r: Any, raw: Any, path: PathT) -> tuple[RawCanField, ...]:
         if lo is not None and hi is not None and not hi > lo:
             raise r.err((*fp, "max"), f"max {hi:g} must be greater than min {lo:g}")
         unit = r.string(f["unit"], (*fp, "unit")) if "unit" in f else None
-        out.append(RawCanField(name, bits, lo, hi, unit))
+        safe = r.number(f["safe_value"], (*fp, "safe_value")) if "safe_value" in f else None
+        if safe is not None and lo is not None and hi is not None and not lo <= safe <= hi:
+            raise r.err((*fp, "safe_value"), f"safe_value {safe:g} is outside min..max ({lo:g}..{hi:g})")
+        out.append(RawCanField(name, bits, lo, hi, unit, safe))
     total = sum(f.bits for f in out)
     if not out or total % 8 or total > 64:
         raise r.err(path, f"fields add up to {total} bits; a classic CAN frame is 8..64 bits in whole bytes")
@@ -162,6 +191,7 @@ def _channels(fields: tuple[RawCanField, ...], obj: int, span: str, *, outputs: 
                 factor=factor,
                 offset=offset,
                 scaled=f.scaled,
+                safe_value=f.safe_value,
             )
         )
         bit += f.bits

@@ -39,6 +39,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
@@ -107,6 +109,10 @@ class SoakReport:
     recovered: int = 0
     reenabled: int = 0
     seconds: float = 0.0
+    # time spent in exchange(), ns, per kind of cycle: fresh, missed, and with recovery under way
+    exchange_ns: dict[str, list[int]] = field(
+        default_factory=lambda: {"good": [], "miss": [], "recovery": []}
+    )
 
     def violate(self, cycle: int, what: str) -> None:
         self.violation_count += 1
@@ -125,7 +131,21 @@ class SoakReport:
             "recovered_power_cycles": self.recovered,
             "reenabled_after_safe_stop": self.reenabled,
             "seconds": round(self.seconds, 3),
+            "exchange_us": {kind: _percentiles(ns) for kind, ns in self.exchange_ns.items()},
         }
+
+
+def _percentiles(ns: list[int]) -> dict[str, float | int]:
+    """Cycles, p50, p99 and max of durations in ns, as µs."""
+    if not ns:
+        return {"cycles": 0}
+    a = np.asarray(ns, dtype=np.float64) / 1000.0
+    return {
+        "cycles": len(ns),
+        "p50": round(float(np.percentile(a, 50)), 1),
+        "p99": round(float(np.percentile(a, 99)), 1),
+        "max": round(float(a.max()), 1),
+    }
 
 
 def schedule(
@@ -289,6 +309,10 @@ class Soak:
                 rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
                 break
             fresh = res.fresh
+            kind_of_cycle = (
+                "recovery" if any(st.recovering for st in res.buses) else "good" if fresh else "miss"
+            )
+            rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
             if fresh and not stop_latched:
                 ctrl.step(sw, cw)
             self.timer.add(time.perf_counter_ns() - t0)

@@ -39,11 +39,7 @@ def handle_control(sim: CanopenSimulator, msg: dict[str, Any]) -> dict[str, Any]
     elif cmd == "heartbeat":
         sim.silence_heartbeat(ids[int(msg.get("slave", 0))], bool(msg.get("silent", True)))
     elif cmd == "clear":
-        for n in ids:
-            node = sim.node(n)
-            node.drop_tpdos = 0
-            node.heartbeat_silent = False
-            node.od.clear_aborts()
+        sim.clear_faults()
     elif cmd != "status":
         return {"ok": False, "error": f"unknown command {cmd!r}"}
     return {

@@ -121,6 +121,14 @@ class CanopenSimulator:
                 self._send(n.nmt(0x81))
             self._routes = None
 
+    def clear_faults(self) -> None:
+        """Undo every injection: dropped TPDOs, silent heartbeats, SDO aborts."""
+        with self._lock:
+            for node in self.nodes.values():
+                node.drop_tpdos = 0
+                node.heartbeat_silent = False
+                node.od.clear_aborts()
+
     def power_cycle(self, node_id: int) -> None:
         """Reset node: object dictionary to defaults, drive restarts, boot-up message."""
         with self._lock:

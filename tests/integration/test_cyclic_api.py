@@ -9,6 +9,8 @@ commands (``sim_slaves.ethercat.runner.handle_control``) either way.
 from __future__ import annotations
 
 import json
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -19,10 +21,11 @@ import numpy as np
 import pytest
 
 from fieldbus.commands.demo import DEMO_MAP, SineFollower
+from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.core.wkc import Verdict
-from fieldbus.errors import SdoAbortError, StateTransitionError
-from fieldbus.network import QUICK_STOP, Network, Operational, open_network
+from fieldbus.errors import FieldbusError, SdoAbortError, StateTransitionError
+from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 
 INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"
@@ -254,10 +257,10 @@ def test_safe_stop_fires_exactly_at_the_threshold(segment: Callable[..., Segment
             assert res.buses[0].consecutive_misses == k
             assert res.safe_stop == (k == n), k
         cw = op["bus"].outputs["controlword"]
-        assert np.all(cw == QUICK_STOP)  # what the next cycle sends
+        assert np.all(cw == SafeStop.QUICK_STOP)  # what the next cycle sends
         res = op.exchange()
         assert res.fresh and res.safe_stop, (res, seg.control(cmd="status"))  # latched until cleared
-        assert np.all(cw == QUICK_STOP)
+        assert np.all(cw == SafeStop.QUICK_STOP)
 
 
 def test_a_power_cycled_slave_comes_back_to_op_without_user_action(segment: Callable[..., Segment]) -> None:
@@ -280,6 +283,78 @@ def test_a_power_cycled_slave_comes_back_to_op_without_user_action(segment: Call
         assert net.policies[0].stats.recoveries >= 1
         # recovery steps run inside the cycle; none may hold it near the 100 ms process-data watchdog
         assert longest_ns < 50e6, longest_ns
+
+
+def test_a_plan_that_aborts_during_recovery_is_reported_and_the_slave_stays_out(
+    segment: Callable[..., Segment],
+) -> None:
+    """A power-cycled slave whose start-up SDO now aborts: the error reaches CycleResult (naming the
+    slave, object and abort code), and no cycle is fresh for that slave while it lasts (it never runs
+    with a mapping the network did not write). Once the abort is gone, recovery brings it back."""
+    seg = segment([DEMO_MAP], count=3, safe_stop_after=100_000)
+    with seg.open() as net:
+        op = net.bring_up()
+        _run_until_fresh(op, 10)
+        seg.control(cmd="power_cycle", slave=1)
+        seg.control(cmd="abort_sdo", slave=1, index=0x6060, sub=0, code=0x06090030)  # modes of operation
+        error = None
+        t0 = time.monotonic()
+        while error is None:
+            res = op.exchange()
+            assert not res.buses[0].fresh[1], "a cycle was fresh for the slave whose plan failed"
+            error = res.buses[0].recovery_error
+            assert time.monotonic() - t0 < 10, "the failed plan was never reported"
+        assert "0x6060" in error and "0x06090030" in error and "j1" in error, error
+        for _ in range(200):  # it stays out: the next try fails the same way
+            assert not op.exchange().buses[0].fresh[1]
+        seg.control(cmd="clear")
+        streak = 0
+        t0 = time.monotonic()
+        while streak < 50:
+            streak = streak + 1 if op.exchange().fresh else 0
+            assert time.monotonic() - t0 < 15, f"not back after the abort was cleared: {op.result.buses[0]}"
+        assert not op.result.buses[0].recovering
+
+
+def test_sdo_access_in_op_from_another_thread_never_stalls_the_cycle(segment: Callable[..., Segment]) -> None:
+    """A tuning thread reads and writes objects while the control loop runs: every transfer is served
+    by the cycle (one bounded step per cycle), and no cycle takes longer than its receive timeout
+    plus the acyclic budget (EtherCAT: SOEM's mailbox timeout cut to 3 ms; CANopen: one frame)."""
+    seg = segment([DEMO_MAP], count=3, safe_stop_after=100_000)
+    with seg.open() as net:
+        op = net.bring_up()
+        _run_until_fresh(op, 10)
+        results: list[Any] = []
+
+        def tuner() -> None:
+            try:
+                for _ in range(5):
+                    results.append(op.sdo_read("bus", "j2", 0x1018, 1))
+                    results.append(op.sdo_read("bus", "j0", 0x1008, 0))  # a string: segmented on CANopen
+                    op.sdo_write("bus", "j1", 0x6060, 0, b"\x08")  # modes of operation: CSP, as it is
+                    results.append(op.sdo_read("bus", "j1", 0x6060, 0))
+            except Exception as exc:
+                results.append(exc)
+
+        thread = threading.Thread(target=tuner)
+        thread.start()
+        longest = misses = 0
+        t0 = time.monotonic()
+        while thread.is_alive():
+            res = op.exchange()
+            longest = max(longest, res.exchange_ns)
+            misses += not res.fresh
+            assert time.monotonic() - t0 < 20, "the SDO transfers were not served"
+        thread.join()
+        errors = [r for r in results if isinstance(r, Exception)]
+        assert not errors, errors
+        assert results[0::3] == [(0xFB1).to_bytes(4, "little")] * 5
+        assert results[1::3] == [b"demo_joint"] * 5 and results[2::3] == [b"\x08"] * 5
+        timeout_ms = net.backends[0].bus.receive_timeout_us / 1000
+        assert longest / 1e6 < timeout_ms + 3 + 5, (longest, timeout_ms)  # + budget + scheduling margin
+        assert misses <= 3, misses  # a loaded machine may lose a frame; the SDOs themselves cost none
+        with pytest.raises(FieldbusError, match="this thread runs the cycle"):
+            op.sdo_read("bus", "j0", 0x1018, 1)  # would wait for itself
 
 
 def test_power_cycle_loses_the_remapping_and_recovery_applies_the_plan_again(

@@ -135,3 +135,65 @@ def test_missing_replies_are_stale_and_held(network: tuple[Path, str]) -> None:
         sim.silence(4)
         stops = [op.exchange().safe_stop for _ in range(5)]
         assert stops == [False, False, False, True, True]
+
+
+def test_safe_stop_zeroes_gains_and_torque_of_every_motor(network: tuple[Path, str]) -> None:
+    """MIT-mode motors have no controlword: the safe stop sends kp = kd = 0 and zero torque.
+
+    Read from the emulated motors: the command they receive in the cycle after
+    the safe stop latches, whatever the controller keeps writing; then close
+    takes them out of motor mode.
+    """
+    net_file, channel = network
+    drive = load_drive_map(MAP)
+    lsb = {"kp": 500 / 4095, "kd": 5 / 4095, "torque": 36 / 4095}  # one raw step of each field
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        MitMotorSimulator(sim_bus, [(drive, n) for n in range(1, 5)], dt_s=0.002) as sim,
+        open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        out = op["legs"].outputs
+        for _ in range(10):
+            out["kp"][:], out["kd"][:], out["torque"][:], out["position"][:] = 40.0, 1.5, 2.0, 0.4
+            assert op.exchange().fresh
+        assert all(sim.motor(n).command[2] > 39 for n in range(1, 5))  # type: ignore[index]
+        for n in range(1, 5):
+            sim.drop_replies(n, 4)  # a burst: 4 cycles (safe_stop_after) without any reply
+        stops = []
+        for _ in range(4):
+            out["kp"][:], out["kd"][:], out["torque"][:] = 40.0, 1.5, 2.0  # the controller keeps pushing
+            stops.append(op.exchange().safe_stop)
+        assert stops == [False, False, False, True]
+        out["kp"][:], out["kd"][:], out["torque"][:] = 40.0, 1.5, 2.0
+        op.exchange()  # the cycle after the safe stop: what the motors got
+        for n in range(1, 5):
+            _, _, kp, kd, torque = sim.motor(n).command  # type: ignore[misc]
+            assert abs(kp) < lsb["kp"] and abs(kd) < lsb["kd"] and abs(torque) < lsb["torque"], (
+                n,
+                kp,
+                kd,
+                torque,
+            )
+        assert op.safe_stops["legs"].plan.kind == "mit"
+        assert not sim.errors
+    assert not any(sim.motor(n).enabled for n in range(1, 5))  # exit motor mode on close
+
+
+def test_a_map_must_say_what_its_safe_stop_sends() -> None:
+    from fieldbus.core.pdo import drive_map_from_text
+    from fieldbus.errors import PdoMapError
+
+    text = MAP.read_text()
+    no_names = text.replace("name: kp,", "name: gain_p,").replace("name: kd,", "name: gain_d,")
+    no_names = no_names.replace(
+        "{name: torque, bits: 12, min: -18.0, max: 18.0, unit: N·m}\n  reply",
+        "{name: t_cmd, bits: 12, min: -18.0, max: 18.0, unit: N·m}\n  reply",
+    )
+    with pytest.raises(PdoMapError, match="no command field has a safe_value"):
+        drive_map_from_text(no_names, "m.yaml")
+    explicit = no_names.replace("{name: gain_d, bits: 12,", "{name: gain_d, safe_value: 1.0, bits: 12,")
+    drive = drive_map_from_text(explicit, "m.yaml")
+    from fieldbus.core.safestop import safe_stop_plan
+
+    assert safe_stop_plan(drive, layout(drive)).values == (("gain_d", 1.0),)

@@ -404,6 +404,7 @@ BAD = {
     "rawcan bits": "rawcan:\n  command: [{name: p, bits: 12}]\n  reply: [{name: q, bits: 8}]\n",
     "rawcan min max": "rawcan:\n  command: [{name: p, bits: 8, min: 1}]\n  reply: [{name: q, bits: 8}]\n",
     "rawcan node field": "rawcan:\n  node_field: id\n  command: [{name: p, bits: 8}]\n  reply: [{name: q, bits: 8}]\n",
+    "rawcan safe stop": "rawcan:\n  command: [{name: p, bits: 8}]\n  reply: [{name: q, bits: 8}]\n",
 }
 
 

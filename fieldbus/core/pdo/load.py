@@ -46,7 +46,7 @@ _TOP_KEYS = (
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
 _CHANNEL_KEYS = (
     "index", "sub_index", "type", "name", "command_interface", "state_interface",
-    "default", "mask", "factor", "offset", "unit", "description",
+    "default", "mask", "factor", "offset", "unit", "description", "safe_value",
 )  # fmt: skip
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
@@ -337,7 +337,16 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
     if index <= 0x0007:
         if index == 0 and sub != 0:
             raise r.err((*path, "sub_index"), "a gap (index 0) has sub_index 0")
-        for k in ("name", "command_interface", "state_interface", "default", "factor", "offset", "unit"):
+        for k in (
+            "name",
+            "command_interface",
+            "state_interface",
+            "default",
+            "factor",
+            "offset",
+            "unit",
+            "safe_value",
+        ):
             if k in m:
                 raise r.err((*path, k), f"a gap entry (index 0x{index:04X}) carries no '{k}'", key=True)
     if "name" in m:
@@ -374,6 +383,23 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
     scaled = any(k in m for k in ("factor", "offset", "unit"))
     if scaled and (dt.is_bits):
         raise r.err(path, f"factor/offset/unit need a numeric type, not {dt.name}")
+    safe_value = None
+    if "safe_value" in m:
+        if direction is Direction.INPUTS:
+            raise r.err(
+                (*path, "safe_value"), "safe_value is only for rpdo channels (master outputs)", key=True
+            )
+        safe_value = r.number(m["safe_value"], (*path, "safe_value"))
+        raw = factor * safe_value + offset if scaled else safe_value
+        fits = (
+            (raw in (0.0, 1.0) if dt.name == "bool" else 0 <= raw < (1 << dt.bits) and raw == int(raw))
+            if dt.is_bits
+            else dt.fits(raw)
+        )
+        if not fits:
+            raise r.err(
+                (*path, "safe_value"), f"safe_value {safe_value:g} (raw {raw:g}) does not fit {dt.name}"
+            )
     return Channel(
         index=index,
         sub_index=sub,
@@ -387,6 +413,7 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
         offset=offset,
         scaled=scaled,
         description=r.string(m.get("description", ""), (*path, "description")),
+        safe_value=safe_value,
     )
 
 

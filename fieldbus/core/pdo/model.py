@@ -37,6 +37,8 @@ class Channel:
     inputs ``value = factor * raw + offset``; outputs ``raw = factor * value + offset``.
     ``default`` is a *raw* value written to outputs until the user writes one
     (``None``: 0). ``mask`` is the single bit a ``bool`` occupies in its byte.
+    ``safe_value`` (outputs only) is what the safe stop writes, in the units the
+    process image shows (engineering units when scaled), see :mod:`fieldbus.core.safestop`.
     """
 
     index: int
@@ -51,6 +53,7 @@ class Channel:
     offset: float = 0.0
     scaled: bool = False
     description: str = ""
+    safe_value: float | None = None  # outputs: written by the safe stop (image units), None: holds
 
     @property
     def is_gap(self) -> bool:
