@@ -112,35 +112,35 @@ class SdoAbortError(FieldbusError):
         code: int,
         *,
         index: int,
-        subindex: int,
+        sub_index: int,
         slave: str = "",
         detail: str = "",
     ) -> None:
         self.code = code
         self.name = abort_name(code)
         self.index = index
-        self.subindex = subindex
+        self.sub_index = sub_index
         self.slave = slave
         self.detail = detail
         who = f"{slave}: " if slave else ""
         extra = f" ({detail})" if detail else ""
-        super().__init__(f"{who}SDO abort 0x{code:08X} '{self.name}' on 0x{index:04X}:{subindex:02X}{extra}")
+        super().__init__(f"{who}SDO abort 0x{code:08X} '{self.name}' on 0x{index:04X}:{sub_index:02X}{extra}")
 
 
 class SdoMismatchError(FieldbusError):
     """An SDO read-back did not return what was written."""
 
     def __init__(
-        self, *, index: int, subindex: int, expected: bytes, received: bytes, slave: str = ""
+        self, *, index: int, sub_index: int, expected: bytes, received: bytes, slave: str = ""
     ) -> None:
         self.index = index
-        self.subindex = subindex
+        self.sub_index = sub_index
         self.expected = expected
         self.received = received
         self.slave = slave
         who = f"{slave}: " if slave else ""
         super().__init__(
-            f"{who}read-back of 0x{index:04X}:{subindex:02X} gave {received.hex()} "
+            f"{who}read-back of 0x{index:04X}:{sub_index:02X} gave {received.hex()} "
             f"instead of {expected.hex()}"
         )
 

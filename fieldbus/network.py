@@ -79,7 +79,7 @@ class CycleResult:
 
 
 def open_network(
-    source: str | Path | netfile.Network,
+    source: str | Path | netfile.NetworkConfig,
     *,
     backend: str | None = None,
     bus_options: Mapping[str, Mapping[str, object]] | None = None,
@@ -91,7 +91,7 @@ def open_network(
     bus; ``bus_options`` maps a bus name to options for that bus only (they
     win over the shared ones), e.g. ``bus_options={"arm": {"can_bus": bus}}``.
     """
-    net = source if isinstance(source, netfile.Network) else netfile.load_network(source)
+    net = source if isinstance(source, netfile.NetworkConfig) else netfile.load_network(source)
     return Network(net, backend=backend, bus_options=bus_options, **backend_options)
 
 
@@ -111,7 +111,7 @@ class Network(_Phase):
 
     def __init__(
         self,
-        model: netfile.Network,
+        model: netfile.NetworkConfig,
         *,
         backend: str | None = None,
         bus_options: Mapping[str, Mapping[str, object]] | None = None,

@@ -186,7 +186,7 @@ class ObjectDictionary:
         e = self._entries.get((index, sub))
         if e is None:
             code = ABORT_NO_SUBINDEX if index in self._subs else ABORT_NO_OBJECT
-            raise SdoAbortError(code, index=index, subindex=sub)
+            raise SdoAbortError(code, index=index, sub_index=sub)
         return e
 
     # -- application face (ObjectStore protocol) --
@@ -215,7 +215,7 @@ class ObjectDictionary:
         if self._aborts:
             code = self._aborts.get((index, sub), self._aborts.get((index, None)))
             if code is not None:
-                raise SdoAbortError(code, index=index, subindex=sub, detail="injected")
+                raise SdoAbortError(code, index=index, sub_index=sub, detail="injected")
 
     # -- bus face --
 
@@ -229,14 +229,14 @@ class ObjectDictionary:
         self._injected(index, sub)
         e = self.entry(index, sub)
         if e.access is not Access.RW:
-            raise SdoAbortError(ABORT_READ_ONLY, index=index, subindex=sub)
+            raise SdoAbortError(ABORT_READ_ONLY, index=index, sub_index=sub)
         if e.dtype is None:
             e.value = bytes(data)
             return
         if len(data) > e.size:
-            raise SdoAbortError(ABORT_TOO_LONG, index=index, subindex=sub)
+            raise SdoAbortError(ABORT_TOO_LONG, index=index, sub_index=sub)
         if len(data) < e.size:
-            raise SdoAbortError(ABORT_TOO_SHORT, index=index, subindex=sub)
+            raise SdoAbortError(ABORT_TOO_SHORT, index=index, sub_index=sub)
         value = e.dtype.decode(bytes(data))
         if _is_mapping(index):
             self._check_mapping_write(index, sub, int(value), state)
@@ -247,37 +247,37 @@ class ObjectDictionary:
 
     def _check_mapping_write(self, index: int, sub: int, value: int, state: CommState) -> None:
         if state is not CommState.PRE_OPERATIONAL:
-            raise SdoAbortError(ABORT_STATE, index=index, subindex=sub, detail="PDO mapping outside PRE-OP")
+            raise SdoAbortError(ABORT_STATE, index=index, sub_index=sub, detail="PDO mapping outside PRE-OP")
         count = int(self.get_value(index, 0))
         if sub > 0:
             if count != 0:
-                raise SdoAbortError(ABORT_SI0_NOT_ZERO, index=index, subindex=sub)
+                raise SdoAbortError(ABORT_SI0_NOT_ZERO, index=index, sub_index=sub)
             if index in (RXPDO_ASSIGN, TXPDO_ASSIGN) and value != 0:
                 allowed = RXPDO_MAP if index == RXPDO_ASSIGN else TXPDO_MAP
                 if value not in allowed or not self.has(value, 0):
-                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, subindex=sub)
+                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, sub_index=sub)
             return
         capacity = max(self._subs[index])
         if value > capacity:
-            raise SdoAbortError(ABORT_VALUE_HIGH, index=index, subindex=sub)
+            raise SdoAbortError(ABORT_VALUE_HIGH, index=index, sub_index=sub)
         if index in (RXPDO_ASSIGN, TXPDO_ASSIGN):
             for s in range(1, value + 1):
                 pdo = int(self.get_value(index, s))
                 if not self.has(pdo, 0):
-                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, subindex=0)
+                    raise SdoAbortError(ABORT_VALUE_RANGE, index=index, sub_index=0)
             return
         bits = 0
         for s in range(1, value + 1):
             raw = int(self.get_value(index, s))
             bits += self._mapped_channel(index, raw).bits
         if bits > MAX_PDO_BITS:
-            raise SdoAbortError(ABORT_PDO_TOO_LONG, index=index, subindex=0)
+            raise SdoAbortError(ABORT_PDO_TOO_LONG, index=index, sub_index=0)
 
     def _mapped_channel(self, mapping: int, raw: int) -> Channel:
         """The channel a 32-bit mapping entry names (gaps: index 0 or a dummy type 1..7)."""
         obj, sub, bits = raw >> 16, (raw >> 8) & 0xFF, raw & 0xFF
         if bits == 0:
-            raise SdoAbortError(ABORT_NOT_MAPPABLE, index=mapping, subindex=0, detail="zero bit length")
+            raise SdoAbortError(ABORT_NOT_MAPPABLE, index=mapping, sub_index=0, detail="zero bit length")
         if obj <= 0x0007:
             gap = datatypes.lookup(f"bit{bits}")
             assert gap is not None
@@ -285,7 +285,7 @@ class ObjectDictionary:
         e = self._entries.get((obj, sub))
         if e is None or not e.mappable or e.dtype is None or e.dtype.bits != bits:
             raise SdoAbortError(
-                ABORT_NOT_MAPPABLE, index=mapping, subindex=0, detail=f"0x{obj:04X}:{sub:02X}/{bits}"
+                ABORT_NOT_MAPPABLE, index=mapping, sub_index=0, detail=f"0x{obj:04X}:{sub:02X}/{bits}"
             )
         return Channel(obj, sub, e.dtype, e.name or f"0x{obj:04X}_{sub:02X}")
 

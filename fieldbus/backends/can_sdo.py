@@ -25,9 +25,9 @@ SdoSteps = Generator[bytes, bytes, bytes]  # yields requests, is sent each respo
 # -- SDO client protocol (CiA 301 7.2.4.3), sans-IO --------------------------------------------
 def _check(resp: bytes, index: int, sub: int) -> None:
     if len(resp) != 8:
-        raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"{len(resp)}-byte answer")
+        raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"{len(resp)}-byte answer")
     if resp[0] == 0x80:
-        raise SdoAbortError(struct.unpack_from("<I", resp, 4)[0], index=index, subindex=sub)
+        raise SdoAbortError(struct.unpack_from("<I", resp, 4)[0], index=index, sub_index=sub)
 
 
 def sdo_upload(index: int, sub: int) -> SdoSteps:
@@ -36,7 +36,7 @@ def sdo_upload(index: int, sub: int) -> SdoSteps:
     _check(resp, index, sub)
     cmd = resp[0]
     if cmd >> 5 != 2 or (resp[1] | resp[2] << 8, resp[3]) != (index, sub):
-        raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"answer {resp.hex()}")
+        raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"answer {resp.hex()}")
     if cmd & 0x02:  # expedited
         n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
         return resp[4 : 4 + n]
@@ -47,9 +47,9 @@ def sdo_upload(index: int, sub: int) -> SdoSteps:
         seg = yield bytes([0x60 | toggle]) + bytes(7)
         _check(seg, index, sub)
         if seg[0] >> 5 != 0:
-            raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"segment {seg.hex()}")
+            raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"segment {seg.hex()}")
         if seg[0] & 0x10 != toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=index, subindex=sub, detail="toggle bit")
+            raise SdoAbortError(ABORT_TOGGLE, index=index, sub_index=sub, detail="toggle bit")
         out += seg[1 : 8 - ((seg[0] >> 1) & 0x07)]
         toggle ^= 0x10
         if seg[0] & 0x01:
@@ -63,12 +63,12 @@ def sdo_download(index: int, sub: int, data: bytes) -> SdoSteps:
         resp = yield struct.pack("<BHB", cmd, index, sub) + data.ljust(4, b"\0")
         _check(resp, index, sub)
         if resp[0] != 0x60:
-            raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"answer {resp.hex()}")
+            raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"answer {resp.hex()}")
         return b""
     resp = yield struct.pack("<BHBI", 0x21, index, sub, len(data))
     _check(resp, index, sub)
     if resp[0] != 0x60:
-        raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"answer {resp.hex()}")
+        raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"answer {resp.hex()}")
     toggle = 0
     for pos in range(0, len(data), 7):
         chunk = data[pos : pos + 7]
@@ -77,8 +77,8 @@ def sdo_download(index: int, sub: int, data: bytes) -> SdoSteps:
         resp = yield bytes([cmd]) + chunk.ljust(7, b"\0")
         _check(resp, index, sub)
         if resp[0] & 0xEF != 0x20:
-            raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail=f"answer {resp.hex()}")
+            raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail=f"answer {resp.hex()}")
         if resp[0] & 0x10 != toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=index, subindex=sub, detail="toggle bit")
+            raise SdoAbortError(ABORT_TOGGLE, index=index, sub_index=sub, detail="toggle bit")
         toggle ^= 0x10
     return b""

@@ -424,7 +424,7 @@ class CanopenBackend(Backend):
                     if got[: len(want)] != want or any(got[len(want) :]):
                         raise SdoMismatchError(
                             index=step.index,
-                            subindex=step.sub_index,
+                            sub_index=step.sub_index,
                             expected=want,
                             received=got,
                             slave=a.slave.name,
@@ -589,7 +589,7 @@ class CanopenBackend(Backend):
         return SdoAbortError(
             exc.code,
             index=exc.index,
-            subindex=exc.subindex,
+            sub_index=exc.sub_index,
             slave=self.areas[slave].slave.name,
             detail=detail,
         )

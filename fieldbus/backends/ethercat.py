@@ -25,10 +25,11 @@ from typing import Any
 
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core.al import AL_ERROR, al_status_name, state_name
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import coe_plan
-from fieldbus.core.wkc import AL_ERROR, Recovery, recovery_action
+from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import (
     BackendUnavailableError,
     BusTimeoutError,
@@ -44,7 +45,6 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         f"the ethercat backend needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"
     ) from None
 
-STATE_NAMES = {0x01: "INIT", 0x02: "PRE-OP", 0x03: "BOOT", 0x04: "SAFE-OP", 0x08: "OP"}
 STATE_TIMEOUT_US = 2_000_000
 RECONFIG_TIMEOUT_US = 500
 SYNC1_ACTIVATE = 0x0400  # assign_activate bit: SYNC1 generation (0x0981 bit 2)
@@ -53,11 +53,6 @@ SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more 
 MAX_EMERGENCIES = 1000  # emergencies kept (oldest dropped)
 ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
 PLAN_RETRY_S = 1.0  # a slave whose SDO plan failed in reconfig is tried again after this
-
-
-def state_name(state: int) -> str:
-    base = STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:X}")
-    return base + ("+ERROR" if state & AL_ERROR else "")
 
 
 class EthercatBackend(Backend):
@@ -227,7 +222,7 @@ class EthercatBackend(Backend):
                 first_code = code if first_code is None else first_code
                 lines.append(
                     f"  position {i} ({self.areas[i].slave.name if i < len(self.areas) else '?'}): "
-                    f"{state_name(s.state)}, AL status 0x{code:04X} {pysoem.al_status_code_to_string(code)}"
+                    f"{state_name(s.state)}, AL status code 0x{code:04X} {al_status_name(code)}"
                 )
         raise StateTransitionError(
             f"bus '{self.bus.name}': not all slaves reached {target} (lowest {state_name(lowest)}):\n"
@@ -428,7 +423,7 @@ class EthercatBackend(Backend):
             try:
                 return call(self._slaves[slave])
             except pysoem.SdoError as exc:
-                raise SdoAbortError(exc.abort_code, index=index, subindex=sub_index, slave=name) from None
+                raise SdoAbortError(exc.abort_code, index=index, sub_index=sub_index, slave=name) from None
             except pysoem.Emergency as exc:
                 self.emergencies.append((slave, exc.error_code, exc.error_reg))
                 last = f"emergency 0x{exc.error_code:04X}"

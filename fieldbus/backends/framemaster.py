@@ -16,16 +16,13 @@ import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError, StateTransitionError
 
 Transport = Callable[[bytes], "bytes | None"]
 
 STATION_BASE = 0x1001
-AL_INIT, AL_PREOP, AL_BOOT, AL_SAFEOP, AL_OP = 0x01, 0x02, 0x03, 0x04, 0x08
-AL_ACK = 0x10  # AL control: acknowledge error indication
-AL_ERROR = 0x10  # AL status: error indication
-STATE_NAMES = {AL_INIT: "INIT", AL_PREOP: "PRE-OP", AL_BOOT: "BOOT", AL_SAFEOP: "SAFE-OP", AL_OP: "OP"}
 
 # SII word addresses (ETG.1000.6 5.4) and categories
 SII_VENDOR, SII_PRODUCT, SII_REVISION = 0x08, 0x0A, 0x0C
@@ -45,12 +42,6 @@ _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _MBX = struct.Struct("<HHBB")  # length, address, channel/priority, type/counter
 _SDO = struct.Struct("<HBHBI")  # CoE header, command, index, sub-index, data/size
-
-
-def state_name(state: int) -> str:
-    """AL state code (plus error bit) as text, e.g. ``SAFE-OP+ERROR``."""
-    base = STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:X}")
-    return base + ("+ERROR" if state & AL_ERROR else "")
 
 
 @dataclass(frozen=True)
@@ -273,12 +264,14 @@ class FrameMaster:
         self._mailbox_send(info, request)
         coe = self._mailbox_receive(info)
         if len(coe) < 10:
-            raise SdoAbortError(SDO_ABORT_TIMEOUT, index=index, subindex=sub, detail="short SDO answer")
+            raise SdoAbortError(SDO_ABORT_TIMEOUT, index=index, sub_index=sub, detail="short SDO answer")
         service, cmd = coe[1] >> 4, coe[2]
         if cmd == SDO_ABORT:
-            raise SdoAbortError(_U32.unpack_from(coe, 6)[0], index=index, subindex=sub)
+            raise SdoAbortError(_U32.unpack_from(coe, 6)[0], index=index, sub_index=sub)
         if service != COE_SDO_RESPONSE:
-            raise SdoAbortError(SDO_ABORT_TIMEOUT, index=index, subindex=sub, detail=f"CoE service {service}")
+            raise SdoAbortError(
+                SDO_ABORT_TIMEOUT, index=index, sub_index=sub, detail=f"CoE service {service}"
+            )
         return coe
 
     def sdo_download(self, info: SlaveInfo, index: int, sub: int, data: bytes) -> None:

@@ -37,7 +37,7 @@ def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
             ):
                 raise SdoMismatchError(
                     index=step.index,
-                    subindex=step.sub_index,
+                    sub_index=step.sub_index,
                     expected=step.readback,
                     received=got,
                     slave=slave,
@@ -45,7 +45,7 @@ def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
     except SdoAbortError as exc:
         if not exc.slave:
             raise SdoAbortError(
-                exc.code, index=exc.index, subindex=exc.subindex, slave=slave, detail=exc.detail
+                exc.code, index=exc.index, sub_index=exc.sub_index, slave=slave, detail=exc.detail
             ) from None
         raise
     return transfers

@@ -35,19 +35,9 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
-from fieldbus.backends.framemaster import (
-    AL_ACK,
-    AL_INIT,
-    AL_OP,
-    AL_PREOP,
-    AL_SAFEOP,
-    FrameMaster,
-    Mapping,
-    SlaveInfo,
-    layout_image,
-    state_name,
-)
+from fieldbus.backends.framemaster import FrameMaster, Mapping, SlaveInfo, layout_image
 from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core.al import AL_ACK, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.ecat import Command, Datagram, build_master_frame
 from fieldbus.core.network import Bus
 from fieldbus.core.pdo.model import DriveMap
@@ -133,7 +123,11 @@ class SimBackend(Backend):
                 first = code if first is None else first
                 lines.append(
                     f"  position {pos} ({self.areas[pos].slave.name}): "
-                    + (f"{state_name(status)}, AL status code 0x{code:04X}" if got else "no answer")
+                    + (
+                        f"{state_name(status)}, AL status code 0x{code:04X} {al_status_name(code)}"
+                        if got
+                        else "no answer"
+                    )
                 )
             raise StateTransitionError(
                 f"bus '{self.bus.name}': not all slaves reached {name}:\n" + "\n".join(lines), al_status=first

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fieldbus.core.network import Network, is_network_document, parse_network
+from fieldbus.core.network import NetworkConfig, is_network_document, parse_network
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
@@ -65,7 +65,7 @@ def map_summary(drive: DriveMap) -> dict[str, Any]:
     return out
 
 
-def network_summary(net: Network) -> dict[str, Any]:
+def network_summary(net: NetworkConfig) -> dict[str, Any]:
     return {
         "kind": "network",
         "name": net.name,

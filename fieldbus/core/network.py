@@ -60,7 +60,7 @@ class Bus:
 
 
 @dataclass(frozen=True)
-class Network:
+class NetworkConfig:
     """A whole network file, maps loaded and validated."""
 
     name: str
@@ -75,13 +75,13 @@ class Network:
         raise KeyError(name)
 
 
-def load_network(path: str | Path) -> Network:
+def load_network(path: str | Path) -> NetworkConfig:
     """Load a network file and every drive map it names."""
     doc = load_file(path)
     return parse_network(doc, base=Path(path).parent, default_name=Path(path).stem)
 
 
-def network_from_text(text: str, file: str = "<string>", base: str | Path = ".") -> Network:
+def network_from_text(text: str, file: str = "<string>", base: str | Path = ".") -> NetworkConfig:
     return parse_network(load_located(text, file), base=Path(base), default_name=Path(file).stem)
 
 
@@ -90,7 +90,7 @@ def is_network_document(data: Any) -> bool:
     return isinstance(data, dict) and "buses" in data
 
 
-def parse_network(doc: Located, base: Path, default_name: str = "network") -> Network:
+def parse_network(doc: Located, base: Path, default_name: str = "network") -> NetworkConfig:
     r = Reader(doc)
     top = r.mapping(doc.data, (), _TOP_KEYS, required=("buses",))
     cycle = r.integer(top.get("cycle_time_us", DEFAULT_CYCLE_US), ("cycle_time_us",), 50, 1_000_000)
@@ -113,7 +113,7 @@ def parse_network(doc: Located, base: Path, default_name: str = "network") -> Ne
         bus_names.add(bus.name)
         buses.append(bus)
     name = r.name(top["name"], ("name",)) if "name" in top else default_name
-    return Network(name=name, cycle_time_us=cycle, buses=tuple(buses), source=doc.file)
+    return NetworkConfig(name=name, cycle_time_us=cycle, buses=tuple(buses), source=doc.file)
 
 
 def _bus(

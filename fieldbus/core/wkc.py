@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.al import AL_ERROR, AL_OP, AL_SAFEOP
 from fieldbus.core.pdo.layout import MapLayout
 
 
@@ -145,10 +146,6 @@ class Recovery(enum.Enum):
     REQUEST_OP = "request_op"  # in SAFE-OP without error: request OP
     RECONFIGURE = "reconfigure"  # fell back to INIT / PRE-OP (power cycle): reconfigure, SDO plan, OP
     RECOVER = "recover"  # no answer at its station address: re-address it (lost slave)
-
-
-AL_INIT, AL_PREOP, AL_BOOT, AL_SAFEOP, AL_OP = 0x01, 0x02, 0x03, 0x04, 0x08
-AL_ERROR = 0x10
 
 
 def recovery_action(al_state: int | None) -> Recovery:

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
@@ -56,7 +57,6 @@ ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: Ethe
 EMCY_CODE = 0x2310  # continuous over-current
 NOTICED = ("emcy", "heartbeat")  # faults that are reported, not seen as a lost cycle
 NOTICE_CYCLES = 200  # an EMCY or a heartbeat loss must be noticed within this many cycles
-AL_INIT, AL_OP = 0x01, 0x08
 OE = int(State402.OPERATION_ENABLED)
 
 

@@ -322,10 +322,10 @@ class CanopenNode:
                 self._seg = None
                 return None
             else:
-                raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub)
+                raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub)
         except SdoAbortError as exc:
             self._seg = None
-            ai, asub = (exc.index, exc.subindex) if exc.index else (index, sub)
+            ai, asub = (exc.index, exc.sub_index) if exc.index else (index, sub)
             out = struct.pack("<BHBI", 0x80, ai, asub, exc.code)
         return (COB_TSDO + self.node_id, out)
 
@@ -337,7 +337,7 @@ class CanopenNode:
                     raise SdoAbortError(
                         ABORT_STATE,
                         index=index,
-                        subindex=sub,
+                        sub_index=sub,
                         detail="PDO valid: set its COB-ID bit 31 first",
                     )
             elif sub == 1 and len(data) == 4 and self.od.has(index, 1):
@@ -345,7 +345,7 @@ class CanopenNode:
                 new = int.from_bytes(data, "little")
                 if not (old | new) & INVALID and (old ^ new) & CAN_ID_MASK:
                     raise SdoAbortError(
-                        ABORT_VALUE_RANGE, index=index, subindex=sub, detail="CAN-ID of a valid PDO"
+                        ABORT_VALUE_RANGE, index=index, sub_index=sub, detail="CAN-ID of a valid PDO"
                     )
             self.od.write(index, sub, data, state=_COMM[self.state])
             self._pdo_dirty = True
@@ -366,18 +366,20 @@ class CanopenNode:
     def _download_segment(self, cmd: int, req: bytes) -> bytes:
         seg = self._seg
         if seg is None:
-            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no download in progress")
+            raise SdoAbortError(ABORT_COMMAND, index=0, sub_index=0, detail="no download in progress")
         if cmd & 0x10 != seg.toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, subindex=seg.sub)
+            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, sub_index=seg.sub)
         seg.data += req[1 : 8 - ((cmd >> 1) & 0x07)]
         if seg.size >= 0 and len(seg.data) > seg.size:
-            raise SdoAbortError(ABORT_LENGTH, index=seg.index, subindex=seg.sub, detail="more than indicated")
+            raise SdoAbortError(
+                ABORT_LENGTH, index=seg.index, sub_index=seg.sub, detail="more than indicated"
+            )
         seg.toggle ^= 0x10
         if cmd & 0x01:  # last segment
             self._seg = None
             if seg.size >= 0 and len(seg.data) != seg.size:
                 raise SdoAbortError(
-                    ABORT_LENGTH, index=seg.index, subindex=seg.sub, detail="less than indicated"
+                    ABORT_LENGTH, index=seg.index, sub_index=seg.sub, detail="less than indicated"
                 )
             self._write(seg.index, seg.sub, bytes(seg.data))
         return bytes([0x20 | (cmd & 0x10)]) + bytes(7)
@@ -393,9 +395,9 @@ class CanopenNode:
     def _upload_segment(self, cmd: int) -> bytes:
         seg = self._seg
         if seg is None:
-            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no upload in progress")
+            raise SdoAbortError(ABORT_COMMAND, index=0, sub_index=0, detail="no upload in progress")
         if cmd & 0x10 != seg.toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, subindex=seg.sub)
+            raise SdoAbortError(ABORT_TOGGLE, index=seg.index, sub_index=seg.sub)
         chunk, seg.data = bytes(seg.data[:7]), seg.data[7:]
         last = not seg.data
         head = seg.toggle | (7 - len(chunk)) << 1 | (0x01 if last else 0)

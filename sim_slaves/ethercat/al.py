@@ -7,34 +7,12 @@ bit 4 = error indicator) and AL status code (0x0134).
 
 from __future__ import annotations
 
-from enum import Enum, IntEnum
+from enum import Enum
 
+from fieldbus.core.al import AL_ERROR as AL_ERROR_INDICATOR  # AL status bit 4; in AL control: acknowledge
+from fieldbus.core.al import AlState, AlStatusCode
 
-class AlState(IntEnum):
-    """AL states as coded in AL control / AL status bits 0-3."""
-
-    INIT = 0x1
-    PRE_OP = 0x2
-    BOOT = 0x3
-    SAFE_OP = 0x4
-    OP = 0x8
-
-
-class AlStatusCode(IntEnum):
-    """AL status codes (0x0134) the emulator reports (ETG.1000.6 table 11)."""
-
-    NO_ERROR = 0x0000
-    UNSPECIFIED = 0x0001
-    INVALID_STATE_CHANGE = 0x0011
-    UNKNOWN_STATE = 0x0012
-    BOOTSTRAP_NOT_SUPPORTED = 0x0013
-    INVALID_MAILBOX_CONFIG = 0x0016
-    SYNC_MANAGER_WATCHDOG = 0x001B
-    INVALID_OUTPUT_CONFIG = 0x001D
-    INVALID_INPUT_CONFIG = 0x001E
-
-
-AL_ERROR_INDICATOR = 0x10  # AL status bit 4; in AL control: error acknowledge
+__all__ = ["AL_ERROR_INDICATOR", "TRANSITIONS", "AlState", "AlStatusCode", "Check"]
 
 
 class Check(Enum):

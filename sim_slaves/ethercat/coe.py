@@ -94,23 +94,23 @@ class SdoServer:
             if ccs == 4:  # abort from the master
                 self.reset()
                 return None
-            raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub)
+            raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub)
         except SdoAbortError as e:
             self.reset()
-            return abort_payload(e.index, e.subindex, e.code)
+            return abort_payload(e.index, e.sub_index, e.code)
 
     # -- download (master -> slave) --
 
     def _download_initiate(self, coe: bytes, cmd: int, index: int, sub: int, state: CommState) -> bytes:
         self.reset()
         if cmd & 0x10:
-            raise SdoAbortError(ABORT_UNSUPPORTED, index=index, subindex=sub, detail="complete access")
+            raise SdoAbortError(ABORT_UNSUPPORTED, index=index, sub_index=sub, detail="complete access")
         if cmd & 0x02:  # expedited
             n = 4 - ((cmd >> 2) & 0x03) if cmd & 0x01 else 4
             self.od.write(index, sub, coe[6 : 6 + n], state=state)
             return _sdo_response(0x60, index, sub)
         if not cmd & 0x01:
-            raise SdoAbortError(ABORT_COMMAND, index=index, subindex=sub, detail="size not indicated")
+            raise SdoAbortError(ABORT_COMMAND, index=index, sub_index=sub, detail="size not indicated")
         (size,) = struct.unpack_from("<I", coe, 6)
         data = coe[10:]
         self.od.entry(index, sub)  # abort early for a missing object
@@ -123,10 +123,10 @@ class SdoServer:
     def _download_segment(self, coe: bytes, cmd: int, state: CommState) -> bytes:
         d = self._download
         if d is None:
-            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no download in progress")
+            raise SdoAbortError(ABORT_COMMAND, index=0, sub_index=0, detail="no download in progress")
         toggle = cmd & 0x10
         if toggle != d.toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=d.index, subindex=d.sub)
+            raise SdoAbortError(ABORT_TOGGLE, index=d.index, sub_index=d.sub)
         seg = coe[3:]
         if len(coe) == 10:  # minimum-size segment: n = unused bytes of the 7
             seg = seg[: 7 - ((cmd >> 1) & 0x07)]
@@ -142,7 +142,7 @@ class SdoServer:
     def _upload_initiate(self, cmd: int, index: int, sub: int) -> bytes:
         self.reset()
         if cmd & 0x10:
-            raise SdoAbortError(ABORT_UNSUPPORTED, index=index, subindex=sub, detail="complete access")
+            raise SdoAbortError(ABORT_UNSUPPORTED, index=index, sub_index=sub, detail="complete access")
         data = self.od.read(index, sub)
         if len(data) <= 4:
             head = 0x43 | (4 - len(data)) << 2
@@ -156,10 +156,10 @@ class SdoServer:
     def _upload_segment(self, cmd: int) -> bytes:
         u = self._upload
         if u is None:
-            raise SdoAbortError(ABORT_COMMAND, index=0, subindex=0, detail="no upload in progress")
+            raise SdoAbortError(ABORT_COMMAND, index=0, sub_index=0, detail="no upload in progress")
         toggle = cmd & 0x10
         if toggle != u.toggle:
-            raise SdoAbortError(ABORT_TOGGLE, index=u.index, subindex=u.sub)
+            raise SdoAbortError(ABORT_TOGGLE, index=u.index, sub_index=u.sub)
         room = self.mailbox_in - MBX_HEADER_SIZE - 3
         chunk = u.data[u.pos : u.pos + room]
         u.pos += len(chunk)

@@ -1,6 +1,6 @@
 """Distributed-clock unit of one emulated ESC: registers 0x0900-0x09AF backed by the DC model.
 
-:class:`EscDc` wraps a :class:`fieldbus.core.dc.registers.DcSlaveClock` (local
+:class:`EscDc` wraps a :class:`sim_slaves.ethercat.dc_clock.DcSlaveClock` (local
 clock with drift, time-control loop, SYNC unit) and knows where its ESC sits
 on the line: ``port0_ns``/``port1_ns`` are the true times, after the master
 sent a frame, at which the frame reaches this ESC's port 0 (and processing
@@ -42,7 +42,7 @@ from collections.abc import Sequence
 
 from fieldbus.core.dc.master import line_timing
 from fieldbus.core.dc.model import DcRegister, EscTiming
-from fieldbus.core.dc.registers import DC_END, DC_FIRST, DcSlaveClock
+from sim_slaves.ethercat.dc_clock import DC_END, DC_FIRST, DcSlaveClock
 
 __all__ = ["DC_END", "DC_FIRST", "DC_MIN_SAMPLE_INTERVAL_NS", "DcLine", "EscDc"]
 

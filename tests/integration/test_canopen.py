@@ -152,7 +152,7 @@ def test_sdo_abort_at_bring_up_names_node_object_code_and_enables_nothing(
     with pytest.raises(SdoAbortError) as exc, open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
         net.bring_up()
     err = exc.value
-    assert (err.code, err.index, err.subindex, err.slave) == (0x06090030, 0x6060, 0, "j2")
+    assert (err.code, err.index, err.sub_index, err.slave) == (0x06090030, 0x6060, 0, "j2")
     text = str(err)
     assert "node 3" in text and "0x6060:00" in text and "0x06090030" in text and "j2" in text
     time.sleep(0.15)  # a heartbeat period: every node has reported its state since

@@ -200,7 +200,7 @@ def test_sdo_abort_at_bring_up_names_slave_object_code_and_enables_nothing(
     with pytest.raises(SdoAbortError) as exc, net:
         net.bring_up()
     err = exc.value
-    assert (err.code, err.index, err.subindex, err.slave) == (0x06090030, 0x6060, 0, "j2")
+    assert (err.code, err.index, err.sub_index, err.slave) == (0x06090030, 0x6060, 0, "j2")
     assert "0x6060" in str(err) and "06090030" in str(err).upper() and "j2" in str(err)
     states = seg.control(cmd="status")["states"]
     assert all(s <= AL_PREOP for s in states), states  # nobody reached SAFE-OP, let alone OP

@@ -10,8 +10,6 @@ import pytest
 from fieldbus.cli import main
 from fieldbus.core.dc import (
     DcRegister,
-    DcSegment,
-    DcSlaveClock,
     EscTiming,
     HostSyncConfig,
     SyncActivation,
@@ -23,6 +21,7 @@ from fieldbus.core.dc import (
     sync0_start_time,
 )
 from fieldbus.core.dc.sim import convergence_bound_ms
+from sim_slaves.ethercat.dc_clock import DcSegment, DcSlaveClock
 
 # Hand-computed 3-slave line: A -(10 m)- B -(5 m)- C, 5 ns/m.
 TP, TF = 600, 560  # processing (port 0 -> EPU -> port 1) and forwarding (port 1 -> port 0) delays

@@ -22,7 +22,6 @@ import pytest
 
 from fieldbus.core.dc import (
     DcRegister,
-    DcSlaveClock,
     EscTiming,
     LoopConfig,
     LoopState,
@@ -34,6 +33,7 @@ from fieldbus.core.dc import (
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import drive_map_from_text
 from sim_slaves.ethercat import EscChain
+from sim_slaves.ethercat.dc_clock import DcSlaveClock
 from sim_slaves.ethercat.runner import handle_control
 
 IO16 = """

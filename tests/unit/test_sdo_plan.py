@@ -161,7 +161,7 @@ def test_interop_epos4_plan_sizes(interop_dir: Path) -> None:
 
 
 def test_abort_error_names_code() -> None:
-    e = SdoAbortError(0x06020000, index=0x6060, subindex=0, slave="hip")
+    e = SdoAbortError(0x06020000, index=0x6060, sub_index=0, slave="hip")
     assert e.name == "Object does not exist in the object dictionary" == abort_name(0x06020000)
     assert str(e) == "hip: SDO abort 0x06020000 'Object does not exist in the object dictionary' on 0x6060:00"
     assert abort_name(0x12345678) == "unknown abort code"

@@ -5,14 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fieldbus.core.al import AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP
 from fieldbus.core.pdo import drive_map_from_text
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.wkc import (
-    AL_ERROR,
-    AL_INIT,
-    AL_OP,
-    AL_PREOP,
-    AL_SAFEOP,
     PolicyConfig,
     Recovery,
     Verdict,

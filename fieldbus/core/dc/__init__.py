@@ -3,11 +3,10 @@
 * ``model``: register map, timing assumptions, the ESC time-control loop;
 * ``master``: frame timing on a line, propagation delays and offsets as SOEM
   computes them, SYNC0 start time, the host-side PI (``ec_sync``);
-* ``registers``: ``DcSlaveClock`` (one ESC behind its 0x0900-0x09AF registers)
-  and ``DcSegment`` (a line of them), for emulators;
 * ``sim``: ``simulate`` - a whole segment, vectorised over slaves.
 
-Units: ns and ppm. Assumptions and sources: docs/dc.md.
+The slave side (an ESC behind its 0x0900-0x09AF registers) is emulator code:
+:mod:`sim_slaves.ethercat.dc_clock`. Units: ns and ppm. Assumptions and sources: docs/dc.md.
 """
 
 from fieldbus.core.dc.master import (
@@ -31,15 +30,12 @@ from fieldbus.core.dc.model import (
     cable_delay_ns,
     loop_step,
 )
-from fieldbus.core.dc.registers import DcSegment, DcSlaveClock
 from fieldbus.core.dc.sim import DcSimResult, simulate, spread_drifts
 
 __all__ = [
     "CABLE_NS_PER_M",
     "DcRegister",
-    "DcSegment",
     "DcSimResult",
-    "DcSlaveClock",
     "EscTiming",
     "HostSync",
     "HostSyncConfig",
