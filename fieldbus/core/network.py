@@ -18,8 +18,10 @@ from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located
 BUS_TYPES = ("ethercat", "canopen", "rawcan", "sim")
 CAN_TYPES = ("canopen", "rawcan")
 DEFAULT_CYCLE_US = 1000
-DEFAULT_RECEIVE_TIMEOUT_US = 500  # seed 000, 62.5: short receive timeout, reuse last data
-DEFAULT_SAFE_STOP_AFTER = 10  # seed 000, 62.5: safe stop after 10 consecutive misses
+DEFAULT_RECEIVE_TIMEOUT_US = (
+    500  # legged-robot hardware tutorial §62.5: short receive timeout, reuse last data
+)
+DEFAULT_SAFE_STOP_AFTER = 10  # legged-robot hardware tutorial §62.5: safe stop after 10 consecutive misses
 
 _TOP_KEYS = ("name", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "buses")
 _BUS_KEYS = (

@@ -4,7 +4,7 @@ Every cycle a backend reports what came back (an EtherCAT working counter, or
 for CAN the TPDOs received per node) and the policy answers: are the inputs
 fresh, how many cycles in a row have missed, is it time for a safe stop?
 
-The seed's policy (000, 62.5): a short receive timeout (500 µs), reuse the
+The usual legged-robot policy (hardware tutorial §62.5): a short receive timeout (500 µs), reuse the
 last good data on a miss, safe stop after 10 consecutive misses. Inputs that
 are not fresh are *held* (the backend does not decode them) and flagged stale.
 

@@ -402,7 +402,7 @@ def test_our_backend_brings_up_a_canopen_local_node(channel: str, tmp_path: Path
 
 
 def test_two_can_buses_under_one_network(tmp_path: Path) -> None:
-    """Seed 000, 62.4: split the joints over several buses; one exchange() serves them all."""
+    """As in the legged-robot hardware tutorial (§62.4): split the joints over several buses; one exchange() serves them all."""
     drive = load_drive_map(DEMO_MAP)
     a, b = (f"fb-two-{k}-{time.monotonic_ns()}" for k in range(2))
     net_file = tmp_path / "two.yaml"

@@ -21,7 +21,7 @@ def test_30_axes_fit_one_ethercat_segment_at_1khz(capsys: pytest.CaptureFixture[
     r = bandwidth(capsys, "humanoid_ethercat.yaml")
     (bus,) = r["buses"]
     assert bus["type"] == "ethercat" and bus["frames_per_cycle"] == 1
-    assert bus["bytes_per_cycle"] == 30 * (10 + 10)  # seed 62.5: 600 bytes
+    assert bus["bytes_per_cycle"] == 30 * (10 + 10)  # hardware tutorial §62.5: 600 bytes
     assert bus["load_percent"] < 10 and bus["max_rate_hz"] > 10_000
 
 
