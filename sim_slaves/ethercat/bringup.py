@@ -1,42 +1,31 @@
-"""A minimal in-process master for an :class:`EscChain`: SOEM-like bring-up through frames.
+"""Slaves of an :class:`EscChain` to OP in-process, for tests and benchmarks that need no network.
 
-For tests and benchmarks that need slaves in OP without a network: every
-step is a real frame built with :mod:`fieldbus.core.ecat` and passed through
-``chain.process``. Mapping as SOEM does it (LRW, legacy layout): all outputs
-from logical address 0 in wire order, then all inputs. Station addresses
-0x1001.. as SOEM assigns them.
+The bring-up is the product's own frame-level master
+(:class:`fieldbus.backends.framemaster.FrameMaster`, the one the sim backend
+uses) over ``chain.process``: station addresses 0x1001.., SII through the
+EEPROM interface, mailbox SyncManagers, SM2/SM3 and FMMUs for an LRW image as
+SOEM lays it out (all outputs from logical address 0 in wire order, then all
+inputs). What this module adds is the cycle frame(s) for that image.
 """
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 
+from fieldbus.backends.framemaster import STATION_BASE, FrameMaster, Mapping, layout_image
+from fieldbus.core.al import AL_OP, AL_PREOP, AL_SAFEOP, state_name
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
-from fieldbus.errors import FieldbusError
-from sim_slaves.ethercat.al import AlState
+from fieldbus.errors import BusTimeoutError, StateTransitionError
 from sim_slaves.ethercat.chain import EscChain
-from sim_slaves.ethercat.sii import SM_TYPE_INPUTS, SM_TYPE_OUTPUTS
 
-STATION_BASE = 0x1001
-
-
-@dataclass(frozen=True)
-class SlaveMapping:
-    """Where one slave's data sit in the logical image (bytes)."""
-
-    station: int
-    out_offset: int
-    out_size: int
-    in_offset: int
-    in_size: int
+__all__ = ["STATION_BASE", "ProcessDataPlan", "bring_up", "exchange"]
 
 
 @dataclass(frozen=True)
 class ProcessDataPlan:
     """The logical image: ``out_bytes`` from 0, then ``in_bytes``; the expected LRW WKC."""
 
-    slaves: tuple[SlaveMapping, ...]
+    slaves: tuple[Mapping, ...]
     out_bytes: int
     in_bytes: int
     expected_wkc: int
@@ -74,94 +63,40 @@ def _lrw(logical: int, size: int, idx: int) -> bytes:
     return build_master_frame([Datagram(Command.LRW, idx, logical, bytes(size))])
 
 
-class BringupError(FieldbusError):
-    """A slave did not take a bring-up step (wrong WKC or state)."""
-
-
 def exchange(chain: EscChain, dgs: list[Datagram], now_ns: int) -> tuple[Datagram, ...]:
-    """Send one frame of ``dgs`` and decode the answer."""
+    """Send one frame of ``dgs`` through ``chain`` and decode the answer (raw datagrams, for tests)."""
     reply = chain.process(build_master_frame(dgs), now_ns)
     if reply is None:
-        raise BringupError("frame lost")
+        raise BusTimeoutError("frame lost")
     return decode_frame(reply).datagrams
 
 
-def _fp(cmd: Command, station: int, ado: int, data: bytes) -> Datagram:
-    return Datagram.physical(cmd, station, ado, data)
-
-
-def _request_state(chain: EscChain, state: AlState, now_ns: int) -> None:
-    n = len(chain)
-    for i in range(n):
-        d = exchange(chain, [_fp(Command.FPWR, STATION_BASE + i, 0x0120, struct.pack("<H", state))], now_ns)
-        if d[0].wkc != 1:
-            raise BringupError(f"slave {i}: AL control write WKC {d[0].wkc}")
-    for i in range(n):
-        (st,) = exchange(chain, [_fp(Command.FPRD, STATION_BASE + i, 0x0130, bytes(6))], now_ns)
-        status, _, code = struct.unpack("<HHH", st.data)
-        if status != state:
-            raise BringupError(f"slave {i}: AL status {status:#x}, code {code:#06x}, wanted {state:#x}")
-
-
 def bring_up(chain: EscChain, now_ns: int = 0) -> ProcessDataPlan:
-    """INIT -> PRE-OP -> SAFE-OP -> OP with SMs and FMMUs as SOEM programs them."""
-    n = len(chain)
-    exchange(chain, [Datagram.physical(Command.BWR, 0, 0x0120, bytes([0x11]))], now_ns)
-    (d,) = exchange(chain, [Datagram.physical(Command.BRD, 0, 0x0000, bytes(2))], now_ns)
-    if d.wkc != n:
-        raise BringupError(f"BRD counted {d.wkc} slaves, chain has {n}")
-    for i in range(n):
-        exchange(
-            chain,
-            [Datagram.physical(Command.APWR, -i & 0xFFFF, 0x0010, struct.pack("<H", STATION_BASE + i))],
-            now_ns,
-        )
-    for i, s in enumerate(chain.slaves):
-        (o_start, o_len), (i_start, i_len) = s.sii.mailbox_out, s.sii.mailbox_in
-        if o_len:
-            sm01 = struct.pack("<HHI", o_start, o_len, 0x00010026) + struct.pack(
-                "<HHI", i_start, i_len, 0x00010022
-            )
-            exchange(chain, [_fp(Command.FPWR, STATION_BASE + i, 0x0800, sm01)], now_ns)
-    _request_state(chain, AlState.PRE_OP, now_ns)
-    log = 0
-    maps = []
+    """INIT -> PRE-OP -> SAFE-OP -> OP through :class:`FrameMaster`; the image as SOEM maps it."""
+    master = FrameMaster(lambda frame: chain.process(frame, now_ns))
+    found = master.scan()
+    if found != len(chain):
+        raise StateTransitionError(f"BRD counted {found} slaves, the chain has {len(chain)}")
+    infos = [master.read_sii(p, master.assign_station(p)) for p in range(found)]
+    for info in infos:
+        master.setup_mailbox(info)
+    stations = [info.station for info in infos]
+    _go(master, stations, AL_PREOP)
     sizes = [(s.image.outputs.size, s.image.inputs.size) for s in chain.slaves]
-    out_offsets = []
-    for o, _ in sizes:
-        out_offsets.append(log)
-        log += o
-    out_bytes = log
-    in_offsets = []
-    for _, i_size in sizes:
-        in_offsets.append(log)
-        log += i_size
-    wkc = 0
-    for i, s in enumerate(chain.slaves):
-        o, inp = sizes[i]
-        st = STATION_BASE + i
-        sm2 = next(x for x in s.sii.sms if x.type == SM_TYPE_OUTPUTS)
-        sm3 = next(x for x in s.sii.sms if x.type == SM_TYPE_INPUTS)
-        dgs = []
-        f = 0
-        if o:
-            dgs.append(
-                _fp(Command.FPWR, st, 0x0810, struct.pack("<HHBBBB", sm2.start, o, sm2.control, 0, 1, 0))
-            )
-            fmmu = struct.pack("<IHBBHBBB", out_offsets[i], o, 0, 7, sm2.start, 0, 2, 1) + bytes(3)
-            dgs.append(_fp(Command.FPWR, st, 0x0600 + 16 * f, fmmu))
-            f += 1
-            wkc += 2
-        if inp:
-            dgs.append(
-                _fp(Command.FPWR, st, 0x0818, struct.pack("<HHBBBB", sm3.start, inp, sm3.control, 0, 1, 0))
-            )
-            fmmu = struct.pack("<IHBBHBBB", in_offsets[i], inp, 0, 7, sm3.start, 0, 1, 1) + bytes(3)
-            dgs.append(_fp(Command.FPWR, st, 0x0600 + 16 * f, fmmu))
-            wkc += 1
-        if dgs:
-            exchange(chain, dgs, now_ns)
-        maps.append(SlaveMapping(st, out_offsets[i], o, in_offsets[i], inp))
-    _request_state(chain, AlState.SAFE_OP, now_ns)
-    _request_state(chain, AlState.OP, now_ns)
-    return ProcessDataPlan(tuple(maps), out_bytes, log - out_bytes, wkc)
+    maps, out_bytes, in_bytes = layout_image(sizes)
+    for info, m in zip(infos, maps, strict=True):
+        master.map_process_data(info, m)
+    _go(master, stations, AL_SAFEOP)
+    _go(master, stations, AL_OP)
+    wkc = sum((2 if m.out_size else 0) + (1 if m.in_size else 0) for m in maps)
+    return ProcessDataPlan(tuple(maps), out_bytes, in_bytes, wkc)
+
+
+def _go(master: FrameMaster, stations: list[int], state: int) -> None:
+    for st in stations:
+        master.request_state(st, state)
+    missing = master.wait_state(stations, state)
+    if missing:
+        st, got = next(iter(missing.items()))
+        have = "no answer" if got is None else f"{state_name(got[0])}, AL status code 0x{got[1]:04X}"
+        raise StateTransitionError(f"station 0x{st:04X}: wanted {state_name(state)}, {have}")
