@@ -23,6 +23,7 @@ import numpy as np
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.busthread import BusThread
 
 
 @dataclass
@@ -46,8 +47,10 @@ class MotorState:
     command: tuple[float, float, float, float, float] | None = None
 
 
-class MitMotorSimulator:
+class MitMotorSimulator(BusThread):
     """Motors with maps ``motors = [(drive_map, node_id), ...]`` on ``bus`` (python-can)."""
+
+    thread_name = "mit-motors"
 
     def __init__(
         self, bus: can.BusABC, motors: list[tuple[DriveMap, int]], *, dt_s: float | None = None
@@ -61,9 +64,8 @@ class MitMotorSimulator:
                 raise ValueError(f"{drive.name} has no rawcan section")
             img = ProcessImage(layout(drive), 1, engine="numpy")
             self._by_id[cfg.command_id + node] = (MotorState(node), img, cfg)
-        self._stop = threading.Event()
+        super().__init__()
         self._lock = threading.Lock()  # fault hooks (test thread) against the serving thread
-        self._thread: threading.Thread | None = None
         self.errors: list[str] = []
 
     def motor(self, node_id: int) -> MotorState:
@@ -71,22 +73,6 @@ class MitMotorSimulator:
             if st.node_id == node_id:
                 return st
         raise KeyError(node_id)
-
-    def start(self) -> MitMotorSimulator:
-        self._thread = threading.Thread(target=self._run, name="mit-motors", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-
-    def __enter__(self) -> MitMotorSimulator:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # fault hooks
     def drop_replies(self, node_id: int, n: int) -> None:

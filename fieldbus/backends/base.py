@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 from collections import deque
+from collections.abc import Callable, Generator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
@@ -121,6 +122,7 @@ class Backend(abc.ABC):
         self.recoveries = 0  # slaves (or whole passes, EtherCAT) brought back to OP
         self.recovery_errors: deque[str] = deque(maxlen=RECOVERY_LOG)  # newest last
         self.last_recovery_error: str | None = None
+        self._recovery: Generator[None, None, bool] | None = None
 
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
         """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
@@ -242,16 +244,49 @@ class Backend(abc.ABC):
     @property
     def recovering(self) -> bool:
         """A recovery is under way (a slave is known not to be in OP, or is being configured again)."""
-        return False
+        return self._recovery is not None
 
     def recover_step(self) -> bool:
         """One bounded recovery step for slaves not in OP; True: nothing (more) to do. Never raises.
 
         Called by :meth:`fieldbus.network.Operational.exchange` - the only caller
         in the cycle - once per cycle after a miss and every cycle while
-        :attr:`recovering`.
+        :attr:`recovering`. Advances :meth:`_recover` by one step; a step that
+        raises ends that attempt (recorded in :attr:`recovery_errors`), the
+        next call starts another.
         """
-        return True
+        if self._recovery is None:
+            self._recovery = self._recover()
+            if self._recovery is None:
+                return True
+        try:
+            next(self._recovery)
+        except StopIteration as stop:
+            self._recovery = None
+            return bool(stop.value)
+        except Exception as exc:
+            self._recovery = None
+            self._recovery_failed(exc)
+        return False
+
+    def _recover(self) -> Generator[None, None, bool] | None:
+        """The bus's recovery as bounded steps (one per ``yield``), returning True when all are back; None: none."""
+        return None
+
+    def plan_io(self, i: int) -> tuple[Callable[[int, int, bytes], None], Callable[[int, int, int], bytes]]:
+        """(write, read) of slave ``i`` for :func:`~fieldbus.backends.sdo_exec.apply_plan` (blocking SDOs)."""
+
+        def write(index: int, sub: int, data: bytes) -> None:
+            self.sdo_write(i, index, sub, data)
+
+        def read(index: int, sub: int, size: int) -> bytes:
+            return self.read_for_plan(i, index, sub, size)
+
+        return write, read
+
+    def read_for_plan(self, slave: int, index: int, sub_index: int, size: int) -> bytes:
+        """A plan's read-back of ``size`` bytes (a backend whose reads need the size overrides it)."""
+        return self.sdo_read(slave, index, sub_index)
 
     def _recovery_failed(self, exc: BaseException) -> None:
         """Record a failed recovery attempt (kept bounded in :attr:`recovery_errors`)."""

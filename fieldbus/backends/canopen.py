@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import struct
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -137,7 +137,6 @@ class CanopenBackend(Backend):
         # recovery
         self._needs_setup = np.zeros(n, dtype=bool)
         self._retry_at = np.zeros(n)
-        self._recovery: Generator[None, None, bool] | None = None
         self._recovering: int | None = None  # node id whose SDO answer the recovery (or acyclic) awaits
         self._acyclic: Generator[None, None, bytes] | None = None  # an SDO asked for in OP, under way
         self._acyclic_request: SdoRequest | None = None
@@ -193,17 +192,8 @@ class CanopenBackend(Backend):
         """
         for i in range(self.n_slaves):
             a = self.areas[i]
-            write, read = self._sdo_pair(i)
+            write, read = self.plan_io(i)
             apply_plan(canopen_plan(a.slave.map, self.node_ids[i]), write, read, slave=a.slave.name)
-
-    def _sdo_pair(self, i: int) -> tuple[Callable[[int, int, bytes], None], Callable[[int, int, int], bytes]]:
-        def write(index: int, sub: int, data: bytes) -> None:
-            self.sdo_write(i, index, sub, data)
-
-        def read(index: int, sub: int, _size: int) -> bytes:
-            return self.sdo_read(i, index, sub)
-
-        return write, read
 
     def safe_op(self) -> None:
         """Prepare the cycle's frames (the nodes stay PRE-OPERATIONAL: no PDOs yet)."""
@@ -371,17 +361,10 @@ class CanopenBackend(Backend):
             if not self._needs_setup.any():
                 return True
             self._abort_acyclic("a node is being configured again (recovery)")
-            self._recovery = self._recover()
-        try:
-            next(self._recovery)
-        except StopIteration as stop:
-            self._recovery = None
-            return bool(stop.value)
-        except Exception as exc:  # one failed attempt; the node is tried again after RETRY_AFTER_S
-            self._recovery = None
+        done = super().recover_step()
+        if self._recovery is None:  # finished or failed (the node is tried again after RETRY_AFTER_S)
             self._recovering = None
-            self._recovery_failed(exc)
-        return False
+        return done
 
     @property
     def recovering(self) -> bool:

@@ -75,7 +75,6 @@ class EthercatBackend(Backend):
         self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
-        self._recovery: Generator[None, None, bool] | None = None
         self._plan_failed: list[BaseException | None] = [None] * self.n_slaves  # in the reconfig hook
         self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose plan failed waits till then
         # (slave, error code, error register) seen in SDO answers, newest last
@@ -107,16 +106,7 @@ class EthercatBackend(Backend):
         for i, area in enumerate(self.areas):
             plan = coe_plan(area.slave.map)
             if plan.steps:
-                apply_plan(plan, *self._sdo_pair(i), slave=area.slave.name)
-
-    def _sdo_pair(self, i: int) -> tuple[Any, Any]:
-        def write(index: int, sub: int, data: bytes) -> None:
-            self.sdo_write(i, index, sub, data)
-
-        def read(index: int, sub: int, size: int) -> bytes:
-            return self._sdo_read_sized(i, index, sub, size)
-
-        return write, read
+                apply_plan(plan, *self.plan_io(i), slave=area.slave.name)
 
     def safe_op(self) -> None:
         try:
@@ -191,7 +181,7 @@ class EthercatBackend(Backend):
 
         def hook(_pos: int) -> None:
             try:
-                apply_plan(coe_plan(area.slave.map), *self._sdo_pair(i), slave=area.slave.name)
+                apply_plan(coe_plan(area.slave.map), *self.plan_io(i), slave=area.slave.name)
             except Exception as exc:
                 self._plan_failed[i] = exc
 
@@ -266,31 +256,13 @@ class EthercatBackend(Backend):
         c, self._dc_correction = self._dc_correction, 0
         return c
 
-    def recover_step(self) -> bool:
-        """One bounded recovery step (one pysoem call); True once every slave is back in OP.
-
-        Runs in the cycle's thread: pysoem holds the GIL in ``read_state``,
-        ``state_check``, ``reconfig`` and ``recover``, so a monitor thread would
-        stall the cycle at unpredictable moments instead. Never raises.
-        """
-        if self._recovery is None:
-            self._recovery = self._recover()
-        try:
-            next(self._recovery)
-        except StopIteration as stop:
-            self._recovery = None
-            return bool(stop.value)
-        except Exception as exc:  # a failed step ends this attempt; the next miss starts another
-            self._recovery = None
-            self._recovery_failed(exc)
-        return False
-
-    @property
-    def recovering(self) -> bool:
-        return self._recovery is not None
-
     def _recover(self) -> Generator[None, None, bool]:
-        """SOEM's ecatcheck as steps; passes repeat until every slave is in OP (``docheckstate``)."""
+        """SOEM's ecatcheck as steps (one pysoem call each); passes repeat until every slave is in OP.
+
+        Runs in the cycle's thread on purpose: pysoem holds the GIL in
+        ``read_state``, ``state_check``, ``reconfig`` and ``recover``, so a
+        monitor thread would stall the cycle at moments nobody chose.
+        """
         while True:
             self.master.read_state()
             yield
@@ -355,6 +327,9 @@ class EthercatBackend(Backend):
     # -- acyclic ------------------------------------------------------------------------
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
         return self._sdo_read_sized(slave, index, sub_index, 0)
+
+    def read_for_plan(self, slave: int, index: int, sub_index: int, size: int) -> bytes:
+        return self._sdo_read_sized(slave, index, sub_index, size)
 
     def _sdo_read_sized(
         self, slave: int, index: int, sub_index: int, size: int, tries: int = SDO_RETRIES + 1

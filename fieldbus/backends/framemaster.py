@@ -161,7 +161,7 @@ class FrameMaster:
         sms: list[SyncManagerInfo] = []
         for kind, data in self._categories(station):
             if kind == SII_CAT_STRINGS:
-                strings = _sii_strings(data)
+                strings = sii_strings(data)
             elif kind == SII_CAT_GENERAL:
                 general = data
             elif kind == SII_CAT_SM:
@@ -333,7 +333,8 @@ class FrameMaster:
             f += 1
 
 
-def _sii_strings(data: bytes) -> list[str]:
+def sii_strings(data: bytes) -> list[str]:
+    """The strings of an SII STRINGS category (count, then length-prefixed latin-1 strings)."""
     out: list[str] = []
     if not data:
         return out

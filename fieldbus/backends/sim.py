@@ -90,7 +90,6 @@ class SimBackend(Backend):
         self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self._wkc = 0
         self._lost = False
-        self._recovery: Generator[None, None, bool] | None = None
         self._open = False
 
     # -- transport ----------------------------------------------------------------------
@@ -137,16 +136,7 @@ class SimBackend(Backend):
         for i, area in enumerate(self.areas):
             plan = coe_plan(area.slave.map)
             if plan.steps:
-                apply_plan(plan, *self._sdo_pair(i), slave=area.slave.name)
-
-    def _sdo_pair(self, i: int) -> tuple[Callable[[int, int, bytes], None], Callable[[int, int, int], bytes]]:
-        def write(index: int, sub: int, data: bytes) -> None:
-            self.sdo_write(i, index, sub, data)
-
-        def read(index: int, sub: int, size: int) -> bytes:
-            return self.sdo_read(i, index, sub)
-
-        return write, read
+                apply_plan(plan, *self.plan_io(i), slave=area.slave.name)
 
     def safe_op(self) -> None:
         self.mappings, out_bytes, in_bytes = layout_image([(a.out_size, a.in_size) for a in self.areas])
@@ -223,29 +213,6 @@ class SimBackend(Backend):
             np.copyto(row, frame_np)
         return self._wkc
 
-    @property
-    def recovering(self) -> bool:
-        return self._recovery is not None
-
-    def recover_step(self) -> bool:
-        """Advance recovery by about one frame exchange; True when every slave is back in OP.
-
-        Never raises: a recovery frame that is lost just ends this attempt
-        (the next miss, or the next cycle while a slave is known not in OP,
-        starts another).
-        """
-        if self._recovery is None:
-            self._recovery = self._recover()
-        try:
-            next(self._recovery)
-        except StopIteration as stop:
-            self._recovery = None
-            return bool(stop.value)
-        except FieldbusError as exc:
-            self._recovery = None
-            self._recovery_failed(exc)
-        return False
-
     def _recover(self) -> Generator[None, None, bool]:
         """ecatcheck-like: ack SAFE-OP+ERROR, request OP, re-bring-up slaves back in INIT or lost.
 
@@ -290,7 +257,7 @@ class SimBackend(Backend):
             if master.wait_state([info.station], AL_PREOP, 1):
                 return
             plan = coe_plan(self.areas[i].slave.map)
-            write, read = self._sdo_pair(i)
+            write, read = self.plan_io(i)
             for step in plan.steps:  # one SDO per cycle
                 one = dataclasses.replace(plan, steps=(step,))
                 apply_plan(one, write, read, slave=self.areas[i].slave.name)

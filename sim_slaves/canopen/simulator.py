@@ -21,6 +21,7 @@ from typing import Any
 import can
 
 from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
 
 TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
@@ -36,12 +37,14 @@ def _default_app(drive: DriveMap) -> Any:
     return Cia402Drive()
 
 
-class CanopenSimulator:
+class CanopenSimulator(BusThread):
     """Nodes ``[(drive_map, node_id), ...]`` on ``bus``; a context manager (start/stop).
 
     Fault hooks (thread-safe): :meth:`drop_tpdos`, :meth:`silence_heartbeat`,
     :meth:`send_emergency`, :meth:`abort_sdo`, :meth:`bus_off`, :meth:`power_cycle`.
     """
+
+    thread_name = "canopen-nodes"
 
     def __init__(
         self, bus: can.BusABC, nodes: Sequence[tuple[DriveMap, int]], *, dt_s: float | None = None
@@ -56,8 +59,7 @@ class CanopenSimulator:
         self.errors: list[str] = []
         self.syncs = 0
         self.sync_cpu_s = 0.0  # thread CPU time on SYNCs (RPDOs applied, drives stepped, TPDOs sent)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__()
         self._lock = threading.Lock()
         self._last_sync: float | None = None
         self._next_hb: dict[int, float] = {}
@@ -68,27 +70,11 @@ class CanopenSimulator:
         return self.nodes[node_id]
 
     # -- life cycle ---------------------------------------------------------------------
-    def start(self) -> CanopenSimulator:
-        """Boot every node (boot-up messages) and serve the bus from a thread."""
+    def _on_start(self) -> None:
+        """Boot every node (boot-up messages); then the thread serves the bus."""
         with self._lock:
             for n in self.nodes.values():
                 self._send(n.boot())
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="canopen-nodes", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
-    def __enter__(self) -> CanopenSimulator:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # -- fault hooks ------------------------------------------------------------------------
     def drop_tpdos(self, node_id: int, count: int = 1) -> None:

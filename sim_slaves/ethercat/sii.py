@@ -15,6 +15,7 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+from fieldbus.backends.framemaster import sii_strings
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap, Pdo
 from fieldbus.errors import FieldbusError
@@ -145,15 +146,7 @@ class SiiImage:
         return out
 
     def strings(self) -> list[str]:
-        data = self.categories().get(CAT_STRINGS, b"")
-        out: list[str] = []
-        if data:
-            pos = 1
-            for _ in range(data[0]):
-                n = data[pos]
-                out.append(data[pos + 1 : pos + 1 + n].decode("latin-1"))
-                pos += 1 + n
-        return out
+        return sii_strings(self.categories().get(CAT_STRINGS, b""))
 
     @property
     def name(self) -> str:

@@ -20,6 +20,17 @@ from sim_slaves.ethercat.veth import Emulator, VethUnavailable, emulated_segment
 
 
 @pytest.fixture
+def generous_pysoem_timeouts() -> Iterator[None]:
+    """SOEM's frame round-trip timeout 20 ms instead of 2 ms: the machine is shared and loaded."""
+    pysoem = pytest.importorskip("pysoem")
+    t = pysoem.settings.timeouts
+    old = t.ret
+    t.ret = 20_000
+    yield
+    t.ret = old
+
+
+@pytest.fixture
 def ethercat_emulator(tmp_path: Path) -> Iterator[Callable[..., Emulator]]:
     with ExitStack() as stack:
 

@@ -27,17 +27,7 @@ MAXON = INTEROP / "maxon_epos4_50_5.yaml"
 MS = 1_000_000
 SOEM_SYNC_DELAY_NS = 100 * MS  # ecx_dcsync0: first pulse 100 ms after the system time read
 
-pytestmark = [pytest.mark.veth, pytest.mark.timeout(300)]
-
-
-@pytest.fixture(autouse=True)
-def _generous_timeouts() -> Any:
-    """Frame round-trip timeout 20 ms instead of 2 ms: the machine is shared and loaded."""
-    t = pysoem.settings.timeouts
-    old = t.ret
-    t.ret = 20_000
-    yield
-    t.ret = old
+pytestmark = [pytest.mark.veth, pytest.mark.timeout(300), pytest.mark.usefixtures("generous_pysoem_timeouts")]
 
 
 def _u(slave: Any, ado: int, size: int) -> int:

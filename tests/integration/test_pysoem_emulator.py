@@ -28,17 +28,7 @@ IN_REMAPPED = 21  # 0x1A03 without its last entry (0x60BB, int32)
 CSP = 8
 CYCLES = 10_000
 
-pytestmark = [pytest.mark.veth, pytest.mark.timeout(600)]
-
-
-@pytest.fixture(autouse=True)
-def _generous_timeouts() -> Any:
-    """Frame round-trip timeout 20 ms instead of 2 ms: the machine is shared and loaded."""
-    t = pysoem.settings.timeouts
-    old = t.ret
-    t.ret = 20_000
-    yield
-    t.ret = old
+pytestmark = [pytest.mark.veth, pytest.mark.timeout(600), pytest.mark.usefixtures("generous_pysoem_timeouts")]
 
 
 def _bring_to_preop(master: Any, n: int) -> None:

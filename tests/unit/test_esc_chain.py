@@ -17,19 +17,7 @@ from sim_slaves.ethercat.sii import SiiImage
 from sim_slaves.od import CommState, ObjectDictionary
 
 MAXON = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2" / "maxon_epos4_50_5.yaml"
-IO16 = """
-name: io16
-vendor_id: 0x2
-product_id: 0x1234
-rpdo:
-  - index: 0x1600
-    channels:
-      - {index: 0x7000, sub_index: 1, type: uint16}
-tpdo:
-  - index: 0x1a00
-    channels:
-      - {index: 0x6000, sub_index: 1, type: uint16}
-"""
+IO16 = (Path(__file__).resolve().parents[1] / "data" / "io16.yaml").read_text()
 
 
 def hx(text: str) -> bytes:

@@ -16,6 +16,7 @@ true ones are 325, 650, 975.
 from __future__ import annotations
 
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,19 +37,7 @@ from sim_slaves.ethercat import EscChain
 from sim_slaves.ethercat.dc_clock import DcSlaveClock
 from sim_slaves.ethercat.runner import handle_control
 
-IO16 = """
-name: io16
-vendor_id: 0x2
-product_id: 0x1234
-rpdo:
-  - index: 0x1600
-    channels:
-      - {index: 0x7000, sub_index: 1, type: uint16}
-tpdo:
-  - index: 0x1a00
-    channels:
-      - {index: 0x6000, sub_index: 1, type: uint16}
-"""
+IO16 = (Path(__file__).resolve().parents[1] / "data" / "io16.yaml").read_text()
 P0 = [5, 330, 655, 980]
 P1 = [1875, 1590, 1305, None]
 SOEM_DELAYS = [0, 305, 610, 935]
