@@ -293,11 +293,3 @@ class SimBackend(Backend):
     def emergencies(self) -> list[tuple[int, int, int]]:
         """CoE emergencies seen in the mailbox: (station, error code, error register)."""
         return self.master.emergencies
-
-    def al_states(self) -> list[str]:
-        """Every slave's AL state as text (one FPRD each; not for the cycle)."""
-        out = []
-        for info in self.infos:
-            got = self.master.al_status(info.station)
-            out.append("no answer" if got is None else state_name(got[0]))
-        return out

@@ -64,10 +64,6 @@ class Command(IntEnum):
     FRMW = 14  # configured address physical read, multiple write
 
     @property
-    def is_logical(self) -> bool:
-        return self in (Command.LRD, Command.LWR, Command.LRW)
-
-    @property
     def reads(self) -> bool:
         """The command returns slave data to the master."""
         return self in _READS

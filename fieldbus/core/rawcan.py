@@ -72,10 +72,6 @@ class RawCanConfig:
     def command_bytes(self) -> int:
         return sum(f.bits for f in self.command) // 8
 
-    @property
-    def reply_bytes(self) -> int:
-        return sum(f.bits for f in self.reply) // 8
-
 
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
     """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""

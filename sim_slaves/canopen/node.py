@@ -407,10 +407,6 @@ class CanopenNode:
         return bytes([head]) + chunk.ljust(7, b"\0")
 
     # -- PDOs -----------------------------------------------------------------------------
-    def pdo_changed(self) -> None:
-        """Rebuild the PDOs before the next one (after PDO objects were set through the app face)."""
-        self._pdo_dirty = True
-
     def _refresh_pdos(self) -> None:
         od = self.od
         if not self._pdo_dirty and od.mapping_version == self._mapping_seen:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from pathlib import Path
 
 from fieldbus.backends.framemaster import sii_strings
 from fieldbus.core.pdo.layout import layout
@@ -75,11 +74,6 @@ class SiiImage:
             raise SiiError(f"SII image of {len(data)} bytes is too short or odd")
         self.data = bytearray(data)
         self.sms = self._parse_sms()
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> SiiImage:
-        """A raw EEPROM dump (``.bin``)."""
-        return cls(Path(path).read_bytes())
 
     def word(self, addr: int) -> int:
         """16-bit word at word address ``addr`` (0xFFFF past the end, like an erased EEPROM)."""
