@@ -2,30 +2,31 @@
 
 Bring-up: ``config_init`` and an identity check against the maps; in PRE-OP
 each slave's CoE SDO plan is written and read back; ``config_map`` and a size
-check against our layout; SAFE-OP; OP. The plan is also installed as the
-slave's PRE-OP -> SAFE-OP hook so that SOEM's ``reconfig`` (after a power
-cycle) applies it again.
+check against our layout; SAFE-OP (each slave's SyncManager and FMMU
+registers kept for recovery); OP, confirmed by the working counter.
 
 Cycle: outputs are copied per slave from its process-image row into SOEM's IO map (pysoem exposes each
 slave's area only as ``bytes``: a transient copy, nothing kept), one LRW is
 sent, the reply is awaited for at most the bus's receive timeout with the GIL
 released, inputs are copied back into the slaves' rows of the process images.
 
-Recovery (like SOEM's ``ecatcheck``) is a generator advanced one pysoem call
-per cycle after a miss, and every cycle while a slave is known not to be in
-OP; see docs/backends.md for its limits (``reconfig`` is one long call).
+Recovery (like SOEM's ``ecatcheck``) is a generator advanced by the cycle one
+pysoem call or one frame at a time, after a miss and while a slave is known
+not to be in OP; a power-cycled slave is configured again step by step (SOEM's
+``reconfig`` sequence, split), see docs/backends.md.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import deque
 from collections.abc import Generator
 from typing import Any
 
 from fieldbus.backends.base import Backend, SdoRequest
-from fieldbus.backends.sdo_exec import apply_plan
-from fieldbus.core.al import AL_ERROR, al_status_name, state_name
+from fieldbus.backends.sdo_exec import apply_plan, plan_transfers
+from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import coe_plan
@@ -52,7 +53,16 @@ HOST_OFFSET_FRACTION = 50  # host sends this % of a cycle after each SYNC0 (SOEM
 SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times
 MAX_EMERGENCIES = 1000  # emergencies kept (oldest dropped)
 ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
-PLAN_RETRY_S = 1.0  # a slave whose SDO plan failed in reconfig is tried again after this
+PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
+RECOVERY_FRAME_TIMEOUT_US = 2000  # one register read/write during recovery
+RECOVERY_SDO_TIMEOUT_US = (
+    20_000  # SOEM's mailbox timeout for the plan's SDOs during recovery (default 700 ms)
+)
+STATE_POLL_STEPS = 200  # cycles a reconfigured slave may take to reach a state
+SNAPSHOT_TIMEOUT_US = 20_000
+SM_SNAPSHOT, FMMU_SNAPSHOT = 8, 4  # SyncManagers and FMMUs kept per slave (SOEM: EC_MAXSM, EC_MAXFMMU)
+REG_FMMU0, REG_SM0 = 0x0600, 0x0800
+REG_AL_CONTROL, REG_AL_STATUS, REG_EEPROM_CONFIG = 0x0120, 0x0130, 0x0500
 
 
 class EthercatBackend(Backend):
@@ -75,8 +85,10 @@ class EthercatBackend(Backend):
         self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
-        self._plan_failed: list[BaseException | None] = [None] * self.n_slaves  # in the reconfig hook
-        self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose plan failed waits till then
+        self._sdo_tries = SDO_RETRIES + 1  # tries per SDO (1 during recovery: no cycle waits for retries)
+        self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose reconfiguration failed waits
+        self._sm_regs: list[list[tuple[int, bytes]]] = []  # per slave: (register, bytes) to write again
+        self._fmmu_regs: list[list[tuple[int, bytes]]] = []
         # (slave, error code, error register) seen in SDO answers, newest last
         self.emergencies: deque[tuple[int, int, int]] = deque(maxlen=MAX_EMERGENCIES)
 
@@ -131,10 +143,6 @@ class EthercatBackend(Backend):
             raise StateTransitionError(
                 f"bus '{self.bus.name}': SOEM expects WKC {self.master.expected_wkc}, our layout {self.expected_wkc}"
             )
-        for i, area in enumerate(self.areas):  # SOEM's reconfig() re-applies the plan through this hook
-            plan = coe_plan(area.slave.map)
-            if plan.steps:
-                self._slaves[i].config_func = self._hook(i)
         self._out_views = [
             (s, self.out_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].out_size
         ]
@@ -145,6 +153,34 @@ class EthercatBackend(Backend):
         state = self.master.state_check(pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
+        self._snapshot_registers()
+
+    def _snapshot_registers(self) -> None:
+        """Keep each slave's SyncManager and FMMU registers as SOEM programmed them (SAFE-OP).
+
+        A power-cycled slave is configured again from these (:meth:`_reconfigure`),
+        step by step, instead of SOEM's ``reconfig`` - one long call. Only
+        enabled entries (SM with a start address, FMMU with its activate bit);
+        the SM status and PDI-control bytes are read-only and written as 0.
+        """
+        self._sm_regs, self._fmmu_regs = [], []
+        for s in self._slaves:
+            sm = s._fprd(REG_SM0, SM_SNAPSHOT * 8, SNAPSHOT_TIMEOUT_US)
+            fmmu = s._fprd(REG_FMMU0, FMMU_SNAPSHOT * 16, SNAPSHOT_TIMEOUT_US)
+            self._sm_regs.append(
+                [
+                    (REG_SM0 + 8 * k, sm[8 * k : 8 * k + 5] + b"\0" + sm[8 * k + 6 : 8 * k + 7] + b"\0")
+                    for k in range(SM_SNAPSHOT)
+                    if sm[8 * k : 8 * k + 2] != b"\0\0"
+                ]
+            )
+            self._fmmu_regs.append(
+                [
+                    (REG_FMMU0 + 16 * k, fmmu[16 * k : 16 * k + 16])
+                    for k in range(FMMU_SNAPSHOT)
+                    if fmmu[16 * k + 12] & 1
+                ]
+            )
 
     def _configure_dc(self) -> None:
         """DC for maps with ``assign_activate``: ``config_dc``, then SYNC0 (and SYNC1) per slave.
@@ -169,23 +205,63 @@ class EthercatBackend(Backend):
             HostSyncConfig(cycle_ns=cycle_ns, offset_ns=HOST_OFFSET_FRACTION * cycle_ns // 100)
         )
 
-    def _hook(self, i: int) -> Any:
-        """The slave's PRE-OP -> SAFE-OP hook, run by SOEM's ``reconfig``: the SDO plan again.
+    def _reconfigure(self, i: int) -> Generator[None, None, None]:
+        """Slave ``i`` from INIT/PRE-OP back to SAFE-OP, one frame or one SDO per step.
 
-        pysoem checks exceptions from this hook only in ``config_map``, not in
-        ``reconfig``, so a failure is kept here and judged after ``reconfig``
-        returns (:meth:`_recover`): it must not vanish and leave the slave
-        running with its default mapping.
+        The sequence of SOEM's ``ecx_reconfig_slave`` (INIT, EEPROM to PDI, the
+        SyncManagers, PRE-OP, the SDO plan - written, then read back - SAFE-OP,
+        the FMMUs), split so that no cycle waits for more than one of them. A
+        failure (an SDO abort, a state that is not reached) puts the slave back
+        to INIT and raises: it never runs with a mapping the network did not write.
         """
-        area = self.areas[i]
-
-        def hook(_pos: int) -> None:
+        s, area = self._slaves[i], self.areas[i]
+        t = RECOVERY_FRAME_TIMEOUT_US
+        try:
+            s._fpwr(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]), t)
+            yield
+            yield from self._await_state(i, AL_INIT)
+            s._fpwr(REG_EEPROM_CONFIG, b"\x01", t)  # EEPROM to PDI, as SOEM does
+            for address, data in self._sm_regs[i]:
+                s._fpwr(address, data, t)
+                yield
+            s._fpwr(REG_AL_CONTROL, bytes([AL_PREOP, 0]), t)
+            yield
+            yield from self._await_state(i, AL_PREOP)
+            m = self.master
+            saved = m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries
+            m.sdo_read_timeout = m.sdo_write_timeout = RECOVERY_SDO_TIMEOUT_US
+            self._sdo_tries = 1
             try:
-                apply_plan(coe_plan(area.slave.map), *self.plan_io(i), slave=area.slave.name)
-            except Exception as exc:
-                self._plan_failed[i] = exc
+                yield from plan_transfers(coe_plan(area.slave.map), *self.plan_io(i), slave=area.slave.name)
+            finally:
+                m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries = saved
+            s._fpwr(REG_AL_CONTROL, bytes([AL_SAFEOP, 0]), t)
+            yield
+            yield from self._await_state(i, AL_SAFEOP)
+            for address, data in self._fmmu_regs[i]:
+                s._fpwr(address, data, t)
+                yield
+        except Exception as exc:
+            self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
+            with contextlib.suppress(Exception):
+                s._fpwr(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]), t)
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': position {i} ({area.slave.name}) could not be configured again after "
+                f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {exc}"
+            ) from exc
 
-        return hook
+    def _await_state(self, i: int, state: int) -> Generator[None, None, None]:
+        """Read slave ``i``'s AL status once per step until it shows ``state``; give up after a while."""
+        s = self._slaves[i]
+        for _ in range(STATE_POLL_STEPS):
+            raw = s._fprd(REG_AL_STATUS, 2, RECOVERY_FRAME_TIMEOUT_US)
+            got = int.from_bytes(raw, "little")
+            if got & 0x0F == state:
+                return
+            if got & AL_ERROR and state != AL_INIT:
+                raise StateTransitionError(f"{state_name(got)} instead of {state_name(state)}")
+            yield
+        raise BusTimeoutError(f"did not reach {state_name(state)} within {STATE_POLL_STEPS} cycles")
 
     def op(self) -> None:
         for _ in range(3):  # valid outputs before OP, so no watchdog trips on the way
@@ -284,26 +360,13 @@ class EthercatBackend(Backend):
                 elif action is Recovery.REQUEST_OP:
                     s.state = pysoem.OP_STATE
                     s.write_state()
-                elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle: the longest step
+                elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle
                     i = self._slaves.index(s)
                     if time.monotonic() < self._retry_at[i]:
-                        continue  # its plan failed a moment ago: not every cycle
-                    self._plan_failed[i] = None
-                    reached = s.reconfig(timeout=RECONFIG_TIMEOUT_US)
-                    failed = self._plan_failed[i]
-                    if failed is not None:  # back to INIT: never OP with a mapping we did not write
-                        self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
-                        s.state = pysoem.INIT_STATE
-                        s.write_state()
-                        raise StateTransitionError(
-                            f"bus '{self.bus.name}': position {i} ({self.areas[i].slave.name}) came back from a "
-                            f"power cycle but its SDO plan failed, left in INIT (next try in {PLAN_RETRY_S:g} s): "
-                            f"{failed}"
-                        ) from failed
-                    if reached >= pysoem.SAFEOP_STATE:
-                        yield
-                        s.state = pysoem.OP_STATE
-                        s.write_state()
+                        continue  # its configuration failed a moment ago: not every cycle
+                    yield from self._reconfigure(i)
+                    s.state = pysoem.OP_STATE
+                    s.write_state()
                 elif action is Recovery.RECOVER:
                     s.is_lost = s.recover(timeout=RECONFIG_TIMEOUT_US) <= 0
                 yield
@@ -332,7 +395,7 @@ class EthercatBackend(Backend):
         return self._sdo_read_sized(slave, index, sub_index, size)
 
     def _sdo_read_sized(
-        self, slave: int, index: int, sub_index: int, size: int, tries: int = SDO_RETRIES + 1
+        self, slave: int, index: int, sub_index: int, size: int, tries: int | None = None
     ) -> bytes:
         data: bytes = self._sdo(
             slave,
@@ -381,7 +444,7 @@ class EthercatBackend(Backend):
         return True
 
     def _sdo(
-        self, slave: int, index: int, sub_index: int, what: str, call: Any, tries: int = SDO_RETRIES + 1
+        self, slave: int, index: int, sub_index: int, what: str, call: Any, tries: int | None = None
     ) -> Any:
         """One SDO transfer with pysoem's errors turned into ours.
 
@@ -394,6 +457,7 @@ class EthercatBackend(Backend):
         """
         name = self.areas[slave].slave.name
         last = ""
+        tries = self._sdo_tries if tries is None else tries
         for _ in range(tries):
             try:
                 return call(self._slaves[slave])

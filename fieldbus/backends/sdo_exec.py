@@ -7,7 +7,7 @@ slave, object and abort code; nothing after it is written.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 
 from fieldbus.core.sdo import SdoPlan, StepKind
 from fieldbus.errors import SdoAbortError, SdoMismatchError
@@ -22,12 +22,26 @@ def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
     ``write``/``read`` raise :class:`SdoAbortError` on an abort; this adds the
     slave name when the backend did not.
     """
+    steps = plan_transfers(plan, write, read, slave=slave)
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return int(done.value)
+
+
+def plan_transfers(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> Generator[None, None, int]:
+    """:func:`apply_plan` one transfer at a time: yields after each SDO, returns the count.
+
+    For recovery inside the cycle, where no cycle may wait for a whole plan.
+    """
     transfers = 0
     try:
         for step in plan.steps:
             if step.kind is StepKind.WRITE:
                 write(step.index, step.sub_index, step.data)
                 transfers += 1
+                yield
         for step in plan.checks:
             assert step.readback is not None
             got = read(step.index, step.sub_index, len(step.readback))
@@ -42,6 +56,7 @@ def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
                     received=got,
                     slave=slave,
                 )
+            yield
     except SdoAbortError as exc:
         if not exc.slave:
             raise SdoAbortError(
