@@ -19,7 +19,7 @@ from typing import Any
 
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, open_network
-from fieldbus.runtime.soak import Control, FaultSpec, Soak
+from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
 
 DEFAULT_FAULTS = "loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1"
 
@@ -44,6 +44,12 @@ def register(sub: Any) -> None:
         type=float,
         default=0.0,
         help="pace the cycle at this rate in Hz (default: as fast as it goes)",
+    )
+    p.add_argument(
+        "--margin-us",
+        type=float,
+        default=DEFAULT_MARGIN_US,
+        help=f"a cycle may take the receive timeout plus this, else it is a violation (default {DEFAULT_MARGIN_US:g})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
@@ -87,7 +93,13 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             net = open_network(net_file, backend=backend)
             return net, control_for(net)
 
-        runner = Soak(opener, spec, seed=args.seed, cycle_time_us=1e6 / args.rate if args.rate else 0.0)
+        runner = Soak(
+            opener,
+            spec,
+            seed=args.seed,
+            cycle_time_us=1e6 / args.rate if args.rate else 0.0,
+            margin_us=args.margin_us,
+        )
         try:
             rep = runner.run(args.cycles)
         finally:

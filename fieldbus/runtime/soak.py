@@ -19,7 +19,9 @@ fresh, the cycle not fresh); ``delay`` and ``wkc`` are EtherCAT faults.
 Invariants checked every cycle (a broken one is a *violation*, never an
 exception): an injected loss is reported as a miss in the same cycle and its
 inputs are not called fresh; the safe stop fires exactly when the
-consecutive-miss count reaches the threshold; after a safe stop, the first
+consecutive-miss count reaches the threshold; no cycle's ``exchange()`` takes
+longer than the receive timeout plus ``margin_us`` (lost frames, recovery steps
+and acyclic SDOs included); after a safe stop, the first
 delivered cycle leaves no emulated drive in OPERATION ENABLED; a power-cycled
 slave is back in OP within ``recovery_cycles`` without user action; no
 exception escapes the loop; ``close()`` leaves every drive below OPERATION
@@ -57,6 +59,9 @@ ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: Ethe
 EMCY_CODE = 0x2310  # continuous over-current
 NOTICED = ("emcy", "heartbeat")  # faults that are reported, not seen as a lost cycle
 NOTICE_CYCLES = 200  # an EMCY or a heartbeat loss must be noticed within this many cycles
+# exchange() may take the receive timeout plus this (recovery steps, the emulated drives, and the
+# scheduling of a shared, non-real-time machine); tighten it with --margin-us on a real-time one
+DEFAULT_MARGIN_US = 5000.0
 OE = int(State402.OPERATION_ENABLED)
 
 
@@ -194,6 +199,7 @@ class Soak:
         warmup: int = 200,
         recovery_cycles: int = 5000,
         cycle_time_us: float = 0.0,
+        margin_us: float = DEFAULT_MARGIN_US,
     ) -> None:
         self.opener = opener
         self.net, self.control = opener()
@@ -204,6 +210,7 @@ class Soak:
         self.warmup = warmup
         self.recovery_cycles = recovery_cycles
         self.cycle_time_us = cycle_time_us
+        self.margin_us = margin_us  # a cycle's exchange() may take the receive timeout plus this
         self.report = SoakReport()
         self.timer = CycleTimer()
 
@@ -260,6 +267,7 @@ class Soak:
         recovering: list[int] = []  # cycles at which a power cycle is still being recovered
         fresh_streak = 0
         period_ns = int(self.cycle_time_us * 1000)
+        limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
         for k in range(cycles):
             event = plan.get(k)
@@ -313,6 +321,12 @@ class Soak:
                 "recovery" if any(st.recovering for st in res.buses) else "good" if fresh else "miss"
             )
             rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
+            if res.exchange_ns > limit_ns:
+                rep.violate(
+                    k,
+                    f"exchange() took {res.exchange_ns / 1e3:.0f} us on a {kind_of_cycle} cycle, more than the "
+                    f"receive timeout plus {self.margin_us:g} us",
+                )
             if fresh and not stop_latched:
                 ctrl.step(sw, cw)
             self.timer.add(time.perf_counter_ns() - t0)

@@ -26,6 +26,7 @@ def _args(backend: str, **kw: object) -> argparse.Namespace:
         "cycles": CYCLES,
         "seed": 1,
         "rate": 0.0,
+        "margin_us": 5000.0,
     }
     base.update(kw)
     base.setdefault("faults", DEFAULT_FAULTS)
@@ -53,6 +54,16 @@ def test_soak_accounts_for_every_fault(backend: str) -> None:
     assert r["injected"]["loss"] > CYCLES * 0.005
     assert r["safe_stops"] >= 1 and r["reenabled_after_safe_stop"] == r["safe_stops"]
     assert r["cycles"] == CYCLES
+    times = r["exchange_us"]
+    assert times["good"]["cycles"] + times["miss"]["cycles"] + times["recovery"]["cycles"] == CYCLES
+    assert times["recovery"]["cycles"] > 0 and times["good"]["p50"] < times["good"]["max"]
+
+
+def test_the_checker_catches_a_cycle_longer_than_its_budget() -> None:
+    """With a margin below what a cycle costs, every cycle is reported: the timing invariant can fail."""
+    r = soak(_args("sim", cycles=300, faults="loss=0.01", margin_us=-490.0), FaultSpec.parse("loss=0.01"))
+    assert r["violation_count"] > 100
+    assert "more than the receive timeout plus -490 us" in r["violations"][0]
 
 
 def test_the_checker_catches_a_loss_that_never_happened(monkeypatch: pytest.MonkeyPatch) -> None:
