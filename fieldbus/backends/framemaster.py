@@ -24,6 +24,21 @@ Transport = Callable[[bytes], "bytes | None"]
 
 STATION_BASE = 0x1001
 
+# registers written to 0 by every slave at start (SOEM's defaults): DL control (port loops, alias
+# off), DL user/IRQ mask, IRQ masks, FMMUs, SyncManagers, DC activation, DC control loop inputs
+DEFAULT_REGISTERS = (
+    (0x0101, 1),
+    (0x0103, 1),
+    (0x0200, 2),
+    (0x0300, 8),
+    (0x0600, 48),
+    (0x0800, 32),
+    (0x0981, 1),
+    (0x0910, 8),
+    (0x0930, 2),
+    (0x0934, 2),
+)
+
 # SII word addresses (ETG.1000.6 5.4) and categories
 SII_VENDOR, SII_PRODUCT, SII_REVISION = 0x08, 0x0A, 0x0C
 SII_MBX_OUT, SII_MBX_IN = 0x18, 0x1A
@@ -120,10 +135,30 @@ class FrameMaster:
 
     # -- scan -------------------------------------------------------------------------------
     def scan(self) -> int:
-        """Reset every slave to INIT (acknowledging errors) and count them with a BRD."""
+        """Reset every slave to INIT and to default settings, as SOEM's config_init does; count them.
+
+        Whatever an earlier master (or a fuzzer) left behind is undone before
+        anything is read: DL control and port settings, interrupt masks, FMMUs,
+        SyncManagers, DC activation, EEPROM access given back to the master.
+        """
         self.txrx([Datagram.physical(Command.BWR, 0, 0x0120, _U16.pack(AL_INIT | AL_ACK))])
         (d,) = self.txrx([Datagram.physical(Command.BRD, 0, 0x0000, bytes(2))])
+        for ado, size in DEFAULT_REGISTERS:
+            self.txrx([Datagram.physical(Command.BWR, 0, ado, bytes(size))])
+        self.txrx([Datagram.physical(Command.BWR, 0, 0x0120, _U16.pack(AL_INIT | AL_ACK))])
+        self.txrx([Datagram.physical(Command.BWR, 0, 0x0500, b"\x02")])  # EEPROM: reset PDI access
+        self.txrx([Datagram.physical(Command.BWR, 0, 0x0500, b"\x00")])  # ... and to the master
         return d.wkc
+
+    def identify(self, found: int) -> list[SlaveInfo]:
+        """Station addresses for all ``found`` slaves first, then each one's SII.
+
+        In this order because addresses left by an earlier master may repeat:
+        until every slave has its new one, a configured-address read could
+        reach two slaves at once.
+        """
+        stations = [self.assign_station(p) for p in range(found)]
+        return [self.read_sii(p, st) for p, st in enumerate(stations)]
 
     def assign_station(self, position: int) -> int:
         """Give the slave at ``position`` its configured station address (APWR 0x0010)."""

@@ -103,7 +103,7 @@ class SimBackend(Backend):
     def open(self) -> None:
         found = self.master.scan()
         self._open = True
-        self.infos = [self.master.read_sii(p, self.master.assign_station(p)) for p in range(found)]
+        self.infos = self.master.identify(found)
         self.check_identities([(x.name, x.vendor_id, x.product_id) for x in self.infos], "(sim)")
         for info in self.infos:
             self.master.setup_mailbox(info)

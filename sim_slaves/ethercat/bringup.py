@@ -77,7 +77,7 @@ def bring_up(chain: EscChain, now_ns: int = 0) -> ProcessDataPlan:
     found = master.scan()
     if found != len(chain):
         raise StateTransitionError(f"BRD counted {found} slaves, the chain has {len(chain)}")
-    infos = [master.read_sii(p, master.assign_station(p)) for p in range(found)]
+    infos = master.identify(found)
     for info in infos:
         master.setup_mailbox(info)
     stations = [info.station for info in infos]
