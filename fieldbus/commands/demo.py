@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
+from fieldbus.commands import cycleopts
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, Operational, open_network
-from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.report import run_report
+from fieldbus.runtime.rt import RtState
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
 BACKENDS = ("sim", "ethercat", "canopen", "rawcan")
@@ -71,6 +72,7 @@ def register(sub: Any) -> None:
         help="cycle rate in Hz (default 1000; canopen 100, rawcan 250: python-can's virtual bus is threads)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    cycleopts.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -82,7 +84,11 @@ def run(args: argparse.Namespace) -> int:
         args.rate = DEFAULT_RATE_HZ[args.backend]
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
-    report = run_demo(args.backend, args.axes, args.cycles, args.rate, status=not args.json)
+    with cycleopts.rt_context(args) as rt:
+        report = run_demo(args.backend, args.axes, args.cycles, args.rate, status=not args.json, rt=rt)
+    if args.plot:
+        cycleopts.plot_latency(report.pop("_latency"), args.plot, f"fieldbus demo --backend {args.backend}")
+    report.pop("_latency", None)
     if args.json:
         print(json.dumps(report))
     else:
@@ -203,8 +209,12 @@ def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator
         yield DemoSetup(net, None, sim)
 
 
-def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bool = False) -> dict[str, Any]:
-    """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``, ...)."""
+def run_demo(
+    backend: str, axes: int, cycles: int, rate_hz: float, *, status: bool = False, rt: RtState | None = None
+) -> dict[str, Any]:
+    """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
+    ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
+    the private key ``_latency`` for a plot."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
         demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
@@ -214,15 +224,13 @@ def run_demo(backend: str, axes: int, cycles: int, rate_hz: float, *, status: bo
         follower: SineFollower | MitFollower = (
             MitFollower(op, axes, rate_hz) if backend == "rawcan" else SineFollower(op, axes, rate_hz)
         )
-        timer = run_cycles(
-            follower.step,
-            1e6 / rate_hz,
-            cycles,
-            status=default_status_stream(status),
-            describe=follower.status,
+        timer, latency = cycleopts.run_timed(
+            op, follower.step, 1e6 / rate_hz, cycles, status=status, describe=follower.status
         )
         report = run_report(op, timer, 1e6 / rate_hz)
         report.update(follower.summary())
+        report.update(cycleopts.latency_report(latency, rt or RtState()))
+        report["_latency"] = latency
     report["backend"] = backend
     report["axes"] = axes
     return report

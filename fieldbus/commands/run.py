@@ -10,8 +10,8 @@ import argparse
 import json
 from typing import Any
 
+from fieldbus.commands import cycleopts
 from fieldbus.network import open_network
-from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.report import run_report
 
 
@@ -25,6 +25,7 @@ def register(sub: Any) -> None:
         "\n  130 interrupted (Ctrl-C); the drives were stopped and the buses closed",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    cycleopts.add_arguments(p)
     p.add_argument("network", metavar="NETWORK.yaml")
     p.add_argument("--cycles", type=int, default=1000, help="number of cycles (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
@@ -33,20 +34,18 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    with open_network(args.network, backend=args.backend) as net:
+    with open_network(args.network, backend=args.backend) as net, cycleopts.rt_context(args) as rt:
         op = net.bring_up()
-        period = float(min(b.bus.cycle_time_us for b in net.backends))
+        period = float(op.cycle_time_us)
 
         def step(_k: int) -> None:
             op.exchange()
 
-        timer = run_cycles(
-            step,
-            period,
-            args.cycles,
-            status=default_status_stream(not args.json),
-        )
+        timer, latency = cycleopts.run_timed(op, step, period, args.cycles, status=not args.json)
         report = run_report(op, timer, period)
+        report.update(cycleopts.latency_report(latency, rt))
+    if args.plot:
+        cycleopts.plot_latency(latency, args.plot, f"fieldbus run {args.network}")
     if args.json:
         print(json.dumps(report))
     else:

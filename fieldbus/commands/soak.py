@@ -17,6 +17,7 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from fieldbus.commands import cycleopts
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, open_network
 from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
@@ -52,6 +53,7 @@ def register(sub: Any) -> None:
         help=f"a cycle may take the receive timeout plus this, else it is a violation (default {DEFAULT_MARGIN_US:g})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    cycleopts.add_arguments(p, plot=False)
     p.set_defaults(func=run)
 
 
@@ -101,13 +103,15 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             margin_us=args.margin_us,
         )
         try:
-            rep = runner.run(args.cycles)
+            with cycleopts.rt_context(args) as rt:
+                rep = runner.run(args.cycles)
         finally:
             runner.close()
         out = rep.to_json()
         out["faults"] = args.faults
         out["backend"] = args.backend if args.demo else "sim"
         out["cycle_time_us"] = runner.timer.summary().to_json()
+        out["realtime"] = rt.to_json()
         return out
 
 

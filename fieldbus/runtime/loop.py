@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.runtime.timing import CycleLatency, CycleTimer
 
 # Sleep until this close to the deadline, then spin: OS sleeps overshoot by ~50-100 µs.
 SPIN_NS = 150_000
@@ -61,6 +61,7 @@ def run_cycles(
     status_every_s: float = 1.0,
     describe: Callable[[], str] | None = None,
     adjust: Callable[[], int] | None = None,
+    latency: CycleLatency | None = None,
     clock: Callable[[], int] = time.perf_counter_ns,
     sleep: Callable[[float], None] = time.sleep,
 ) -> CycleTimer:
@@ -70,7 +71,9 @@ def run_cycles(
     ``sys.stderr``) a one-line status is rewritten about once per
     ``status_every_s`` using ``describe()``. ``adjust()`` (ns) is added to each
     next deadline: the DC host sync (``Operational.dc_correction_ns``). ``clock``
-    (ns) and ``sleep`` (s) are injectable for tests.
+    (ns) and ``sleep`` (s) are injectable for tests. With ``latency`` each cycle's
+    wake-up latency (start minus its deadline, ns) goes into ``latency.wakeup``;
+    the caller's step adds its exchange time to ``latency.exchange``.
     """
     timer = timer or CycleTimer(capacity=max(1, min(cycles, 1_000_000)))
     period = int(cycle_time_us * 1000)
@@ -80,6 +83,8 @@ def run_cycles(
         deadline = start
         for k in range(cycles):
             t0 = clock()
+            if latency is not None:
+                latency.wakeup.add(t0 - deadline)
             stop = step(k)
             t1 = clock()
             deadline += period + (adjust() if adjust is not None else 0)

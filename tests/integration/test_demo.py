@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -77,3 +78,25 @@ def test_demo_help_documents_its_exit_codes(capsys: pytest.CaptureFixture[str]) 
         main(["demo", "--help"])
     text = capsys.readouterr().out
     assert "exit codes:" in text and "  3  an axis never reached OPERATION ENABLED" in text
+
+
+def test_demo_real_time_flags_latency_histograms_and_plot(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    import os
+
+    png = tmp_path / "latency.png"
+    args = ["--axes", "2", "--cycles", "400", "--cpu", "0", "--lock-memory", "--plot", str(png)]
+    code, r = _demo(capsys, *args)
+    assert code == 0
+    for kind in ("wakeup", "exchange"):
+        s = r["latency_us"][kind]
+        assert s["cycles"] == 400 and 0 < s["p50"] <= s["p99"] <= s["p99.9"] <= s["max"] + 1, s
+    if os.geteuid() == 0:
+        assert "pinned to CPU 0" in r["realtime"]["applied"] and not r["realtime"]["refused"]
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_demo_rt_strict_turns_a_refused_setting_into_an_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--cycles", "10", "--cpu", "4096", "--rt-strict"]) == 1
+    assert "CPU 4096 does not exist" in capsys.readouterr().err

@@ -27,6 +27,10 @@ def _args(backend: str, **kw: object) -> argparse.Namespace:
         "seed": 1,
         "rate": 0.0,
         "margin_us": 5000.0,
+        "rt_priority": None,
+        "cpu": None,
+        "lock_memory": False,
+        "rt_strict": False,
     }
     base.update(kw)
     base.setdefault("faults", DEFAULT_FAULTS)

@@ -1,0 +1,110 @@
+"""What ``demo``, ``run`` and ``soak`` share: the real-time flags, latency histograms and their plot."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from typing import Any
+
+from fieldbus.errors import BackendUnavailableError
+from fieldbus.network import Operational
+from fieldbus.runtime.loop import default_status_stream, run_cycles
+from fieldbus.runtime.rt import RtConfig, RtState, realtime
+from fieldbus.runtime.timing import CycleLatency, CycleTimer
+
+
+def add_arguments(p: argparse.ArgumentParser, *, plot: bool = True) -> None:
+    """``--rt-priority``, ``--cpu``, ``--lock-memory``, ``--rt-strict`` (and ``--plot``)."""
+    g = p.add_argument_group("real time (the cycle thread)")
+    g.add_argument(
+        "--rt-priority", type=int, metavar="N", help="run the cycle at SCHED_FIFO priority N (1-99)"
+    )
+    g.add_argument("--cpu", type=int, metavar="N", help="pin the cycle thread to CPU N")
+    g.add_argument(
+        "--lock-memory", action="store_true", help="mlockall(MCL_CURRENT|MCL_FUTURE) and prefault the heap"
+    )
+    g.add_argument(
+        "--rt-strict",
+        action="store_true",
+        help="a refused real-time setting is an error (default: a warning line)",
+    )
+    if plot:
+        p.add_argument(
+            "--plot",
+            metavar="FILE",
+            help="PNG of the wake-up latency and exchange() time histograms (needs matplotlib)",
+        )
+
+
+def rt_config(args: argparse.Namespace) -> RtConfig:
+    return RtConfig(
+        priority=args.rt_priority, cpu=args.cpu, lock_memory=args.lock_memory, strict=args.rt_strict
+    )
+
+
+def rt_context(args: argparse.Namespace) -> AbstractContextManager[RtState]:
+    """The real-time settings the flags ask for, warnings to stderr (one line each)."""
+    return realtime(rt_config(args), warn=lambda line: print(line, file=sys.stderr))
+
+
+def run_timed(
+    op: Operational,
+    step: Callable[[int], bool | None],
+    period_us: float,
+    cycles: int,
+    *,
+    status: bool,
+    describe: Callable[[], str] | None = None,
+) -> tuple[CycleTimer, CycleLatency]:
+    """:func:`run_cycles` with wake-up latency and ``exchange()`` time histograms."""
+    latency = CycleLatency()
+    exchange = latency.exchange
+
+    def timed(k: int) -> bool | None:
+        stop = step(k)
+        exchange.add(op.result.exchange_ns)
+        return stop
+
+    timer = run_cycles(
+        timed, period_us, cycles, status=default_status_stream(status), describe=describe, latency=latency
+    )
+    return timer, latency
+
+
+def plot_latency(latency: CycleLatency, path: str, title: str) -> None:
+    """Both histograms (log counts over µs) into a PNG at ``path``."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise BackendUnavailableError("--plot needs matplotlib: pip install 'fieldbus[plot]'") from exc
+    import numpy as np
+
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.4), dpi=90)
+    for ax, (name, hist) in zip(
+        axes, (("wake-up latency", latency.wakeup), ("exchange() time", latency.exchange)), strict=True
+    ):
+        nz = np.flatnonzero(hist.counts)
+        if nz.size:
+            hi = int(nz[-1]) + 2
+            edges = np.arange(hi + 1) + 1.0  # bin k covers [k, k+1) µs; shifted by 1 for the log axis
+            ax.stairs(hist.counts[:hi], edges, fill=True, color="tab:blue")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+        s = hist.to_json()
+        ax.set_title(f"{name}: p50 {s['p50']:g}, p99 {s['p99']:g}, max {s['max']:g} µs", fontsize=9)
+        ax.set_xlabel("µs (+1, log)")
+        ax.set_ylabel("cycles")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def latency_report(latency: CycleLatency, rt: RtState) -> dict[str, Any]:
+    """``latency_us: {wakeup, exchange}`` (p50, p99, p99.9, max) and ``realtime: {applied, refused}``."""
+    return {"latency_us": latency.to_json(), "realtime": rt.to_json()}

@@ -1,0 +1,86 @@
+"""Real-time settings (SCHED_FIFO, affinity, mlockall) applied and restored; refusals named; latency histograms."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fieldbus.runtime.allocs import net_blocks
+from fieldbus.runtime.rt import RtConfig, RtError, realtime
+from fieldbus.runtime.timing import LatencyHistogram
+
+
+def test_histogram_percentiles_match_numpy_to_the_microsecond() -> None:
+    rng = np.random.default_rng(3)
+    ns = (rng.gamma(2.0, 40_000.0, 50_000)).astype(np.int64)  # a long-tailed latency, mean 80 µs
+    h = LatencyHistogram(max_us=20_000)
+    for v in ns:
+        h.add(int(v))
+    for q in (50, 99, 99.9):
+        assert abs(h.percentile_us(q) - np.percentile(ns, q) / 1000) <= 1.0, q
+    assert h.to_json()["max"] == round(ns.max() / 1000, 1)
+    h.add(10**9)  # beyond the last bin: counted there, its maximum exact
+    assert h.counts[-1] >= 1 and h.to_json()["max"] == 1_000_000.0
+
+
+def test_adding_to_a_histogram_allocates_nothing() -> None:
+    h = LatencyHistogram()
+    assert net_blocks(lambda: h.add(123_456), cycles=5_000, warmup=500) == 0
+
+
+def _root_can_rt() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO and mlockall need root here (CAP_SYS_NICE, CAP_IPC_LOCK)")
+
+
+def test_settings_apply_inside_and_are_restored_after() -> None:
+    _root_can_rt()
+    before = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0))
+    cpu = max(os.sched_getaffinity(0))
+    with realtime(RtConfig(priority=20, cpu=cpu, lock_memory=True, strict=True)) as state:
+        assert os.sched_getscheduler(0) == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 20
+        assert os.sched_getaffinity(0) == {cpu}
+        with open("/proc/self/status") as f:
+            locked_kb = next(int(line.split()[1]) for line in f if line.startswith("VmLck:"))
+        assert locked_kb > 16 * 1024  # the prefaulted heap at least
+        assert len(state.applied) == 3 and not state.refused
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0)) == before
+    with open("/proc/self/status") as f:
+        assert next(int(line.split()[1]) for line in f if line.startswith("VmLck:")) == 0
+
+
+def test_a_cpu_that_does_not_exist_is_named_and_strict_makes_it_an_error() -> None:
+    lines: list[str] = []
+    with realtime(RtConfig(cpu=4096), warn=lines.append) as state:
+        assert os.sched_getaffinity(0) != {4096}
+    assert state.refused == [f"CPU 4096 does not exist (this machine has CPUs 0-{(os.cpu_count() or 1) - 1})"]
+    assert lines == ["real-time: " + state.refused[0]]
+    with pytest.raises(RtError, match="CPU 4096 does not exist"), realtime(RtConfig(cpu=4096, strict=True)):
+        pass
+
+
+def test_without_the_capability_the_line_says_what_is_needed() -> None:
+    """An unprivileged process (uid nobody, no rtprio limit) asks for SCHED_FIFO and locked memory."""
+    _root_can_rt()
+    code = (
+        "import json, os, resource\n"
+        "from fieldbus.runtime.rt import RtConfig, realtime\n"  # imported first: nobody cannot read root's files
+        "resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))\n"
+        "resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))\n"
+        "os.setgid(65534); os.setuid(65534)\n"
+        "with realtime(RtConfig(priority=30, lock_memory=True)) as s:\n"
+        "    print(json.dumps(s.to_json()))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd="/")
+    assert out.returncode == 0, out.stderr
+    refused = json.loads(out.stdout)["refused"]
+    assert any(
+        "SCHED_FIFO priority 30 refused (EPERM): needs CAP_SYS_NICE" in r and "ulimit -r" in r
+        for r in refused
+    )
+    assert any("mlockall refused" in r and "CAP_IPC_LOCK" in r and "ulimit -l" in r for r in refused), refused
