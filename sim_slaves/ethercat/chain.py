@@ -8,7 +8,10 @@ slave with a write hit (3 for both); ARMW/FRMW add 1 per slave. Auto-increment
 and broadcast commands increment ADP at every slave; a position command
 addresses the slave where ADP arrives as 0. BRD ORs the slaves' data.
 The reply has the request's length and the locally administered bit (0x02)
-set in the first source-MAC byte.
+set in the first source-MAC byte. MAC addresses are not evaluated, and a
+frame with an 802.1Q VLAN tag (ethertype 0x8100, TCI, then 0x88A4) is
+processed like an untagged one, the tag returned unchanged (ESCs ignore the
+tag's contents).
 
 Distributed clocks: each slave's :class:`~sim_slaves.ethercat.dc.EscDc` sits
 on the line as :func:`fieldbus.core.dc.master.line_timing` puts it (cable
@@ -37,6 +40,8 @@ from sim_slaves.ethercat.esc import App, Esc
 from sim_slaves.ethercat.sii import SiiImage, build_sii
 from sim_slaves.od import ObjectDictionary
 
+ETHERTYPE_VLAN = 0x8100  # IEEE 802.1Q tag protocol identifier
+VLAN_TAG_SIZE = 4  # TPID + TCI, between the source MAC and the EtherCAT ethertype [bytes]
 WATCHDOG_CHECK_NS = 1_000_000  # process-data watchdogs are checked at most this often [ns]
 #: ``from_maps``: slave i's local clock reads i x this at true time 0 (ESCs power up at different moments)
 DC_POWER_UP_STAGGER_NS = 1_000_000
@@ -152,11 +157,14 @@ class EscChain:
         ``cycles`` False leaves the slaves' application cycles (outputs -> OD,
         app step, OD -> inputs) to :meth:`run_cycles`, so an I/O layer can
         send the reply first: the inputs it computes travel in the next frame
-        either way. Raises :class:`~fieldbus.core.ecat.FrameError` for a
-        malformed frame.
+        either way. A VLAN tag stays where it is. Raises
+        :class:`~fieldbus.core.ecat.FrameError` for a malformed frame.
         """
-        view = memoryview(buf)[:n]
-        offsets = datagram_offsets(view)
+        if n >= 18 and buf[12] == ETHERTYPE_VLAN >> 8 and buf[13] == ETHERTYPE_VLAN & 0xFF:
+            # the codec reads the ethertype at byte 12: hand it the frame from 4 bytes on
+            offsets = [off + VLAN_TAG_SIZE for off in datagram_offsets(memoryview(buf)[VLAN_TAG_SIZE:n])]
+        else:
+            offsets = datagram_offsets(memoryview(buf)[:n])
         self.frames += 1
         faults = self.faults
         slaves = self.slaves

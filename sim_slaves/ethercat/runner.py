@@ -6,9 +6,19 @@
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
 times. The process prints ``ready <iface> <n> slaves`` on stdout once it
-listens and runs until SIGTERM/SIGINT. It skips frames it sent itself
-(packet type PACKET_OUTGOING) and frames whose source MAC already has the
-locally administered bit (already answered by a slave).
+listens and runs until SIGTERM/SIGINT.
+
+Like a real ESC on port 0, it processes every EtherCAT frame that arrives
+whatever its MAC addresses (a master's source MAC may well have the locally
+administered bit set already); what it skips are frames sent on the interface
+(packet type PACKET_OUTGOING: its own replies and other senders on this end),
+frames whose ethertype is not 0x88A4, and runts. An 802.1Q VLAN tag
+(ethertype 0x8100, then 0x88A4) is processed as the ESCs do: its contents are
+ignored and the reply carries it unchanged. The kernel strips the tag before
+packet sockets see a frame, so the socket listens to every protocol
+(ETH_P_ALL, an in-kernel filter keeps EtherCAT only) and takes the tag from
+PACKET_AUXDATA. The interface is put in promiscuous mode for as long as the
+runner listens: an ESC does not look at the destination MAC.
 
 Distributed clocks (docs/dc.md, "In the emulator"): ``--drift-ppm X`` spreads
 the slaves' crystal drifts evenly over ±X ppm (order shuffled by
@@ -42,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import json
 import os
 import select
@@ -56,16 +67,31 @@ from typing import Any, BinaryIO
 
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
-from fieldbus.core.ecat import ETHERTYPE_ECAT, LOCALLY_ADMINISTERED, FrameError
+from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
 from fieldbus.core.pdo.load import load_drive_map
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.ethercat.al import AlState
-from sim_slaves.ethercat.chain import AppFactory, EscChain
+from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
 from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
 from sim_slaves.ethercat.esc import App, LoopbackApp
 from sim_slaves.od import ObjectDictionary
 
-PACKET_OUTGOING = 4
+PACKET_OUTGOING = 4  # sockaddr_ll packet type of a frame sent on this interface
+ETH_P_ALL = 0x0003
+SOL_PACKET = 263
+PACKET_ADD_MEMBERSHIP = 1
+PACKET_MR_PROMISC = 1
+PACKET_AUXDATA = 8
+PACKET_IGNORE_OUTGOING = 23  # Linux >= 4.20; PACKET_OUTGOING is checked as well
+SO_ATTACH_FILTER = 26
+TP_STATUS_VLAN_VALID = 0x10
+TP_STATUS_VLAN_TPID_VALID = 0x40
+_AUXDATA = struct.Struct("<IIIHHHH")  # tpacket_auxdata: status, len, snaplen, mac, net, vlan_tci, vlan_tpid
+_AUX_SPACE = socket.CMSG_SPACE(_AUXDATA.size)
+_VLAN_TAG = struct.Struct(">HH")  # TPID, TCI as on the wire
+_BPF = struct.Struct("HBBI")  # classic BPF instruction: code, jt, jf, k
+# ldh [12]; jeq #0x88A4 ? accept : drop (the kernel has taken a VLAN tag out of the data already)
+_ECAT_ONLY = ((0x28, 0, 0, 12), (0x15, 0, 1, ETHERTYPE_ECAT), (0x06, 0, 0, 0x40000), (0x06, 0, 0, 0))
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
 PCAP_LINKTYPE_ETHERNET = 1
 _PCAP_HEADER = struct.Struct("<IHHiIII")
@@ -217,11 +243,64 @@ def send_control(path: str | Path, msg: dict[str, Any], timeout_s: float = 2.0) 
             os.unlink(me)
 
 
+def open_port0(iface: str) -> socket.socket:
+    """The emulated chain's port 0 on ``iface``: a non-blocking packet socket for every EtherCAT frame.
+
+    Every protocol (a VLAN-tagged frame reaches only such a socket with its
+    tag, as PACKET_AUXDATA), an in-kernel filter for ethertype 0x88A4,
+    promiscuous mode (any destination MAC), its own sends not looped back.
+    The filter, promiscuous mode and ignoring outgoing frames are best
+    effort: :func:`serve` checks ethertype and packet type itself.
+    """
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+    try:
+        sock.bind((iface, ETH_P_ALL))
+        sock.setsockopt(SOL_PACKET, PACKET_AUXDATA, 1)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(SOL_PACKET, PACKET_IGNORE_OUTGOING, 1)
+        with contextlib.suppress(OSError):
+            mreq = struct.pack("iHH8s", socket.if_nametoindex(iface), PACKET_MR_PROMISC, 0, b"")
+            sock.setsockopt(SOL_PACKET, PACKET_ADD_MEMBERSHIP, mreq)
+        with contextlib.suppress(OSError):
+            code = ctypes.create_string_buffer(b"".join(_BPF.pack(*i) for i in _ECAT_ONLY))
+            # struct sock_fprog: instruction count, pointer (the kernel copies the program)
+            prog = struct.pack("HL", len(_ECAT_ONLY), ctypes.addressof(code))
+            sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, prog)
+        sock.setblocking(False)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def vlan_tag(ancdata: list[tuple[int, int, bytes]]) -> int | None:
+    """The TCI of the 802.1Q tag the kernel took out of a received frame, None if it had none.
+
+    ``ancdata`` is ``recvmsg``'s with PACKET_AUXDATA on; a tag with another
+    TPID (802.1ad) gives -1: not a frame an ESC processes.
+    """
+    for level, kind, data in ancdata:
+        if level != SOL_PACKET or kind != PACKET_AUXDATA or len(data) < _AUXDATA.size:
+            continue
+        status, _len, _snap, _mac, _net, tci, tpid = _AUXDATA.unpack_from(data)
+        if not status & TP_STATUS_VLAN_VALID:
+            return None
+        if status & TP_STATUS_VLAN_TPID_VALID and tpid != ETHERTYPE_VLAN:
+            return -1
+        return int(tci)
+    return None
+
+
+def insert_vlan_tag(buf: bytearray, n: int, tci: int) -> int:
+    """Put the 802.1Q tag back after the MAC addresses of the ``n``-byte frame in ``buf``; new length."""
+    buf[12 + VLAN_TAG_SIZE : n + VLAN_TAG_SIZE] = buf[12:n]
+    _VLAN_TAG.pack_into(buf, 12, ETHERTYPE_VLAN, tci)
+    return n + VLAN_TAG_SIZE
+
+
 def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str | None = None) -> None:
     """Answer frames on ``iface`` until SIGTERM/SIGINT."""
-    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
-    sock.bind((iface, ETHERTYPE_ECAT))
-    sock.setblocking(False)
+    sock = open_port0(iface)
     ctl: socket.socket | None = None
     if control:
         if os.path.exists(control):
@@ -244,7 +323,8 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
         poller.register(ctl.fileno(), select.POLLIN)
     buf = bytearray(2048)
     view = memoryview(buf)
-    recv_into = sock.recvfrom_into
+    into = [view[: len(buf) - VLAN_TAG_SIZE]]  # room to put a VLAN tag back
+    recv_into = sock.recvmsg_into
     send = sock.send
     clock = time.monotonic_ns
     dc_line = chain.dc_line
@@ -260,7 +340,7 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
             spin_until = 0
             while True:
                 try:
-                    n, addr = recv_into(buf)
+                    n, anc, _flags, addr = recv_into(into, _AUX_SPACE)
                 except BlockingIOError:
                     if dc_line.pending:  # idle: the queued DC loop samples of the last FRMWs
                         dc_line.flush()
@@ -272,8 +352,14 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                         continue
                     break
                 spin_until = 0
-                if addr[2] == PACKET_OUTGOING or buf[6] & LOCALLY_ADMINISTERED or n < 16:
+                if addr[2] == PACKET_OUTGOING or n < 16 or buf[12] << 8 | buf[13] != ETHERTYPE_ECAT:
                     continue
+                if anc:
+                    tci = vlan_tag(anc)
+                    if tci is not None:
+                        if tci < 0:
+                            continue
+                        n = insert_vlan_tag(buf, n, tci)
                 now = clock()
                 if writer is not None:
                     writer.write(bytes(view[:n]), time.time())
