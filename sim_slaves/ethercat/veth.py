@@ -9,13 +9,29 @@ the runner is terminated and the pair deleted, also after an error.
 Needs root (CAP_NET_ADMIN for the pair, CAP_NET_RAW for the sockets);
 :class:`VethUnavailable` says precisely why when the machine refuses.
 
-Names and ownership: a pair is ``fbm<6 hex>``/``fbs<6 hex>`` from a random
-token; creation never deletes an existing link first (a name that exists is
-someone's live pair: another token is drawn). The master end carries the
-alias ``fieldbus-veth:<pid>`` of the process that made it; a pair is deleted
-only by that process, or, left behind by a process that died (killed test
-run), by the next :func:`make_veth_pair`, which removes pairs whose owner pid
-no longer exists.
+Names and ownership: a pair is ``fbm<6 hex>``/``fbs<6 hex>`` (9 characters,
+IFNAMSIZ allows 15) from a random token, never from the pid: two processes
+draw independent names. Creation never deletes an existing link first: ``ip
+link add`` refusing with EEXIST means the name is someone's pair (live or
+not), and another token is drawn (:data:`NAME_TRIES` times). Right after
+creation the master end gets the alias ``fieldbus-veth:<pid>:<start>:<pidns>``
+(:func:`owner_alias`): the creating process's pid, its start time (clock ticks
+after boot, field 22 of ``/proc/<pid>/stat``) and the inode of its pid
+namespace. A process deletes only the pairs it created (``emulated_segment``,
+or the caller of :func:`make_veth_pair` with :func:`delete_link`).
+
+The one exception are pairs whose owner is provably dead (a killed test run
+cannot clean up): :func:`make_veth_pair` first calls
+:func:`remove_orphaned_pairs`, which deletes an ``fbm`` link only when its
+alias is ours and, seen from the same pid namespace, either no process has
+that pid any more or the process that has it started at another time (the
+pid was reused). A pair whose owner lives, lives in another pid namespace
+(its pid means nothing here), is unreadable, or that has no such alias (not
+ours, or its creator was killed between ``ip link add`` and setting the
+alias: a leak, never a wrong delete) is left alone. The alias is read again
+just before the delete, so a name freed and drawn again meanwhile is not hit.
+Aliases of the earlier ``fieldbus-veth:<pid>`` form count as dead only when
+``/proc/<pid>`` is gone.
 
 The runner's stderr goes to a file, never a pipe nobody reads (a chatty
 emulator would block once 64 KiB were buffered); a runner that fails to start
@@ -84,7 +100,11 @@ def _ip(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def make_veth_pair() -> tuple[str, str]:
-    """Create and bring up a uniquely named veth pair; returns (master end, slave end)."""
+    """Create and bring up a uniquely named veth pair owned by this process; returns (master end, slave end).
+
+    Pairs left by dead processes are removed first (:func:`remove_orphaned_pairs`);
+    an existing name is never deleted, another one is drawn.
+    """
     if os.geteuid() != 0:
         raise VethUnavailable(
             "needs root: creating a veth pair and raw AF_PACKET sockets require CAP_NET_ADMIN/CAP_NET_RAW"
@@ -104,7 +124,10 @@ def make_veth_pair() -> tuple[str, str]:
             )
     else:
         raise VethUnavailable(f"no free veth name after {NAME_TRIES} tries")
-    _ip("link", "set", master, "alias", f"{ALIAS_PREFIX}{os.getpid()}")
+    res = _ip("link", "set", master, "alias", owner_alias())
+    if res.returncode != 0:
+        _ip("link", "del", master)
+        raise VethUnavailable(f"ip link set {master} alias failed: {res.stderr.strip()}")
     for name in (master, slave):
         subprocess.run(
             ["sysctl", "-q", "-w", f"net.ipv6.conf.{name}.disable_ipv6=1"], capture_output=True, check=False
@@ -122,31 +145,100 @@ def delete_link(name: str) -> None:
     _ip("link", "del", name)
 
 
+@dataclass(frozen=True)
+class Owner:
+    """The process that created a pair, from its master end's alias."""
+
+    pid: int
+    start: int | None  # clock ticks after boot (/proc/<pid>/stat field 22); None: not recorded
+    pidns: int | None  # inode of its pid namespace; None: not recorded
+
+
+def _start_ticks(pid: int) -> int | None:
+    """When process ``pid`` started (clock ticks after boot), None when there is none or it is unreadable."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[-1].split()  # after the command name, which may hold spaces and ')'
+    return int(fields[19]) if len(fields) > 19 and fields[19].isdigit() else None
+
+
+def _pid_namespace() -> int | None:
+    try:
+        return os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return None
+
+
+def owner_alias(pid: int | None = None) -> str:
+    """The alias that marks a pair as created by ``pid`` (default: this process)."""
+    pid = os.getpid() if pid is None else pid
+    return f"{ALIAS_PREFIX}{pid}:{_start_ticks(pid) or 0}:{_pid_namespace() or 0}"
+
+
+def parse_owner(alias: str) -> Owner | None:
+    """The :class:`Owner` in an alias of ours (either form), None for any other alias."""
+    if not alias.startswith(ALIAS_PREFIX):
+        return None
+    parts = alias[len(ALIAS_PREFIX) :].split(":")
+    if not all(p.isdigit() for p in parts) or len(parts) not in (1, 3):
+        return None
+    if len(parts) == 1:
+        return Owner(int(parts[0]), None, None)
+    pid, start, pidns = (int(p) for p in parts)
+    return Owner(pid, start or None, pidns or None)
+
+
+def _aliases(*dev: str) -> dict[str, str]:
+    """Link name -> alias of every link (or of ``dev``) that has one."""
+    res = _ip("-o", "link", "show", *(("dev", *dev) if dev else ()))
+    out = {}
+    for line in res.stdout.splitlines():
+        parts = line.split(":", 2)
+        if len(parts) < 3 or " alias " not in parts[2]:
+            continue
+        words = parts[2].split(" alias ", 1)[1].split()
+        if words:
+            out[parts[1].strip().split("@")[0]] = words[0]
+    return out
+
+
+def link_owner(name: str) -> Owner | None:
+    """The owner recorded on link ``name``, None when it has no alias of ours."""
+    alias = _aliases(name).get(name)
+    return parse_owner(alias) if alias is not None else None
+
+
 def owner_pid(name: str) -> int | None:
-    """The pid in a link's ``fieldbus-veth:<pid>`` alias, None when it has none (not one of ours)."""
-    res = _ip("-o", "link", "show", "dev", name)
-    for word_alias in res.stdout.split(" alias ")[1:]:
-        alias = word_alias.split()[0] if word_alias.split() else ""
-        if alias.startswith(ALIAS_PREFIX) and alias[len(ALIAS_PREFIX) :].isdigit():
-            return int(alias[len(ALIAS_PREFIX) :])
-    return None
+    """The pid in a link's ``fieldbus-veth:`` alias, None when it has none (not one of ours)."""
+    owner = link_owner(name)
+    return owner.pid if owner is not None else None
+
+
+def owner_is_dead(owner: Owner) -> bool:
+    """True only when provably dead: same pid namespace, and the pid is gone or belongs to a later process."""
+    if owner.pidns is not None and owner.pidns != _pid_namespace():
+        return False  # another pid namespace: its pids say nothing here
+    if not Path(f"/proc/{owner.pid}").exists():
+        return True
+    if owner.start is None:
+        return False
+    start = _start_ticks(owner.pid)
+    return start is not None and start != owner.start
 
 
 def remove_orphaned_pairs() -> list[str]:
-    """Delete our veth pairs whose owner process is gone; returns their master ends. Live pairs stay."""
-    res = _ip("-o", "link", "show")
+    """Delete our veth pairs whose owner process is provably dead; returns their master ends. Others stay."""
     removed = []
-    for line in res.stdout.splitlines():
-        parts = line.split(":", 2)
-        if len(parts) < 3:
+    for name, alias in _aliases().items():
+        owner = parse_owner(alias)
+        if not name.startswith("fbm") or owner is None or not owner_is_dead(owner):
             continue
-        name = parts[1].strip().split("@")[0]
-        if not name.startswith("fbm"):
-            continue
-        pid = owner_pid(name)
-        if pid is not None and not Path(f"/proc/{pid}").exists():
-            delete_link(name)
-            removed.append(name)
+        if _aliases(name).get(name) != alias:
+            continue  # gone, or deleted and drawn again by a live process meanwhile
+        delete_link(name)
+        removed.append(name)
     return removed
 
 
