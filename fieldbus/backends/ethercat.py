@@ -94,6 +94,10 @@ class EthercatBackend(Backend):
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True))
         self.sockets: list[int] = []  # SOEM's AF_PACKET socket(s), found at open()
+        # A reply later than its timeout must not be taken for a later frame's: SOEM matches replies by
+        # frame index only (16 of them), so a frame still queued when a cycle starts is discarded.
+        self.stale_frames = 0
+        self._drain_buf = [bytearray(soem_socket.MAX_FRAME)]
         self._sdo_tries = SDO_RETRIES + 1  # tries per SDO (1 during recovery: no cycle waits for retries)
         self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose reconfiguration failed waits
         self._sm_regs: list[list[tuple[int, bytes]]] = []  # per slave: (register, bytes) to write again
@@ -103,7 +107,7 @@ class EthercatBackend(Backend):
 
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
-        """Open the NIC (SOEM's packet socket made non-blocking: see :mod:`.soem_socket`), find the slaves."""
+        """Open the NIC (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
         before = soem_socket.open_sockets()
         try:
             self.master.open(self.bus.interface)
@@ -114,14 +118,11 @@ class EthercatBackend(Backend):
             ) from exc
         self._open = True
         self.sockets = soem_socket.packet_sockets(soem_socket.open_sockets() - before)
-        if self._exact_timeout:
-            if not self.sockets:
-                raise FieldbusError(
-                    f"bus '{self.bus.name}': SOEM's packet socket not found after opening '{self.bus.interface}'; "
-                    "pass exact_timeout=False to keep SOEM's own receive wait (a lost frame then costs 4-10 ms)"
-                )
-            for fd in self.sockets:
-                soem_socket.set_nonblocking(fd)
+        if self._exact_timeout and not self.sockets:
+            raise FieldbusError(
+                f"bus '{self.bus.name}': SOEM's packet socket not found after opening '{self.bus.interface}'; "
+                "pass exact_timeout=False to keep SOEM's own receive wait (a lost frame then costs 4-10 ms)"
+            )
         found = self.master.config_init()
         self._slaves = list(self.master.slaves) if found > 0 else []
         self._check_identity(found)
@@ -284,6 +285,15 @@ class EthercatBackend(Backend):
         raise BusTimeoutError(f"did not reach {state_name(state)} within {STATE_POLL_STEPS} cycles")
 
     def op(self) -> None:
+        """OP, confirmed by the working counter. From here on SOEM's socket is non-blocking (exact_timeout).
+
+        Bring-up keeps SOEM's blocking wait: its many state, SII and mailbox
+        exchanges then tolerate a slow answer (the wait is at least a tick),
+        where the cycle wants the timeout to be exact.
+        """
+        if self._exact_timeout:
+            for fd in self.sockets:
+                soem_socket.set_nonblocking(fd)
         for _ in range(3):  # valid outputs before OP, so no watchdog trips on the way
             self.send()
             self.receive()
@@ -318,8 +328,11 @@ class EthercatBackend(Backend):
 
     # -- cycle ----------------------------------------------------------------------
     def send(self) -> None:
+        """Outputs into SOEM's IO map, frames still queued from earlier cycles discarded, the LRW sent."""
         for s, mv in self._out_views:
             s.output = bytes(mv)
+        if self._exact_timeout:
+            self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
         self._sent_ns = time.perf_counter_ns()
         self.master.send_processdata(release_gil=True)
 

@@ -15,7 +15,10 @@ frames for other indexes are still parked in their buffers, and with a
 redundant port both sockets are set the same way. The cost is CPU: the
 thread that waits spins (with the GIL released) for as long as the reply
 takes - the round trip, typically tens to hundreds of µs - or the whole
-timeout when a frame is lost.
+timeout when a frame is lost. And a reply that comes later than its
+timeout stays queued until it is read: :func:`drain` drops those before each
+cycle's frame is sent (SOEM would match it to a later frame that reuses its
+index).
 
 pysoem does not expose the socket, so :func:`packet_sockets` compares this
 process's open sockets before and after ``Master.open`` and keeps the new
@@ -29,6 +32,7 @@ import os
 import socket
 
 FD_DIR = "/proc/self/fd"
+MAX_FRAME = 1518  # bytes of an Ethernet frame (without FCS)
 
 
 def open_sockets() -> set[int]:
@@ -66,3 +70,23 @@ def set_nonblocking(fd: int) -> None:
 
 def is_nonblocking(fd: int) -> bool:
     return bool(fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_NONBLOCK)
+
+
+def drain(fds: list[int], buf: list[bytearray]) -> int:
+    """Read and drop every frame queued on the (non-blocking) sockets ``fds``; returns how many.
+
+    Called just before a cycle's frame is sent: SOEM has nothing in flight then,
+    so whatever is queued is a reply that came too late (or an echo of a
+    frame already handled). SOEM matches replies by frame index alone, and
+    with 16 indexes a reply late by 16 frames would otherwise be taken for
+    the current frame's. ``buf``: a preallocated one-buffer list (no allocation).
+    """
+    n = 0
+    for fd in fds:
+        while True:
+            try:
+                os.readv(fd, buf)
+            except BlockingIOError:
+                break
+            n += 1
+    return n

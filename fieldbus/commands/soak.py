@@ -43,8 +43,8 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--rate",
         type=float,
-        default=0.0,
-        help="pace the cycle at this rate in Hz (default: as fast as it goes)",
+        default=None,
+        help="pace the cycle at this rate in Hz (default: the network's cycle time; 0: as fast as it goes)",
     )
     p.add_argument(
         "--margin-us",
@@ -99,7 +99,7 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             opener,
             spec,
             seed=args.seed,
-            cycle_time_us=1e6 / args.rate if args.rate else 0.0,
+            cycle_time_us=None if args.rate is None else (1e6 / args.rate if args.rate else 0.0),
             margin_us=args.margin_us,
         )
         try:

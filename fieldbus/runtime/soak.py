@@ -198,7 +198,7 @@ class Soak:
         seed: int = 0,
         warmup: int = 200,
         recovery_cycles: int = 5000,
-        cycle_time_us: float = 0.0,
+        cycle_time_us: float | None = None,
         margin_us: float = DEFAULT_MARGIN_US,
     ) -> None:
         self.opener = opener
@@ -266,7 +266,9 @@ class Soak:
         check_quick_stop = False
         recovering: list[int] = []  # cycles at which a power cycle is still being recovered
         fresh_streak = 0
-        period_ns = int(self.cycle_time_us * 1000)
+        # paced at the network's cycle time unless told otherwise (0: as fast as it goes)
+        period_us = self.cycle_time_us if self.cycle_time_us is not None else backend.bus.cycle_time_us
+        period_ns = int(period_us * 1000)
         limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
         for k in range(cycles):
