@@ -5,9 +5,13 @@
  *   row r starts at buf + r * stride; the wire bytes are at the start of the row,
  *   the float64 engineering values at float_offset + 8 * j (column j).
  * encode: raw = a*value + b; NaN keeps the raw value sent last; integers are
- *         rounded (half to even, as numpy.rint) and saturated to [lo, hi];
+ *         rounded (half to even, as numpy.rint) and saturated to [lo, hi]
+ *         (64-bit: hi is 2**63 or 2**64 as a double, stored as INT64_MAX or
+ *         UINT64_MAX; floats saturate to their largest finite value);
  *         stored little-endian at the column's wire offset.
  * decode: value = c*raw + d.
+ * An offset of 0 comes as -0.0 (x + -0.0 == x, -0.0 included). The numpy path
+ * is the reference: the same bits for every input (tests/unit/test_codec_differential.py).
  * Little-endian hosts only (checked in Python before use).
  */
 #define PY_SSIZE_T_CLEAN
@@ -15,6 +19,14 @@
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+/* a*x + b must round twice, as numpy's multiply then add: no fused multiply-add
+ * (GCC contracts by default in GNU C mode where the target has FMA, e.g. aarch64). */
+#if defined(__clang__)
+#pragma STDC FP_CONTRACT OFF
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=off")
+#endif
 
 typedef struct {
     int32_t wire_offset;

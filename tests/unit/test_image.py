@@ -201,11 +201,14 @@ def test_cycle_allocates_nothing(engine: str) -> None:
     text = SCALED.replace(
         "      - {index: 0x6071",
         "      - {index: 0x2000, sub_index: 1, type: bool, mask: 1}\n"
-        "      - {index: 0, sub_index: 0, type: bit7}\n      - {index: 0x6071",
+        "      - {index: 0, sub_index: 0, type: bit7}\n"
+        "      - {index: 0x2001, sub_index: 1, type: int64, name: big, factor: 2.0}\n      - {index: 0x6071",
     )
     img = _image(text, 64, engine=engine)
     q = np.linspace(-1, 1, 64)
     tp = img.outputs["target_position"]
+
+    img.outputs["big"][:] = 1e300  # the 64-bit saturation path (float64 cannot hold INT64_MAX)
 
     def cycle() -> None:
         np.copyto(tp, q)

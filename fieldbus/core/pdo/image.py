@@ -14,10 +14,25 @@ emulated drive calls the opposite pair. Both use precomputed views and ``out=``
 ufuncs only: a cycle allocates nothing.
 
 Scaling follows ethercat_driver_ros2: inputs ``value = factor * raw + offset``,
-outputs ``raw = factor * value + offset``. Raw results are rounded (integer
-types) and saturated to the type's range. A NaN output value keeps the raw value
-sent last (initially the channel's ``default``), so a controller glitch never
-puts garbage on the wire.
+outputs ``raw = factor * value + offset``, computed in float64 (a product, then
+a sum; an offset of 0 adds nothing, so ``-0.0`` stays ``-0.0``). The one rule for
+a scaled output's raw value, in every type and both engines:
+
+- rounded half to even (``numpy.rint``) for integer types;
+- saturated to the type's range: anything at or above the maximum, ``+1e30``
+  and ``+inf`` included, gives the maximum (``INT64_MAX`` and ``UINT64_MAX``
+  exactly, although float64 cannot hold them), anything at or below the
+  minimum gives the minimum; float types saturate to their largest finite value;
+- a NaN (the value, or ``factor * value + offset``) keeps the raw value sent last
+  (initially the channel's ``default``, else 0), so a controller glitch never
+  puts garbage on the wire nor makes the drive jump to raw 0 (a position of 0
+  can be far away); the raw value sent last is what the drive already follows.
+
+Two engines do this work: the C codec (``fieldbus._codec``, for byte-aligned
+scaled channels) and numpy (everything else, and everywhere when the C codec is
+not built). They give the same wire bytes and the same decoded values, bit for
+bit (``tests/unit/test_codec_differential.py``). ``engine=`` chooses: ``"auto"``
+(C where it applies), ``"c"`` (C or an error) or ``"numpy"``.
 """
 
 from __future__ import annotations
@@ -28,11 +43,48 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.datatypes import DataType
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout, MapLayout
 from fieldbus.core.pdo.model import Direction
 from fieldbus.errors import FieldbusError
 
 U8 = npt.NDArray[np.uint8]
+
+
+ENGINES = ("auto", "c", "numpy")
+
+
+def _int_max(dt: DataType) -> int:
+    return (1 << (dt.bits - 1)) - 1 if dt.signed else (1 << dt.bits) - 1
+
+
+class _Top:
+    """Float -> integer conversion for a type whose maximum float64 cannot hold (64-bit).
+
+    ``float(2**63 - 1)`` is ``2**63``: the saturated value sits one past the range,
+    where a plain cast is undefined (numpy gives ``INT64_MIN``, or 0 for uint64).
+    Sources are already clamped to ``[min, float(max)]``; values below ``limit``
+    (``2**63`` or ``2**64``) convert as usual, the others give exactly ``max``.
+    Preallocated masks: a cycle allocates nothing.
+    """
+
+    def __init__(self, dt: DataType, shape: tuple[int, ...]) -> None:
+        top = _int_max(dt)
+        self.limit = np.float64(top + 1)
+        self.top = np.array(top, dtype=np.int64 if dt.signed else np.uint64)
+        self.fits = np.zeros(shape, dtype=bool)
+        self.over = np.zeros(shape, dtype=bool)
+
+    @staticmethod
+    def needed(dt: DataType) -> bool:
+        return not dt.is_float and float(_int_max(dt)) != _int_max(dt)
+
+    def cast(self, src: npt.NDArray[np.float64], out: npt.NDArray[Any]) -> None:
+        """``out = rint(src)`` saturated to the type; ``out`` is the type or a wider one of its sign."""
+        np.less(src, self.limit, out=self.fits)
+        np.rint(src, out=out, casting="unsafe", where=self.fits)
+        np.logical_not(self.fits, out=self.over)
+        np.copyto(out, self.top, where=self.over)
 
 
 class _BitField:
@@ -60,6 +112,7 @@ class _BitField:
         self.sign_bit = np.uint64(1 << (dt.bits - 1)) if dt.signed else np.uint64(0)
         self.sign_ext = np.uint64(((1 << 64) - 1) ^ ((1 << dt.bits) - 1)) if dt.signed else np.uint64(0)
         self.flags = np.zeros(n, dtype=bool)
+        self.top = _Top(dt, (n,)) if src.dtype.kind == "f" and _Top.needed(dt) else None
 
     def to_wire(self) -> None:
         if self.bool:
@@ -69,7 +122,15 @@ class _BitField:
             np.bitwise_and(col, keep, out=col)
             np.bitwise_or(col, self.part8, out=col)
             return
-        if self.signed or self.src.dtype.kind == "f":
+        if self.src.dtype.kind == "f":  # a scaled entry: rounded raw values within [min, float(max)]
+            dst = self.stage_i if self.signed else self.stage
+            if self.top is not None:
+                self.top.cast(self.src, dst)
+            else:
+                np.copyto(dst, self.src, casting="unsafe")
+            if self.signed:
+                np.copyto(self.stage, self.stage_i, casting="unsafe")
+        elif self.signed:
             np.copyto(self.stage_i, self.src, casting="unsafe")
             np.copyto(self.stage, self.stage_i, casting="unsafe")
         else:
@@ -205,6 +266,8 @@ class DirectionImage:
     def __init__(self, dl: DirectionLayout, n_axes: int, *, engine: str = "auto") -> None:
         if n_axes < 1:
             raise ValueError("n_axes must be >= 1")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, not {engine!r}")
         for e in dl.channels:
             if e.channel.type.is_float and not e.aligned:
                 raise FieldbusError(
@@ -232,6 +295,10 @@ class DirectionImage:
             a, b, c, d = f, o, 1.0 / f, -o / f
         else:  # value = f*raw + o
             a, b, c, d = 1.0 / f, -o / f, f, o
+        # An offset of 0 is stored as -0.0, the identity of IEEE addition (x + -0.0 == x for every x;
+        # x + 0.0 turns -0.0 into +0.0). The C codec always adds it, numpy skips the sum when no channel
+        # has an offset: the same bits either way.
+        b, d = (np.where(v == 0.0, -0.0, v) for v in (b, d))
         lo = np.array([e.channel.type.min for e in il.scaled], dtype=np.float64)
         hi = np.array([e.channel.type.max for e in il.scaled], dtype=np.float64)
         self._coef = (a, b, c, d, lo, hi)
@@ -244,14 +311,17 @@ class DirectionImage:
         self._is_int = [not e.channel.type.is_float for e in il.scaled]
         # wire views of each run of same-typed, adjacent scaled entries: one ufunc each
         self._groups: list[
-            tuple[npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], bool]
+            tuple[npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], bool, _Top | None]
         ] = []
         for first, count, fmt, off in il.groups:
             width = np.dtype(fmt).itemsize
             wv = np.ndarray((n_axes, count), dtype=fmt, buffer=self._buf, offset=off, strides=(stride, width))
             cols = slice(first, first + count)
-            is_int = np.dtype(fmt).kind in "iu"
-            self._groups.append((wv, self._last[:, cols], self._scaled[:, cols], self._c[:, cols], is_int))
+            dt = il.scaled[first].channel.type
+            top = _Top(dt, (n_axes, count)) if _Top.needed(dt) else None
+            self._groups.append(
+                (wv, self._last[:, cols], self._scaled[:, cols], self._c[:, cols], not dt.is_float, top)
+            )
         # bit-level entries
         self._bits: list[_BitField] = []
         for e in dl.channels:
@@ -277,7 +347,12 @@ class DirectionImage:
             if self._fast is not None:
                 self.engine = "c"
         if engine == "c" and self.engine != "c" and k:
-            raise FieldbusError("the C codec is not available (fieldbus._codec did not build or import)")
+            why = (
+                "it does not handle scaled entries that are not byte-aligned"
+                if self._bit_scaled
+                else "fieldbus._codec did not build or import"
+            )
+            raise FieldbusError(f"the C codec is not available: {why}")
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -311,8 +386,10 @@ class DirectionImage:
         np.maximum(w, self._lo, out=w)
         np.equal(w, w, out=ok)  # False where NaN
         np.copyto(last, w, where=ok)  # NaN keeps the raw value sent last
-        for wv, lg, _, _, is_int in self._groups:
-            if is_int:
+        for wv, lg, _, _, is_int, top in self._groups:
+            if top is not None:  # 64-bit: float(max) is one past the range
+                top.cast(lg, wv)
+            elif is_int:
                 np.rint(lg, out=wv, casting="unsafe")
             else:
                 np.copyto(wv, lg, casting="unsafe")
@@ -328,7 +405,7 @@ class DirectionImage:
         if self._fast is not None:
             self._fast.decode()
             return
-        for wv, _, sg, cg, _ in self._groups:
+        for wv, _, sg, cg, _, _ in self._groups:
             np.multiply(wv, cg, out=sg)
         for j, _ in self._bit_scaled:
             np.multiply(self._work[:, j], self._c[:, j], out=self._scaled[:, j])
