@@ -11,8 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fieldbus.core.pdo.load import Reader, parse_drive_map
+from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.yamlread import Reader
 from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located
 
 BUS_TYPES = ("ethercat", "canopen", "rawcan", "sim")

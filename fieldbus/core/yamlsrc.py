@@ -3,6 +3,12 @@
 ``load_located`` returns plain Python data plus the 1-based line/column of every
 mapping key and value, so validation errors can name ``file:line:column`` and a
 field path such as ``rpdo[0].channels[2].type``.
+
+Anchors, aliases and ``<<`` merge keys are supported. Each node is built once and
+an alias shares the built object (as ``yaml.safe_load`` does), so a document of
+nested aliases ("billion laughs") loads in time proportional to its text; the
+data is read-only by convention, nothing may mutate it. Work done for aliases and
+merges is still bounded by :data:`MAX_ALIAS_NODES`.
 """
 
 from __future__ import annotations
@@ -18,6 +24,10 @@ from fieldbus.errors import PdoMapError
 
 PathT = tuple[str | int, ...]
 _MAX_DEPTH = 64
+MAX_ALIAS_NODES = 100_000
+"""Most alias uses plus keys copied by ``<<`` merges in one document (guards quadratic merge chains)."""
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+_VALUE_TAG = "tag:yaml.org,2002:value"
 
 
 def format_path(path: PathT) -> str:
@@ -35,23 +45,48 @@ def format_path(path: PathT) -> str:
 class Located:
     """A loaded YAML document with the source position of each node."""
 
-    data: Any
+    data: Any = field(repr=False)  # may share objects: its repr can be exponentially long
     file: str
     values: dict[PathT, tuple[int, int]] = field(default_factory=dict)
     keys: dict[PathT, tuple[int, int]] = field(default_factory=dict)
     collections: set[PathT] = field(default_factory=set)
+    aliases: dict[PathT, PathT] = field(default_factory=dict)
+    """Path of a reused (aliased or merged) node -> path where that node was built."""
+
+    def resolve(self, path: PathT) -> PathT:
+        """``path`` with any aliased prefix replaced by the path where its node was built."""
+        probe = tuple(path)
+        if not self.aliases:
+            return probe
+        for _ in range(len(probe) + len(self.aliases) + 1):  # every step consumes part of the path
+            for n in range(len(probe), 0, -1):
+                target = self.aliases.get(probe[:n])
+                if target is not None:
+                    probe = (*target, *probe[n:])
+                    break
+            else:
+                break
+        return probe
 
     def where(self, path: PathT, *, key: bool = False) -> tuple[int | None, int | None]:
-        """Line and column of ``path`` (its key if ``key``), else of its nearest parent."""
+        """Line and column of ``path`` (its key if ``key``), else of its nearest parent.
+
+        A value reached through an alias or merge is reported where it is written,
+        at its anchor; the key of an aliased value is reported where the alias is used.
+        """
         probe = tuple(path)
-        if (key or probe in self.collections) and probe in self.keys:
-            return self.keys[probe]  # a whole list/mapping is reported at its key
+        real = self.resolve(probe)
+        if probe and (key or real in self.collections):  # a whole list/mapping is reported at its key
+            at = self.keys.get((*self.resolve(probe[:-1]), probe[-1])) or self.keys.get(real)
+            if at is not None:
+                return at
         while True:
-            if probe in self.values:
-                return self.values[probe]
+            if real in self.values:
+                return self.values[real]
             if not probe:
                 return (None, None)
             probe = probe[:-1]
+            real = self.resolve(probe)
 
     def error(self, path: PathT, message: str, *, key: bool = False) -> PdoMapError:
         """A :class:`PdoMapError` located at ``path``."""
@@ -67,7 +102,7 @@ def load_located(text: str, file: str = "<string>") -> Located:
         node = loader.get_single_node()
         doc = Located(data=None, file=file)
         if node is not None:
-            doc.data = _build(loader, node, (), doc, 0)
+            doc.data = _Builder(loader, doc).build(node, (), 0)[0]
         return doc
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
@@ -107,41 +142,128 @@ def _mark(node: yaml.Node) -> tuple[int, int]:
     return (node.start_mark.line + 1, node.start_mark.column + 1)
 
 
-def _build(loader: yaml.SafeLoader, node: yaml.Node, path: PathT, doc: Located, depth: int) -> Any:
-    if depth > _MAX_DEPTH:
-        raise doc.error(path, f"nested deeper than {_MAX_DEPTH} levels")
-    doc.values[path] = _mark(node)
-    if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
-        doc.collections.add(path)
-    if isinstance(node, yaml.MappingNode):
-        loader.flatten_mapping(node)  # resolves '<<' merge keys
+class _Builder:
+    """Node graph -> plain data, building every node once.
+
+    An alias (``*name``) or a ``<<`` merge reuses the object built for its anchor,
+    as PyYAML does, so a "billion laughs" document costs what its text costs.
+    Reuse is recorded as a path alias in :attr:`Located.aliases`: an error found
+    under the reusing path is reported at the anchored node's source position.
+    """
+
+    def __init__(self, loader: yaml.SafeLoader, doc: Located) -> None:
+        self.loader = loader
+        self.doc = doc
+        self.built: dict[int, tuple[Any, PathT, int]] = {}  # id(node) -> (object, first path, height)
+        self.active: set[int] = set()  # collections being built: an alias to one of them is a cycle
+        self.reused = 0
+
+    def _reuse(self, path: PathT, count: int = 1) -> None:
+        self.reused += count
+        if self.reused > MAX_ALIAS_NODES:
+            raise self.doc.error(
+                path, f"YAML aliases and merge keys expand to more than {MAX_ALIAS_NODES} nodes"
+            )
+
+    def build(self, node: yaml.Node, path: PathT, depth: int) -> tuple[Any, int]:
+        """``node`` as Python data and its height (0 for a scalar)."""
+        if depth > _MAX_DEPTH:
+            raise self.doc.error(path, f"nested deeper than {_MAX_DEPTH} levels")
+        ident = id(node)
+        seen = self.built.get(ident)
+        if seen is not None:
+            shared, first, shared_height = seen
+            self._reuse(path)
+            if depth + shared_height > _MAX_DEPTH:
+                raise self.doc.error(path, f"nested deeper than {_MAX_DEPTH} levels")
+            self.doc.aliases[path] = first
+            return shared, shared_height
+        if ident in self.active:
+            line, column = _mark(node)
+            raise PdoMapError(
+                "YAML alias refers to a node that contains it (a recursive structure)",
+                file=self.doc.file,
+                line=line,
+                column=column,
+                path=format_path(path),
+            )
+        self.doc.values[path] = _mark(node)
+        value: Any
+        height = 0
+        if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
+            self.doc.collections.add(path)
+            self.active.add(ident)
+            if isinstance(node, yaml.MappingNode):
+                value, height = self._mapping(node, path, depth)
+            else:
+                value = []
+                for i, item in enumerate(node.value):
+                    child, child_height = self.build(item, (*path, i), depth + 1)
+                    value.append(child)
+                    height = max(height, child_height + 1)
+            self.active.discard(ident)
+        else:
+            value = self.loader.construct_object(node, deep=True)
+        self.built[ident] = (value, path, height)
+        return value, height
+
+    def _key(self, key_node: yaml.Node, path: PathT) -> Any:
+        if not isinstance(key_node, yaml.ScalarNode):
+            raise self._at(key_node, path, "mapping keys must be plain scalars")
+        if key_node.tag == _VALUE_TAG:  # '=' as a key, as PyYAML's flatten_mapping reads it
+            key_node.tag = "tag:yaml.org,2002:str"
+        key = self.loader.construct_object(key_node, deep=True)
+        if not isinstance(key, Hashable):
+            key = str(key)
+        if isinstance(key, (bool, float)) or key is None:
+            key = str(key_node.value)
+        return key
+
+    def _at(self, node: yaml.Node, path: PathT, message: str) -> PdoMapError:
+        line, column = _mark(node)
+        return PdoMapError(message, file=self.doc.file, line=line, column=column, path=format_path(path))
+
+    def _mapping(self, node: yaml.MappingNode, path: PathT, depth: int) -> tuple[dict[Any, Any], int]:
         out: dict[Any, Any] = {}
+        height = 0
+        merged: dict[Any, PathT] = {}  # key taken from a '<<' merge -> where its value was built
+        merge_key: yaml.Node | None = None
         for key_node, value_node in node.value:
-            if not isinstance(key_node, yaml.ScalarNode):
-                raise PdoMapError(
-                    "mapping keys must be plain scalars",
-                    file=doc.file,
-                    line=_mark(key_node)[0],
-                    column=_mark(key_node)[1],
-                    path=format_path(path),
-                )
-            key = loader.construct_object(key_node, deep=True)
-            if not isinstance(key, Hashable):
-                key = str(key)
-            if isinstance(key, (bool, float)) or key is None:
-                key = str(key_node.value)
-            if key in out:
-                raise PdoMapError(
-                    f"duplicate key '{key}'",
-                    file=doc.file,
-                    line=_mark(key_node)[0],
-                    column=_mark(key_node)[1],
-                    path=format_path(path),
-                )
+            if key_node.tag != _MERGE_TAG:
+                continue
+            if merge_key is not None:
+                raise self._at(key_node, path, "duplicate key '<<'")
+            merge_key = key_node
+            sources = value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
+            for i, source in enumerate(sources):  # an earlier mapping wins over a later one
+                if not isinstance(source, yaml.MappingNode):
+                    raise self._at(source, (*path, "<<"), "'<<' merges a mapping or a list of mappings")
+                seen = self.built.get(id(source))
+                if seen is None:  # an inline mapping, or a cycle that build() reports
+                    self.build(source, (*path, "<<", i), depth + 1)
+                    seen = self.built[id(source)]
+                elif depth + 1 + seen[2] > _MAX_DEPTH:
+                    raise self.doc.error(path, f"nested deeper than {_MAX_DEPTH} levels")
+                data, first, source_height = seen
+                height = max(height, source_height)
+                self._reuse(path, len(data))
+                for key, item in data.items():
+                    if key not in out:
+                        out[key] = item
+                        merged[key] = self.doc.resolve((*first, key))
+        explicit: set[Any] = set()
+        for key_node, value_node in node.value:
+            if key_node.tag == _MERGE_TAG:
+                continue
+            key = self._key(key_node, path)
+            if key in explicit:
+                raise self._at(key_node, path, f"duplicate key '{key}'")
+            explicit.add(key)
+            merged.pop(key, None)  # a key written here overrides a merged one
             child: PathT = (*path, key)
-            doc.keys[child] = _mark(key_node)
-            out[key] = _build(loader, value_node, child, doc, depth + 1)
-        return out
-    if isinstance(node, yaml.SequenceNode):
-        return [_build(loader, item, (*path, i), doc, depth + 1) for i, item in enumerate(node.value)]
-    return loader.construct_object(node, deep=True)
+            self.doc.keys[child] = _mark(key_node)
+            out[key], child_height = self.build(value_node, child, depth + 1)
+            height = max(height, child_height + 1)
+        for key, first in merged.items():
+            self.doc.aliases[(*path, key)] = first
+        return out, height

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import copy
 import os
+import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -54,6 +56,27 @@ sm:
 ]
 SEEDS.append((Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml").read_text())
 SEED_DOCS = [yaml.safe_load(s) for s in SEEDS]
+
+
+def alias_bomb(levels: int, key: str = "description", *, mapping: bool = False, head: str = "") -> str:
+    """``width ** levels`` leaves under ``key`` through nested anchors ("billion laughs")."""
+    head = head or "name: bomb\nvendor_id: 1\nproduct_id: 2\n"
+    lines = [f"{key}:", f"  - &l0 [{', '.join(['lol'] * 10)}]"]
+    for i in range(1, levels + 1):
+        if mapping:
+            lines.append(f"  - &l{i} {{{', '.join(f'k{j}: *l{i - 1}' for j in range(10))}}}")
+        else:
+            lines.append(f"  - &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]")
+    return head + "\n".join(lines) + "\n"
+
+
+# Text-only seeds: yaml.safe_dump of a loaded bomb would write out every one of its 10**9 leaves.
+ALIAS_BOMBS = [
+    alias_bomb(levels, key, mapping=mapping)
+    for levels in (3, 6, 9)
+    for key, mapping in (("description", False), ("rpdo", False), ("sdo", True), ("ethercat", True))
+] + [alias_bomb(9, head=SEEDS[3]), alias_bomb(9, "buses", head="name: net\n")]
+TEXT_SEEDS = SEEDS + ALIAS_BOMBS
 
 garbage = st.one_of(
     st.none(),
@@ -135,7 +158,7 @@ def mutated_docs(draw: Any) -> str:
 
 @st.composite
 def corrupted_text(draw: Any) -> str:
-    text = draw(st.sampled_from(SEEDS))
+    text = draw(st.sampled_from(TEXT_SEEDS))
     for _ in range(draw(st.integers(1, 5))):
         pos = draw(st.integers(0, max(0, len(text) - 1)))
         op = draw(st.sampled_from(["insert", "delete", "replace"]))
@@ -206,6 +229,18 @@ def test_mutated_maps_raise_only_pdo_map_error(text: str) -> None:
 @given(corrupted_text())
 def test_corrupted_yaml_raises_only_pdo_map_error(text: str) -> None:
     _exercise(text)
+
+
+@pytest.mark.timeout(120)
+def test_alias_bombs_are_refused_quickly() -> None:
+    for text in ALIAS_BOMBS:
+        start = time.perf_counter()
+        _exercise(text)
+        assert time.perf_counter() - start < 1.0, text[:200]
+        start = time.perf_counter()
+        with pytest.raises(PdoMapError):
+            network_from_text(text, "net.yaml", base=INTEROP)
+        assert time.perf_counter() - start < 1.0, text[:200]
 
 
 @settings(max_examples=EXAMPLES // 4, deadline=None, suppress_health_check=list(HealthCheck))

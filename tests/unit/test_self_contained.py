@@ -19,9 +19,7 @@ def _ignored(rel: Path) -> bool:
         for p in (REPO / ".gitignore").read_text().splitlines()
         if p.strip() and not p.startswith("#")
     ]
-    return any(
-        part == ".git" or any(fnmatch.fnmatch(part, pat) for pat in patterns) for part in rel.parts
-    )
+    return any(part == ".git" or any(fnmatch.fnmatch(part, pat) for pat in patterns) for part in rel.parts)
 
 
 def _tracked() -> list[Path]:
