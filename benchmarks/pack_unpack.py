@@ -13,7 +13,7 @@ Contenders (all in one process, interleaved, several rounds; medians and
 within-round ratios are reported):
 
 - ``fieldbus``: one :class:`~fieldbus.core.pdo.image.ProcessImage` of N axes;
-  ``np.copyto`` into preallocated channel views, ``pack()``, ``unpack()``,
+  ``np.copyto`` into preallocated channel views, ``outputs.to_wire()``, ``inputs.from_wire()``,
   ``np.copyto`` out of the input views. The controller's data are numpy arrays.
 - ``canopen``: canopen's ``PdoVariable`` API, one ``RemoteNode`` per axis with
   RPDO1 / TPDO1 mapped to the same entries; per variable ``var.raw = round(x *
@@ -150,7 +150,7 @@ def make_fieldbus(lay: MapLayout, d: Data, engine: str = "auto") -> tuple[Step, 
     sw_i, pos_i, vel_i, tq_i = (inp[nm] for nm in IN_NAMES)
     sw = np.zeros(d.n, dtype=np.uint16)
     pos, vel, tq = np.zeros(d.n), np.zeros(d.n), np.zeros(d.n)
-    pack, unpack, copyto = img.pack, img.unpack, np.copyto
+    pack, unpack, copyto = img.outputs.to_wire, img.inputs.from_wire, np.copyto
 
     def step() -> None:
         copyto(q_o, q)

@@ -206,8 +206,8 @@ def _exercise(text: str) -> None:
     for align in (1, 8):
         lay = layout(drive, pdo_align=align)
         img = ProcessImage(lay, 2)
-        img.pack()
-        img.unpack()
+        img.outputs.to_wire()
+        img.inputs.from_wire()
     try:
         coe_plan(drive)
     except FieldbusError as exc:  # e.g. start-up SDOs with ethercat.coe false: a typed, named error

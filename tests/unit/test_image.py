@@ -212,8 +212,8 @@ def test_cycle_allocates_nothing(engine: str) -> None:
 
     def cycle() -> None:
         np.copyto(tp, q)
-        img.pack()
-        img.unpack()
+        img.outputs.to_wire()
+        img.inputs.from_wire()
 
     assert net_blocks(cycle, cycles=5000) <= 2
     assert math.isclose(float(img.outputs["target_position"][0]), -1.0)

@@ -146,8 +146,8 @@ def test_process_images_build(path: Path) -> None:
     aligns = (1, 8) if drive.canopen is not None else (1,)
     for align in aligns:
         img = ProcessImage(layout(drive, pdo_align=align), n_axes=3)
-        img.pack()
-        img.unpack()
+        img.outputs.to_wire()
+        img.inputs.from_wire()
 
 
 @pytest.mark.parametrize("name", ["generic_cia402", "maxon_epos4", "maxon_epos4_canopen", "elmo_gold"])

@@ -454,7 +454,9 @@ class ProcessImage:
     """Outputs and inputs of N axes sharing one drive map.
 
     ``outputs`` are the RxPDOs (master -> drive), ``inputs`` the TxPDOs
-    (drive -> master), both named from the master's side.
+    (drive -> master), both named from the master's side. The master calls
+    ``outputs.to_wire()`` before sending and ``inputs.from_wire()`` after
+    receiving; an emulated drive calls the opposite pair.
     """
 
     def __init__(self, map_layout: MapLayout, n_axes: int = 1, *, engine: str = "auto") -> None:
@@ -462,11 +464,3 @@ class ProcessImage:
         self.n_axes = n_axes
         self.outputs = DirectionImage(map_layout.outputs, n_axes, engine=engine)
         self.inputs = DirectionImage(map_layout.inputs, n_axes, engine=engine)
-
-    def pack(self) -> None:
-        """Master side: encode outputs for sending."""
-        self.outputs.to_wire()
-
-    def unpack(self) -> None:
-        """Master side: decode received inputs."""
-        self.inputs.from_wire()
