@@ -57,6 +57,7 @@ CAN_ONLY = ("emcys", "heartbeats", "bus_offs")
 BUS_OFF_CYCLES = 20  # a node stays off the bus this long, then recovers and boots  # EMCY frames and heartbeat silence: CANopen faults
 ETHERCAT_ONLY = ("delay", "wkc")  # a late reply / a short working counter: EtherCAT faults
 EMCY_CODE = 0x2310  # continuous over-current
+IN_FLIGHT = ("loss", "burst", "delay", "wkc")  # faults aimed at "the next frame" the emulator gets
 NOTICED = ("emcy", "heartbeat")  # faults that are reported, not seen as a lost cycle
 NOTICE_CYCLES = 200  # an EMCY or a heartbeat loss must be noticed within this many cycles
 # exchange() may take the receive timeout plus this (recovery steps, the emulated drives, and the
@@ -271,8 +272,17 @@ class Soak:
         period_ns = int(period_us * 1000)
         limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
+        prev_fresh = True
         for k in range(cycles):
             event = plan.get(k)
+            if event is not None and event[0] in IN_FLIGHT and not prev_fresh:
+                # The last cycle's frame may still be on its way to the emulator (its reply was late):
+                # "drop the next frame" could hit that one. Inject once a cycle came back fresh.
+                later = k + 1
+                while later in plan:
+                    later += 1
+                plan[later] = event
+                event = None
             lost_now = False
             if event is not None:
                 kind, slave = event
@@ -319,8 +329,9 @@ class Soak:
                 rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
                 break
             fresh = res.fresh
+            # a miss is a miss even when a recovery step ran in it; "recovery": fresh, but still recovering
             kind_of_cycle = (
-                "recovery" if any(st.recovering for st in res.buses) else "good" if fresh else "miss"
+                "miss" if not fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
             )
             rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
             if res.exchange_ns > limit_ns:
@@ -373,6 +384,7 @@ class Soak:
                         k, f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}"
                     )
             fresh_streak = fresh_streak + 1 if fresh else 0
+            prev_fresh = fresh
             if recovering and fresh_streak >= 20:
                 status = self.control(cmd="status")
                 if all(s == AL_OP for s in status["states"]):
