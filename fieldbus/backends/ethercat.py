@@ -53,6 +53,7 @@ SYNC1_ACTIVATE = 0x0400  # assign_activate bit: SYNC1 generation (0x0981 bit 2)
 HOST_OFFSET_FRACTION = 50  # host sends this % of a cycle after each SYNC0 (SOEM examples: 50 %)
 SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times
 MAX_EMERGENCIES = 1000  # emergencies kept (oldest dropped)
+REDUNDANT_SLACK_US = 200  # a reply handed over this long past the timeout is still in time (redundant port)
 ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
 PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
 RECOVERY_FRAME_TIMEOUT_US = 1000  # one register read/write during recovery (a lost frame costs this)
@@ -93,6 +94,14 @@ class EthercatBackend(Backend):
         self._in_views: list[tuple[Any, memoryview]] = []
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True))
+        # With a redundant port and the ring open (a cable cut: the usual reason to have one), SOEM
+        # waits for both ports until its timer ends, so a good reply is handed over at the timeout,
+        # a few µs past it. The non-blocking socket still ends that wait at SOEM's timer; the slack
+        # only keeps such a reply from being judged late.
+        if bus.redundant_interface and self._exact_timeout:
+            self._late_ns = self._timeout_ns + REDUNDANT_SLACK_US * 1000
+        else:
+            self._late_ns = self._timeout_ns
         self.sockets: list[int] = []  # SOEM's AF_PACKET socket(s), found at open()
         # A reply later than its timeout must not be taken for a later frame's: SOEM matches replies by
         # frame index only (16 of them), so a frame still queued when a cycle starts is discarded.
@@ -110,17 +119,20 @@ class EthercatBackend(Backend):
         """Open the NIC (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
         before = soem_socket.open_sockets()
         try:
-            self.master.open(self.bus.interface)
+            self.master.open(self.bus.interface, self.bus.redundant_interface)
         except Exception as exc:
+            ports = " and ".join(f"'{p}'" for p in (self.bus.interface, self.bus.redundant_interface) if p)
             raise FieldbusError(
-                f"bus '{self.bus.name}': cannot open interface '{self.bus.interface}' ({exc}); "
+                f"bus '{self.bus.name}': cannot open interface {ports} ({exc}); "
                 "raw sockets need root (or CAP_NET_RAW) and the link must be up"
             ) from exc
         self._open = True
         self.sockets = soem_socket.packet_sockets(soem_socket.open_sockets() - before)
-        if self._exact_timeout and not self.sockets:
+        ports = 2 if self.bus.redundant_interface else 1  # one packet socket per port
+        if self._exact_timeout and len(self.sockets) != ports:
             raise FieldbusError(
-                f"bus '{self.bus.name}': SOEM's packet socket not found after opening '{self.bus.interface}'; "
+                f"bus '{self.bus.name}': {len(self.sockets)} new packet sockets after opening "
+                f"'{self.bus.interface}', SOEM opens {ports}; "
                 "pass exact_timeout=False to keep SOEM's own receive wait (a lost frame then costs 4-10 ms)"
             )
         found = self.master.config_init()
@@ -346,7 +358,7 @@ class EthercatBackend(Backend):
         judged here as a miss (counted in :attr:`late_replies`), inputs held.
         """
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
-        if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._timeout_ns:
+        if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._late_ns:
             self.late_replies += 1
             wkc = -1
         if self._host_sync is not None and wkc >= 0:

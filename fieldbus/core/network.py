@@ -26,8 +26,8 @@ DEFAULT_SAFE_STOP_AFTER = 10  # legged-robot hardware tutorial §62.5: safe stop
 
 _TOP_KEYS = ("name", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "buses")
 _BUS_KEYS = (
-    "name", "type", "interface", "can_interface", "bitrate", "data_bitrate", "cycle_time_us",
-    "receive_timeout_us", "safe_stop_after", "slaves",
+    "name", "type", "interface", "redundant_interface", "can_interface", "bitrate", "data_bitrate",
+    "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
 )  # fmt: skip
 _SLAVE_KEYS = ("name", "map", "node_id", "count", "position")
 
@@ -53,6 +53,7 @@ class Bus:
     receive_timeout_us: int
     safe_stop_after: int
     interface: str | None = None
+    redundant_interface: str | None = None  # EtherCAT: SOEM's second port (cable redundancy)
     can_interface: str | None = None
     bitrate: int | None = None
     data_bitrate: int | None = None
@@ -146,6 +147,19 @@ def _bus(
     )
     if kind in ("ethercat",) and "interface" not in m:
         raise r.err(path, "an ethercat bus needs 'interface' (the network card, e.g. eth0)")
+    redundant = None
+    if "redundant_interface" in m:
+        if kind != "ethercat":
+            raise r.err(
+                (*path, "redundant_interface"),
+                f"'redundant_interface' is for ethercat buses, this bus is {kind}",
+                key=True,
+            )
+        redundant = r.string(m["redundant_interface"], (*path, "redundant_interface"))
+        if redundant == m["interface"]:
+            raise r.err(
+                (*path, "redundant_interface"), f"the redundant port must be another card than '{redundant}'"
+            )
     slaves: list[Slave] = []
     names: dict[str, PathT] = {}
     node_ids: dict[int, PathT] = {}
@@ -203,6 +217,7 @@ def _bus(
             m.get("safe_stop_after", stop_after), (*path, "safe_stop_after"), 1, 100_000
         ),
         interface=r.string(m["interface"], (*path, "interface")) if "interface" in m else None,
+        redundant_interface=redundant,
         can_interface=r.string(m.get("can_interface", "socketcan"), (*path, "can_interface"))
         if is_can
         else None,

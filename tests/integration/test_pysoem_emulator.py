@@ -251,3 +251,50 @@ def test_a_lost_frame_costs_the_receive_timeout_not_a_scheduler_tick(
         # this shared machine, far below the 4 ms tick a blocking recv waits
         assert 500 <= lost[len(lost) // 2] <= 600, lost
         assert lost[-1] < 2500, lost
+
+
+def test_a_redundant_port_gets_its_own_nonblocking_socket_and_the_timeout_holds(
+    ethercat_emulator: Any, tmp_path: Path
+) -> None:
+    """SOEM opens a second packet socket for ``redundant_interface``; both are found and set
+    non-blocking. The ring is open at the second port (nothing answers there), as after a cable
+    break: process data still arrives through the first port, and a lost frame still costs
+    the receive timeout, not SOEM's tick-long recv."""
+    import fieldbus
+    from fieldbus.backends import soem_socket
+    from fieldbus.commands.demo import DEMO_MAP
+    from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
+
+    emu = ethercat_emulator([DEMO_MAP], count=2)
+    try:
+        spare, _ = make_veth_pair()
+    except VethUnavailable as exc:
+        pytest.skip(str(exc))
+    try:
+        net_file = tmp_path / "net.yaml"
+        net_file.write_text(
+            "cycle_time_us: 1000\nreceive_timeout_us: 500\nsafe_stop_after: 100000\nbuses:\n"
+            f"  - {{name: bus, type: ethercat, interface: {emu.iface}, redundant_interface: {spare},"
+            f" slaves: [{{name: 'j{{i}}', map: '{DEMO_MAP}', count: 2}}]}}\n"
+        )
+        with fieldbus.open_network(net_file) as net:
+            op = net.bring_up()
+            backend = net.backends[0]
+            sockets = backend.sockets  # type: ignore[attr-defined]
+            assert len(sockets) == 2 and all(soem_socket.is_nonblocking(fd) for fd in sockets)
+            fresh = sum(op.exchange().fresh for _ in range(100))
+            assert fresh >= 95, fresh
+            lost_us: list[float] = []
+            for _ in range(10):
+                emu.command(cmd="drop", count=1, pd=True)
+                backend.send()
+                t0 = time.perf_counter_ns()
+                assert backend.receive() is None
+                lost_us.append((time.perf_counter_ns() - t0) / 1e3)
+                op.exchange()
+            lost_us.sort()
+            # SOEM waits on both ports until its timer; the blocking recv would take 4-10 ms
+            assert lost_us[len(lost_us) // 2] < 500 + 100, lost_us
+            assert op.exchange().fresh
+    finally:
+        delete_link(spare)

@@ -262,3 +262,33 @@ def test_pdo_name_must_be_text_and_yaml_booleans_are_explained(tmp_path: Path) -
         and "YAML boolean" in str(exc.value)
         and "'on'" not in str(exc.value)
     )
+
+
+@pytest.mark.parametrize(
+    ("bus", "message", "line"),
+    [
+        ("{name: a, type: ethercat, interface: eth0,\n    redundant_interface: eth1, slaves: []}", None, 0),
+        (
+            "{name: a, type: ethercat, interface: eth0,\n    redundant_interface: eth0, slaves: []}",
+            "another card",
+            3,
+        ),
+        (
+            "{name: a, type: canopen, interface: can0,\n    redundant_interface: can1, slaves: []}",
+            "for ethercat",
+            3,
+        ),
+    ],
+)
+def test_redundant_interface_is_an_ethercat_second_card(
+    tmp_path: Path, bus: str, message: str | None, line: int
+) -> None:
+    net = tmp_path / "net.yaml"
+    (tmp_path / "io.yaml").write_text("vendor_id: 1\nproduct_id: 2\n")
+    net.write_text(f"buses:\n  - {bus.replace('slaves: []', 'slaves: [{name: s, map: io.yaml}]')}\n")
+    if message is None:
+        assert load_network(net).buses[0].redundant_interface == "eth1"
+        return
+    with pytest.raises(PdoMapError, match=message) as info:
+        load_network(net)
+    assert info.value.line == line and info.value.path == "buses[0].redundant_interface"
