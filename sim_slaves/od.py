@@ -28,6 +28,7 @@ from enum import IntEnum
 from fieldbus.core import datatypes
 from fieldbus.core.datatypes import DataType
 from fieldbus.core.pdo.model import Channel, DriveMap, Pdo
+from fieldbus.core.pdo.names import CIA402_NAMES
 from fieldbus.errors import SdoAbortError
 
 U8 = datatypes.lookup("uint8")
@@ -76,6 +77,19 @@ class Access(IntEnum):
     CONST = 5
 
 
+class ObjectCode(IntEnum):
+    """CiA 301 / ETG.1000.6 object codes (SDO Information)."""
+
+    VAR = 7
+    ARRAY = 8
+    RECORD = 9
+
+
+# PDO mapping directions of an entry (ETG.1000.6 object access bits 6 and 7).
+PDO_RX = 0x40  # mappable into an RxPDO (master output)
+PDO_TX = 0x80  # mappable into a TxPDO (master input)
+
+
 @dataclass
 class Entry:
     """One sub-index. ``dtype`` None: a visible string held as bytes in ``value``."""
@@ -85,6 +99,7 @@ class Entry:
     access: Access = Access.RW
     name: str = ""
     mappable: bool = False
+    pdo_dir: int = 0  # PDO_RX | PDO_TX: which PDOs may map it (SDO Information)
 
     @property
     def size(self) -> int:
@@ -127,6 +142,10 @@ CIA402_TYPES: dict[int, str] = {
     0x6502: "uint32",  # supported drive modes
 }
 SUPPORTED_MODES_CSP_CSV_CST = 0x00000380
+CIA402_OUTPUTS = frozenset({0x6040, 0x6060, 0x6071, 0x6072, 0x607A, 0x60FF})  # RxPDO-mappable
+IDENTITY_NAMES = ("Vendor ID", "Product code", "Revision number", "Serial number")
+DEFTYPE_PDO_MAPPING = 0x0021  # CiA 301 structured types (SDO Information data type of records)
+DEFTYPE_IDENTITY = 0x0023
 
 
 class ObjectDictionary:
@@ -136,6 +155,7 @@ class ObjectDictionary:
         self._entries: dict[tuple[int, int], Entry] = {}
         self._subs: dict[int, list[int]] = {}
         self._aborts: dict[tuple[int, int | None], int] = {}
+        self._objects: dict[int, tuple[str, ObjectCode | None, int | None]] = {}
         self.mapping_version = 0
 
     # -- building --
@@ -150,13 +170,45 @@ class ObjectDictionary:
         access: Access = Access.RW,
         name: str = "",
         mappable: bool = False,
+        pdo_dir: int = 0,
     ) -> None:
         """Add (or replace) one sub-index."""
         if (index, sub) not in self._entries:
             subs = self._subs.setdefault(index, [])
             subs.append(sub)
             subs.sort()
-        self._entries[(index, sub)] = Entry(dtype, value, access, name, mappable)
+        self._entries[(index, sub)] = Entry(dtype, value, access, name, mappable, pdo_dir)
+
+    def describe(
+        self, index: int, name: str, code: ObjectCode | None = None, data_type: int | None = None
+    ) -> None:
+        """Name an object (SDO Information); ``code``/``data_type`` override what its entries imply."""
+        self._objects[index] = (name, code, data_type)
+
+    def object_name(self, index: int) -> str:
+        """The object's name: as described, else its sub-index 0 name, else its address."""
+        if index in self._objects:
+            return self._objects[index][0]
+        e = self._entries.get((index, 0))
+        if self.object_code(index) is ObjectCode.VAR and e is not None and e.name:
+            return e.name
+        return f"0x{index:04X}"
+
+    def object_code(self, index: int) -> ObjectCode:
+        """VAR for a lone sub-index 0, else RECORD (unless described otherwise)."""
+        code = self._objects.get(index, ("", None, None))[1]
+        if code is not None:
+            return code
+        return ObjectCode.VAR if self._subs.get(index) == [0] else ObjectCode.RECORD
+
+    def object_data_type(self, index: int) -> int:
+        """CoE data type code of the object: a VAR's type, an ARRAY's element type, else as described."""
+        described = self._objects.get(index, ("", None, None))[2]
+        if described is not None:
+            return described
+        subs = self._subs.get(index, [])
+        key = (index, 0) if self.object_code(index) is ObjectCode.VAR or len(subs) < 2 else (index, subs[1])
+        return entry_type_code(self._entries[key])
 
     def add_string(self, index: int, text: str, name: str = "") -> None:
         self.add(index, 0, None, text.encode(), access=Access.CONST, name=name)
@@ -165,7 +217,7 @@ class ObjectDictionary:
         """Give every object with sub-indices > 0 and no sub-index 0 an RO sub-index 0 = highest sub."""
         for index, subs in list(self._subs.items()):
             if 0 not in subs:
-                self.add(index, 0, U8, max(subs), access=Access.RO)
+                self.add(index, 0, U8, max(subs), access=Access.RO, name="Highest sub-index supported")
 
     # -- queries --
 
@@ -319,56 +371,87 @@ class ObjectDictionary:
         od = cls()
         rx_objs = {(c.index, c.sub_index) for p in drive.rpdo for c in p.channels}
         is402 = drive.profile == "cia402" or any(i == 0x6040 for i, _ in rx_objs)
-        od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="device type")
-        od.add(0x1001, 0, U8, 0, access=Access.RO, name="error register")
-        od.add_string(0x1008, drive.name, "device name")
+        od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="Device type")
+        od.add(0x1001, 0, U8, 0, access=Access.RO, name="Error register")
+        od.add_string(0x1008, drive.name, "Manufacturer device name")
         ident = (
             drive.vendor_id,
             drive.product_id,
             drive.revision or drive.ethercat.revision,
             drive.ethercat.serial,
         )
-        for sub, v in enumerate(ident, start=1):
-            od.add(0x1018, sub, U32, v, access=Access.RO, name="identity")
-        od.add(0x1018, 0, U8, 4, access=Access.RO)
-        od.add(SM_COMM_TYPE, 0, U8, 4, access=Access.RO, name="SM communication type")
+        od.describe(0x1018, "Identity object", ObjectCode.RECORD, DEFTYPE_IDENTITY)
+        for sub, (v, n) in enumerate(zip(ident, IDENTITY_NAMES, strict=True), start=1):
+            od.add(0x1018, sub, U32, v, access=Access.RO, name=n)
+        od.add(0x1018, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
+        od.describe(SM_COMM_TYPE, "Sync manager communication type", ObjectCode.ARRAY, 0x0005)
+        od.add(SM_COMM_TYPE, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
         for sub, v in enumerate((1, 2, 3, 4), start=1):
-            od.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO)
+            od.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO, name=f"Communication type SM{sub - 1}")
         if is402:
             defaults = _cia402_defaults()
             for index, tname in CIA402_TYPES.items():
                 dt = datatypes.lookup(tname)
                 assert dt is not None
                 value = SUPPORTED_MODES_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
-                od.add(index, 0, dt, value, name=f"0x{index:04X}", mappable=index != 0x6502)
+                od.add(
+                    index,
+                    0,
+                    dt,
+                    value,
+                    name=CIA402_NAMES.get((index, 0), f"0x{index:04X}"),
+                    mappable=index != 0x6502,
+                    pdo_dir=0 if index == 0x6502 else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
+                )
         for sdo in drive.sdo:
             if not od.has(sdo.index, sdo.sub_index):
                 od.add(sdo.index, sdo.sub_index, sdo.type, 0, name=sdo.description)
-        for pdo in (*drive.rpdo, *drive.tpdo):
-            for ch in pdo.channels:
-                if ch.is_gap:
-                    continue
-                old = od._entries.get((ch.index, ch.sub_index))
-                keep = old is not None and old.dtype == ch.type
-                od.add(
-                    ch.index,
-                    ch.sub_index,
-                    ch.type,
-                    old.value if old and keep else 0,
-                    name=ch.name,
-                    mappable=True,
-                )
-        for assign, pdos in ((RXPDO_ASSIGN, drive.rpdo), (TXPDO_ASSIGN, drive.tpdo)):
-            od.add(assign, 0, U8, len(pdos), name="PDO assignment")
-            for sub in range(1, max(ASSIGN_CAPACITY, len(pdos)) + 1):
-                od.add(assign, sub, U16, pdos[sub - 1].index if sub <= len(pdos) else 0)
+        for direction, pdos in ((PDO_RX, drive.rpdo), (PDO_TX, drive.tpdo)):
             for pdo in pdos:
-                od.add(pdo.index, 0, U8, len(pdo.channels), name="PDO mapping")
+                for ch in pdo.channels:
+                    if ch.is_gap:
+                        continue
+                    old = od._entries.get((ch.index, ch.sub_index))
+                    keep = old is not None and old.dtype == ch.type
+                    od.add(
+                        ch.index,
+                        ch.sub_index,
+                        ch.type,
+                        old.value if old and keep else 0,
+                        name=ch.name,
+                        mappable=True,
+                        pdo_dir=direction | (old.pdo_dir if old and keep else 0),
+                    )
+                    if ch.sub_index and ch.index not in od._objects:
+                        od.describe(ch.index, ch.name)
+        for assign, pdos in ((RXPDO_ASSIGN, drive.rpdo), (TXPDO_ASSIGN, drive.tpdo)):
+            kind = "RxPDO" if assign == RXPDO_ASSIGN else "TxPDO"
+            od.describe(assign, f"{kind} assign", ObjectCode.ARRAY, 0x0006)
+            od.add(assign, 0, U8, len(pdos), name="Highest sub-index supported")
+            for sub in range(1, max(ASSIGN_CAPACITY, len(pdos)) + 1):
+                od.add(
+                    assign,
+                    sub,
+                    U16,
+                    pdos[sub - 1].index if sub <= len(pdos) else 0,
+                    name=f"SubIndex {sub:03d}",
+                )
+            for pdo in pdos:
+                od.describe(pdo.index, f"{kind} mapping {pdo.number}", ObjectCode.RECORD, DEFTYPE_PDO_MAPPING)
+                od.add(pdo.index, 0, U8, len(pdo.channels), name="Highest sub-index supported")
                 for sub in range(1, max(MAPPING_CAPACITY, len(pdo.channels)) + 1):
                     raw = pdo.channels[sub - 1].mapping_value if sub <= len(pdo.channels) else 0
-                    od.add(pdo.index, sub, U32, raw)
+                    od.add(pdo.index, sub, U32, raw, name=f"SubIndex {sub:03d}")
         od.fix_subindex0()
         return od
+
+
+def entry_type_code(e: Entry) -> int:
+    """CoE data type code of an entry (VISIBLE_STRING 0x0009 for strings)."""
+    return 0x0009 if e.dtype is None else (e.dtype.coe_code or _BIT_CODES.get(e.dtype.bits, 0))
+
+
+_BIT_CODES = {n: 0x002F + n for n in range(1, 9)}  # BIT1 = 0x0030 .. BIT8 = 0x0037
 
 
 def _is_mapping(index: int) -> bool:

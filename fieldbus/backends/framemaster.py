@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
+from fieldbus.core.sdo import info as sdo_info
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError, StateTransitionError
 
 Transport = Callable[[bytes], "bytes | None"]
@@ -343,6 +344,29 @@ class FrameMaster:
             if seg[2] & 0x01:
                 break
         return bytes(data[:size])
+
+    # -- CoE SDO Information (ETG.1000.6 5.6.3) ---------------------------------------------------
+    def _sdo_info(self, info: SlaveInfo, request: bytes, expect: int, index: int = 0, sub: int = 0) -> bytes:
+        self._mailbox_send(info, request)
+        joined = sdo_info.Reassembly(expect, index, sub)
+        for _ in range(0x10000):
+            data = joined.add(self._mailbox_receive(info))
+            if data is not None:
+                return data
+        raise BusTimeoutError(f"station 0x{info.station:04X}: SDO Information answer never ends")
+
+    def od_list(self, info: SlaveInfo, list_type: int = sdo_info.ListType.ALL) -> list[int]:
+        """The indices of the slave's objects (Get OD List, all fragments)."""
+        data = self._sdo_info(info, sdo_info.od_list_request(list_type), sdo_info.InfoOpcode.OD_LIST_RES)
+        return sdo_info.parse_od_list(data)[1]
+
+    def object_description(self, info: SlaveInfo, index: int) -> sdo_info.ObjectDescription:
+        data = self._sdo_info(info, sdo_info.od_request(index), sdo_info.InfoOpcode.OD_RES, index)
+        return sdo_info.parse_od(data)
+
+    def entry_description(self, info: SlaveInfo, index: int, sub: int) -> sdo_info.EntryDescription:
+        data = self._sdo_info(info, sdo_info.oe_request(index, sub), sdo_info.InfoOpcode.OE_RES, index, sub)
+        return sdo_info.parse_oe(data)
 
     # -- process data ---------------------------------------------------------------------------
     def map_process_data(self, info: SlaveInfo, m: Mapping) -> None:

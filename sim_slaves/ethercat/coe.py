@@ -3,8 +3,9 @@
 Works on CoE payloads (after the 6-byte mailbox header): u16 CoE header
 (number bits 0-8, service bits 12-15), then the SDO command byte, u16 index,
 u8 sub-index and 4 data bytes. Expedited, normal and segmented transfers in
-both directions; SDO information and complete access are not offered (the
-SII CoE details say so). Aborts carry CiA 301 codes and travel as service 2
+both directions; the SDO Information service (:mod:`sim_slaves.ethercat.sdoinfo`,
+answers in fragments when they exceed the mailbox); complete access is not
+offered (the SII CoE details say so). Aborts carry CiA 301 codes and travel as service 2
 ("SDO request"), as ETG.1000.6 prescribes and SOEM expects.
 """
 
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 from fieldbus.errors import SdoAbortError
+from sim_slaves.ethercat import sdoinfo
 from sim_slaves.od import CommState, ObjectDictionary
 
 MBX_HEADER_SIZE = 6
@@ -71,6 +73,13 @@ class SdoServer:
     def reset(self) -> None:
         self._upload = None
         self._download = None
+
+    def answers(self, coe: bytes, state: CommState) -> list[bytes]:
+        """Every CoE payload to send back for one request (SDO Information may need several)."""
+        if len(coe) >= 2 and coe[1] >> 4 == CoeService.SDO_INFO:
+            return sdoinfo.handle(self.od, coe, self.mailbox_in - MBX_HEADER_SIZE)
+        answer = self.handle(coe, state)
+        return [] if answer is None else [answer]
 
     def handle(self, coe: bytes, state: CommState) -> bytes | None:
         """Answer one CoE request payload; None when nothing is to be sent back."""

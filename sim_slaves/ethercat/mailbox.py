@@ -83,8 +83,7 @@ class Mailbox:
         if head.type != MBX_TYPE_COE:
             self._queue(MBX_TYPE_ERROR, struct.pack("<HH", 0x0001, MBX_ERR_UNSUPPORTED_PROTOCOL))
             return
-        answer = self.sdo.handle(payload, state)
-        if answer is not None:
+        for answer in self.sdo.answers(payload, state):
             self._queue(MBX_TYPE_COE, answer)
 
     def send_coe(self, payload: bytes) -> None:

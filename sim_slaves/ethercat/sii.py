@@ -28,7 +28,7 @@ CAT_RXPDO = 51  # outputs (drive receives)
 CAT_END = 0xFFFF
 
 MBX_PROTO_COE = 0x0004
-COE_DETAILS = 0x01 | 0x04 | 0x08  # SDO, PDO assign, PDO configuration (no SDO info, no complete access)
+COE_DETAILS = 0x01 | 0x02 | 0x04 | 0x08  # SDO, SDO info, PDO assign, PDO configuration (no complete access)
 
 # SyncManager defaults: physical start, control byte (ESC register 0x0804+8n), SII type.
 MBX_OUT_START = 0x1000  # SM0: master -> slave mailbox
