@@ -121,9 +121,9 @@ class EthercatBackend(Backend):
         try:
             self.master.open(self.bus.interface, self.bus.redundant_interface)
         except Exception as exc:
-            ports = " and ".join(f"'{p}'" for p in (self.bus.interface, self.bus.redundant_interface) if p)
+            cards = " and ".join(f"'{p}'" for p in (self.bus.interface, self.bus.redundant_interface) if p)
             raise FieldbusError(
-                f"bus '{self.bus.name}': cannot open interface {ports} ({exc}); "
+                f"bus '{self.bus.name}': cannot open interface {cards} ({exc}); "
                 "raw sockets need root (or CAP_NET_RAW) and the link must be up"
             ) from exc
         self._open = True
