@@ -48,3 +48,41 @@ STATUSWORD = 0x6041
 def default_name(index: int, sub_index: int) -> str:
     """Name of an unnamed channel: its CiA 402 name, else ``x{index:04x}_{sub:02x}``."""
     return CIA402_NAMES.get((index, sub_index), f"x{index:04x}_{sub_index:02x}")
+
+
+# CiA 402-2 data types of the objects above: what a scan assumes when the device cannot say
+# (CANopen has no SDO Information; an EtherCAT slave without it).
+CIA402_TYPES: dict[tuple[int, int], str] = {
+    (0x603F, 0): "uint16",
+    (0x6040, 0): "uint16",
+    (0x6041, 0): "uint16",
+    (0x605A, 0): "int16",
+    (0x6060, 0): "int8",
+    (0x6061, 0): "int8",
+    (0x6062, 0): "int32",
+    (0x6063, 0): "int32",
+    (0x6064, 0): "int32",
+    (0x606B, 0): "int32",
+    (0x606C, 0): "int32",
+    (0x6071, 0): "int16",
+    (0x6072, 0): "uint16",
+    (0x6074, 0): "int16",
+    (0x6077, 0): "int16",
+    (0x6078, 0): "int16",
+    (0x6079, 0): "uint32",
+    (0x607A, 0): "int32",
+    (0x607F, 0): "uint32",
+    (0x6080, 0): "uint32",
+    (0x60B0, 0): "int32",
+    (0x60B1, 0): "int32",
+    (0x60B2, 0): "int16",
+    (0x60B8, 0): "uint16",
+    (0x60B9, 0): "uint16",
+    (0x60BA, 0): "int32",
+    (0x60BB, 0): "int32",
+    (0x60F4, 0): "int32",
+    (0x60FC, 0): "int32",
+    (0x60FD, 0): "uint32",
+    (0x60FE, 1): "uint32",
+    (0x60FF, 0): "int32",
+}
