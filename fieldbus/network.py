@@ -41,7 +41,7 @@ from fieldbus.core.wkc import PolicyConfig, Verdict, WkcPolicy
 from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError
 
 CLOSE_CYCLES = 5  # cycles of quick stop, then of disable voltage, sent on close
-PER_BUS_OPTIONS = ("can_bus",)  # options that name one bus's own interface instance
+PER_BUS_OPTIONS = ("can_bus", "can_log", "pcap")  # options naming one bus's own instance or file
 
 
 @dataclass

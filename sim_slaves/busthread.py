@@ -35,6 +35,9 @@ class BusThread:
         if self._thread is not None:
             self._thread.join(timeout=JOIN_TIMEOUT_S)
             self._thread = None
+        log = getattr(self, "log", None)  # an emulator's frame log (fieldbus.backends.canlog)
+        if log is not None:
+            log.close()
 
     def __enter__(self) -> Self:
         return self.start()

@@ -15,11 +15,13 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
 
+from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap
@@ -53,9 +55,15 @@ class MitMotorSimulator(BusThread):
     thread_name = "mit-motors"
 
     def __init__(
-        self, bus: can.BusABC, motors: list[tuple[DriveMap, int]], *, dt_s: float | None = None
+        self,
+        bus: can.BusABC,
+        motors: list[tuple[DriveMap, int]],
+        *,
+        dt_s: float | None = None,
+        log: str | Path | None = None,
     ) -> None:
-        self.bus = bus
+        self.log = open_log(log)  # every frame the motors see and send, python-can format by suffix
+        self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
         self._by_id: dict[int, tuple[MotorState, ProcessImage, Any]] = {}
         for drive, node in motors:

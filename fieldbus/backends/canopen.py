@@ -46,6 +46,7 @@ import numpy.typing as npt
 
 from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
+from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.emcy import Emergency
 from fieldbus.core.network import Bus
@@ -93,6 +94,7 @@ class CanopenBackend(Backend):
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")
         self._own_bus = self._bus is None
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
@@ -165,6 +167,8 @@ class CanopenBackend(Backend):
                 raise FieldbusError(
                     f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
                 ) from exc
+        if self._log is not None and not isinstance(self._bus, LoggedBus):
+            self._bus = LoggedBus(self._bus, self._log)
         self._open = True
         self._nmt(NMT_PRE_OP)
         time.sleep(0.01)
@@ -492,9 +496,13 @@ class CanopenBackend(Backend):
             self._nmt(NMT_PRE_OP)
 
     def close(self) -> None:
-        if self._bus is not None and self._own_bus:
-            self._bus.shutdown()
-        self._bus = None
+        try:
+            if self._bus is not None and self._own_bus:
+                self._bus.shutdown()
+        finally:
+            self._bus = None
+            if self._log is not None:
+                self._log.close()
         self._open = False
 
     # -- acyclic ------------------------------------------------------------------------------

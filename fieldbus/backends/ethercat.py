@@ -26,6 +26,7 @@ from typing import Any
 
 from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
+from fieldbus.backends.ecat_pcap import EthercatCapture
 from fieldbus.backends.sdo_exec import apply_plan, plan_transfers
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
@@ -94,6 +95,8 @@ class EthercatBackend(Backend):
         self._in_views: list[tuple[Any, memoryview]] = []
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True))
+        pcap = options.get("pcap")  # every EtherCAT frame of the card, both directions, to this pcap file
+        self.capture = EthercatCapture(str(pcap), bus.interface) if pcap else None
         # With a redundant port and the ring open (a cable cut: the usual reason to have one), SOEM
         # waits for both ports until its timer ends, so a good reply is handed over at the timeout,
         # a few µs past it. The non-blocking socket still ends that wait at SOEM's timer; the slack
@@ -117,6 +120,8 @@ class EthercatBackend(Backend):
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
         """Open the NIC (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
+        if self.capture is not None:
+            self.capture.start()
         before = soem_socket.open_sockets()
         try:
             self.master.open(self.bus.interface, self.bus.redundant_interface)
@@ -429,9 +434,14 @@ class EthercatBackend(Backend):
             self.master.write_state()
 
     def close(self) -> None:
-        if self._open:
-            self._open = False
-            self.master.close()
+        try:
+            if self._open:
+                self._open = False
+                self.master.close()
+        finally:
+            if self.capture is not None:
+                time.sleep(0.01)  # the last replies reach the capture socket
+                self.capture.close()
 
     # -- acyclic ------------------------------------------------------------------------
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:

@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
+from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
 
@@ -42,6 +43,7 @@ class RawCanBackend(Backend):
     def __init__(self, bus: Bus, **options: Any) -> None:
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")  # tests may hand in a bus instance
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._own_bus = self._bus is None
         self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
@@ -97,6 +99,8 @@ class RawCanBackend(Backend):
                 raise FieldbusError(
                     f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
                 ) from exc
+        if self._log is not None and not isinstance(self._bus, LoggedBus):
+            self._bus = LoggedBus(self._bus, self._log)
 
     def configure(self) -> None:
         """MIT-mode motors have no object dictionary: nothing to configure."""
@@ -179,6 +183,10 @@ class RawCanBackend(Backend):
             self._special("exit")
 
     def close(self) -> None:
-        if self._bus is not None and self._own_bus:
-            self._bus.shutdown()
-        self._bus = None
+        try:
+            if self._bus is not None and self._own_bus:
+                self._bus.shutdown()
+        finally:
+            self._bus = None
+            if self._log is not None:
+                self._log.close()

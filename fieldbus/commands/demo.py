@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from fieldbus.commands import cycleopts
+from fieldbus.commands import buslogs, cycleopts
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.network import load_network
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.report import run_report
@@ -73,6 +74,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     cycleopts.add_arguments(p)
+    buslogs.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -85,7 +87,9 @@ def run(args: argparse.Namespace) -> int:
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
     with cycleopts.rt_context(args) as rt:
-        report = run_demo(args.backend, args.axes, args.cycles, args.rate, status=not args.json, rt=rt)
+        report = run_demo(
+            args.backend, args.axes, args.cycles, args.rate, status=not args.json, rt=rt, logs=args
+        )
     if args.plot:
         cycleopts.plot_latency(report.pop("_latency"), args.plot, f"fieldbus demo --backend {args.backend}")
     report.pop("_latency", None)
@@ -210,15 +214,28 @@ def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator
 
 
 def run_demo(
-    backend: str, axes: int, cycles: int, rate_hz: float, *, status: bool = False, rt: RtState | None = None
+    backend: str,
+    axes: int,
+    cycles: int,
+    rate_hz: float,
+    *,
+    status: bool = False,
+    rt: RtState | None = None,
+    logs: argparse.Namespace | None = None,
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
-    the private key ``_latency`` for a plot."""
+    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap`` flags."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
         demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
-        open_network(setup.net_file, backend=setup.backend) as net,
+        open_network(
+            setup.net_file,
+            backend=setup.backend,
+            bus_options=buslogs.bus_options(logs, load_network(setup.net_file), setup.backend)
+            if logs
+            else None,
+        ) as net,
     ):
         op = net.bring_up()
         follower: SineFollower | MitFollower = (

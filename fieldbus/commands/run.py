@@ -10,7 +10,8 @@ import argparse
 import json
 from typing import Any
 
-from fieldbus.commands import cycleopts
+from fieldbus.commands import buslogs, cycleopts
+from fieldbus.core.network import load_network
 from fieldbus.network import open_network
 from fieldbus.runtime.report import run_report
 
@@ -26,6 +27,7 @@ def register(sub: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     cycleopts.add_arguments(p)
+    buslogs.add_arguments(p)
     p.add_argument("network", metavar="NETWORK.yaml")
     p.add_argument("--cycles", type=int, default=1000, help="number of cycles (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
@@ -34,7 +36,11 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    with open_network(args.network, backend=args.backend) as net, cycleopts.rt_context(args) as rt:
+    logs = buslogs.bus_options(args, load_network(args.network), args.backend)
+    with (
+        open_network(args.network, backend=args.backend, bus_options=logs) as net,
+        cycleopts.rt_context(args) as rt,
+    ):
         op = net.bring_up()
         period = float(op.cycle_time_us)
 

@@ -16,10 +16,12 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import can
 
+from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
@@ -47,9 +49,15 @@ class CanopenSimulator(BusThread):
     thread_name = "canopen-nodes"
 
     def __init__(
-        self, bus: can.BusABC, nodes: Sequence[tuple[DriveMap, int]], *, dt_s: float | None = None
+        self,
+        bus: can.BusABC,
+        nodes: Sequence[tuple[DriveMap, int]],
+        *,
+        dt_s: float | None = None,
+        log: str | Path | None = None,
     ) -> None:
-        self.bus = bus
+        self.log = open_log(log)  # every frame the nodes see and send, python-can format by suffix
+        self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
         self.nodes: dict[int, CanopenNode] = {}
         for drive, node_id in nodes:

@@ -63,8 +63,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
+from fieldbus.backends.ecat_pcap import PcapWriter
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
@@ -93,26 +94,6 @@ _BPF = struct.Struct("HBBI")  # classic BPF instruction: code, jt, jf, k
 # ldh [12]; jeq #0x88A4 ? accept : drop (the kernel has taken a VLAN tag out of the data already)
 _ECAT_ONLY = ((0x28, 0, 0, 12), (0x15, 0, 1, ETHERTYPE_ECAT), (0x06, 0, 0, 0x40000), (0x06, 0, 0, 0))
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
-PCAP_LINKTYPE_ETHERNET = 1
-_PCAP_HEADER = struct.Struct("<IHHiIII")
-_PCAP_RECORD = struct.Struct("<IIII")
-
-
-class PcapWriter:
-    """Classic pcap (microsecond timestamps, linktype 1 = Ethernet)."""
-
-    def __init__(self, path: str | Path) -> None:
-        self._f: BinaryIO = open(path, "wb")  # noqa: SIM115 - closed in close()
-        self._f.write(_PCAP_HEADER.pack(0xA1B2C3D4, 2, 4, 0, 0, 65535, PCAP_LINKTYPE_ETHERNET))
-
-    def write(self, frame: bytes | memoryview, t_s: float) -> None:
-        sec = int(t_s)
-        self._f.write(_PCAP_RECORD.pack(sec, int((t_s - sec) * 1e6), len(frame), len(frame)))
-        self._f.write(frame)
-
-    def close(self) -> None:
-        if not self._f.closed:
-            self._f.close()
 
 
 def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
