@@ -33,6 +33,8 @@ Deterministic and pure: no randomness, no clock (``dt_s`` is a parameter).
 from __future__ import annotations
 
 import math
+import random
+from collections import deque
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Protocol
@@ -91,6 +93,8 @@ REQUIRED_OBJECTS: tuple[Obj, ...] = (Obj.CONTROLWORD, Obj.STATUSWORD)
 
 FOLLOWING_ERROR_OFF = 0xFFFFFFFF
 
+MAX_COMMAND_DELAY_CYCLES = 1000
+STICTION_RAD_S = 1e-6  # below this speed dry friction holds the rotor [rad/s]
 ERROR_FOLLOWING = 0x8611  # CiA 402: following error
 ERROR_OVERTEMPERATURE = 0x4310  # CiA 402: excess temperature, drive
 
@@ -154,14 +158,36 @@ class DriveParams:
     warning_temperature_c: float = 100.0  # statusword bit 7
     fault_temperature_c: float = 130.0  # fault 0x4310 (reset refused above the warning level)
     standstill_rad_s: float = 0.01  # quick stop / fault reaction is done below this speed
+    # real-world imperfections (defaults: an ideal drive, as before)
+    command_delay_cycles: int = 0  # targets (0x607A/0x60FF/0x6071) act this many cycles late
+    current_loop_bandwidth_hz: float = 0.0  # first-order torque lag; 0: torque follows the demand at once
+    encoder_counts_per_rev: int = 0  # encoder resolution; 0: counts_per_rev
+    encoder_noise_counts: float = 0.0  # Gaussian noise on the measured position, std dev [encoder counts]
+    noise_seed: int = 0  # seed of the encoder noise (runs stay reproducible)
+    coulomb_friction_nm: float = 0.0  # dry friction opposing motion [N·m]
 
     def __post_init__(self) -> None:
         positive = ("counts_per_rev", "inertia_kg_m2", "rated_torque_nm", "torque_constant_nm_per_a")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"DriveParams.{name} must be > 0")
-        if self.friction_nm_s_per_rad < 0:
-            raise ValueError("DriveParams.friction_nm_s_per_rad must be >= 0")
+        for name in (
+            "friction_nm_s_per_rad",
+            "command_delay_cycles",
+            "current_loop_bandwidth_hz",
+            "encoder_counts_per_rev",
+            "encoder_noise_counts",
+            "coulomb_friction_nm",
+        ):
+            if getattr(self, name) < 0:
+                raise ValueError(f"DriveParams.{name} must be >= 0")
+        if self.command_delay_cycles > MAX_COMMAND_DELAY_CYCLES:
+            raise ValueError(f"DriveParams.command_delay_cycles must be <= {MAX_COMMAND_DELAY_CYCLES}")
+
+    @property
+    def encoder_cpr(self) -> int:
+        """Encoder counts per revolution in force (``encoder_counts_per_rev`` or ``counts_per_rev``)."""
+        return self.encoder_counts_per_rev or self.counts_per_rev
         for name in ("transition_cycles", "self_test_cycles", "fault_reaction_cycles", "mode_switch_cycles"):
             if getattr(self, name) < 1:
                 raise ValueError(f"DriveParams.{name} must be >= 1")
@@ -255,6 +281,15 @@ class Cia402Drive:
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
+        # imperfections: delay line of raw targets (position, velocity, torque), lagging torque, encoder
+        d = p.command_delay_cycles
+        self._history: deque[tuple[int, int, int]] | None = deque([(0, 0, 0)] * (d + 1), d + 1) if d else None
+        self._tau_eff = 0.0
+        self.enc_per_rad = p.encoder_cpr / TWO_PI
+        self.rad_per_enc = TWO_PI / p.encoder_cpr
+        self._ideal_encoder = p.encoder_cpr == p.counts_per_rev and p.encoder_noise_counts == 0.0
+        self._rng = random.Random(p.noise_seed)
+        self._noise = 0
         # object dictionary binding
         self._od: ObjectStore | None = None
         self._has: dict[int, bool] = {}
@@ -363,13 +398,32 @@ class Cia402Drive:
         target_rad = self._prev_target_rad
         target_v = 0.0
         target_tau = 0.0
-        if state is _OE:
+        history = self._history
+        if history is not None:
+            history.append(
+                (
+                    int(get(_X_TARGET_POSITION, 0)) if has[_X_TARGET_POSITION] else 0,
+                    int(get(_X_TARGET_VELOCITY, 0)) if has[_X_TARGET_VELOCITY] else 0,
+                    int(get(_X_TARGET_TORQUE, 0)) if has[_X_TARGET_TORQUE] else 0,
+                )
+            )
+            tp, tv, tt = history[0]  # what the master sent command_delay_cycles steps ago
+            if state is _OE:
+                if mode == _CSP and has[_X_TARGET_POSITION]:
+                    target_rad = tp * self.rad_per_count
+                elif mode == _CSV and has[_X_TARGET_VELOCITY]:
+                    target_v = tv * self.rad_per_count
+                elif mode == _CST and has[_X_TARGET_TORQUE]:
+                    target_tau = tt * self.params.rated_torque_nm / 1000.0
+        elif state is _OE:
             if mode == _CSP and has[_X_TARGET_POSITION]:
                 target_rad = float(get(_X_TARGET_POSITION, 0)) * self.rad_per_count
             elif mode == _CSV and has[_X_TARGET_VELOCITY]:
                 target_v = float(get(_X_TARGET_VELOCITY, 0)) * self.rad_per_count
             elif mode == _CST and has[_X_TARGET_TORQUE]:
                 target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.params.rated_torque_nm / 1000.0
+        if not self._ideal_encoder and self.params.encoder_noise_counts:
+            self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
         self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
         self._outputs(od, dt_s, state, mode, target_rad, target_v)
         self._prev_cw = cw
@@ -496,7 +550,12 @@ class Cia402Drive:
         ki = kv * wv * 0.25
         kp = p.position_gain_per_s
         tmax = self.max_torque_nm
-        cpr, rpc = self.counts_per_rad, self.rad_per_count
+        epr, rpe, noise = self.enc_per_rad, self.rad_per_enc, self._noise
+        fc = p.coulomb_friction_nm
+        alpha = 1.0
+        if p.current_loop_bandwidth_hz > 0.0:
+            alpha = 1.0 - math.exp(-TWO_PI * p.current_loop_bandwidth_hz * h)
+        te = self._tau_eff
         kt_ratio = 1.0
         if p.thermal:
             kt_ratio = max(0.0, 1.0 + p.kt_temp_coeff_per_k * (self.temperature_c - p.ambient_c))
@@ -535,7 +594,7 @@ class Cia402Drive:
                     ff = 0.0
                 elif mode == _CSP:
                     ref = prev_t + (target_rad - prev_t) * (k / n)
-                    v_ref = vff + kp * (ref - math.floor(pos * cpr + 0.5) * rpc)
+                    v_ref = vff + kp * (ref - (math.floor(pos * epr + 0.5) + noise) * rpe)
                     ff = aff
                 elif mode == _CSV:
                     v_ref = target_v
@@ -559,17 +618,32 @@ class Cia402Drive:
                     tau, limit = tmax, True
                 elif tau < -tmax:
                     tau, limit = -tmax, True
-            net = tau * kt_ratio - load
+            te = tau if alpha == 1.0 else te + (tau - te) * alpha  # current loop
+            applied = te * kt_ratio - load
+            net = applied
+            if fc > 0.0:
+                if vel > STICTION_RAD_S:
+                    net = applied - fc
+                elif vel < -STICTION_RAD_S:
+                    net = applied + fc
+                elif abs(applied) > fc:
+                    net = applied - math.copysign(fc, applied)
+                else:
+                    net = vel = 0.0  # stuck
             pos += vel * g_ + net * hh_
-            vel = vel * e_ + net * f_
-            tau_sq += tau * tau
+            v_new = vel * e_ + net * f_
+            if fc > 0.0 and v_new * vel < 0.0 and abs(applied) <= fc:
+                v_new = 0.0  # friction stops the rotor; it does not reverse it
+            vel = v_new
+            tau_sq += te * te
         if ramp and ramp_v == 0.0 and abs(vel) < p.standstill_rad_s:
             self._standstill = True
         self.position_rad, self.velocity_rad_s, self._integral = pos, vel, integ
         self._ramp_v = ramp_v
         self._prev_target_rad = target_rad if state is _OE and mode == _CSP else pos
-        self.torque_demand_nm = tau
-        self.shaft_torque_nm = tau * kt_ratio
+        self._tau_eff = te
+        self.torque_demand_nm = te
+        self.shaft_torque_nm = te * kt_ratio
         self.limit_active = limit
         if p.thermal:
             self._thermal(dt_s, tau_sq / n)
@@ -595,7 +669,11 @@ class Cia402Drive:
         has = self._has
         put = od.set_value
         cpr = self.counts_per_rad
-        pos_counts = math.floor(self.position_rad * cpr + 0.5)
+        if self._ideal_encoder:
+            pos_counts = math.floor(self.position_rad * cpr + 0.5)
+        else:
+            enc = math.floor(self.position_rad * self.enc_per_rad + 0.5) + self._noise
+            pos_counts = math.floor(enc * p.counts_per_rev / p.encoder_cpr + 0.5)
         sw = _SW_STATE[state] | _SW_REMOTE
         if state is not _NOT_READY:
             sw |= _SW_VOLTAGE

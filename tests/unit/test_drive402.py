@@ -27,6 +27,7 @@ from sim_slaves.drive402 import (
     Obj,
     default_objects,
 )
+from sim_slaves.drive_bank import DriveBank
 
 S = State402
 DT = 1e-3
@@ -37,6 +38,32 @@ COUNTS_PER_RAD = CPR / (2 * math.pi)
 def now(d: Cia402Drive) -> State402:
     """The drive's state (a call, so the type checker does not narrow it across steps)."""
     return d.state
+
+
+IMPLEMENTATIONS = ("scalar", "bank")
+"""Every behaviour test runs on the scalar drive and on a drive of a vectorised DriveBank."""
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    if "implementation" in metafunc.fixturenames:
+        scalar_only = (
+            metafunc.function.__name__ == "test_64_axis_chain_steps_at_1khz"
+        )  # cost of the scalar path
+        metafunc.parametrize("implementation", ("scalar",) if scalar_only else IMPLEMENTATIONS, indirect=True)
+
+
+def _bank_drive(params: DriveParams | None = None, *, position_counts: int = 0) -> Cia402Drive:
+    drive = DriveBank([params or DriveParams()]).drives[0]
+    drive.position_rad = drive._prev_target_rad = position_counts * drive.rad_per_count
+    return drive
+
+
+@pytest.fixture(autouse=True)
+def implementation(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """``Cia402Drive`` in this module is the scalar class or a factory of one-drive banks."""
+    if request.param == "bank":
+        monkeypatch.setitem(globals(), "Cia402Drive", _bank_drive)
+    return str(request.param)
 
 
 def make(params: DriveParams | None = None) -> tuple[Cia402Drive, DictObjectStore]:

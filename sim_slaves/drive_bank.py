@@ -1,0 +1,706 @@
+"""Every CiA 402 drive of one emulator stepped together as numpy arrays.
+
+:class:`DriveBank` holds the state of N drives in arrays (one element per
+drive) and advances a contiguous run of them in one call: CSP/CSV/CST
+cascade, rotor and load, torque limit, quick stop / fault reaction ramps,
+following-error and over-temperature faults, thermal model, command delay,
+current-loop lag, encoder resolution and noise, dry friction. The cost per
+call is a fixed number of numpy operations, nearly flat in N.
+
+Each drive is also a :class:`BankDrive`, a :class:`~sim_slaves.drive402.Cia402Drive`
+whose state lives in the bank's arrays (properties), so everything the
+scalar drive offers (fault injection, ``state``, ``position_rad``, ``step``
+through an object dictionary) works on it unchanged. The state machine is
+event driven: it runs, per drive, through the scalar drive's own table code
+only for drives that need it this cycle (a new controlword, a pending
+transition, a pending fault, a mode change, or a state left on its own:
+NOT READY, QUICK STOP, FAULT REACTION, FAULT); in steady operation no drive
+does. Semantics match :class:`~sim_slaves.drive402.Cia402Drive` step for step
+(``tests/unit/test_drive_bank.py`` compares both).
+
+Inputs (the master's outputs) go into :attr:`DriveBank.controlword`,
+``mode_request``, ``target_position``, ``target_velocity``, ``target_torque``
+(counts, counts/s, ‰); outputs come out in ``statusword``,
+``position_counts``, ``velocity_counts``, ``torque_permille``,
+``following_error``, and the state arrays (``mode_display``, ``error_code``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.core.cia402 import State402
+from sim_slaves.drive402 import (
+    _SW_FOLLOWING_ERROR,
+    _SW_FOLLOWS,
+    _SW_LIMIT,
+    _SW_REMOTE,
+    _SW_STATE,
+    _SW_TARGET_REACHED,
+    _SW_VOLTAGE,
+    _SW_WARNING,
+    ERROR_FOLLOWING,
+    ERROR_OVERTEMPERATURE,
+    FOLLOWING_ERROR_OFF,
+    STICTION_RAD_S,
+    TWO_PI,
+    Cia402Drive,
+    DriveParams,
+    ObjectStore,
+)
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+B = npt.NDArray[np.bool_]
+
+_STATES = tuple(State402)
+_NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
+_CSP, _CSV, _CST = 8, 9, 10
+_SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
+#: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
+_SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
+_SW_CSP_REACHED = _SW_CSP | _SW_TARGET_REACHED
+_STEADY = np.zeros(len(_STATES), dtype=np.bool_)
+_STEADY[[_SOD, _RTSO, _SO, _OE]] = True
+
+# drive attribute -> bank array (the drive's state is the array element)
+_FLOAT_SLOTS = {
+    "position_rad": "pos",
+    "velocity_rad_s": "vel",
+    "torque_demand_nm": "tau",
+    "shaft_torque_nm": "shaft",
+    "load_torque_nm": "load",
+    "temperature_c": "temp",
+    "_integral": "integ",
+    "_prev_target_rad": "prev_target",
+    "_prev_vff": "prev_vff",
+    "_ramp_v": "ramp_v",
+    "_fe_time_s": "fe_time",
+    "_tau_eff": "tau_eff",
+    "fe_timeout_s": "fe_timeout",
+    "max_torque_nm": "tmax",
+    "qs_decel": "qs_decel",
+}
+_INT_SLOTS = {
+    "error_code": "error_code",
+    "mode_display": "mode_display",
+    "following_error_counts": "following_error",
+    "_fault_pending": "fault_pending",
+    "_prev_cw": "prev_cw",
+    "fe_window": "fe_window",
+    "position_window": "position_window",
+    "velocity_window": "velocity_window",
+    "qs_option": "qs_option",
+    "fr_option": "fr_option",
+    "_noise": "noise",
+}
+_BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
+
+
+def _slot(array: str, cast: Callable[[Any], Any]) -> property:
+    def get(self: BankDrive) -> Any:
+        return cast(getattr(self.bank, array)[self.slot])
+
+    def put(self: BankDrive, value: Any) -> None:
+        getattr(self.bank, array)[self.slot] = value
+
+    return property(get, put)
+
+
+def _state_get(self: BankDrive) -> State402:
+    return _STATES[int(self.bank.state[self.slot])]
+
+
+def _state_put(self: BankDrive, value: State402) -> None:
+    self.bank.state[self.slot] = int(value)
+
+
+class BankDrive(Cia402Drive):
+    """One drive of a :class:`DriveBank`: a :class:`Cia402Drive` whose state is the bank's array elements."""
+
+    state = property(_state_get, _state_put)
+
+    def __init__(self, bank: DriveBank, slot: int, params: DriveParams | None = None) -> None:
+        self.bank = bank
+        self.slot = slot
+        super().__init__(params)
+
+    def power_cycle(self) -> None:
+        """As :meth:`Cia402Drive.power_cycle`; the slot's arrays restart too (position kept)."""
+        position_counts = round(self.position_rad * self.counts_per_rad)
+        self.bank.reset_slot(self.slot)
+        self.__init__(self.bank, self.slot, self.params)  # type: ignore[misc]
+        self.position_rad = self._prev_target_rad = position_counts * self.rad_per_count
+
+    def inject_fault(self, code: int, *, persistent: bool = False) -> None:
+        super().inject_fault(code, persistent=persistent)
+        self.bank.changed()
+
+    def step(self, od: ObjectStore, dt_s: float) -> None:
+        """One cycle through the OD (as :meth:`Cia402Drive.step`), computed by the bank for this drive alone."""
+        bank, i = self.bank, self.slot
+        bank.load_inputs(i, od)
+        bank.step(i, i + 1, dt_s)
+        bank.store_outputs(i, od)
+
+    def bind(self, od: ObjectStore) -> None:
+        super().bind(od)
+        self.bank.bound(self.slot, self._has)
+
+
+for _name, _arr in _FLOAT_SLOTS.items():
+    setattr(BankDrive, _name, _slot(_arr, float))
+for _name, _arr in _INT_SLOTS.items():
+    setattr(BankDrive, _name, _slot(_arr, int))
+for _name, _arr in _BOOL_SLOTS.items():
+    setattr(BankDrive, _name, _slot(_arr, bool))
+
+
+def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], float]) -> F64:
+    return np.array([get(p) for p in params], dtype=np.float64)
+
+
+class DriveBank:
+    """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`BankDrive`).
+
+    ``params``: one :class:`DriveParams` per drive. The arrays are public for
+    the emulator that feeds them (see the module docstring); ``step(a, b,
+    dt_s)`` advances drives ``a..b-1``.
+    """
+
+    def __init__(self, params: Sequence[DriveParams], *, seed: int = 0) -> None:
+        n = len(params)
+        self.n = n
+        self.params = list(params)
+        z = np.zeros
+        # state
+        self.state = np.full(n, _NR, dtype=np.int64)
+        # per-drive state (SI; the BankDrive attributes map onto these, see _FLOAT_SLOTS ...)
+        self.pos: F64 = z(n)
+        self.vel: F64 = z(n)
+        self.tau: F64 = z(n)
+        self.shaft: F64 = z(n)
+        self.load: F64 = z(n)
+        self.temp: F64 = z(n)
+        self.integ: F64 = z(n)
+        self.prev_target: F64 = z(n)
+        self.prev_vff: F64 = z(n)
+        self.ramp_v: F64 = z(n)
+        self.fe_time: F64 = z(n)
+        self.tau_eff: F64 = z(n)
+        self.fe_timeout: F64 = z(n)
+        self.tmax: F64 = z(n)
+        self.qs_decel: F64 = z(n)
+        self.error_code: I64 = z(n, dtype=np.int64)
+        self.mode_display: I64 = z(n, dtype=np.int64)
+        self.following_error: I64 = z(n, dtype=np.int64)
+        self.fault_pending: I64 = z(n, dtype=np.int64)
+        self.prev_cw: I64 = z(n, dtype=np.int64)
+        self.fe_window: I64 = z(n, dtype=np.int64)
+        self.position_window: I64 = z(n, dtype=np.int64)
+        self.velocity_window: I64 = z(n, dtype=np.int64)
+        self.qs_option: I64 = z(n, dtype=np.int64)
+        self.fr_option: I64 = z(n, dtype=np.int64)
+        self.noise: I64 = z(n, dtype=np.int64)
+        self.limit: B = z(n, dtype=np.bool_)
+        self.standstill: B = z(n, dtype=np.bool_)
+        self.quiet = z(n, dtype=np.bool_)  # the state machine has nothing to do while the controlword holds
+        # inputs (the master's outputs), raw OD units
+        self.controlword = z(n, dtype=np.int64)
+        self.mode_request = z(n, dtype=np.int64)
+        self.target_position = z(n, dtype=np.int64)
+        self.target_velocity = z(n, dtype=np.int64)
+        self.target_torque = z(n, dtype=np.int64)
+        # outputs (the master's inputs), raw OD units
+        self.statusword = z(n, dtype=np.int64)
+        self.position_counts = z(n, dtype=np.int64)
+        self.velocity_counts = z(n, dtype=np.int64)
+        self.torque_permille = z(n, dtype=np.int64)
+        # which optional objects each drive's OD has (set by bind)
+        self.has_tp = z(n, dtype=np.bool_)
+        self.has_tv = z(n, dtype=np.bool_)
+        self.has_tt = z(n, dtype=np.bool_)
+        self.has_modes = z(n, dtype=np.bool_)
+        # parameters
+        pa = _param_array
+        self.rpc = pa(params, lambda p: TWO_PI / p.counts_per_rev)
+        self.cpr = pa(params, lambda p: p.counts_per_rev / TWO_PI)
+        self.inertia = pa(params, lambda p: p.inertia_kg_m2)
+        self.friction = pa(params, lambda p: p.friction_nm_s_per_rad)
+        self.rated = pa(params, lambda p: p.rated_torque_nm)
+        self.control_rate = pa(params, lambda p: p.control_rate_hz)
+        wv = pa(params, lambda p: TWO_PI * p.velocity_bandwidth_hz)
+        self.kv = self.inertia * wv
+        self.ki = self.kv * wv * 0.25
+        self.kp = pa(params, lambda p: p.position_gain_per_s)
+        self.vff_gain = pa(params, lambda p: p.velocity_feedforward)
+        self.tff_gain = pa(params, lambda p: p.torque_feedforward) * self.inertia
+        self.standstill_speed = pa(params, lambda p: p.standstill_rad_s)
+        self.thermal = np.array([p.thermal for p in params], dtype=np.bool_)
+        self.any_thermal = bool(self.thermal.any())
+        self.ambient = pa(params, lambda p: p.ambient_c)
+        self.r0 = pa(params, lambda p: p.resistance_ohm)
+        self.r_tc = pa(params, lambda p: p.resistance_temp_coeff_per_k)
+        self.kt0_sq = pa(params, lambda p: p.torque_constant_nm_per_a**2)
+        self.rth = pa(params, lambda p: p.thermal_resistance_k_per_w)
+        self.tau_th = self.rth * pa(params, lambda p: p.thermal_capacitance_j_per_k)
+        self.kt_tc = pa(params, lambda p: p.kt_temp_coeff_per_k)
+        self.warn_c = pa(params, lambda p: p.warning_temperature_c)
+        self.fault_c = pa(params, lambda p: p.fault_temperature_c)
+        # imperfections
+        self.delay = np.array([p.command_delay_cycles for p in params], dtype=np.int64)
+        depth = int(self.delay.max(initial=0)) + 1
+        self.history = z((3, depth, n), dtype=np.int64)  # raw targets, ring per drive
+        self.head = z(n, dtype=np.int64)
+        self.any_delay = depth > 1
+        self.current_bw = pa(params, lambda p: p.current_loop_bandwidth_hz)
+        self.any_current_lag = bool((self.current_bw > 0.0).any())
+        self.epr = pa(params, lambda p: p.encoder_cpr / TWO_PI)
+        self.rpe = pa(params, lambda p: TWO_PI / p.encoder_cpr)
+        self.enc_to_counts = pa(params, lambda p: p.counts_per_rev / p.encoder_cpr)
+        self.noise_sd = pa(params, lambda p: p.encoder_noise_counts)
+        self.ideal_encoder = not bool((self.noise_sd > 0).any() or (self.enc_to_counts != 1.0).any())
+        self.coulomb = pa(params, lambda p: p.coulomb_friction_nm)
+        self.any_coulomb = bool((self.coulomb > 0.0).any())
+        self.rng = np.random.default_rng(seed)
+        self._uniform: dict[tuple[int, int], bool] = {}  # run -> every drive enabled in plain CSP
+        self._calm: set[tuple[int, int]] = set()  # runs whose state machines have nothing pending
+        rate = self.control_rate
+        self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
+        self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64, ...]]] = {}
+        self.drives = [BankDrive(self, i, p) for i, p in enumerate(params)]
+
+    # -- per-drive bookkeeping --
+
+    def changed(self) -> None:
+        """Something outside the cycle changed a drive (fault injected, OD bound): look again next step."""
+        self._uniform.clear()
+        self._calm.clear()
+
+    def reset_slot(self, i: int) -> None:
+        """Power-on values for drive ``i`` (its :class:`BankDrive` then sets its own)."""
+        self.quiet[i] = False
+        self.changed()
+        self.history[:, :, i] = 0
+        self.head[i] = 0
+
+    def bound(self, i: int, has: dict[int, bool]) -> None:
+        """Drive ``i`` bound to an OD that has the objects in ``has``."""
+        self.has_tp[i] = has[0x607A]
+        self.has_tv[i] = has[0x60FF]
+        self.has_tt[i] = has[0x6071]
+        self.has_modes[i] = has[0x6060]
+        self.quiet[i] = False
+        self.changed()
+
+    def load_inputs(self, i: int, od: ObjectStore) -> None:
+        """Drive ``i``'s inputs from its OD (objects the process data does not carry)."""
+        d = self.drives[i]
+        if d._od is not od:
+            d.bind(od)
+        get = od.get_value
+        self.controlword[i] = int(get(0x6040, 0))
+        self.mode_request[i] = int(get(0x6060, 0)) if self.has_modes[i] else self.mode_display[i]
+        if self.has_tp[i]:
+            self.target_position[i] = int(get(0x607A, 0))
+        if self.has_tv[i]:
+            self.target_velocity[i] = int(get(0x60FF, 0))
+        if self.has_tt[i]:
+            self.target_torque[i] = int(get(0x6071, 0))
+
+    def store_outputs(self, i: int, od: ObjectStore) -> None:
+        """Drive ``i``'s outputs into its OD (for objects the process data does not carry, SDO reads)."""
+        has = self.drives[i]._has
+        put = od.set_value
+        put(0x6041, 0, int(self.statusword[i]))
+        for index, array in (
+            (0x6061, self.mode_display),
+            (0x6064, self.position_counts),
+            (0x606C, self.velocity_counts),
+            (0x6077, self.torque_permille),
+            (0x60F4, self.following_error),
+            (0x603F, self.error_code),
+        ):
+            if has.get(index):
+                put(index, 0, int(array[i]))
+
+    # -- the cycle --
+
+    def step(self, a: int, b: int, dt_s: float | F64) -> None:
+        """Advance drives ``a..b-1`` by ``dt_s`` seconds (one value, or one per drive of the run)."""
+        if b <= a:
+            return
+        sl = slice(a, b)
+        if isinstance(dt_s, float) and self._rate is not None:
+            if dt_s <= 0.0:
+                raise ValueError(f"dt_s must be > 0, got {dt_s}")
+            self._state_machines(a, b)
+            if self._uniform.get((a, b)):
+                self._csp(a, b, dt_s, max(1, round(dt_s * self._rate)))
+                return
+        else:
+            self._state_machines(a, b)
+        dt = np.broadcast_to(np.asarray(dt_s, dtype=np.float64), (b - a))
+        if (dt <= 0.0).any():
+            raise ValueError(f"dt_s must be > 0, got {dt_s}")
+        n = np.maximum(1, np.rint(dt * self.control_rate[sl])).astype(np.int64)
+        if b - a > 1 and (n != n[0]).any():
+            for i in range(a, b):  # different substep counts: one drive at a time
+                self._advance(i, i + 1, dt[i - a : i - a + 1], n[i - a : i - a + 1])
+            return
+        self._advance(a, b, dt, n)
+
+    def _state_machines(self, a: int, b: int) -> None:
+        sl = slice(a, b)
+        cw = self.controlword[sl]
+        mode_req = self.mode_request[sl]
+        new_cw = cw != self.prev_cw[sl]
+        new_mode = mode_req != self.mode_display[sl]
+        if (a, b) in self._calm and not new_cw.any() and not new_mode.any():
+            return
+        need = new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)
+        if need.any():
+            self.changed()
+            for i in (np.flatnonzero(need) + a).tolist():
+                d = self.drives[i]
+                taken = d.transitions_taken
+                d._state_machine(int(cw[i - a]))
+                d._modes(int(mode_req[i - a]))
+                self.quiet[i] = (
+                    bool(_STEADY[self.state[i]]) and d._pending is None and d.transitions_taken == taken
+                )
+        self.prev_cw[sl] = cw
+        if self.quiet[sl].all() and not self.fault_pending[sl].any():
+            self._calm.add((a, b))
+
+    def _advance(self, a: int, b: int, dt: F64, n: I64) -> None:
+        sl = slice(a, b)
+        uniform = self._uniform.get((a, b))
+        if uniform is None:
+            uniform = self._uniform[(a, b)] = bool(
+                (self.state[sl] == _OE).all()
+                and (self.mode_display[sl] == _CSP).all()
+                and self.has_tp[sl].all()
+                and not self.thermal[sl].any()
+                and not (self.coulomb[sl] > 0.0).any()
+                and not (self.current_bw[sl] > 0.0).any()
+            )
+        if uniform and (dt == dt[0]).all():
+            self._csp(a, b, float(dt[0]), int(n[0]))
+            return
+        state = self.state[sl]
+        mode = self.mode_display[sl]
+        oe = state == _OE
+        csp = mode == _CSP
+        csv = mode == _CSV
+        cst = mode == _CST
+        rpc = self.rpc[sl]
+        if self.any_delay:
+            tp, tv, tt = self._delayed(a, b)
+        else:
+            tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
+        prev_t = self.prev_target[sl]
+        use_p = oe & csp & self.has_tp[sl]
+        target = np.where(use_p, tp * rpc, prev_t)
+        target_v = np.where(oe & csv & self.has_tv[sl], tv * rpc, 0.0)
+        target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
+        if not self.ideal_encoder:
+            sd = self.noise_sd[sl]
+            self.noise[sl] = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0)
+        self._physics(sl, dt, n, state, oe, csp, csv, cst, target, target_v, target_tau)
+        self._outputs(sl, dt, state, oe, csp, csv, cst, target, target_v)
+
+    def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
+        """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
+        sl = slice(a, b)
+        rpc, cpr = self.rpc[sl], self.cpr[sl]
+        tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
+        target = tp * rpc
+        prev_t = self.prev_target[sl]
+        h = dt / steps
+        cached = self._coeffs.get((a, b))
+        if cached is None or cached[0] != h:
+            j, fb = self.inertia[sl], self.friction[sl]
+            viscous = fb > 0.0
+            fb_safe = np.where(viscous, fb, 1.0)
+            e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
+            f_ = np.where(viscous, (1.0 - e_) / fb_safe, h / j)
+            g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
+            hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
+            cached = self._coeffs[(a, b)] = (h, (e_, f_, g_, hh_, self.ki[sl] * h))
+        e_, f_, g_, hh_, ki_h = cached[1]
+        kv, kp = self.kv[sl], self.kp[sl]
+        tmax = self.tmax[sl]
+        ntmax = -tmax
+        load = self.load[sl]
+        vff = (target - prev_t) / dt
+        aff = (vff - self.prev_vff[sl]) / dt
+        self.prev_vff[sl] = vff
+        vff *= self.vff_gain[sl]
+        aff *= self.tff_gain[sl]
+        epr, rpe = self.epr[sl], self.rpe[sl]
+        noisy = not self.ideal_encoder
+        if noisy:
+            sd = self.noise_sd[sl]
+            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
+            self.noise[sl] = noise
+        pos, vel, integ = self.pos[sl], self.vel[sl], self.integ[sl]
+        step = target - prev_t
+        limited = False
+        limit = None
+        tau = vel
+        for k in range(1, steps + 1):
+            measured = np.floor(pos * epr + 0.5)
+            if noisy:
+                measured += noise
+            measured *= rpe
+            ev = prev_t + step * (k / steps)
+            ev -= measured
+            ev *= kp
+            ev += vff
+            ev -= vel  # velocity error
+            integ = np.minimum(np.maximum(integ + ki_h * ev, ntmax), tmax)
+            tau = kv * ev
+            tau += integ
+            tau += aff
+            clipped = np.minimum(np.maximum(tau, ntmax), tmax)
+            if not limited and (clipped != tau).any():
+                limited = True
+                limit = clipped != tau
+            elif limited:
+                limit |= clipped != tau
+            tau = clipped
+            net = tau - load
+            pos = pos + vel * g_ + net * hh_
+            vel = vel * e_ + net * f_
+        self.pos[sl], self.vel[sl], self.integ[sl] = pos, vel, integ
+        self.prev_target[sl] = target
+        self.tau_eff[sl] = tau
+        self.tau[sl] = tau
+        self.shaft[sl] = tau
+        self.limit[sl] = limited and limit is not None and limit
+        # outputs
+        if noisy:
+            enc = np.floor(pos * epr + 0.5) + self.noise[sl]
+            pos_counts = np.floor(enc * self.enc_to_counts[sl] + 0.5)
+        else:
+            pos_counts = np.floor(pos * cpr + 0.5)
+        fe = np.floor(target * cpr + 0.5) - pos_counts
+        afe = np.abs(fe)
+        window = self.fe_window[sl]
+        over = afe > window
+        sw = np.where(afe <= self.position_window[sl], _SW_CSP_REACHED, _SW_CSP)
+        if over.any():
+            over &= window != FOLLOWING_ERROR_OFF
+            fe_time = np.where(over, self.fe_time[sl] + dt, 0.0)
+            self.fe_time[sl] = fe_time
+            pending = self.fault_pending[sl]
+            trip = over & (fe_time > self.fe_timeout[sl] + 1e-12) & (pending == 0)
+            self.fault_pending[sl] = np.where(trip, ERROR_FOLLOWING, pending)
+            if trip.any():
+                self.changed()
+            sw |= np.where(over, _SW_FOLLOWING_ERROR, 0)
+        else:
+            self.fe_time[sl] = 0.0
+        if limited:
+            sw |= np.where(self.limit[sl], _SW_LIMIT, 0)
+        self.statusword[sl] = sw
+        self.following_error[sl] = fe
+        self.position_counts[sl] = pos_counts
+        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.torque_permille[sl] = np.floor(tau * 1000.0 / self.rated[sl] + 0.5)
+
+    def _delayed(self, a: int, b: int) -> tuple[I64, I64, I64]:
+        """Push this cycle's raw targets into each drive's ring; return those of ``delay`` cycles ago."""
+        sl = slice(a, b)
+        hist = self.history
+        depth = hist.shape[1]
+        cols = np.arange(a, b)
+        head = (self.head[sl] + 1) % depth
+        self.head[sl] = head
+        hist[0, head, cols] = self.target_position[sl]
+        hist[1, head, cols] = self.target_velocity[sl]
+        hist[2, head, cols] = self.target_torque[sl]
+        old = (head - self.delay[sl]) % depth
+        return hist[0, old, cols], hist[1, old, cols], hist[2, old, cols]
+
+    def _physics(
+        self,
+        sl: slice,
+        dt: F64,
+        n: I64,
+        state: I64,
+        oe: B,
+        csp: B,
+        csv: B,
+        cst: B,
+        target: F64,
+        target_v: F64,
+        target_tau: F64,
+    ) -> None:
+        steps = int(n[0])
+        h = dt / n
+        j, fb = self.inertia[sl], self.friction[sl]
+        viscous = fb > 0.0
+        fb_safe = np.where(viscous, fb, 1.0)
+        e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
+        f_ = np.where(viscous, (1.0 - e_) / fb_safe, h / j)
+        g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
+        hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
+        kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
+        tmax = self.tmax[sl]
+        thermal = self.thermal[sl]
+        temp = self.temp[sl]
+        kt_ratio = (
+            np.where(thermal, np.maximum(0.0, 1.0 + self.kt_tc[sl] * (temp - self.ambient[sl])), 1.0)
+            if self.any_thermal
+            else 1.0
+        )
+        load = self.load[sl]
+        pos, vel, integ = self.pos[sl].copy(), self.vel[sl].copy(), self.integ[sl].copy()
+        qsa, fra = state == _QSA, state == _FRA
+        powered = oe | qsa | fra
+        coast = (qsa & (self.qs_option[sl] == 0)) | (fra & (self.fr_option[sl] == 0))
+        powered &= ~coast
+        ramp = powered & ~oe
+        prev_t = self.prev_target[sl]
+        m = powered & ~ramp & csp
+        vff = np.where(m, (target - prev_t) / dt, 0.0)
+        aff = np.where(m, (vff - self.prev_vff[sl]) / dt, 0.0)
+        self.prev_vff[sl] = np.where(m, vff, self.prev_vff[sl])
+        vff = vff * self.vff_gain[sl]
+        aff = aff * self.tff_gain[sl]
+        ramp_v = self.ramp_v[sl].copy()
+        dv = self.qs_decel[sl] * h
+        pi = powered & (ramp | csp | csv)
+        direct = powered & cst & ~ramp
+        csp_loop = csp & ~ramp
+        csv_loop = csv & ~ramp
+        ff = np.where(csp_loop, aff, 0.0)
+        epr, rpe = self.epr[sl], self.rpe[sl]
+        noise = self.noise[sl]
+        limit = np.zeros(len(pos), dtype=np.bool_)
+        tau = np.zeros(len(pos))
+        tau_sq = np.zeros(len(pos))
+        te = self.tau_eff[sl].copy()
+        lag = self.any_current_lag
+        if lag:
+            bw = self.current_bw[sl]
+            alpha = np.where(bw > 0.0, 1.0 - np.exp(-TWO_PI * bw * h), 1.0)
+        fc = self.coulomb[sl]
+        dry = self.any_coulomb
+        any_ramp = bool(ramp.any())
+        for k in range(1, steps + 1):
+            if any_ramp:
+                ramp_v = np.where(
+                    ramp, np.where(ramp_v > dv, ramp_v - dv, np.where(ramp_v < -dv, ramp_v + dv, 0.0)), ramp_v
+                )
+            ref = prev_t + (target - prev_t) * (k / steps)
+            measured = (np.floor(pos * epr + 0.5) + noise) * rpe
+            v_ref = np.where(
+                ramp,
+                ramp_v,
+                np.where(csp_loop, vff + kp * (ref - measured), np.where(csv_loop, target_v, 0.0)),
+            )
+            ev = v_ref - vel
+            integ = np.where(pi, np.clip(integ + ki * ev * h, -tmax, tmax), integ)
+            tau = np.where(pi, kv * ev + integ + ff, np.where(direct, target_tau, 0.0))
+            limit |= powered & (np.abs(tau) > tmax)
+            tau = np.where(powered, np.clip(tau, -tmax, tmax), 0.0)
+            te = te + (tau - te) * alpha if lag else tau
+            applied = te * kt_ratio - load
+            if dry:
+                net, vel = _dry_friction(applied, vel, fc)
+            else:
+                net = applied
+            pos = pos + vel * g_ + net * hh_
+            v_new = vel * e_ + net * f_
+            if dry:
+                v_new = np.where((fc > 0.0) & (v_new * vel < 0.0) & (np.abs(applied) <= fc), 0.0, v_new)
+            vel = v_new
+            tau_sq += te * te
+        if any_ramp:
+            self.standstill[sl] |= ramp & (ramp_v == 0.0) & (np.abs(vel) < self.standstill_speed[sl])
+        self.pos[sl], self.vel[sl], self.integ[sl] = pos, vel, integ
+        self.ramp_v[sl] = ramp_v
+        self.prev_target[sl] = np.where(oe & csp, target, pos)
+        self.tau_eff[sl] = te
+        self.tau[sl] = te
+        self.shaft[sl] = te * kt_ratio
+        self.limit[sl] = limit
+        if self.any_thermal:
+            self._thermal(sl, dt, tau_sq / steps)
+
+    def _thermal(self, sl: slice, dt: F64, tau_sq_mean: F64) -> None:
+        on = self.thermal[sl]
+        t = self.temp[sl]
+        amb = self.ambient[sl]
+        r = self.r0[sl] * (1.0 + self.r_tc[sl] * (t - amb))
+        t_ss = amb + tau_sq_mean / self.kt0_sq[sl] * r * self.rth[sl]
+        new_t = np.where(on, t_ss + (t - t_ss) * np.exp(-dt / self.tau_th[sl]), t)
+        self.temp[sl] = new_t
+        state = self.state[sl]
+        hot = (
+            on
+            & (new_t > self.fault_c[sl])
+            & (self.fault_pending[sl] == 0)
+            & (state != _FRA)
+            & (state != _FAULT)
+        )
+        if hot.any():
+            self.fault_pending[sl] = np.where(hot, ERROR_OVERTEMPERATURE, self.fault_pending[sl])
+            self.changed()
+
+    def _outputs(
+        self, sl: slice, dt: F64, state: I64, oe: B, csp: B, csv: B, cst: B, target: F64, target_v: F64
+    ) -> None:
+        cpr = self.cpr[sl]
+        if self.ideal_encoder:
+            pos_counts = np.floor(self.pos[sl] * cpr + 0.5)
+        else:
+            enc = np.floor(self.pos[sl] * self.epr[sl] + 0.5) + self.noise[sl]
+            pos_counts = np.floor(enc * self.enc_to_counts[sl] + 0.5)
+        sw = _SW_BY_STATE[state] | _SW_REMOTE | np.where(state != _NR, _SW_VOLTAGE, 0)
+        oe_csp = oe & csp
+        fe = np.where(oe_csp, np.floor(target * cpr + 0.5) - pos_counts, 0.0)
+        afe = np.abs(fe)
+        window = self.fe_window[sl]
+        over = oe_csp & (window != FOLLOWING_ERROR_OFF) & (afe > window)
+        fe_time = np.where(over, self.fe_time[sl] + dt, np.where(oe_csp, 0.0, self.fe_time[sl]))
+        self.fe_time[sl] = fe_time
+        pending = self.fault_pending[sl]
+        trip = over & (fe_time > self.fe_timeout[sl] + 1e-12) & (pending == 0)
+        self.fault_pending[sl] = np.where(trip, ERROR_FOLLOWING, pending)
+        if trip.any():
+            self.changed()
+        vel = self.vel[sl]
+        reached = (
+            (oe_csp & (afe <= self.position_window[sl]))
+            | (oe & csv & (np.abs(vel - target_v) * cpr <= self.velocity_window[sl]))
+            | (oe & cst)
+            | ((state == _QSA) & self.standstill[sl])
+        )
+        sw |= np.where(oe & (csp | csv | cst), _SW_FOLLOWS, 0)
+        sw |= np.where(over, _SW_FOLLOWING_ERROR, 0)
+        sw |= np.where(reached, _SW_TARGET_REACHED, 0)
+        sw |= np.where(self.limit[sl], _SW_LIMIT, 0)
+        if self.any_thermal:
+            sw |= np.where(self.thermal[sl] & (self.temp[sl] > self.warn_c[sl]), _SW_WARNING, 0)
+        self.statusword[sl] = sw
+        self.following_error[sl] = fe
+        self.position_counts[sl] = pos_counts
+        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.torque_permille[sl] = np.floor(self.tau[sl] * 1000.0 / self.rated[sl] + 0.5)
+
+
+def _dry_friction(applied: F64, vel: F64, fc: F64) -> tuple[F64, F64]:
+    """Net torque with Coulomb friction ``fc`` [N·m] and the velocity (0 where the rotor sticks)."""
+    sliding = np.abs(vel) > STICTION_RAD_S
+    stuck = ~sliding & (np.abs(applied) <= fc)
+    direction = np.where(sliding, np.sign(vel), np.sign(applied))
+    net = np.where(stuck, 0.0, applied - direction * fc)
+    return net, np.where(stuck, 0.0, vel)

@@ -1,0 +1,137 @@
+"""The vectorised drive bank: same behaviour as the scalar drive, one drive faults alone, cost flat in N."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from fieldbus.core.cia402 import State402
+from sim_slaves.drive402 import Cia402Drive, DictObjectStore, DriveParams, Obj, default_objects
+from sim_slaves.drive_bank import DriveBank
+
+DT = 1e-3
+S = State402
+
+MIXED = (
+    (DriveParams(), 8),
+    (DriveParams(), 9),
+    (DriveParams(), 10),
+    (DriveParams(command_delay_cycles=3, current_loop_bandwidth_hz=400.0, coulomb_friction_nm=0.05), 8),
+    (DriveParams(thermal=True, thermal_capacitance_j_per_k=0.05, fault_temperature_c=60.0), 8),
+    (DriveParams(quick_stop_option=6, inertia_kg_m2=5e-4, friction_nm_s_per_rad=0.0), 8),
+)
+
+
+def _commands(k: int, i: int) -> tuple[int, int, int, int]:
+    """Controlword, target position [counts], velocity [counts/s], torque [‰] of drive ``i`` at step ``k``."""
+    cw = (0x00, 0x06, 0x07, 0x0F)[min(k, 3)]
+    if i == 5 and 400 <= k < 700:
+        cw = 0x02  # quick stop, then (option 6) stay until the master disables voltage
+    if i == 5 and 700 <= k < 703:
+        cw = (0x00, 0x06, 0x07)[k - 700]
+    if i == 2 and 650 <= k < 660:
+        cw = 0x80 if k == 655 else 0x00  # fault reset edge, then the way back up
+    if i == 2 and 660 <= k < 663:
+        cw = (0x06, 0x07, 0x0F)[k - 660]
+    t = k * DT
+    position = round(20_000 * math.sin(2 * math.pi * 2 * t))
+    return cw, position, round(50_000 * math.cos(2 * math.pi * t)), round(400 * math.sin(9 * t))
+
+
+def test_a_bank_stepped_together_matches_scalar_drives_step_for_step() -> None:
+    """Mixed modes, quick stop, an injected fault and its reset, delay, current lag, friction, heat."""
+    params = [p for p, _ in MIXED]
+    scalar = [Cia402Drive(p) for p in params]
+    bank = DriveBank(params)
+    s_ods = [DictObjectStore(default_objects(p)) for p in params]
+    b_ods = [DictObjectStore(default_objects(p)) for p in params]
+    for od_pair, (_, mode) in zip(zip(s_ods, b_ods, strict=True), MIXED, strict=True):
+        for od in od_pair:
+            od.values[(Obj.MODES_OF_OPERATION, 0)] = mode
+    bank.drives[4].load_torque_nm = scalar[4].load_torque_nm = 0.8
+    states_seen: set[State402] = set()
+    for k in range(900):
+        if k == 600:
+            scalar[2].inject_fault(0x5000)
+            bank.drives[2].inject_fault(0x5000)
+        for i in range(len(params)):
+            cw, tp, tv, tt = _commands(k, i)
+            for od in (s_ods[i], b_ods[i]):
+                od.values[(Obj.CONTROLWORD, 0)] = cw
+                od.values[(Obj.TARGET_POSITION, 0)] = tp
+                od.values[(Obj.TARGET_VELOCITY, 0)] = tv
+                od.values[(Obj.TARGET_TORQUE, 0)] = tt
+            scalar[i].step(s_ods[i], DT)
+            bank.load_inputs(i, b_ods[i])
+        bank.step(0, len(params), DT)
+        for i, d in enumerate(scalar):
+            bank.store_outputs(i, b_ods[i])
+            b = bank.drives[i]
+            assert b.state is d.state, (k, i)
+            assert b.error_code == d.error_code, (k, i)
+            assert b.position_rad == pytest.approx(d.position_rad, abs=1e-9), (k, i)
+            assert b.temperature_c == pytest.approx(d.temperature_c, abs=1e-9), (k, i)
+            for obj in (Obj.STATUSWORD, Obj.TORQUE_ACTUAL, Obj.MODES_DISPLAY):
+                assert b_ods[i].values[(obj, 0)] == s_ods[i].values[(obj, 0)], (k, i, obj)
+            for obj in (Obj.POSITION_ACTUAL, Obj.VELOCITY_ACTUAL, Obj.FOLLOWING_ERROR_ACTUAL):
+                assert abs(int(b_ods[i].values[(obj, 0)]) - int(s_ods[i].values[(obj, 0)])) <= 1, (k, i, obj)
+            states_seen.add(d.state)
+    # the scenario went through the interesting states (else it proves little)
+    assert {S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.FAULT, S.SWITCHED_ON} <= states_seen
+    assert scalar[4].state is S.FAULT and scalar[4].error_code == 0x4310  # overheated
+    assert scalar[2].state is S.OPERATION_ENABLED  # reset and enabled again
+
+
+def _enabled_bank(n: int, params: DriveParams | None = None) -> DriveBank:
+    bank = DriveBank([params or DriveParams()] * n)
+    for d in bank.drives:
+        d.bind(DictObjectStore())
+    bank.mode_request[:] = 8
+    for cw in (0x00, 0x06, 0x07, 0x0F):
+        bank.controlword[:] = cw
+        bank.step(0, n, DT)
+    assert (bank.state == S.OPERATION_ENABLED).all()
+    return bank
+
+
+def test_one_drive_faults_while_the_others_keep_running() -> None:
+    n = 12
+    bank = _enabled_bank(n)
+    bank.drives[5].load_torque_nm = 50.0  # far beyond the 3 N·m peak: the joint is dragged away
+    faulted_at = None
+    for k in range(1, 1500):
+        bank.target_position[:] = round(30_000 * math.sin(2 * math.pi * k * DT))
+        bank.step(0, n, DT)
+        if faulted_at is None and bank.drives[5].state is S.FAULT:
+            faulted_at = k
+    assert faulted_at is not None and faulted_at < 100
+    assert bank.drives[5].error_code == 0x8611  # following error
+    others = [i for i in range(n) if i != 5]
+    assert all(bank.drives[i].state is S.OPERATION_ENABLED for i in others)
+    assert np.abs(bank.following_error[others]).max() < 100  # still tracking the sine
+    assert (bank.statusword[others] & 0x6F == 0x27).all()  # statusword: OPERATION ENABLED
+    assert bank.statusword[5] & 0x4F == 0x08  # statusword: FAULT
+    assert (bank.error_code[others] == 0).all()
+
+
+def _step_cost(n: int, steps: int = 300) -> float:
+    bank = _enabled_bank(n)
+    best = math.inf
+    for r in range(3):
+        t0 = time.perf_counter()
+        for k in range(r * steps, (r + 1) * steps):
+            bank.target_position[:] = round(30_000 * math.sin(2 * math.pi * k * DT))
+            bank.step(0, n, DT)
+        best = min(best, (time.perf_counter() - t0) / steps)
+    assert (bank.state == S.OPERATION_ENABLED).all()
+    return best
+
+
+def test_cost_per_step_is_nearly_flat_in_the_number_of_drives() -> None:
+    small, large = _step_cost(4), _step_cost(128)
+    print(f"bank step at 1 kHz: 4 drives {small * 1e6:.0f} us, 128 drives {large * 1e6:.0f} us")
+    assert large < 2.0 * small, f"128 drives {large * 1e6:.0f} us vs 4 drives {small * 1e6:.0f} us"
+    assert large < 1e-3  # 128 axes at 1 kHz with room to spare
