@@ -258,7 +258,7 @@ def _coe(pysoem: Any, s: Any, out: EthercatSlave, use_info: bool) -> None:
         out.errors.append(str(exc))
     for what, call in (
         ("device_type", lambda: u(0x1000, 0)),
-        ("device_name", lambda: _text(read(0x1008, 0))),
+        ("device_name", lambda: c_string(read(0x1008, 0))),
     ):
         try:
             setattr(out, what, call())
@@ -302,17 +302,17 @@ def _describe(
                 continue
             entries = obj.entries
             if not entries:
-                found[(obj.index, 0)] = (int(obj.data_type), _text(obj.name))
+                found[(obj.index, 0)] = (int(obj.data_type), c_string(obj.name))
                 continue
             for sub, e in enumerate(entries):
                 if (obj.index, sub) in wanted:
-                    found[(obj.index, sub)] = (int(e.data_type), _text(e.name))
+                    found[(obj.index, sub)] = (int(e.data_type), c_string(e.name))
     except Exception as exc:  # pysoem raises SdoInfoError with a message only
         out.errors.append(f"SDO Information: {getattr(exc, 'message', exc)}")
     return found
 
 
-def _text(raw: Any) -> str:
+def c_string(raw: Any) -> str:
     data = raw if isinstance(raw, bytes) else str(raw).encode("latin-1", "replace")
     return data.split(b"\0", 1)[0].decode("latin-1").strip()
 
