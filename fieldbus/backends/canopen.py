@@ -48,6 +48,7 @@ from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core.candecode import NMT_STATES
 from fieldbus.core.emcy import Emergency
 from fieldbus.core.network import Bus
 from fieldbus.core.pdo.model import Pdo
@@ -152,6 +153,12 @@ class CanopenBackend(Backend):
     def expected_wkc(self) -> int:
         """TPDOs expected per SYNC (transmission type 1, all nodes)."""
         return int(self._tpdo_count.sum())
+
+    def slave_state(self, i: int) -> str:
+        """Node ``i``'s NMT state from its last heartbeat ("-" before any, "lost" when it went silent)."""
+        if self.heartbeat_lost[i]:
+            return "lost"
+        return NMT_STATES.get(int(self.nmt_state[i]), "-")
 
     # -- bring-up ---------------------------------------------------------------------
     def open(self) -> None:

@@ -343,6 +343,10 @@ class EthercatBackend(Backend):
             al_status=first_code,
         )
 
+    def slave_state(self, i: int) -> str:
+        """Slave ``i``'s AL state as SOEM last read it (bring-up and recovery read it, the cycle does not)."""
+        return state_name(int(self._slaves[i].state)) if i < len(self._slaves) else "-"
+
     # -- cycle ----------------------------------------------------------------------
     def send(self) -> None:
         """Outputs into SOEM's IO map, frames still queued from earlier cycles discarded, the LRW sent."""

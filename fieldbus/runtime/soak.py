@@ -39,7 +39,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -47,6 +47,8 @@ from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
+from fieldbus.runtime.loop import progress
+from fieldbus.runtime.monitor import monitor_context
 from fieldbus.runtime.timing import CycleTimer
 
 Control = Callable[..., dict[str, Any]]
@@ -214,6 +216,7 @@ class Soak:
         self.margin_us = margin_us  # a cycle's exchange() may take the receive timeout plus this
         self.report = SoakReport()
         self.timer = CycleTimer()
+        self.monitor = False  # the live view (--monitor) while the soak runs
 
     # -- bring-up with SDO aborts --------------------------------------------------------
     def bring_up(self) -> Operational:
@@ -243,9 +246,11 @@ class Soak:
         return self.net.bring_up()
 
     # -- the run ----------------------------------------------------------------------
-    def run(self, cycles: int) -> SoakReport:
+    def run(self, cycles: int, *, status: TextIO | None = None) -> SoakReport:
+        """Bring up, then ``cycles`` cycles under the fault plan; ``status``: a progress line each second."""
         rep = self.report
         t_start = time.perf_counter()
+        next_status = 0
         op = self.bring_up()
         backend, policy = self.net.backends[0], self.net.policies[0]
         threshold = policy.config.safe_stop_after
@@ -273,135 +278,150 @@ class Soak:
         limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
         prev_fresh = True
-        for k in range(cycles):
-            event = plan.get(k)
-            if event is not None and event[0] in IN_FLIGHT and not prev_fresh:
-                # The last cycle's frame may still be on its way to the emulator (its reply was late):
-                # "drop the next frame" could hit that one. Inject once a cycle came back fresh.
-                later = k + 1
-                while later in plan:
-                    later += 1
-                plan[later] = event
-                event = None
-            lost_now = False
-            if event is not None:
-                kind, slave = event
-                lost_now = kind not in NOTICED
-                if kind == "loss":
-                    if can:
-                        self.control(cmd="drop_frame", slave=slave)
-                    else:
-                        self.control(cmd="drop", count=1, pd=True)
-                elif kind == "emcy":
-                    before = len(getattr(backend, "emergencies", []))
-                    self.control(cmd="emergency", slave=slave, code=EMCY_CODE)
-                    notices.append((kind, slave, k, before))
-                elif kind == "heartbeat":
-                    self.control(cmd="heartbeat", slave=slave, silent=True)
-                    notices.append((kind, slave, k, 0))
-                elif kind == "bus_off":
-                    self.control(cmd="bus_off", slave=slave, off=True)
-                    bus_off_until.append((k + BUS_OFF_CYCLES, slave))
-                elif kind == "delay":
-                    timeout_s = backend.bus.receive_timeout_us / 1e6
-                    self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
-                elif kind == "wkc":
-                    self.control(cmd="corrupt_wkc", delta=-1, count=1)
-                elif kind == "power_cycle":
-                    self.control(cmd="power_cycle", slave=slave)
-                    recovering.append(k)
-                elif kind == "burst":
-                    self.control(cmd="drop", count=threshold, pd=True)
-                    burst_left = threshold
-                rep.injected[kind] += 1
-            if burst_left:
-                lost_now = True
-                burst_left -= 1
-            for until, slave_off in list(bus_off_until):
-                if k >= until:
-                    self.control(cmd="bus_off", slave=slave_off, off=False)
-                    bus_off_until.remove((until, slave_off))
-                    recovering.append(k)
-            t0 = time.perf_counter_ns()
-            try:
-                res = op.exchange()
-            except Exception as exc:  # the invariant is that this never happens
-                rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
-                break
-            fresh = res.fresh
-            # a miss is a miss even when a recovery step ran in it; "recovery": fresh, but still recovering
-            kind_of_cycle = (
-                "miss" if not fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
-            )
-            rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
-            if res.exchange_ns > limit_ns:
-                rep.violate(
-                    k,
-                    f"exchange() took {res.exchange_ns / 1e3:.0f} us on a {kind_of_cycle} cycle, more than the "
-                    f"receive timeout plus {self.margin_us:g} us",
+        with monitor_context(op, None, self.monitor):
+            for k in range(cycles):
+                event = plan.get(k)
+                if event is not None and event[0] in IN_FLIGHT and not prev_fresh:
+                    # The last cycle's frame may still be on its way to the emulator (its reply was late):
+                    # "drop the next frame" could hit that one. Inject once a cycle came back fresh.
+                    later = k + 1
+                    while later in plan:
+                        later += 1
+                    plan[later] = event
+                    event = None
+                lost_now = False
+                if event is not None:
+                    kind, slave = event
+                    lost_now = kind not in NOTICED
+                    if kind == "loss":
+                        if can:
+                            self.control(cmd="drop_frame", slave=slave)
+                        else:
+                            self.control(cmd="drop", count=1, pd=True)
+                    elif kind == "emcy":
+                        before = len(getattr(backend, "emergencies", []))
+                        self.control(cmd="emergency", slave=slave, code=EMCY_CODE)
+                        notices.append((kind, slave, k, before))
+                    elif kind == "heartbeat":
+                        self.control(cmd="heartbeat", slave=slave, silent=True)
+                        notices.append((kind, slave, k, 0))
+                    elif kind == "bus_off":
+                        self.control(cmd="bus_off", slave=slave, off=True)
+                        bus_off_until.append((k + BUS_OFF_CYCLES, slave))
+                    elif kind == "delay":
+                        timeout_s = backend.bus.receive_timeout_us / 1e6
+                        self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
+                    elif kind == "wkc":
+                        self.control(cmd="corrupt_wkc", delta=-1, count=1)
+                    elif kind == "power_cycle":
+                        self.control(cmd="power_cycle", slave=slave)
+                        recovering.append(k)
+                    elif kind == "burst":
+                        self.control(cmd="drop", count=threshold, pd=True)
+                        burst_left = threshold
+                    rep.injected[kind] += 1
+                if burst_left:
+                    lost_now = True
+                    burst_left -= 1
+                for until, slave_off in list(bus_off_until):
+                    if k >= until:
+                        self.control(cmd="bus_off", slave=slave_off, off=False)
+                        bus_off_until.remove((until, slave_off))
+                        recovering.append(k)
+                t0 = time.perf_counter_ns()
+                try:
+                    res = op.exchange()
+                except Exception as exc:  # the invariant is that this never happens
+                    rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
+                    break
+                fresh = res.fresh
+                # a miss is a miss even when a recovery step ran in it; "recovery": fresh, but still recovering
+                kind_of_cycle = (
+                    "miss" if not fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
                 )
-            if fresh and not stop_latched:
-                ctrl.step(sw, cw)
-            self.timer.add(time.perf_counter_ns() - t0)
-            rep.cycles += 1
-            # -- invariants --
-            if lost_now and fresh:
-                rep.violate(k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh")
-            if event is not None and not fresh and event[0] not in NOTICED:
-                rep.detected[event[0]] += 1
-            for note in list(notices):
-                kind, slave, at, before = note
-                if kind == "emcy":
-                    seen = [e for e in backend.emergencies[before:] if e.code == EMCY_CODE]  # type: ignore[attr-defined]
-                    done = bool(seen) and "over-current" in seen[0].name
-                else:
-                    done = bool(backend.heartbeat_lost[slave])  # type: ignore[attr-defined]
-                    if done:
-                        self.control(cmd="heartbeat", slave=slave, silent=False)
-                        recovering.append(k)  # the node is configured again when it comes back
-                if done:
-                    rep.detected[kind] += 1
-                    notices.remove(note)
-                elif k - at > NOTICE_CYCLES:
-                    rep.violate(k, f"{kind} on slave {slave} not reported within {NOTICE_CYCLES} cycles")
-                    notices.remove(note)
-            consecutive = 0 if fresh else consecutive + 1
-            if not fresh:
-                rep.missed += 1
-            if res.safe_stop and not stop_latched:
-                rep.safe_stops += 1
-                stop_latched = True
-                check_quick_stop = True
-                if consecutive != threshold:
-                    rep.violate(k, f"safe stop after {consecutive} consecutive misses, threshold {threshold}")
-            elif not stop_latched and consecutive >= threshold:
-                rep.violate(k, f"{consecutive} consecutive misses and no safe stop (threshold {threshold})")
-            if check_quick_stop and fresh:
-                check_quick_stop = False
-                states = self.control(cmd="status")["drive_states"]
-                if OE in states:
+                rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
+                if res.exchange_ns > limit_ns:
                     rep.violate(
-                        k, f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}"
+                        k,
+                        f"exchange() took {res.exchange_ns / 1e3:.0f} us on a {kind_of_cycle} cycle, more than the "
+                        f"receive timeout plus {self.margin_us:g} us",
                     )
-            fresh_streak = fresh_streak + 1 if fresh else 0
-            prev_fresh = fresh
-            if recovering and fresh_streak >= 20:
-                status = self.control(cmd="status")
-                if all(s == AL_OP for s in status["states"]):
-                    rep.recovered += len(recovering)
+                if fresh and not stop_latched:
+                    ctrl.step(sw, cw)
+                self.timer.add(time.perf_counter_ns() - t0)
+                rep.cycles += 1
+                if status is not None and t0 >= next_status:
+                    next_status = t0 + 1_000_000_000
+                    elapsed = t0 - int(t_start * 1e9)
+                    status.write(f"\r{progress(k + 1, cycles, elapsed)} violations {len(rep.violations)}   ")
+                    status.flush()
+                # -- invariants --
+                if lost_now and fresh:
+                    rep.violate(
+                        k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh"
+                    )
+                if event is not None and not fresh and event[0] not in NOTICED:
+                    rep.detected[event[0]] += 1
+                for note in list(notices):
+                    kind, slave, at, before = note
+                    if kind == "emcy":
+                        seen = [e for e in backend.emergencies[before:] if e.code == EMCY_CODE]  # type: ignore[attr-defined]
+                        done = bool(seen) and "over-current" in seen[0].name
+                    else:
+                        done = bool(backend.heartbeat_lost[slave])  # type: ignore[attr-defined]
+                        if done:
+                            self.control(cmd="heartbeat", slave=slave, silent=False)
+                            recovering.append(k)  # the node is configured again when it comes back
+                    if done:
+                        rep.detected[kind] += 1
+                        notices.remove(note)
+                    elif k - at > NOTICE_CYCLES:
+                        rep.violate(k, f"{kind} on slave {slave} not reported within {NOTICE_CYCLES} cycles")
+                        notices.remove(note)
+                consecutive = 0 if fresh else consecutive + 1
+                if not fresh:
+                    rep.missed += 1
+                if res.safe_stop and not stop_latched:
+                    rep.safe_stops += 1
+                    stop_latched = True
+                    check_quick_stop = True
+                    if consecutive != threshold:
+                        rep.violate(
+                            k, f"safe stop after {consecutive} consecutive misses, threshold {threshold}"
+                        )
+                elif not stop_latched and consecutive >= threshold:
+                    rep.violate(
+                        k, f"{consecutive} consecutive misses and no safe stop (threshold {threshold})"
+                    )
+                if check_quick_stop and fresh:
+                    check_quick_stop = False
+                    states = self.control(cmd="status")["drive_states"]
+                    if OE in states:
+                        rep.violate(
+                            k,
+                            f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}",
+                        )
+                fresh_streak = fresh_streak + 1 if fresh else 0
+                prev_fresh = fresh
+                if recovering and fresh_streak >= 20:
+                    emulated = self.control(cmd="status")
+                    if all(s == AL_OP for s in emulated["states"]):
+                        rep.recovered += len(recovering)
+                        recovering.clear()
+                if recovering and k - recovering[0] > self.recovery_cycles:
+                    rep.violate(k, f"power-cycled slave not back in OP after {self.recovery_cycles} cycles")
                     recovering.clear()
-            if recovering and k - recovering[0] > self.recovery_cycles:
-                rep.violate(k, f"power-cycled slave not back in OP after {self.recovery_cycles} cycles")
-                recovering.clear()
-            if stop_latched and fresh_streak >= 20 and not recovering and not burst_left:
-                op.clear_safe_stop()  # what an operator or a supervisor would do: then re-enable
-                stop_latched = False
-                ctrl.set_goal(Goal.ENABLE)
-                rep.reenabled += 1
-            if period_ns:
-                deadline += period_ns
-                while time.perf_counter_ns() < deadline:
-                    pass
+                if stop_latched and fresh_streak >= 20 and not recovering and not burst_left:
+                    op.clear_safe_stop()  # what an operator or a supervisor would do: then re-enable
+                    stop_latched = False
+                    ctrl.set_goal(Goal.ENABLE)
+                    rep.reenabled += 1
+                if period_ns:
+                    deadline += period_ns
+                    while time.perf_counter_ns() < deadline:
+                        pass
+        if status is not None:
+            status.write("\n")
         rep.seconds = time.perf_counter() - t_start
         if recovering:
             rep.violate(rep.cycles, "run ended while a power-cycled slave was still recovering")

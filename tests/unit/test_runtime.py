@@ -90,3 +90,11 @@ def test_gc_is_disabled_inside_and_restored() -> None:
     with gc_held():
         assert not gc.isenabled()
     assert gc.isenabled()
+
+
+def test_progress_says_where_a_run_is_its_rate_and_the_time_left() -> None:
+    from fieldbus.runtime.loop import progress
+
+    assert progress(1200, 10_000, 1_200_000_000) == "cycle 1200/10000 (12%) 1000/s 8.8 s left"
+    assert progress(1000, 1_000_000, 1_000_000_000).endswith("1000/s 16.6 min left")
+    assert progress(0, 10, 0).startswith("cycle 0/10 (0%) 0/s")

@@ -1,0 +1,183 @@
+"""``--monitor``: a live view of a running network, drawn from a side thread with rich.
+
+:class:`Monitor` reads what the cycle already keeps - each bus's
+:class:`~fieldbus.network.BusStatus` and working-counter policy counters, each
+slave's freshness, its AL or NMT state where the backend knows it, its CiA 402
+state from the statusword in the process image, the last EMCY - and the
+cycle's latency histograms. It takes no lock and writes nothing the cycle
+reads: the cycle does not know it is watched. rich's own refresh thread calls
+:meth:`Monitor.render` at most ``refresh_hz`` times a second (default 10).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from contextlib import AbstractContextManager
+from typing import Any, Self
+
+from fieldbus.core.cia402 import decode_state
+from fieldbus.errors import BackendUnavailableError
+from fieldbus.network import Operational
+from fieldbus.runtime.timing import CycleLatency
+
+REFRESH_HZ = 10.0
+
+
+class Monitor:
+    """Live view of ``op``; use as a context manager around the cycle loop."""
+
+    def __init__(
+        self,
+        op: Operational,
+        *,
+        latency: CycleLatency | None = None,
+        refresh_hz: float = REFRESH_HZ,
+        console: Any = None,
+    ) -> None:
+        self.op = op
+        self.latency = latency
+        self.refresh_hz = min(refresh_hz, REFRESH_HZ)
+        self._console = console
+        self._live: Any = None
+        self._t0 = time.monotonic()
+        self._cycle0 = op.result.cycle
+
+    def snapshot(self) -> dict[str, Any]:
+        """What the view shows, as plain data (also for tests and ``--json`` consumers)."""
+        op = self.op
+        res = op.result
+        elapsed = max(time.monotonic() - self._t0, 1e-9)
+        out: dict[str, Any] = {
+            "cycle": res.cycle,
+            "rate_hz": (res.cycle - self._cycle0) / elapsed,
+            "exchange_us": res.exchange_ns / 1e3,
+            "safe_stop": res.safe_stop,
+            "buses": [],
+        }
+        if self.latency is not None:
+            out["latency_us"] = self.latency.to_json()
+        net = op._net
+        for b, policy, st in zip(net.backends, net.policies, res.buses, strict=True):
+            slaves = []
+            state_of = getattr(b, "slave_state", None)
+            emcy_of = getattr(b, "last_emergency", None)
+            for i, area in enumerate(b.areas):
+                group = b.groups[area.group]
+                sw = _statusword(group.image, area.row)
+                emcy = (
+                    emcy_of.get(b.node_ids[i])
+                    if isinstance(emcy_of, dict) and hasattr(b, "node_ids")
+                    else None
+                )
+                slaves.append(
+                    {
+                        "name": area.slave.name,
+                        "state": state_of(i) if state_of is not None else "-",
+                        "cia402": _name402(sw),
+                        "fresh": bool(policy.fresh[i]),
+                        "stale_cycles": int(policy.stale_cycles[i]),
+                        "last_emcy": str(emcy.name) if emcy is not None else None,
+                    }
+                )
+            out["buses"].append(
+                {
+                    "name": st.name,
+                    "type": b.kind,
+                    "verdict": st.verdict.name,
+                    "wkc": st.wkc,
+                    "expected_wkc": st.expected_wkc,
+                    "misses": policy.stats.misses,
+                    "consecutive_misses": st.consecutive_misses,
+                    "safe_stop": st.safe_stop,
+                    "recovering": st.recovering,
+                    "recoveries": st.recoveries,
+                    "recovery_error": st.recovery_error,
+                    "slaves": slaves,
+                }
+            )
+        return out
+
+    def render(self) -> Any:
+        """The view as a rich renderable (called by rich's refresh thread)."""
+        from rich.console import Group
+        from rich.table import Table
+
+        snap = self.snapshot()
+        head = (
+            f"cycle {snap['cycle']}  {snap['rate_hz']:.0f} cycles/s  exchange {snap['exchange_us']:.0f} µs"
+            + ("  [bold red]SAFE STOP[/]" if snap["safe_stop"] else "")
+        )
+        lat = snap.get("latency_us")
+        if lat:
+            w, x = lat["wakeup"], lat["exchange"]
+            head += f"  wake-up p99 {w['p99']:g} max {w['max']:g} µs  exchange p99 {x['p99']:g} max {x['max']:g} µs"
+        parts: list[Any] = [head]
+        for bus in snap["buses"]:
+            t = Table(
+                title=(
+                    f"{bus['name']} ({bus['type']}): {bus['verdict']}  WKC {bus['wkc']}/{bus['expected_wkc']}  "
+                    f"misses {bus['misses']} (in a row {bus['consecutive_misses']})"
+                    + ("  recovering" if bus["recovering"] else "")
+                    + (f"  recoveries {bus['recoveries']}" if bus["recoveries"] else "")
+                    + (f"\n[red]{bus['recovery_error']}[/]" if bus["recovery_error"] else "")
+                ),
+                title_justify="left",
+                expand=False,
+            )
+            for col in ("slave", "AL/NMT", "CiA 402", "inputs", "last EMCY"):
+                t.add_column(col)
+            for s in bus["slaves"]:
+                fresh = "[green]fresh[/]" if s["fresh"] else f"[red]stale {s['stale_cycles']}[/]"
+                t.add_row(s["name"], s["state"], s["cia402"], fresh, s["last_emcy"] or "")
+            parts.append(t)
+        return Group(*parts)
+
+    def __enter__(self) -> Self:
+        from rich.console import Console
+        from rich.live import Live
+
+        console = self._console or Console(stderr=True)
+        self._t0 = time.monotonic()
+        self._cycle0 = self.op.result.cycle
+        self._live = Live(
+            get_renderable=self.render,
+            console=console,
+            refresh_per_second=self.refresh_hz,
+            auto_refresh=True,
+            transient=False,
+        )
+        self._live.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
+
+
+def monitor_context(
+    op: Operational, latency: CycleLatency | None, enabled: bool
+) -> AbstractContextManager[Any]:
+    """The live view (``--monitor``) around a cycle loop, or nothing; a clear error without rich."""
+    if not enabled:
+        return contextlib.nullcontext()
+    try:
+        import rich  # noqa: F401
+    except ImportError as exc:
+        raise BackendUnavailableError("--monitor needs rich: pip install 'fieldbus[monitor]'") from exc
+    return Monitor(op, latency=latency)
+
+
+def _statusword(image: Any, row: int) -> int | None:
+    try:
+        return int(image.inputs["statusword"][row])
+    except (KeyError, Exception):  # no statusword channel in this map
+        return None
+
+
+def _name402(sw: int | None) -> str:
+    if sw is None:
+        return "-"
+    state = decode_state(sw)
+    return state.name.replace("_", " ").lower() if state is not None else f"0x{sw:04X}"
