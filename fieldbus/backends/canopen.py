@@ -46,6 +46,7 @@ import numpy.typing as npt
 
 from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
+from fieldbus.backends.canbus import open_can_bus
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.candecode import NMT_STATES
@@ -164,16 +165,7 @@ class CanopenBackend(Backend):
     def open(self) -> None:
         """Open the CAN bus, NMT pre-operational to all, identity 0x1018:1/2 of every node against its map."""
         if self._bus is None:
-            try:
-                self._bus = can.Bus(
-                    interface=self.bus.can_interface or "socketcan",
-                    channel=self.bus.interface,
-                    bitrate=self.bus.bitrate,
-                )
-            except Exception as exc:
-                raise FieldbusError(
-                    f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
-                ) from exc
+            self._bus = open_can_bus(self.bus)
         if self._log is not None and not isinstance(self._bus, LoggedBus):
             self._bus = LoggedBus(self._bus, self._log)
         self._open = True

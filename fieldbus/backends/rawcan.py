@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
+from fieldbus.backends.canbus import open_can_bus
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
@@ -91,14 +92,7 @@ class RawCanBackend(Backend):
 
     def open(self) -> None:
         if self._bus is None:
-            try:
-                self._bus = can.Bus(
-                    interface=self.bus.can_interface, channel=self.bus.interface, bitrate=self.bus.bitrate
-                )
-            except Exception as exc:
-                raise FieldbusError(
-                    f"bus '{self.bus.name}': cannot open {self.bus.can_interface} channel {self.bus.interface}: {exc}"
-                ) from exc
+            self._bus = open_can_bus(self.bus)
         if self._log is not None and not isinstance(self._bus, LoggedBus):
             self._bus = LoggedBus(self._bus, self._log)
 

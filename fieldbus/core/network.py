@@ -26,8 +26,8 @@ DEFAULT_SAFE_STOP_AFTER = 10  # legged-robot hardware tutorial §62.5: safe stop
 
 _TOP_KEYS = ("name", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "buses")
 _BUS_KEYS = (
-    "name", "type", "interface", "redundant_interface", "can_interface", "bitrate", "data_bitrate",
-    "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
+    "name", "type", "interface", "redundant_interface", "can_interface", "can_options", "bitrate",
+    "data_bitrate", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
 )  # fmt: skip
 _SLAVE_KEYS = ("name", "map", "node_id", "count", "position")
 
@@ -55,6 +55,7 @@ class Bus:
     interface: str | None = None
     redundant_interface: str | None = None  # EtherCAT: SOEM's second port (cable redundancy)
     can_interface: str | None = None
+    can_options: tuple[tuple[str, str | int | float | bool], ...] = ()  # more python-can Bus arguments
     bitrate: int | None = None
     data_bitrate: int | None = None
 
@@ -134,7 +135,7 @@ def _bus(
     name = r.name(m["name"], (*path, "name"))
     kind = r.choice(m["type"], (*path, "type"), BUS_TYPES)
     is_can = kind in CAN_TYPES
-    for key in ("can_interface", "bitrate", "data_bitrate"):
+    for key in ("can_interface", "can_options", "bitrate", "data_bitrate"):
         if key in m and not is_can:
             raise r.err((*path, key), f"'{key}' is for CAN buses, this bus is {kind}", key=True)
     bitrate = (
@@ -218,12 +219,32 @@ def _bus(
         ),
         interface=r.string(m["interface"], (*path, "interface")) if "interface" in m else None,
         redundant_interface=redundant,
+        can_options=_can_options(r, m.get("can_options"), (*path, "can_options")),
         can_interface=r.string(m.get("can_interface", "socketcan"), (*path, "can_interface"))
         if is_can
         else None,
         bitrate=bitrate,
         data_bitrate=data_bitrate,
     )
+
+
+def _can_options(r: Reader, raw: Any, path: PathT) -> tuple[tuple[str, str | int | float | bool], ...]:
+    """``can_options``: keyword arguments for python-can's ``Bus`` (e.g. ``{port: 43114}``), scalars only."""
+    if raw is None:
+        return ()
+    m = r.mapping(raw, path, [k for k in raw if isinstance(k, str)] if isinstance(raw, dict) else ())
+    out = []
+    for key, value in m.items():
+        if key in ("interface", "channel", "bitrate", "data_bitrate"):
+            raise r.err(
+                (*path, key),
+                f"'{key}' is set by the bus itself (can_interface, interface, bitrate)",
+                key=True,
+            )
+        if not isinstance(value, (str, int, float, bool)):
+            raise r.err((*path, key), "expected a number, a string or true/false")
+        out.append((str(key), value))
+    return tuple(out)
 
 
 def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, DriveMap]) -> DriveMap:

@@ -1,0 +1,188 @@
+"""CAN emulators in their own process, so a test or benchmark measures the master, not two threads.
+
+In one process the emulated nodes and the master share one interpreter lock: the
+nodes' work lands inside the master's cycle. Here a child process runs
+:class:`~sim_slaves.canopen.CanopenSimulator` (``--kind canopen``) or
+:class:`~sim_slaves.mit_motor.MitMotorSimulator` (``--kind mit``) on a python-can
+bus that crosses processes: ``udp_multicast`` (UDP on the loopback, needs
+msgpack), one group and port per bus, or any other python-can interface.
+
+    python -m sim_slaves.can_process --kind mit --map MAP.yaml --nodes 1,2,3 \\
+        --interface udp_multicast --channel 239.74.163.2 --option port=43114
+
+prints ``ready`` once the nodes listen and runs until SIGTERM, SIGINT or its
+stdin closes. :func:`can_emulator_process` starts one from Python and stops it;
+:func:`udp_bus` picks a group and port nobody else on this host uses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+READY_TIMEOUT_S = 20.0
+UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
+
+
+@dataclass(frozen=True)
+class CanChannel:
+    """Where a bus is: python-can interface type, channel and extra Bus arguments."""
+
+    interface: str
+    channel: str
+    options: tuple[tuple[str, str | int | float | bool], ...] = ()
+
+    def network_keys(self) -> str:
+        """The bus keys of a network file (flow style) for this channel."""
+        opts = ", ".join(f"{k}: {v}" for k, v in self.options)
+        return f"interface: '{self.channel}', can_interface: {self.interface}" + (
+            f", can_options: {{{opts}}}" if opts else ""
+        )
+
+
+def udp_bus(index: int = 0) -> CanChannel:
+    """A udp_multicast channel for bus ``index``: its own group and a UDP port free on this host.
+
+    Groups sharing a port would hear each other (Linux delivers a group's datagrams
+    to every socket bound to the port), so each bus gets its own port.
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return CanChannel("udp_multicast", f"{UDP_GROUP_BASE}{2 + index % 250}", (("port", port),))
+
+
+def _option(text: str) -> tuple[str, str | int | float | bool]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got '{text}'")
+    parsed: str | int | float | bool = value
+    if value in ("true", "false"):
+        parsed = value == "true"
+    else:
+        for kind in (int, float):
+            try:
+                parsed = kind(value)
+                break
+            except ValueError:
+                continue
+    return key, parsed
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m sim_slaves.can_process", description=__doc__.splitlines()[0])
+    p.add_argument("--kind", choices=("canopen", "mit"), required=True)
+    p.add_argument("--map", required=True, help="drive map of every node")
+    p.add_argument("--nodes", required=True, help="node ids, e.g. 1,2,3")
+    p.add_argument(
+        "--interface", default="udp_multicast", help="python-can interface (default udp_multicast)"
+    )
+    p.add_argument("--channel", required=True)
+    p.add_argument(
+        "--option", type=_option, action="append", default=[], help="more Bus arguments, KEY=VALUE"
+    )
+    p.add_argument("--dt-s", type=float, help="the drives' time step per SYNC / command (s)")
+    args = p.parse_args(argv)
+
+    import can
+
+    from fieldbus.core.pdo import load_drive_map
+
+    drive = load_drive_map(args.map)
+    nodes = [(drive, int(n)) for n in args.nodes.split(",")]
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with can.Bus(interface=args.interface, channel=args.channel, **dict(args.option)) as bus:
+        sim: Any
+        if args.kind == "canopen":
+            from sim_slaves.canopen import CanopenSimulator
+
+            sim = CanopenSimulator(bus, nodes, dt_s=args.dt_s)
+        else:
+            from sim_slaves.mit_motor import MitMotorSimulator
+
+            sim = MitMotorSimulator(bus, nodes, dt_s=args.dt_s)
+        with sim:
+            print("ready", flush=True)
+            while not stop.is_set():
+                readable, _, _ = select.select([sys.stdin], [], [], 0.2)
+                if readable and not sys.stdin.readline():  # the parent went away
+                    break
+        if getattr(sim, "errors", None):
+            print("\n".join(sim.errors), file=sys.stderr)
+    return 0
+
+
+@contextmanager
+def can_emulator_process(
+    kind: str,
+    drive_map: str | Path,
+    node_ids: Sequence[int],
+    where: CanChannel,
+    *,
+    dt_s: float | None = None,
+) -> Iterator[subprocess.Popen[str]]:
+    """Run emulated nodes in a child process on ``where``; stopped (SIGTERM) on exit."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "sim_slaves.can_process",
+        "--kind",
+        kind,
+        "--map",
+        str(drive_map),
+        "--nodes",
+        ",".join(str(n) for n in node_ids),
+        "--interface",
+        where.interface,
+        "--channel",
+        where.channel,
+    ]
+    for key, value in where.options:
+        cmd += ["--option", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
+    if dt_s is not None:
+        cmd += ["--dt-s", str(dt_s)]
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    errors = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed below; never a pipe nobody drains
+    proc = subprocess.Popen(
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=errors, text=True, env=env
+    )
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], READY_TIMEOUT_S)
+        line = proc.stdout.readline() if ready else ""
+        if line.strip() != "ready":
+            proc.kill()
+            proc.wait(timeout=5)
+            errors.seek(0)
+            tail = errors.read()[-2000:]
+            raise RuntimeError(f"CAN emulator process did not start ({line.strip()!r}): {tail.strip()}")
+        yield proc
+    finally:
+        errors.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
