@@ -15,7 +15,19 @@ from collections.abc import Sequence
 from fieldbus import __version__
 from fieldbus.errors import FieldbusError
 
-COMMANDS = ("validate", "bandwidth", "dc_sim", "demo", "run", "soak", "decode", "scan", "sdo")
+COMMANDS = (
+    "validate",
+    "bandwidth",
+    "dc_sim",
+    "demo",
+    "run",
+    "soak",
+    "decode",
+    "scan",
+    "sdo",
+    "plot",
+    "report",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -27,6 +27,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -39,6 +40,9 @@ from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.wkc import PolicyConfig, Verdict, WkcPolicy
 from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError
+
+if TYPE_CHECKING:
+    from fieldbus.recording import Recorder
 
 CLOSE_CYCLES = 5  # cycles of quick stop, then of disable voltage, sent on close
 PER_BUS_OPTIONS = ("can_bus", "can_log", "pcap")  # options naming one bus's own instance or file
@@ -203,6 +207,8 @@ class Network(_Phase):
         phase = self._phase
         self._phase = _Closed(self)  # no verb of the old phase runs from now on
         if isinstance(phase, Operational):
+            for rec in phase._recorders:
+                rec.close()  # never raises: a failed recording was already warned about
             phase._fail_pending_sdo()
             try:
                 phase._wind_down()
@@ -296,6 +302,7 @@ class Operational(_Phase):
             plan = safe_stop_plan(g.slaves[0].map, g.image.layout)
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
+        self._recorders: tuple[Recorder, ...] = ()  # each copies every cycle into its ring (record())
 
     @property
     def groups(self) -> dict[str, AxisGroup]:
@@ -359,13 +366,36 @@ class Operational(_Phase):
             all_fresh = all_fresh and st.verdict is Verdict.OK
             any_stop = any_stop or policy.safe_stop
         res.fresh = all_fresh
-        if any_stop and not res.safe_stop:
-            for w in self._writers:  # effective from the next cycle's outputs
-                w.apply()
+        latched = any_stop and not res.safe_stop
         res.safe_stop = any_stop
         res.cycle = cycle + 1
         res.exchange_ns = time.perf_counter_ns() - t0
+        for rec in self._recorders:  # before the safe outputs below: it records what this cycle sent
+            rec.capture(res, t0)
+        if latched:
+            for w in self._writers:  # effective from the next cycle's outputs
+                w.apply()
         return res
+
+    def record(self, path: str | Path, *, raw: bool = False, **options: Any) -> Recorder:
+        """Record every cycle from now on to the MCAP file ``path`` (see :mod:`fieldbus.recording`).
+
+        Inputs and outputs of every axis group in engineering units (``raw``: also
+        the wire bytes), per bus the working counter, verdict and per-slave
+        freshness, cycle times, and events. The cycle copies into a preallocated
+        ring, a writer thread writes the file. Stops on ``recorder.close()`` or
+        :meth:`close`. Raises :class:`FieldbusError` naming the file when it cannot
+        be written. ``options``: ``block_cycles``, ``ring_blocks``, ``open_file``.
+        """
+        self._check()
+        from fieldbus.recording import Recorder
+
+        return Recorder(self, path, raw=raw, **options)
+
+    @property
+    def recorders(self) -> tuple[Recorder, ...]:
+        """The recordings running on this network (:meth:`record`)."""
+        return self._recorders
 
     # -- acyclic access in OP --------------------------------------------------------------
     def submit_sdo_read(self, bus: str, slave: str, index: int, sub_index: int) -> Future[bytes | None]:

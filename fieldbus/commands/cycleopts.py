@@ -1,4 +1,4 @@
-"""What ``demo``, ``run`` and ``soak`` share: the real-time flags, latency histograms and their plot."""
+"""What ``demo``, ``run`` and ``soak`` share: the real-time and recording flags, latency histograms, their plot."""
 
 from __future__ import annotations
 
@@ -6,17 +6,28 @@ import argparse
 import sys
 from collections.abc import Callable
 from contextlib import AbstractContextManager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
 from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.rt import RtConfig, RtState, realtime
-from fieldbus.runtime.timing import CycleLatency, CycleTimer
+from fieldbus.runtime.timing import CycleLatency, CycleTimer, LatencyHistogram
+
+if TYPE_CHECKING:
+    from fieldbus.recording import Recorder
+    from fieldbus.recording.ring import Ring
 
 
 def add_arguments(p: argparse.ArgumentParser, *, plot: bool = True) -> None:
-    """``--rt-priority``, ``--cpu``, ``--lock-memory``, ``--rt-strict`` (and ``--plot``)."""
+    """``--rt-priority``, ``--cpu``, ``--lock-memory``, ``--rt-strict``, ``--record`` (and ``--plot``)."""
+    r = p.add_argument_group("recording")
+    r.add_argument(
+        "--record",
+        metavar="FILE",
+        help="record every cycle to this MCAP file (fieldbus plot / report read it; needs fieldbus[record])",
+    )
+    r.add_argument("--record-raw", action="store_true", help="with --record: also the wire bytes")
     g = p.add_argument_group("real time (the cycle thread)")
     g.add_argument(
         "--rt-priority", type=int, metavar="N", help="run the cycle at SCHED_FIFO priority N (1-99)"
@@ -49,6 +60,34 @@ def rt_context(args: argparse.Namespace) -> AbstractContextManager[RtState]:
     return realtime(rt_config(args), warn=lambda line: print(line, file=sys.stderr))
 
 
+def check_record(args: argparse.Namespace) -> None:
+    """``--record FILE``: create the file now, before any bus starts (:class:`FieldbusError` naming it)."""
+    if getattr(args, "record", None):
+        from fieldbus.recording import check_writable
+
+        check_writable(args.record)
+
+
+def start_recording(op: Operational, args: argparse.Namespace) -> Recorder | None:
+    """``op.record(FILE)`` when ``--record FILE`` was given (stops when the network closes)."""
+    if not getattr(args, "record", None):
+        return None
+    return op.record(args.record, raw=args.record_raw)
+
+
+class WakeupTap(LatencyHistogram):
+    """The wake-up histogram that also hands each cycle's latency (ns) to the recordings' rings."""
+
+    def __init__(self, rings: list[Ring], max_us: int = 20_000) -> None:
+        super().__init__(max_us)
+        self.rings = rings
+
+    def add(self, duration_ns: int) -> None:
+        super().add(duration_ns)
+        for ring in self.rings:
+            ring.wakeup_ns = duration_ns
+
+
 def run_timed(
     op: Operational,
     step: Callable[[int], bool | None],
@@ -60,6 +99,8 @@ def run_timed(
 ) -> tuple[CycleTimer, CycleLatency]:
     """:func:`run_cycles` with wake-up latency and ``exchange()`` time histograms."""
     latency = CycleLatency()
+    if op.recorders:
+        latency.wakeup = WakeupTap([r.ring for r in op.recorders])
     exchange = latency.exchange
 
     def timed(k: int) -> bool | None:
@@ -82,27 +123,32 @@ def plot_latency(latency: CycleLatency, path: str, title: str) -> None:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise BackendUnavailableError("--plot needs matplotlib: pip install 'fieldbus[plot]'") from exc
-    import numpy as np
-
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.4), dpi=90)
     for ax, (name, hist) in zip(
         axes, (("wake-up latency", latency.wakeup), ("exchange() time", latency.exchange)), strict=True
     ):
-        nz = np.flatnonzero(hist.counts)
-        if nz.size:
-            hi = int(nz[-1]) + 2
-            edges = np.arange(hi + 1) + 1.0  # bin k covers [k, k+1) µs; shifted by 1 for the log axis
-            ax.stairs(hist.counts[:hi], edges, fill=True, color="tab:blue")
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-        s = hist.to_json()
-        ax.set_title(f"{name}: p50 {s['p50']:g}, p99 {s['p99']:g}, max {s['max']:g} µs", fontsize=9)
-        ax.set_xlabel("µs (+1, log)")
-        ax.set_ylabel("cycles")
+        draw_histogram(ax, name, hist)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def draw_histogram(ax: Any, name: str, hist: LatencyHistogram) -> None:
+    """One latency histogram (log counts over µs, 1 µs bins) on matplotlib axes ``ax``."""
+    import numpy as np
+
+    nz = np.flatnonzero(hist.counts)
+    if nz.size:
+        hi = int(nz[-1]) + 2
+        edges = np.arange(hi + 1) + 1.0  # bin k covers [k, k+1) µs; shifted by 1 for the log axis
+        ax.stairs(hist.counts[:hi], edges, fill=True, color="tab:blue")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    s = hist.to_json()
+    ax.set_title(f"{name}: p50 {s['p50']:g}, p99 {s['p99']:g}, max {s['max']:g} µs", fontsize=9)
+    ax.set_xlabel("µs (+1, log)")
+    ax.set_ylabel("cycles")
 
 
 def latency_report(latency: CycleLatency, rt: RtState) -> dict[str, Any]:

@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         args.rate = DEFAULT_RATE_HZ[args.backend]
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
+    cycleopts.check_record(args)
     with cycleopts.rt_context(args) as rt:
         report = run_demo(
             args.backend, args.axes, args.cycles, args.rate, status=not args.json, rt=rt, logs=args
@@ -225,7 +226,7 @@ def run_demo(
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
-    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap`` flags."""
+    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record`` flags."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
         demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
@@ -238,6 +239,8 @@ def run_demo(
         ) as net,
     ):
         op = net.bring_up()
+        if logs is not None:
+            cycleopts.start_recording(op, logs)  # --record
         follower: SineFollower | MitFollower = (
             MitFollower(op, axes, rate_hz) if backend == "rawcan" else SineFollower(op, axes, rate_hz)
         )

@@ -37,11 +37,13 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     logs = buslogs.bus_options(args, load_network(args.network), args.backend)
+    cycleopts.check_record(args)
     with (
         open_network(args.network, backend=args.backend, bus_options=logs) as net,
         cycleopts.rt_context(args) as rt,
     ):
         op = net.bring_up()
+        cycleopts.start_recording(op, args)
         period = float(op.cycle_time_us)
 
         def step(_k: int) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 
 from fieldbus.commands import cycleopts
 from fieldbus.errors import FieldbusError
-from fieldbus.network import Network, open_network
+from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
 
 DEFAULT_FAULTS = "loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1"
@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
         raise FieldbusError("give either NETWORK.yaml or --demo")
     if args.cycles < 1 or args.axes < 1:
         raise FieldbusError("--cycles and --axes must be >= 1")
+    cycleopts.check_record(args)
     spec = FaultSpec.parse(args.faults)
     report = soak(args, spec)
     if args.json:
@@ -95,13 +96,15 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             net = open_network(net_file, backend=backend)
             return net, control_for(net)
 
-        runner = Soak(
+        runner = (RecordingSoak if args.record else Soak)(
             opener,
             spec,
             seed=args.seed,
             cycle_time_us=None if args.rate is None else (1e6 / args.rate if args.rate else 0.0),
             margin_us=args.margin_us,
         )
+        if isinstance(runner, RecordingSoak):
+            runner.args = args
         try:
             with cycleopts.rt_context(args) as rt:
                 rep = runner.run(args.cycles)
@@ -113,6 +116,17 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
         out["cycle_time_us"] = runner.timer.summary().to_json()
         out["realtime"] = rt.to_json()
         return out
+
+
+class RecordingSoak(Soak):
+    """A soak that records its cycles (``--record``) from OP on."""
+
+    args: argparse.Namespace
+
+    def bring_up(self) -> Operational:
+        op = super().bring_up()
+        cycleopts.start_recording(op, self.args)
+        return op
 
 
 def describe(r: dict[str, Any]) -> str:

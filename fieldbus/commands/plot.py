@@ -1,0 +1,117 @@
+"""``fieldbus plot FILE -o out.png``: a recording at a glance.
+
+Per axis group: targets (outputs, dashed) and actuals (inputs) of every axis,
+and the tracking error (actual minus the target sent one cycle earlier); then
+the wake-up latency and ``exchange()`` time histograms, and the misses over
+time per bus with the recording's events marked.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.commands.cycleopts import draw_histogram
+from fieldbus.errors import BackendUnavailableError
+from fieldbus.recording import Recording, load
+from fieldbus.recording.summary import histogram
+
+PREFERRED = ("position", "velocity", "torque")
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser("plot", help="plot a recording (--record) into a PNG")
+    p.add_argument("file", metavar="FILE.mcap")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    p.set_defaults(func=run)
+
+
+def tracked(rec: Recording, group: str) -> tuple[str, str] | None:
+    """(output, input) channel names of the group's tracked quantity: ``target_position`` and
+    ``position_actual_value`` (CiA 402), or one name in both directions (MIT mode); position first."""
+    arr = rec.groups[group]
+    outs = arr.dtype["outputs"].base.names or ()
+    ins = arr.dtype["inputs"].base.names or ()
+    pairs = []
+    for o in outs:
+        q = o.removeprefix("target_")
+        for i in (f"{q}_actual_value", f"{q}_actual", q):
+            if i in ins:
+                pairs.append((o, i))
+                break
+    if not pairs:
+        return None
+    pairs.sort(key=lambda p: next((k for k, w in enumerate(PREFERRED) if w in p[1]), len(PREFERRED)))
+    return pairs[0]
+
+
+def _seconds(rec: Recording) -> npt.NDArray[np.float64]:
+    t = rec.cycles["t_ns"]
+    return (t - t[0]) / 1e9 if t.size else np.zeros(0)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise BackendUnavailableError("fieldbus plot needs matplotlib: pip install 'fieldbus[plot]'") from exc
+    rec = load(args.file)
+    t = _seconds(rec)
+    groups = [(g, pair) for g in rec.groups if (pair := tracked(rec, g)) is not None]
+    rows = 2 * len(groups) + 2
+    fig = plt.figure(figsize=(10, 2.4 * rows), dpi=90)
+    spec = fig.add_gridspec(rows, 2)
+    r = 0
+    for g, (o, i) in groups:
+        arr = rec.groups[g]
+        target, actual = arr["outputs"][o], arr["inputs"][i]
+        unit = rec.units.get(g, {}).get("inputs", {}).get(i, "")
+        ax = fig.add_subplot(spec[r, :])
+        for j, name in enumerate(rec.axes[g]):
+            line = ax.plot(t, actual[:, j], lw=0.8, label=name)[0]
+            ax.plot(t, target[:, j], lw=0.8, ls="--", color=line.get_color())
+        ax.set_title(f"{g}: {o} (dashed) and {i}", fontsize=9)
+        ax.set_ylabel(unit)
+        if len(rec.axes[g]) <= 12:
+            ax.legend(fontsize=6, ncol=6, loc="upper right")
+        ax = fig.add_subplot(spec[r + 1, :], sharex=ax)
+        if t.size > 1:
+            ax.plot(t[1:], actual[1:] - target[:-1], lw=0.6)
+        ax.set_title(f"{g}: tracking error ({i} minus the {o} sent one cycle earlier)", fontsize=9)
+        ax.set_ylabel(unit)
+        r += 2
+    for col, (name, key) in enumerate((("wake-up latency", "wakeup_ns"), ("exchange() time", "exchange_ns"))):
+        draw_histogram(fig.add_subplot(spec[r, col]), name, histogram(rec.cycles[key]))
+    ax = fig.add_subplot(spec[r + 1, :])
+    for bus, b in rec.buses.items():
+        missed = np.cumsum((b["verdict"] != 0) & b["ran"])
+        ax.step(t, missed, where="post", label=f"{bus}: {int(missed[-1]) if missed.size else 0} misses")
+    first = int(rec.cycles["cycle"][0]) if t.size else 0
+    marked = set()
+    for e in rec.events:
+        if e["kind"] == "cia402_state":
+            continue  # one per axis and step: too many to mark
+        k = int(np.searchsorted(rec.cycles["cycle"], e["cycle"]))
+        if k < t.size:
+            ax.axvline(
+                t[k], color="tab:red", lw=0.6, ls=":", label=None if e["kind"] in marked else e["kind"]
+            )
+            marked.add(e["kind"])
+    ax.set_title(
+        f"misses over time (cumulative; cycles {first}..{first + t.size - 1}), events dotted", fontsize=9
+    )
+    ax.set_xlabel("s since the first recorded cycle")
+    ax.set_ylabel("cycles")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"{rec.path.name}: {rec.meta.get('network', '')}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(args.output)
+    plt.close(fig)
+    print(f"wrote {args.output}")
+    return 0

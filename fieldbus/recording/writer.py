@@ -1,0 +1,324 @@
+"""The recorder: a ring the cycle copies into, a writer thread that turns full blocks into MCAP messages.
+
+Why MCAP with numpy rows: one message per block of cycles (256 by default) is
+one ``write`` per block and loads with ``np.frombuffer`` - no per-cycle
+encoding on either side; any MCAP tool lists, splits and merges the file, and
+the schema record of each channel carries the numpy dtype and the meaning of
+every field (:mod:`fieldbus.recording.schema`). Events are JSON with a JSON
+schema, readable in any MCAP viewer. Messages are not chunked: each block goes
+to disk as one record (flushed), so a file cut short loads up to its last
+complete block.
+
+The writer thread takes no lock the cycle takes: the cycle advances a counter,
+the writer reads it (see :mod:`fieldbus.recording.ring`).
+"""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import threading
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.errors import BackendUnavailableError, FieldbusError
+from fieldbus.recording import schema
+from fieldbus.recording.events import EventDeriver
+from fieldbus.recording.ring import BUS, COMMON, Ring, Snapshot
+
+if TYPE_CHECKING:
+    from fieldbus.network import CycleResult, Operational
+
+BLOCK_CYCLES = 256
+RING_BLOCKS = 16
+POLL_S = 0.01  # the writer looks for full blocks this often
+
+
+class RecordingWarning(UserWarning):
+    """The recording stopped (a write failed); the cycle goes on."""
+
+
+def _describe(exc: OSError) -> str:
+    return exc.strerror or errno.errorcode.get(exc.errno or 0, "") or str(exc)
+
+
+def check_writable(path: str | Path) -> Path:
+    """Create (truncate) ``path`` for a recording now, before any bus starts; :class:`FieldbusError` naming it if not."""
+    p = Path(path)
+    try:
+        with open(p, "wb"):
+            pass
+    except OSError as exc:
+        raise FieldbusError(f"cannot record to {p}: {_describe(exc)}") from None
+    return p
+
+
+def _open(path: Path) -> IO[bytes]:
+    return open(path, "wb")
+
+
+class Recorder:
+    """Records every cycle of ``op`` to the MCAP file ``path`` until :meth:`close` (or ``op.close()``).
+
+    ``raw``: also the wire bytes of every axis. ``block_cycles`` cycles form one
+    message; the ring holds ``ring_blocks`` blocks (a writer that falls a whole
+    ring behind drops the oldest block: :attr:`dropped_blocks`). ``open_file``
+    opens the path for writing (binary; tests pass a failing one).
+    """
+
+    def __init__(
+        self,
+        op: Operational,
+        path: str | Path,
+        *,
+        raw: bool = False,
+        block_cycles: int = BLOCK_CYCLES,
+        ring_blocks: int = RING_BLOCKS,
+        open_file: Callable[[Path], IO[bytes]] | None = None,
+    ) -> None:
+        try:
+            from mcap.writer import CompressionType, Writer
+        except ImportError:
+            raise BackendUnavailableError("recording needs mcap: pip install 'fieldbus[record]'") from None
+        from fieldbus import __version__
+
+        self.path = Path(path)
+        self.raw = raw
+        self.ring = Ring(op, block_cycles, ring_blocks)
+        self.capture: Callable[[CycleResult, int], None] = self.ring.capture  # what exchange() calls
+        self._events = EventDeriver(self.ring)
+        self.dropped_blocks = 0  # blocks the writer lost because the cycle overwrote them first
+        self.blocks = 0  # block messages written per stream
+        self.cycles = 0  # cycles written
+        self.error: BaseException | None = None  # why the recording stopped early
+        self._op = op
+        self._closed = False
+        self._closing = False
+        self._in_dtypes = [g.group.image.inputs.values.dtype for g in self.ring.groups]
+        self._out_dtypes = [g.group.image.outputs.values.dtype for g in self.ring.groups]
+        self._file: IO[bytes] | None = None
+        try:
+            f = (open_file or _open)(self.path)
+            # a raw file gets our buffer (mcap would add its own, which our per-block flush would not reach)
+            self._file = io.BufferedWriter(f) if isinstance(f, io.RawIOBase) else f
+            w = self._mcap = Writer(self._file, use_chunking=False, compression=CompressionType.NONE)
+            w.start(profile="fieldbus", library=f"fieldbus {__version__}")
+            self._setup(w, op)
+            self._file.flush()
+        except OSError as exc:
+            self._close_file()
+            raise FieldbusError(f"cannot record to {self.path}: {_describe(exc)}") from None
+        self._thread = threading.Thread(
+            target=self._run, name=f"fieldbus-record {self.path.name}", daemon=True
+        )
+        self._thread.start()
+        op._recorders = (*op._recorders, self)
+
+    # -- file layout ---------------------------------------------------------------------
+    def _channel(self, w: Any, topic: str, dtype: np.dtype[Any], fields: dict[str, str], **meta: str) -> int:
+        sid = w.register_schema(
+            name=f"fieldbus.{topic.strip('/').split('/')[0]}",
+            encoding=schema.SCHEMA_ENCODING,
+            data=schema.schema_data(dtype, fields),
+        )
+        return int(
+            w.register_channel(
+                topic=topic,
+                message_encoding=schema.MESSAGE_ENCODING,
+                schema_id=sid,
+                metadata={"dtype": schema.dtype_to_json(dtype), **meta},
+            )
+        )
+
+    def _setup(self, w: Any, op: Operational) -> None:
+        net = op._net
+        self._cycle_dtype = schema.cycle_dtype()
+        self._cycle_ch = self._channel(w, "/cycle", self._cycle_dtype, schema.CYCLE_FIELDS)
+        self._bus_dtypes: list[np.dtype[Any]] = []
+        self._bus_ch: list[int] = []
+        for slot in self.ring.buses:
+            b = slot.backend
+            dt = schema.bus_dtype(b.n_slaves, nmt=slot.nmt is not None)
+            self._bus_dtypes.append(dt)
+            self._bus_ch.append(
+                self._channel(
+                    w, f"/bus/{b.bus.name}", dt, schema.BUS_FIELDS, bus=b.bus.name, type=b.kind,
+                    slaves=json.dumps([a.slave.name for a in b.areas]), expected_wkc=str(b.expected_wkc),
+                    cycle_time_us=str(b.bus.cycle_time_us),
+                )
+            )  # fmt: skip
+        self._group_dtypes: list[np.dtype[Any]] = []
+        self._group_ch: list[int] = []
+        for g, bus in zip(self.ring.groups, self._events.groups, strict=True):
+            img = g.group.image
+            dt = schema.group_dtype(img.outputs, img.inputs, raw=self.raw)
+            self._group_dtypes.append(dt)
+            units = {
+                d: {
+                    e.name: e.channel.unit or ""
+                    for e in (img.outputs if d == "outputs" else img.inputs).layout.channels
+                }
+                for d in ("outputs", "inputs")
+            }
+            self._group_ch.append(
+                self._channel(
+                    w, f"/group/{g.group.name}", dt, schema.GROUP_FIELDS, group=g.group.name, bus=bus.bus,
+                    axes=json.dumps(list(bus.axes)), units=json.dumps(units),
+                )
+            )  # fmt: skip
+        sid = w.register_schema(
+            name="fieldbus.event", encoding="jsonschema", data=json.dumps(schema.EVENT_SCHEMA).encode()
+        )
+        self._event_ch = int(w.register_channel(topic="/events", message_encoding="json", schema_id=sid))
+        w.add_metadata(
+            "fieldbus",
+            {
+                "format": schema.FORMAT,
+                "network": str(net.model.source),
+                "cycle_time_us": str(op.cycle_time_us),
+                "raw": json.dumps(self.raw),
+                "block_cycles": str(self.ring.block_cycles),
+                "start_unix_ns": str(time.time_ns()),
+                "start_monotonic_ns": str(time.perf_counter_ns()),
+            },
+        )
+
+    # -- the writer thread -------------------------------------------------------------------
+    def _run(self) -> None:
+        ring = self.ring
+        size = ring.block_cycles
+        nxt = 0  # first cycle (of the recording) not written yet
+        lost = 0  # cycles dropped since the last block written
+        try:
+            full = (
+                size  # count at which the block from nxt is complete (kept: an idle poll allocates nothing)
+            )
+            while True:
+                closing = self._closing
+                count = ring.count
+                while full <= count or (closing and nxt < count):
+                    stop = min(full, count)
+                    snap = ring.snapshot(nxt, stop)
+                    if snap is None:
+                        self.dropped_blocks += 1
+                        lost += stop - nxt
+                    else:
+                        self._write(snap, lost)
+                        lost = 0
+                    nxt = stop
+                    full = nxt + size
+                if closing:
+                    break
+                time.sleep(POLL_S)
+            self._finish()
+        except Exception as exc:
+            self.error = exc
+            ring.stopped = True
+            warnings.warn(
+                RecordingWarning(f"recording to {self.path} stopped after {self.cycles} cycles: {exc}; "
+                                 "the cycle goes on"),
+                stacklevel=1,
+            )  # fmt: skip
+            self._close_file()
+
+    def _write(self, snap: Snapshot, lost: int) -> None:
+        w = self._mcap
+        n = snap.n
+        ints = snap.ints
+        t0 = int(ints[0, COMMON.index("t_ns")])
+        seq = self.blocks
+        cyc = np.zeros(n, self._cycle_dtype)
+        for j, name in enumerate(COMMON):
+            cyc[name] = ints[:, j]
+        w.add_message(self._cycle_ch, t0, cyc.tobytes(), t0, seq)
+        for k, slot in enumerate(self.ring.buses):
+            arr = np.zeros(n, self._bus_dtypes[k])
+            arr["cycle"] = cyc["cycle"]
+            for j, name in enumerate(BUS[:-1]):
+                arr[name] = ints[:, slot.base + j]
+            arr["fresh"] = snap.fresh[k]
+            nmt = snap.nmt[k]
+            if nmt is not None:
+                arr["nmt_state"] = nmt
+            w.add_message(self._bus_ch[k], t0, arr.tobytes(), t0, seq)
+        inputs: list[npt.NDArray[Any]] = []
+        for k, g in enumerate(self.ring.groups):
+            arr = np.zeros(n, self._group_dtypes[k])
+            arr["cycle"] = cyc["cycle"]
+            for d, rows, dt in (
+                ("outputs", snap.out[k], self._out_dtypes[k]),
+                ("inputs", snap.inp[k], self._in_dtypes[k]),
+            ):
+                values = rows.view(dt)  # (n, axes): the image rows as the cycle saw them
+                assert dt.names is not None
+                for name in dt.names:
+                    arr[d][name] = values[name]
+                if d == "inputs":
+                    inputs.append(values)
+                if self.raw:
+                    img = g.group.image.outputs if d == "outputs" else g.group.image.inputs
+                    arr[f"{d}_wire"] = rows.reshape(n, img.n_axes, dt.itemsize)[:, :, : img.layout.size]
+            w.add_message(self._group_ch[k], t0, arr.tobytes(), t0, seq)
+        events = self._events.block(snap, inputs)
+        if lost:
+            first = int(cyc["cycle"][0])
+            events.insert(0, {"cycle": first, "t_ns": t0, "kind": "gap", "detail": f"{lost} cycles before this one "
+                              "were not recorded (the writer fell a whole ring behind)"})  # fmt: skip
+        for e in events:
+            w.add_message(self._event_ch, e["t_ns"], json.dumps(e).encode(), e["t_ns"], 0)
+        assert self._file is not None
+        self._file.flush()
+        self.blocks += 1
+        self.cycles += n
+
+    def _finish(self) -> None:
+        self._mcap.add_metadata(
+            "fieldbus.stats",
+            {
+                "cycles": str(self.cycles),
+                "blocks": str(self.blocks),
+                "dropped_blocks": str(self.dropped_blocks),
+            },
+        )
+        self._mcap.finish()  # type: ignore[no-untyped-call]
+        self._close_file(raise_errors=True)
+
+    def _close_file(self, *, raise_errors: bool = False) -> None:
+        f, self._file = self._file, None
+        if f is None:
+            return
+        try:
+            f.close()
+        except OSError:
+            if raise_errors:
+                raise
+
+    # -- the handle --------------------------------------------------------------------------
+    @property
+    def active(self) -> bool:
+        """Cycles are still being recorded (not closed, no write failed)."""
+        return not self.ring.stopped
+
+    def close(self) -> None:
+        """Stop recording, write what the ring holds, finish the file. Idempotent; never raises for the file
+        (a failed write was already warned about: :attr:`error`)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.ring.stopped = True  # the cycle copies nothing more
+        self._op._recorders = tuple(r for r in self._op._recorders if r is not self)
+        self._closing = True
+        self._thread.join()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
