@@ -4,7 +4,7 @@ One drive map per distinct device (identity and PDO mapping; the serial
 number is left out so one map serves every unit), named after the device,
 with the PDOs as mapped, the object names the device gave (SDO Information,
 SII) or the CiA 402 / address defaults, ``profile: cia402`` when the
-controlword or statusword is mapped, a ``canopen:`` section with the COB-IDs
+controlword and statusword are mapped, a ``canopen:`` section with the COB-IDs
 and transmission types found. Then one network file for the bus with every
 device at its position or node id. Everything is validated by loading it
 back before anything is written: nothing half-written on an error.
@@ -143,8 +143,9 @@ def map_text(p: Placed, bus: BusSpec, source: str) -> str:
         f"product_id: 0x{d.identity.product_id:08X}",
         f"revision: 0x{d.identity.revision:08X}",
     ]
-    mapped = {e.index for pdo in d.rpdo + d.tpdo for e in pdo.entries}
-    if CONTROLWORD in mapped or STATUSWORD in mapped:
+    outputs = {e.index for pdo in d.rpdo for e in pdo.entries}
+    inputs = {e.index for pdo in d.tpdo for e in pdo.entries}
+    if CONTROLWORD in outputs and STATUSWORD in inputs:  # what the CiA 402 profile of a map needs
         lines.append("profile: cia402")
     can = bus.type == "canopen"
     for key, pdos in (("rpdo", d.rpdo), ("tpdo", d.tpdo)):

@@ -237,3 +237,30 @@ def test_canopen_scan_table_and_an_empty_bus(
     assert "RxPDO 0x1602 COB-ID 0x403 disabled type 255: (empty)" in out
     assert main(["scan", "canopen", can_channel + "-nobody", "--interface", "virtual", "--listen", "0"]) == 0
     assert capsys.readouterr().out.startswith("0 nodes on")
+
+
+@pytest.mark.veth
+@pytest.mark.timeout(300)
+@pytest.mark.usefixtures("generous_pysoem_timeouts")
+def test_ethercat_scan_without_coe_reads_the_sii_pdos(
+    ethercat_emulator: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plain = tmp_path / "io16_plain.yaml"
+    plain.write_text(IO16.read_text() + "ethercat: {coe: false}\n")
+    emu = ethercat_emulator([plain, GENERIC], app="none")
+    out_dir = tmp_path / "maps"
+    args = ["--json", "--write-maps", str(out_dir), "--cycle-time-us", "8000", "--receive-timeout-us", "6000"]
+    assert main(["scan", "ethercat", emu.iface, *args]) == 0
+    io, drive = json.loads(capsys.readouterr().out)["slaves"]
+    assert (io["mailbox_protocols"], io["sdo_info"], io["mapping_source"]) == ([], False, "sii")
+    assert [sm["type"] for sm in io["sync_managers"]][2:] == ["outputs", "inputs"]
+    assert _scanned_pdos(io) == _pdos(load_drive_map(IO16))
+    assert {e["source"] for p in io["rpdo"] + io["tpdo"] for e in p["entries"]} == {"sii"}  # type from SII
+    assert drive["mapping_source"] == "coe"
+    net = load_network(out_dir / "network.yaml")
+    io_map = net.buses[0].slaves[0].map
+    assert io_map.ethercat.coe is False and _pdos(io_map) == _pdos(load_drive_map(IO16))
+    code = main(["run", str(out_dir / "network.yaml"), "--cycles", "200", "--json"])
+    (b,) = json.loads(capsys.readouterr().out)["buses"]
+    assert (b["expected_wkc"], b["short"]) == (6, 0)
+    assert b["timeouts"] <= 10 and code in (0, 3)
