@@ -27,6 +27,7 @@ COMMANDS = (
     "sdo",
     "plot",
     "report",
+    "import_",
 )
 
 

@@ -18,6 +18,7 @@ from fieldbus.core.pdo.model import (
     CanopenConfig,
     CanopenPdo,
     Channel,
+    DcMode,
     Direction,
     DriveMap,
     EthercatConfig,
@@ -49,7 +50,11 @@ _CHANNEL_KEYS = (
 )  # fmt: skip
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
-_ETHERCAT_KEYS = ("coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial")
+_ETHERCAT_KEYS = ("coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes")
+_DC_MODE_KEYS = (
+    "name", "description", "assign_activate", "sync0_cycle_factor", "sync0_cycle_ns", "sync0_shift_ns",
+    "sync1_cycle_factor", "sync1_cycle_ns", "sync1_shift_ns",
+)  # fmt: skip
 _CANOPEN_KEYS = ("fd", "heartbeat_ms", "disable_unused_pdos", "pdo")
 _CANOPEN_PDO_KEYS = ("index", "cob_id", "cob_id_absolute", "transmission_type", "inhibit_time", "event_timer")
 _PROFILES = ("cia402",)
@@ -117,6 +122,13 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         rawcan=rawcan,
         source=doc.file,
     )
+    modes = drive.ethercat.dc_modes
+    if modes and drive.assign_activate and all(m.assign_activate != drive.assign_activate for m in modes):
+        offered = ", ".join(f"{m.name} 0x{m.assign_activate:04X}" for m in modes)
+        raise r.err(
+            ("assign_activate",),
+            f"0x{drive.assign_activate:04X} is none of the device's ethercat.dc_modes ({offered})",
+        )
     if profile == "cia402":
         if drive.find(Direction.OUTPUTS, CONTROLWORD) is None:
             raise r.err(("rpdo",), "profile cia402 needs the controlword 0x6040:00 in an rpdo")
@@ -476,4 +488,38 @@ def _ethercat(r: Reader, raw: Any) -> EthercatConfig:
         sync0_shift_ns=r.integer(m.get("sync0_shift_ns", 0), (*path, "sync0_shift_ns"), -(2**31), 2**31 - 1),
         sync1_cycle_ns=r.integer(m.get("sync1_cycle_ns", 0), (*path, "sync1_cycle_ns"), 0, 2**32 - 1),
         serial=r.integer(m.get("serial", 0), (*path, "serial"), 0, 0xFFFFFFFF),
+        dc_modes=_dc_modes(r, m.get("dc_modes")),
     )
+
+
+def _dc_modes(r: Reader, raw: Any) -> tuple[DcMode, ...]:
+    out: list[DcMode] = []
+    seen: dict[str, int] = {}
+    i32 = (-(2**31), 2**31 - 1)
+    for i, item in enumerate(r.sequence(raw, ("ethercat", "dc_modes"))):
+        path: PathT = ("ethercat", "dc_modes", i)
+        m = r.mapping(item, path, _DC_MODE_KEYS, required=("name",))
+        name = r.string(m["name"], (*path, "name"))
+        if name in seen:
+            raise r.err(
+                (*path, "name"), f"DC mode '{name}' listed twice (also ethercat.dc_modes[{seen[name]}])"
+            )
+        seen[name] = i
+
+        def num(key: str, lo: int, hi: int, p: PathT = path, mm: Mapping[Any, Any] = m) -> int:
+            return r.integer(mm.get(key, 0), (*p, key), lo, hi)
+
+        out.append(
+            DcMode(
+                name=name,
+                description=r.string(m.get("description", ""), (*path, "description")),
+                assign_activate=num("assign_activate", 0, 0xFFFF),
+                sync0_cycle_factor=num("sync0_cycle_factor", *i32),
+                sync0_cycle_ns=num("sync0_cycle_ns", 0, 2**32 - 1),
+                sync0_shift_ns=num("sync0_shift_ns", *i32),
+                sync1_cycle_factor=num("sync1_cycle_factor", *i32),
+                sync1_cycle_ns=num("sync1_cycle_ns", 0, 2**32 - 1),
+                sync1_shift_ns=num("sync1_shift_ns", *i32),
+            )
+        )
+    return tuple(out)

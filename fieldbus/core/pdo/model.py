@@ -148,6 +148,26 @@ class SyncManager:
 
 
 @dataclass(frozen=True)
+class DcMode:
+    """One DC operation mode of an ESI ``<Dc><OpMode>`` (times in ns).
+
+    A ``*_factor`` is the ESI's ``Factor`` attribute: SYNC0 as a multiple of the
+    bus cycle, SYNC1 as a multiple of the SYNC0 cycle; the ``*_cycle_ns`` value
+    applies when the factor is 0.
+    """
+
+    name: str
+    description: str = ""
+    assign_activate: int = 0
+    sync0_cycle_factor: int = 0
+    sync0_cycle_ns: int = 0
+    sync0_shift_ns: int = 0
+    sync1_cycle_factor: int = 0
+    sync1_cycle_ns: int = 0
+    sync1_shift_ns: int = 0
+
+
+@dataclass(frozen=True)
 class EthercatConfig:
     """EtherCAT specifics. Times in ns; mailbox sizes in bytes."""
 
@@ -158,6 +178,7 @@ class EthercatConfig:
     sync1_cycle_ns: int = 0
     revision: int = 0
     serial: int = 0
+    dc_modes: tuple[DcMode, ...] = ()  # the device's DC operation modes (from its ESI); informational
 
 
 @dataclass(frozen=True)
