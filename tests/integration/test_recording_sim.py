@@ -88,6 +88,6 @@ def test_ten_thousand_recorded_cycles_load_back_exactly(tmp_path: Path) -> None:
         assert first["cycle"] == k, (kind, first, k)
     cleared = next(e for e in r.events if e["kind"] == "safe_stop_cleared")
     assert cleared["cycle"] == 3200
-    # the power-cycled axis left OPERATION ENABLED after cycle 6000, the others did not
-    later = [e for e in r.events if e["kind"] == "cia402_state" and e["cycle"] >= 6000]
-    assert later and {e["slave"] for e in later} == {"j1"} and later[0]["old"] == "OPERATION_ENABLED"
+    # the power-cycled axis left OPERATION ENABLED after cycle 6000 (the others follow the safe stop its misses cause)
+    j1 = [e for e in r.events if e["kind"] == "cia402_state" and e["cycle"] >= 6000 and e["slave"] == "j1"]
+    assert j1 and j1[0]["old"] == "OPERATION_ENABLED"
