@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
 from fieldbus.runtime.loop import default_status_stream, run_cycles
+from fieldbus.runtime.monitor import monitor_context
 from fieldbus.runtime.rt import RtConfig, RtState, realtime
 from fieldbus.runtime.timing import CycleLatency, CycleTimer, LatencyHistogram
 
@@ -96,8 +97,12 @@ def run_timed(
     *,
     status: bool,
     describe: Callable[[], str] | None = None,
+    monitor: bool = False,
 ) -> tuple[CycleTimer, CycleLatency]:
-    """:func:`run_cycles` with wake-up latency and ``exchange()`` time histograms."""
+    """:func:`run_cycles` with wake-up latency and ``exchange()`` time histograms.
+
+    ``status``: a progress line on a terminal; ``monitor``: the live view instead.
+    """
     latency = CycleLatency()
     if op.recorders:
         latency.wakeup = WakeupTap([r.ring for r in op.recorders])
@@ -108,10 +113,25 @@ def run_timed(
         exchange.add(op.result.exchange_ns)
         return stop
 
-    timer = run_cycles(
-        timed, period_us, cycles, status=default_status_stream(status), describe=describe, latency=latency
-    )
+    with monitor_context(op, latency, monitor):
+        timer = run_cycles(
+            timed,
+            period_us,
+            cycles,
+            status=default_status_stream(status and not monitor),
+            describe=describe,
+            latency=latency,
+        )
     return timer, latency
+
+
+def add_monitor_argument(p: argparse.ArgumentParser) -> None:
+    """``--monitor``."""
+    p.add_argument(
+        "--monitor",
+        action="store_true",
+        help="live view of every bus and slave on the terminal, 10 times a second (needs rich)",
+    )
 
 
 def plot_latency(latency: CycleLatency, path: str, title: str) -> None:

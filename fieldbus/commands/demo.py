@@ -75,6 +75,7 @@ def register(sub: Any) -> None:
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     cycleopts.add_arguments(p)
     buslogs.add_arguments(p)
+    cycleopts.add_monitor_argument(p)
     p.set_defaults(func=run)
 
 
@@ -226,7 +227,7 @@ def run_demo(
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
-    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record`` flags."""
+    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record``/``--monitor`` flags."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
         demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
@@ -245,7 +246,13 @@ def run_demo(
             MitFollower(op, axes, rate_hz) if backend == "rawcan" else SineFollower(op, axes, rate_hz)
         )
         timer, latency = cycleopts.run_timed(
-            op, follower.step, 1e6 / rate_hz, cycles, status=status, describe=follower.status
+            op,
+            follower.step,
+            1e6 / rate_hz,
+            cycles,
+            status=status,
+            describe=follower.status,
+            monitor=bool(getattr(logs, "monitor", False)),
         )
         report = run_report(op, timer, 1e6 / rate_hz)
         report.update(follower.summary())

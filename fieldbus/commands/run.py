@@ -28,6 +28,7 @@ def register(sub: Any) -> None:
     )
     cycleopts.add_arguments(p)
     buslogs.add_arguments(p)
+    cycleopts.add_monitor_argument(p)
     p.add_argument("network", metavar="NETWORK.yaml")
     p.add_argument("--cycles", type=int, default=1000, help="number of cycles (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
@@ -49,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
         def step(_k: int) -> None:
             op.exchange()
 
-        timer, latency = cycleopts.run_timed(op, step, period, args.cycles, status=not args.json)
+        timer, latency = cycleopts.run_timed(
+            op, step, period, args.cycles, status=not args.json, monitor=args.monitor
+        )
         report = run_report(op, timer, period)
         report.update(cycleopts.latency_report(latency, rt))
     if args.plot:

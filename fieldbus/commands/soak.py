@@ -20,6 +20,7 @@ from typing import Any
 from fieldbus.commands import cycleopts
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, Operational, open_network
+from fieldbus.runtime.loop import default_status_stream
 from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
 
 DEFAULT_FAULTS = "loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1"
@@ -54,6 +55,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     cycleopts.add_arguments(p, plot=False)
+    cycleopts.add_monitor_argument(p)
     p.set_defaults(func=run)
 
 
@@ -107,7 +109,10 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             runner.args = args
         try:
             with cycleopts.rt_context(args) as rt:
-                rep = runner.run(args.cycles)
+                runner.monitor = args.monitor
+                rep = runner.run(
+                    args.cycles, status=default_status_stream(not args.json and not args.monitor)
+                )
         finally:
             runner.close()
         out = rep.to_json()
