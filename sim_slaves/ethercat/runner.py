@@ -69,8 +69,8 @@ from fieldbus.backends.ecat_pcap import PcapWriter
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
-from fieldbus.core.pdo.load import load_drive_map
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.interop.device import load_device
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
 from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
@@ -121,7 +121,7 @@ def build_chain(
     cable_m: float = 1.0,
     dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
 ) -> EscChain:
-    drives = [load_drive_map(m) for m in maps] * count
+    drives = [load_device(m) for m in maps] * count  # drive maps, ESI or EDS files
     factory: str | AppFactory | None = {"auto": "auto", "none": None, "loopback": loopback_app}[app]
     drifts = spread_drifts(len(drives), drift_ppm, drift_seed).tolist() if drift_ppm else None
     return EscChain.from_maps(
@@ -386,7 +386,12 @@ def _serve_control(chain: EscChain, ctl: socket.socket) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim_slaves.ethercat", description=__doc__.split("\n\n")[0])
     p.add_argument("--iface", required=True, help="network interface, e.g. one end of a veth pair")
-    p.add_argument("--map", action="append", required=True, help="drive map YAML (repeatable, wire order)")
+    p.add_argument(
+        "--map",
+        action="append",
+        required=True,
+        help="drive map YAML, or a vendor ESI (FILE.xml[#DEVICE]) or EDS (repeatable, wire order)",
+    )
     p.add_argument("--count", type=int, default=1, help="repeat the list of maps this many times")
     p.add_argument("--pcap", help="write requests and replies to this pcap file")
     p.add_argument("--control", help="UNIX datagram socket path for fault-injection commands (JSON)")
