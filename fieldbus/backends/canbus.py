@@ -20,4 +20,6 @@ def open_can_bus(bus: Bus, default_interface: str = "socketcan") -> Any:
     try:
         return can.Bus(interface=interface, channel=bus.interface, bitrate=bus.bitrate, **extra)
     except Exception as exc:
-        raise FieldbusError(f"bus '{bus.name}': cannot open {interface} channel {bus.interface}: {exc}") from exc
+        raise FieldbusError(
+            f"bus '{bus.name}': cannot open {interface} channel {bus.interface}: {exc}"
+        ) from exc
