@@ -11,30 +11,22 @@ import os
 
 import pytest
 
-from fieldbus.commands.soak import DEFAULT_FAULTS, soak
+from fieldbus.commands.soak import soak
 from fieldbus.runtime.soak import FaultSpec
 
 CYCLES = int(os.environ.get("FIELDBUS_SOAK_CYCLES", "10000"))
 
 
 def _args(backend: str, **kw: object) -> argparse.Namespace:
-    base = {
-        "network": None,
-        "demo": True,
-        "backend": backend,
-        "axes": 12,
-        "cycles": CYCLES,
-        "seed": 1,
-        "rate": None,  # paced at the network's cycle time (1 kHz), as a robot runs
-        "margin_us": 5000.0,
-        "rt_priority": None,
-        "cpu": None,
-        "lock_memory": False,
-        "rt_strict": False,
-    }
-    base.update(kw)
-    base.setdefault("faults", DEFAULT_FAULTS)
-    return argparse.Namespace(**base)
+    """``fieldbus soak --demo --backend BACKEND`` as the CLI parses it (every flag at its default), then ``kw``."""
+    from fieldbus.cli import build_parser
+
+    args = build_parser().parse_args(["soak", "--demo", "--backend", backend])
+    args.cycles = CYCLES
+    args.seed = 1  # rate stays None: paced at the network's cycle time (1 kHz), as a robot runs
+    for key, value in kw.items():
+        setattr(args, key, value)
+    return args
 
 
 @pytest.mark.parametrize("backend", ["sim", pytest.param("ethercat", marks=pytest.mark.veth)])
