@@ -267,7 +267,7 @@ class DriveBank:
         self.coulomb = pa(params, lambda p: p.coulomb_friction_nm)
         self.any_coulomb = bool((self.coulomb > 0.0).any())
         self.rng = np.random.default_rng(seed)
-        self._uniform: dict[tuple[int, int], bool] = {}  # run -> every drive enabled in plain CSP
+        self._uniform: dict[tuple[int, int], str] = {}  # run -> "csp", "idle" or "general" (see _kind)
         self._calm: set[tuple[int, int]] = set()  # runs whose state machines have nothing pending
         rate = self.control_rate
         self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
@@ -339,8 +339,12 @@ class DriveBank:
             if dt_s <= 0.0:
                 raise ValueError(f"dt_s must be > 0, got {dt_s}")
             self._state_machines(a, b)
-            if self._uniform.get((a, b)):
+            kind = self._uniform.get((a, b))
+            if kind == "csp":
                 self._csp(a, b, dt_s, max(1, round(dt_s * self._rate)))
+                return
+            if kind == "idle":
+                self._idle(a, b, dt_s, max(1, round(dt_s * self._rate)))
                 return
         else:
             self._state_machines(a, b)
@@ -379,18 +383,11 @@ class DriveBank:
 
     def _advance(self, a: int, b: int, dt: F64, n: I64) -> None:
         sl = slice(a, b)
-        uniform = self._uniform.get((a, b))
-        if uniform is None:
-            uniform = self._uniform[(a, b)] = bool(
-                (self.state[sl] == _OE).all()
-                and (self.mode_display[sl] == _CSP).all()
-                and self.has_tp[sl].all()
-                and not self.thermal[sl].any()
-                and not (self.coulomb[sl] > 0.0).any()
-                and not (self.current_bw[sl] > 0.0).any()
-            )
-        if uniform and (dt == dt[0]).all():
-            self._csp(a, b, float(dt[0]), int(n[0]))
+        kind = self._uniform.get((a, b))
+        if kind is None:
+            kind = self._uniform[(a, b)] = self._kind(sl)
+        if kind != "general" and (dt == dt[0]).all():
+            (self._csp if kind == "csp" else self._idle)(a, b, float(dt[0]), int(n[0]))
             return
         state = self.state[sl]
         mode = self.mode_display[sl]
@@ -414,16 +411,23 @@ class DriveBank:
         self._physics(sl, dt, n, state, oe, csp, csv, cst, target, target_v, target_tau)
         self._outputs(sl, dt, state, oe, csp, csv, cst, target, target_v)
 
-    def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
-        """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
-        sl = slice(a, b)
-        rpc, cpr = self.rpc[sl], self.cpr[sl]
-        tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
-        target = tp * rpc
-        prev_t = self.prev_target[sl]
-        h = dt / steps
+    def _kind(self, sl: slice) -> str:
+        """Which path steps a run: "csp" (all enabled in plain CSP), "idle" (none powered), "general"."""
+        plain = not (
+            self.thermal[sl].any() or (self.coulomb[sl] > 0.0).any() or (self.current_bw[sl] > 0.0).any()
+        )
+        state = self.state[sl]
+        if plain and (state == _OE).all() and (self.mode_display[sl] == _CSP).all() and self.has_tp[sl].all():
+            return "csp"
+        if plain and not ((state == _OE) | (state == _QSA) | (state == _FRA)).any():
+            return "idle"
+        return "general"
+
+    def _coefficients(self, a: int, b: int, h: float) -> tuple[F64, ...]:
+        """Exact-integration factors of the run for substep ``h`` [s] (cached): e, f, g, hh, ki·h."""
         cached = self._coeffs.get((a, b))
         if cached is None or cached[0] != h:
+            sl = slice(a, b)
             j, fb = self.inertia[sl], self.friction[sl]
             viscous = fb > 0.0
             fb_safe = np.where(viscous, fb, 1.0)
@@ -432,7 +436,48 @@ class DriveBank:
             g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
             hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
             cached = self._coeffs[(a, b)] = (h, (e_, f_, g_, hh_, self.ki[sl] * h))
-        e_, f_, g_, hh_, ki_h = cached[1]
+        return cached[1]
+
+    def _idle(self, a: int, b: int, dt: float, steps: int) -> None:
+        """No drive of the run powered (and no thermal model, dry friction, current lag): rotors coast."""
+        sl = slice(a, b)
+        if self.any_delay:
+            self._delayed(a, b)  # the delay line records targets in every state
+        e_, f_, g_, hh_, _ = self._coefficients(a, b, dt / steps)
+        pos, vel = self.pos[sl], self.vel[sl]
+        net = -self.load[sl]
+        for _ in range(steps):
+            pos = pos + vel * g_ + net * hh_
+            vel = vel * e_ + net * f_
+        self.pos[sl], self.vel[sl] = pos, vel
+        self.prev_target[sl] = pos
+        self.tau[sl] = self.tau_eff[sl] = self.shaft[sl] = 0.0
+        self.limit[sl] = False
+        cpr = self.cpr[sl]
+        if self.ideal_encoder:
+            self.position_counts[sl] = np.floor(pos * cpr + 0.5)
+        else:
+            sd = self.noise_sd[sl]
+            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
+            self.noise[sl] = noise
+            enc = np.floor(pos * self.epr[sl] + 0.5) + noise
+            self.position_counts[sl] = np.floor(enc * self.enc_to_counts[sl] + 0.5)
+        state = self.state[sl]
+        self.statusword[sl] = _SW_BY_STATE[state] | np.where(
+            state != _NR, _SW_REMOTE | _SW_VOLTAGE, _SW_REMOTE
+        )
+        self.following_error[sl] = 0
+        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.torque_permille[sl] = 0
+
+    def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
+        """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
+        sl = slice(a, b)
+        rpc, cpr = self.rpc[sl], self.cpr[sl]
+        tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
+        target = tp * rpc
+        prev_t = self.prev_target[sl]
+        e_, f_, g_, hh_, ki_h = self._coefficients(a, b, dt / steps)
         kv, kp = self.kv[sl], self.kp[sl]
         tmax = self.tmax[sl]
         ntmax = -tmax
@@ -704,3 +749,32 @@ def _dry_friction(applied: F64, vel: F64, fc: F64) -> tuple[F64, F64]:
     direction = np.where(sliding, np.sign(vel), np.sign(applied))
     net = np.where(stuck, 0.0, applied - direction * fc)
     return net, np.where(stuck, 0.0, vel)
+
+
+_warmed = False
+
+
+def warm_up() -> None:
+    """Run every path of a small throwaway bank once (first calls into numpy cost up to milliseconds).
+
+    Emulators call it at start-up, so the first cycles after a bring-up are
+    as fast as the later ones (a master with a 0.5 ms receive timeout sees them).
+    """
+    global _warmed
+    if _warmed:
+        return
+    _warmed = True
+    from sim_slaves.drive402 import DictObjectStore
+
+    bank = DriveBank(
+        [DriveParams(), DriveParams(thermal=True, command_delay_cycles=1, coulomb_friction_nm=0.01)]
+    )
+    for d in bank.drives:
+        d.bind(DictObjectStore())
+    bank.mode_request[:] = _CSP
+    for cw in (0x00, 0x06, 0x07, 0x0F, 0x0F, 0x0F):
+        bank.controlword[:] = cw
+        bank.step(0, 2, 1e-3)
+        bank.step(0, 1, 2.5e-4)
+    bank.drives[0].inject_fault(0x1000)
+    bank.step(0, 2, np.array([1e-3, 1e-3]))

@@ -31,12 +31,18 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from fieldbus.core.dc.model import DcRegister, EscTiming, SyncActivation, wrap_signed
 from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
 from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.drive402 import Cia402Drive
+from sim_slaves.drive_bank import DriveBank, warm_up
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
-from sim_slaves.ethercat.esc import App, Esc
+from sim_slaves.ethercat.esc import DEFAULT_DT_S, MEM_SIZE, App, Esc
+from sim_slaves.ethercat.pdplan import CopyPlan, DriveLink, build_copy_plan, build_drive_link, pdo_offsets
 from sim_slaves.ethercat.sii import SiiImage, build_sii
 from sim_slaves.od import ObjectDictionary
 
@@ -100,6 +106,229 @@ class EscChain:
         self.dc_timing = dc_timing or EscTiming()
         self.cable_m = float(cable_m)
         self.dc_line.place(self.dc_timing, self.cable_m)
+        self._adopt_memory_and_drives()
+
+    # -- the fast process-data path --
+
+    def _adopt_memory_and_drives(self) -> None:
+        """Slave memory into one array; every plain :class:`Cia402Drive` app into one :class:`DriveBank`."""
+        n = len(self.slaves)
+        self.memory: npt.NDArray[np.uint8] = np.zeros(n * MEM_SIZE, dtype=np.uint8)
+        warm_up()
+        plain = [i for i, s in enumerate(self.slaves) if type(s.app) is Cia402Drive]
+        self.bank = DriveBank([self.slaves[i].app.params for i in plain])  # type: ignore[union-attr]
+        self._slots = [-1] * n
+        for slot, i in enumerate(plain):
+            old = self.slaves[i].app
+            assert isinstance(old, Cia402Drive)
+            drive = self.bank.drives[slot]
+            drive.position_rad = drive._prev_target_rad = old.position_rad
+            self.slaves[i].app = drive
+            self._slots[i] = slot
+        for i, s in enumerate(self.slaves):
+            s.use_memory(self.memory[i * MEM_SIZE : (i + 1) * MEM_SIZE].data)
+            s.on_change = self._invalidate
+            s.sync_hook = self._sync_od
+        self._plans: dict[tuple[int, int, int, int], CopyPlan] = {}
+        self._valid = False
+        self._link = DriveLink(self.bank)
+        self._link_op: set[int] = set()  # bank slots whose inputs come from memory (ESC in OP)
+        self._pending = np.zeros(self.bank.n, dtype=np.bool_)  # drives that exchanged data, not yet stepped
+        self._last_step_ns = np.zeros(self.bank.n, dtype=np.int64)
+        self._stepped = np.zeros(self.bank.n, dtype=np.bool_)
+        self._last_out_ns = np.full(n, -1, dtype=np.int64)
+        self._od_synced_ns = np.full(n, -1, dtype=np.int64)  # outputs up to this write are in the OD
+        self._slow_touched: list[Esc] = []
+        self._offset_cache: dict[int, tuple[Any, Any, Any]] = {}
+        self._plan_sig: list[tuple[bool, tuple[tuple[int, int, int, bool], ...], int]] | None = None
+        self._link_stale = False
+        self._pending_ns = 0
+        self._lockstep_ns: int | None = -1  # every drive of the link last stepped at this time (-1: none yet)
+        self._link_mask = np.zeros(self.bank.n, dtype=np.bool_)
+        self._link_runs: list[tuple[int, int]] = []
+
+    def _invalidate(self) -> None:
+        self._valid = False
+
+    def _signature(self) -> list[tuple[bool, tuple[tuple[int, int, int, bool], ...], int]]:
+        """What the copy plans depend on: each slave's process-data state, FMMU map and image."""
+        return [(s.pd_active, s.lmap, id(s.image)) for s in self.slaves]
+
+    def _revalidate(self) -> None:
+        """After a change: copy plans again only if FMMUs, SMs or layouts moved; the drive link later."""
+        if self._signature() == self._plan_sig:
+            self._valid = True
+            self._link_stale = True  # e.g. SAFE-OP -> OP: same copies, other drives take outputs
+        else:
+            self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Copy plans and the drive link again (an FMMU, SM, AL state or layout changed)."""
+        self._step_pending()
+        keys = list(self._plans)
+        self._plans.clear()
+        self._rebuild_link()
+        fast = [s.fast for s in self.slaves]
+        for key in keys:  # the datagrams seen so far will come again: plan them now, off the reply path
+            self._plans[key] = build_copy_plan(self.slaves, fast, self._slots, *key)
+        self._plan_sig = self._signature()
+        self._valid = True
+
+    def _rebuild_link(self) -> None:
+        """Which slaves are fast, and the gather/scatter plan of their drives."""
+        self._link_stale = False
+        bank = self.bank
+        entries = []
+        for i, s in enumerate(self.slaves):
+            app = s.app
+            slot = self._slots[i]
+            if app is None:
+                s.fast = True
+            elif slot >= 0 and app is bank.drives[slot]:
+                outs, ins = self._offsets(s)
+                s.fast = outs is not None and ins is not None
+                if s.fast and outs is not None and ins is not None and self._pd_ready(s):
+                    entries.append((slot, i, s, outs, ins))
+            else:
+                s.fast = False
+        for slot, _i, s, _o, _n in entries:
+            if slot not in self._link_op:
+                bank.load_inputs(slot, s.od)  # the OD holds what the drive last saw
+        self._link = build_drive_link(bank, entries)
+        self._link_op = self._link.op_slots()
+        self._link_mask = np.zeros(bank.n, dtype=np.bool_)
+        self._link_mask[self._link.slots] = True
+        self._link_runs = _runs(np.flatnonzero(self._link_mask))
+        self._lockstep_ns = self._common_step_time()
+        for s in self.slaves:
+            if s.fast and self._pd_ready(s) and s.image.inputs.size:
+                s.image.inputs.from_od(s.mem, s.sm[3][0])  # objects only SDO changes
+        self._link.scatter(self.memory)
+
+    def _common_step_time(self) -> int | None:
+        """When every drive of the link last stepped, if at one time (-1: none stepped yet; None: mixed)."""
+        slots = self._link.slots
+        if not len(slots):
+            return None
+        stepped = self._stepped[slots]
+        if not stepped.any():
+            return -1
+        times = self._last_step_ns[slots]
+        return int(times[0]) if stepped.all() and (times == times[0]).all() else None
+
+    def _offsets(self, s: Esc) -> tuple[dict[int, tuple[int, str]] | None, dict[int, tuple[int, str]] | None]:
+        """CiA 402 objects in a slave's outputs and inputs (cached per process image)."""
+        cached = self._offset_cache.get(id(s))
+        if cached is None or cached[0] is not s.image:
+            img = s.image
+            cached = (img, pdo_offsets(img.outputs.layout), pdo_offsets(img.inputs.layout))
+            self._offset_cache[id(s)] = cached
+        return cached[1], cached[2]
+
+    @staticmethod
+    def _pd_ready(s: Esc) -> bool:
+        """Process data active and laid out as the SyncManagers say."""
+        img = s.image
+        return (
+            s.pd_active
+            and s.sm[2][1] == img.outputs.size
+            and s.sm[3][1] == img.inputs.size
+            and (img.outputs.size > 0 or img.inputs.size > 0)
+        )
+
+    def _sync_od(self, esc: Esc, after: bool) -> None:
+        """A fast slave's mailbox: the OD gets the process data before the SDO server runs, and back after.
+
+        Outside SAFE-OP/OP (no process data) the drive only reports its state into the OD.
+        """
+        wire = self._wire_index[id(esc)]
+        slot = self._slots[wire]
+        drive = slot >= 0 and esc.app is self.bank.drives[slot]
+        if not self._pd_ready(esc):
+            if drive and not after and esc.app._od is esc.od:  # type: ignore[union-attr]
+                self.bank.store_outputs(slot, esc.od)
+            return
+        if not self._valid:
+            self._revalidate()
+        if self._link_stale:
+            self._rebuild_link()
+        if not after:
+            self._step_pending()
+            written = int(self._last_out_ns[wire])
+            if esc.state == AlState.OP and esc.image.outputs.size and written > self._od_synced_ns[wire]:
+                # outputs the master wrote since the last request (as Esc.cycle would have put them)
+                esc.image.outputs.to_od(esc.mem, esc.sm[2][0])
+                self._od_synced_ns[wire] = written
+            if drive:
+                self.bank.store_outputs(slot, esc.od)
+            return
+        if drive:
+            self.bank.load_inputs(slot, esc.od)
+        if esc.image.inputs.size:
+            esc.image.inputs.from_od(esc.mem, esc.sm[3][0])
+        self._link.scatter(self.memory)
+
+    def _step_pending(self) -> None:
+        """Step the drives that exchanged data since their last step (together), outputs into memory."""
+        pending = self._pending
+        if not pending.any():
+            return
+        if self._link_stale:
+            self._rebuild_link()
+        now = self._pending_ns
+        link = self._link
+        link.gather(self.memory)
+        lockstep = self._lockstep_ns
+        if lockstep is not None and (pending == self._link_mask).all():  # the usual cycle: one dt for all
+            dt_s = min(max((now - lockstep) * 1e-9, 1e-6), 0.1) if lockstep >= 0 else DEFAULT_DT_S
+            for a, b in self._link_runs:
+                self.bank.step(a, b, dt_s)
+            self._lockstep_ns = now
+            self._last_step_ns[pending] = now
+            self._stepped[pending] = True
+            pending[:] = False
+            link.scatter(self.memory)
+            return
+        idx = np.flatnonzero(pending)
+        stepped = self._stepped[idx]
+        dt_ns = now - self._last_step_ns[idx]
+        dt = np.where(stepped, np.clip(dt_ns * 1e-9, 1e-6, 0.1), DEFAULT_DT_S)
+        for a, b in _runs(idx):
+            lo = int(np.searchsorted(idx, a))
+            d = dt[lo : lo + b - a]
+            same = bool((d == d[0]).all())
+            self.bank.step(a, b, float(d[0]) if same else d)
+        self._last_step_ns[idx] = now
+        self._stepped[idx] = True
+        pending[:] = False
+        self._lockstep_ns = self._common_step_time()
+        link.scatter(self.memory)
+
+    def _logical(self, cmd: int, laddr: int, buf: bytearray, doff: int, length: int, now_ns: int) -> int:
+        """LRD/LWR/LRW through the copy plan; returns the WKC increment."""
+        if not self._valid:
+            self._revalidate()
+        key = (cmd, laddr, length, doff)
+        plan = self._plans.get(key)
+        if plan is None:
+            plan = self._plans[key] = build_copy_plan(
+                self.slaves, [s.fast for s in self.slaves], self._slots, cmd, laddr, length, doff
+            )
+        touched = plan.fast_touched
+        if len(plan.fast_read) and self._pending[plan.fast_read].any():
+            self._step_pending()  # the master is about to read inputs of drives with new outputs
+        plan.apply(np.frombuffer(buf, dtype=np.uint8), self.memory)
+        if len(plan.fast_written):
+            self._last_out_ns[plan.fast_written] = now_ns
+        if len(touched):
+            self._pending[touched] = True
+            self._pending_ns = now_ns
+        for s, written in plan.slow:
+            s.touched = True
+            if written:
+                s.outputs_written = True
+            self._slow_touched.append(s)
+        return plan.wkc
 
     @classmethod
     def from_maps(
@@ -170,6 +399,7 @@ class EscChain:
         slaves = self.slaves
         if now_ns - self._watchdog_checked >= WATCHDOG_CHECK_NS:
             self._watchdog_checked = now_ns
+            self._sync_watchdogs()
             for s in slaves:
                 if s.state == AlState.OP:
                     s.check_watchdog(now_ns)
@@ -191,10 +421,7 @@ class EscChain:
             wkc = buf[woff] | buf[woff + 1] << 8
             if _LRD <= cmd <= _LRW:
                 logical = True
-                laddr = adp | ado << 16
-                for s in slaves:
-                    if s.pd_active:
-                        wkc += s.logical(cmd, laddr, buf, doff, length)
+                wkc += self._logical(cmd, adp | ado << 16, buf, doff, length, now_ns)
             elif cmd in (_FPRD, _FPWR, _FPRW, _FRMW):
                 targets = self._by_station(adp)
                 if cmd == _FRMW:
@@ -234,13 +461,47 @@ class EscChain:
         return n
 
     def run_cycles(self, now_ns: int) -> None:
-        """Application cycle of every slave whose process data the last frame exchanged."""
-        for s in self.slaves:
-            if s.touched:
-                s.cycle(now_ns)
+        """Application cycle of every slave whose process data the last frames exchanged.
+
+        Drives of the bank step together once all of them have new outputs
+        (a cycle of several frames), or before the master reads the inputs of
+        one with new outputs; a drive steps when the master wrote its outputs
+        (a drive without outputs mapped: when its inputs were read).
+        """
+        touched = self._slow_touched
+        if touched:
+            for s in touched:
+                if s.touched:
+                    s.cycle(now_ns)
+            touched.clear()
+        pending = self._pending
+        if len(self._link.slots) and pending[self._link.slots].all():
+            self._step_pending()
+
+    def idle(self) -> bool:
+        """Work left for a moment without frames (plans after an FMMU/SM/AL change); True if there was any.
+
+        An I/O layer calls it when no frame waits, so the next process-data
+        frame finds its copy plan built; otherwise that frame builds it.
+        """
+        if self._valid and not self._link_stale:
+            return False
+        if not self._valid:
+            self._revalidate()
+        if self._link_stale:
+            self._rebuild_link()
+        return True
+
+    def _sync_watchdogs(self) -> None:
+        """Fast slaves' last output write (kept in an array by the copy plans) into the slaves."""
+        for i, s in enumerate(self.slaves):
+            t = int(self._last_out_ns[i])
+            if s.fast and t >= 0 and (s.last_output_ns is None or t > s.last_output_ns):
+                s.last_output_ns = t
 
     def tick(self, now_ns: int) -> None:
         """Time passes without frames (process-data watchdogs)."""
+        self._sync_watchdogs()
         for s in self.slaves:
             s.check_watchdog(now_ns)
 
@@ -405,11 +666,14 @@ class EscChain:
             od = ObjectDictionary.from_drive_map(self.drive_maps[slave])
             esc.od = od
             esc.mailbox.sdo.od = od
+        self._step_pending()
         esc.power_on()
         reset = getattr(esc.app, "power_cycle", None)
         if callable(reset):
             reset()
+        self._last_out_ns[slave] = -1
         self._stations = None
+        self._rebuild()
 
     def refuse_state(self, slave: int, state: AlState, code: int) -> None:
         """Slave ``slave`` refuses to enter ``state`` with AL status code ``code`` (until cleared)."""
@@ -466,6 +730,16 @@ def _next_sync0(dc: EscDc, now_ns: int) -> int | None:
     if ahead > 0 and cycle <= 0:
         return None  # the single pulse has gone
     return c.true_time_of_system(c.start_time_ns + k * cycle, now_ns)
+
+
+def _runs(idx: npt.NDArray[np.intp]) -> list[tuple[int, int]]:
+    """Sorted indices -> runs of consecutive ones as (start, stop)."""
+    if not len(idx):
+        return []
+    breaks = (np.flatnonzero(np.diff(idx) != 1) + 1).tolist()
+    starts = [0, *breaks]
+    ends = [*breaks, len(idx)]
+    return [(int(idx[a]), int(idx[b - 1]) + 1) for a, b in zip(starts, ends, strict=True)]
 
 
 def _put16(buf: bytearray, off: int, value: int) -> None:

@@ -17,6 +17,7 @@ model in :mod:`fieldbus.core.dc`; the bytes of ``mem`` in that range are not use
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from typing import Protocol
 
 from sim_slaves.ethercat.al import AL_ERROR_INDICATOR, TRANSITIONS, AlState, AlStatusCode, Check
@@ -99,7 +100,14 @@ class Esc:
         self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in)
         self.refuse: dict[AlState, int] = {}  # fault hook: refuse entering a state with this AL status code
         self.cycles = 0
-        self.mem = bytearray(MEM_SIZE)
+        self.mem: bytearray | memoryview = bytearray(MEM_SIZE)
+        #: called when what the process-data path depends on changes (FMMU, SM, AL state, layout, power)
+        self.on_change: Callable[[], None] | None = None
+        #: True: the chain runs this slave's process data (no :meth:`cycle`); see ``sync_hook``
+        self.fast = False
+        #: fast slaves: called as (self, False) before and (self, True) after a mailbox request is served,
+        #: so the object dictionary agrees with the process data for the SDO server
+        self.sync_hook: Callable[[Esc, bool], None] | None = None
         self.power_on()
 
     # -- power / reset --
@@ -142,6 +150,16 @@ class Esc:
         self.last_step_ns: int | None = None
         self.outputs_written = False
         self.touched = False
+        self._changed()
+
+    def use_memory(self, mem: memoryview) -> None:
+        """Keep registers and RAM in ``mem`` (``MEM_SIZE`` bytes, e.g. a row of the chain's array)."""
+        mem[:] = self.mem
+        self.mem = mem
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            self.on_change()
 
     def _dl_status(self) -> int:
         """DL status: PDI operational, port 0 link + communication; port 1 too unless last in line."""
@@ -251,7 +269,12 @@ class Esc:
             return
         self.sm0_full = True
         self._sm_status()
+        hook = self.sync_hook if self.fast else None
+        if hook is not None:
+            hook(self, False)
         self.mailbox.receive(buf, _COMM_STATE[self.state])
+        if hook is not None:
+            hook(self, True)
         self.sm0_full = False  # the application took it at once
         self._load_sm1()
 
@@ -330,6 +353,7 @@ class Esc:
         self.lmap = tuple(
             (log, log + length, phys, bool(kind & 0x02)) for log, length, phys, kind, _ in self._fmmus()
         )
+        self._changed()
 
     # -- process data (hot path) --
 
@@ -452,6 +476,7 @@ class Esc:
             self.last_output_ns = now_ns
         if not keep_error:
             self._publish()
+        self._changed()
 
     def _publish(self) -> None:
         _U16.pack_into(self.mem, 0x0130, int(self.state) | (AL_ERROR_INDICATOR if self.error else 0))
@@ -477,6 +502,7 @@ class Esc:
         """PRE-OP -> SAFE-OP: re-layout from the OD, then check SM2/SM3 and any FMMUs set (0 = fine)."""
         if self.image.version != self.od.mapping_version:
             self.image = ProcessImage(self.od, self.name)
+            self._changed()
         fmmus = self._fmmus()
         for sm_index, sm_type, size, write, code in (
             (2, SM_TYPE_OUTPUTS, self.image.outputs.size, True, AlStatusCode.INVALID_OUTPUT_CONFIG),

@@ -58,7 +58,7 @@ class DirectionCodec:
             fmt += code
         self.struct: struct.Struct | None = struct.Struct(fmt) if aligned else None
 
-    def to_od(self, mem: bytearray, base: int) -> None:
+    def to_od(self, mem: bytearray | memoryview, base: int) -> None:
         """ESC memory -> OD values (outputs: what the master wrote)."""
         if self.struct is not None:
             for entry, value in zip(self.entries, self.struct.unpack_from(mem, base), strict=True):
@@ -68,7 +68,7 @@ class DirectionCodec:
             v = get_value(mem, el, base)
             entry.value = int(v) if isinstance(v, bool) else v
 
-    def from_od(self, mem: bytearray, base: int) -> None:
+    def from_od(self, mem: bytearray | memoryview, base: int) -> None:
         """OD values -> ESC memory (inputs: what the master will read)."""
         if self.struct is not None:
             try:

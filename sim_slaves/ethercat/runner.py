@@ -326,6 +326,8 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                     if dc_line.pending:  # idle: the queued DC loop samples of the last FRMWs
                         dc_line.flush()
                         continue
+                    if chain.idle():  # idle: copy plans after a configuration change
+                        continue
                     # busy-wait briefly for the master's next frame: a poll() wake-up costs more
                     if not spin_until:
                         spin_until = clock() + SPIN_NS
