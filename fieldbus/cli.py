@@ -22,6 +22,7 @@ COMMANDS = (
     "demo",
     "run",
     "soak",
+    "latency",
     "decode",
     "scan",
     "sdo",

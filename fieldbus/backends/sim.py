@@ -78,7 +78,10 @@ class SimBackend(Backend):
 
         maps = options.get("chain_maps")
         chain_maps: Sequence[DriveMap] = maps if isinstance(maps, Sequence) else [s.map for s in bus.slaves]
-        self.chain = EscChain.from_maps(list(chain_maps))
+        emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
+        self.chain = EscChain.from_maps(
+            list(chain_maps), drive_params=emulated if len(emulated) == len(chain_maps) else None
+        )
         clock = options.get("clock")
         self.clock: Callable[[], int] = clock if callable(clock) else time.monotonic_ns
         self.master = FrameMaster(self._transport)

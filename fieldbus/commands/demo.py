@@ -73,6 +73,17 @@ def register(sub: Any) -> None:
         help="cycle rate in Hz (default 1000; canopen 100, rawcan 250: python-can's virtual bus is threads)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument(
+        "--delay-us",
+        type=float,
+        default=0.0,
+        help="sim: every drive acts on its targets this late (emulator command_delay_us; default 0)",
+    )
+    p.add_argument(
+        "--latency",
+        action="store_true",
+        help="measure each axis's command-to-feedback delay instead (see latency)",
+    )
     cycleopts.add_arguments(p)
     buslogs.add_arguments(p)
     cycleopts.add_monitor_argument(p)
@@ -87,10 +98,21 @@ def run(args: argparse.Namespace) -> int:
         args.rate = DEFAULT_RATE_HZ[args.backend]
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
+    if args.delay_us < 0 or (args.delay_us and args.backend != "sim"):
+        raise FieldbusError("--delay-us must be >= 0 and needs --backend sim")
+    if args.latency:
+        return _latency(args)
     cycleopts.check_record(args)
     with cycleopts.rt_context(args) as rt:
         report = run_demo(
-            args.backend, args.axes, args.cycles, args.rate, status=not args.json, rt=rt, logs=args
+            args.backend,
+            args.axes,
+            args.cycles,
+            args.rate,
+            status=not args.json,
+            rt=rt,
+            logs=args,
+            delay_us=args.delay_us,
         )
     if args.plot:
         cycleopts.plot_latency(report.pop("_latency"), args.plot, f"fieldbus demo --backend {args.backend}")
@@ -100,6 +122,19 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(describe(report))
     return 0 if report["enabled"] and report["safe_stops"] == 0 else 3
+
+
+def _latency(args: argparse.Namespace) -> int:
+    """``demo --latency``: the latency measurement on the demo's joints."""
+    from fieldbus.commands import latency
+
+    with (
+        tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
+        demo_network(args.backend, args.axes, args.rate, Path(tmp), delay_us=args.delay_us) as setup,
+    ):
+        report = latency.measure_latency(str(setup.net_file), setup.backend)
+    print(json.dumps(report) if args.json else latency.describe(report))
+    return 0 if report["enabled"] else 3
 
 
 def describe(r: dict[str, Any]) -> str:
@@ -145,11 +180,14 @@ class DemoSetup:
 
 
 @contextmanager
-def demo_network(backend: str, axes: int, rate_hz: float, workdir: Path) -> Iterator[DemoSetup]:
-    """Write the demo's network file and start its emulator."""
+def demo_network(
+    backend: str, axes: int, rate_hz: float, workdir: Path, *, delay_us: float = 0.0
+) -> Iterator[DemoSetup]:
+    """Write the demo's network file and start its emulator (``delay_us``: sim drives' command delay)."""
     cycle_us = max(1, round(1e6 / rate_hz))
     head = f"name: demo\ncycle_time_us: {cycle_us}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US[backend]}\n"
-    slaves = f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: {axes}}}]\n"
+    options = f", emulator: {{command_delay_us: {delay_us:g}}}" if delay_us else ""
+    slaves = f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: {axes}{options}}}]\n"
     net = workdir / "demo.yaml"
     if backend == "sim":
         net.write_text(head + "buses:\n  - name: joints\n    type: ethercat\n    interface: sim\n" + slaves)
@@ -224,13 +262,14 @@ def run_demo(
     status: bool = False,
     rt: RtState | None = None,
     logs: argparse.Namespace | None = None,
+    delay_us: float = 0.0,
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
     the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record``/``--monitor`` flags."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
-        demo_network(backend, axes, rate_hz, Path(tmp)) as setup,
+        demo_network(backend, axes, rate_hz, Path(tmp), delay_us=delay_us) as setup,
         open_network(
             setup.net_file,
             backend=setup.backend,

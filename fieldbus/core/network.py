@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.emulator_opts import EmulatorOptions, parse_emulator
 from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlread import Reader
@@ -29,7 +30,7 @@ _BUS_KEYS = (
     "name", "type", "interface", "redundant_interface", "can_interface", "can_options", "bitrate",
     "data_bitrate", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
 )  # fmt: skip
-_SLAVE_KEYS = ("name", "map", "node_id", "count", "position")
+_SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator")
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,7 @@ class Slave:
     map: DriveMap
     position: int
     node_id: int | None = None
+    emulator: EmulatorOptions | None = None  # delays and imperfections of the emulated drive
 
 
 @dataclass(frozen=True)
@@ -179,6 +181,10 @@ def _bus(
         if count > 1 and "{i}" not in pattern:
             raise r.err((*spath, "name"), f"count: {count} needs '{{i}}' in the name to keep names unique")
         drive = _drive(r, s["map"], (*spath, "map"), base, cache)
+        emu = None
+        if "emulator" in s:
+            bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+            emu = parse_emulator(r, s["emulator"], (*spath, "emulator"), bus_cycle)
         if is_can:
             if "node_id" not in s:
                 raise r.err(spath, "a CAN slave needs 'node_id'")
@@ -205,7 +211,7 @@ def _bus(
                 if node in node_ids:
                     raise r.err((*spath, "node_id"), f"node id {node} used twice on bus '{name}'")
                 node_ids[node] = spath
-            slaves.append(Slave(name=sname, map=drive, position=len(slaves), node_id=node))
+            slaves.append(Slave(name=sname, map=drive, position=len(slaves), node_id=node, emulator=emu))
     return Bus(
         name=name,
         type=kind,

@@ -37,7 +37,7 @@ import numpy.typing as npt
 from fieldbus.core.dc.model import DcRegister, EscTiming, SyncActivation, wrap_signed
 from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
 from fieldbus.core.pdo.model import DriveMap
-from sim_slaves.drive402 import Cia402Drive
+from sim_slaves.drive402 import Cia402Drive, DriveParams
 from sim_slaves.drive_bank import DriveBank, warm_up
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
@@ -315,8 +315,8 @@ class EscChain:
                 self.slaves, [s.fast for s in self.slaves], self._slots, cmd, laddr, length, doff
             )
         touched = plan.fast_touched
-        if len(plan.fast_read) and self._pending[plan.fast_read].any():
-            self._step_pending()  # the master is about to read inputs of drives with new outputs
+        if len(touched) and self._pending[touched].any():
+            self._step_pending()  # new outputs for a drive that has not used its last ones: a new cycle began
         plan.apply(np.frombuffer(buf, dtype=np.uint8), self.memory)
         if len(plan.fast_written):
             self._last_out_ns[plan.fast_written] = now_ns
@@ -341,8 +341,13 @@ class EscChain:
         dc_timing: EscTiming | None = None,
         cable_m: float = 1.0,
         dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
+        drive_params: Sequence[dict[str, Any] | None] | None = None,
     ) -> EscChain:
         """One slave per map, in wire order. ``app``: "auto" (CiA 402 drive for 402 maps), None, or a factory.
+
+        ``drive_params``: per slave, keyword arguments for its drive's
+        :class:`~sim_slaves.drive402.DriveParams` ("auto" only; None: defaults),
+        e.g. from a network file's ``emulator:`` options.
 
         ``drift_ppm``: each slave's clock drift (default 0); slave i's local
         time starts at i x :data:`DC_POWER_UP_STAGGER_NS`.
@@ -357,6 +362,9 @@ class EscChain:
             assert image is not None
             factory = default_app if app == "auto" else app
             the_app = factory(drive, od) if callable(factory) else None
+            extra = drive_params[i] if drive_params is not None else None
+            if extra and isinstance(the_app, Cia402Drive):
+                the_app = Cia402Drive(DriveParams(**extra))
             dc = EscDc(
                 drift_ppm=0.0 if drift_ppm is None else float(drift_ppm[i]),
                 initial_local_ns=i * DC_POWER_UP_STAGGER_NS,
@@ -464,9 +472,11 @@ class EscChain:
         """Application cycle of every slave whose process data the last frames exchanged.
 
         Drives of the bank step together once all of them have new outputs
-        (a cycle of several frames), or before the master reads the inputs of
-        one with new outputs; a drive steps when the master wrote its outputs
-        (a drive without outputs mapped: when its inputs were read).
+        (a cycle of several frames), or when the master writes outputs again
+        to one that has not used its last ones; a drive steps when the master
+        wrote its outputs (a drive without outputs mapped: when its inputs
+        were read). So every reply carries the inputs computed after the
+        previous cycle, also for a slave whose data spans two frames.
         """
         touched = self._slow_touched
         if touched:
