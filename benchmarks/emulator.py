@@ -9,7 +9,8 @@ included. Over veth (root only): the real pysoem master in this process,
 cycle = ``send_processdata`` + ``receive_processdata``; cycles with a WKC
 other than ``expected_wkc`` are counted. Slaves: Maxon EPOS4 maps (23 output
 bytes, 25 input bytes each). Applications: ``none`` (ESC only), ``auto``
-(the CiA 402 drive model, ``sim_slaves.drive402``).
+(the CiA 402 drives, stepped together in ``sim_slaves.drive_bank``). The
+outputs are zeros: the drives stay in SWITCH ON DISABLED.
 """
 
 from __future__ import annotations
