@@ -18,7 +18,13 @@ each pair of rounds (target: at least 0.8). In-process, the ``sim`` backend's
 tracemalloc: net allocated blocks per cycle over 10,000 ``exchange()`` calls
 (target 0), for the sim backend and, with root, over veth.
 
-    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2]
+``--record``: instead, the cost of recording (``Operational.record``, docs/observability.md).
+One in-process sim network runs unpaced in alternating rounds with recording on
+(a fresh recorder per round, closed after it) and off; the ratio on/off is taken
+within each pair of rounds (target: at least 0.9), and net blocks per cycle are
+counted with recording on.
+
+    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2] [--record]
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
-from fieldbus.network import open_network
+from fieldbus.network import Operational, open_network
 from fieldbus.runtime.allocs import net_blocks
 
 RECEIVE_TIMEOUT_US = 10_000
@@ -162,17 +168,89 @@ def sim_exchange_step(net_file: Path) -> tuple[Callable[[], object], Any]:
     return step, net
 
 
+def record_rounds(
+    net_file: Path, tmp: Path, rounds: int, seconds: float, alloc_cycles: int
+) -> dict[str, Any]:
+    """Recording on against off on one sim network: per-round rates (cycles/s) and net blocks per cycle."""
+    step, net = sim_exchange_step(net_file)
+    try:
+        op = net._phase
+        assert isinstance(op, Operational)
+        for _ in range(500):
+            step()
+        on: list[float] = []
+        off: list[float] = []
+        for k in range(rounds):
+            for who in ("on", "off") if k % 2 == 0 else ("off", "on"):
+                if who == "off":
+                    off.append(_rate(step, seconds))
+                    continue
+                rec = op.record(tmp / "bench.mcap")
+                for _ in range(200):
+                    step()
+                on.append(_rate(step, seconds))
+                rec.close()
+                if rec.error is not None or rec.dropped_blocks:
+                    raise RuntimeError(f"recording failed: {rec.error}, {rec.dropped_blocks} blocks dropped")
+        # blocks larger than the count: the writer stays idle, what is counted is the cycle's copy (the
+        # emulated drives allocate now and then in exchange(): the same count with recording off beside it)
+        blocks_off = net_blocks(step, alloc_cycles)
+        rec = op.record(tmp / "alloc.mcap", block_cycles=alloc_cycles + 2000, ring_blocks=2)
+        blocks = net_blocks(step, alloc_cycles)
+        rec.close()
+    finally:
+        net.close()
+    return {"on": on, "off": off, "blocks": blocks, "blocks_off": blocks_off}
+
+
+def print_record(axes: int, r: dict[str, Any], alloc_cycles: int) -> None:
+    ratios = [a / b for a, b in zip(r["on"], r["off"], strict=True)]
+    q1, q3 = np.percentile(ratios, [25, 75])
+    med = statistics.median(ratios)
+    print(
+        table(
+            [
+                "path",
+                "off [cycles/s]",
+                "on [cycles/s]",
+                "on/off (IQR)",
+                "min-max",
+                "net blocks/cycle (off/on)",
+            ],
+            [
+                [
+                    f"in-process sim, {axes} axes, unpaced",
+                    f"{statistics.median(r['off']):,.0f}",
+                    f"{statistics.median(r['on']):,.0f}",
+                    f"{med:.3f} ({q1:.3f}-{q3:.3f})",
+                    f"{min(ratios):.3f}-{max(ratios):.3f}",
+                    f"{r['blocks_off'] / alloc_cycles:.4f} / {r['blocks'] / alloc_cycles:.4f}",
+                ]
+            ],
+        )
+    )
+    print(f"\nper-round on/off: {', '.join(f'{x:.3f}' for x in ratios)}")
+    print(f"[{'met' if med >= 0.9 else 'MISSED'}] recording on >= 0.9x the rate with it off: {med:.3f}")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--axes", type=int, default=12)
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--seconds", type=float, default=2.0, help="per round and contender")
     p.add_argument("--alloc-cycles", type=int, default=10_000)
+    p.add_argument("--record", action="store_true", help="recording on against off (sim, in-process) only")
     args = p.parse_args()
     print(f"# cycle benchmark, {args.axes} CiA 402 axes ({machine_note()})\n")
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp_s:
         tmp = Path(tmp_s)
+        if args.record:
+            costs = record_rounds(
+                _net_file(tmp, "sim", args.axes), tmp, args.rounds, args.seconds, args.alloc_cycles
+            )
+            print_record(args.axes, costs, args.alloc_cycles)
+            return 0
         # -- in-process: sim backend vs a bare LRW through the chain --
         sim_file = _net_file(tmp, "sim", args.axes)
         bare = sim_bare_step(args.axes)

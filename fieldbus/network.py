@@ -39,7 +39,7 @@ from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.wkc import PolicyConfig, Verdict, WkcPolicy
-from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError
+from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError, SdoAbortError, abort_name
 
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder
@@ -456,6 +456,27 @@ class Operational(_Phase):
                 return
         if b.acyclic_step(req):
             self._sdo_current[k] = None
+            if self._recorders:
+                self._note_sdo_abort(b, req)
+
+    def _note_sdo_abort(self, b: Backend, req: SdoRequest) -> None:
+        """An SDO transfer served in this cycle that the slave aborted: an event in every recording."""
+        exc = req.future.exception(0) if req.future.done() else None
+        if not isinstance(exc, SdoAbortError):
+            return
+        for rec in self._recorders:
+            rec.ring.note(
+                self.result.cycle,  # this cycle's index (exchange() counts it when done)
+                "sdo_abort",
+                bus=b.bus.name,
+                slave=b.areas[req.slave].slave.name,
+                access="read" if req.data is None else "write",
+                index=req.index,
+                sub_index=req.sub_index,
+                code=exc.code,
+                name=abort_name(exc.code),
+                detail=str(exc),
+            )
 
     def _fail_pending_sdo(self) -> None:
         for k, pending in enumerate(self._sdo_pending):

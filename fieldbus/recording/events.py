@@ -5,7 +5,9 @@ kept across blocks): a bus's safe stop latched or cleared, a recovery started
 or finished, the recovery counter grown, a new recovery error, new EMCY
 messages, a CANopen node's NMT state changed, an axis's CiA 402 state
 (decoded from its ``statusword`` input) changed. An event carries the index
-and start time of the first cycle in which the new value was seen.
+and start time of the first cycle in which the new value was seen. Events the
+cycle itself notes when they happen (an SDO served in OP that the slave
+aborted: :meth:`~fieldbus.recording.ring.Ring.note`) join them in the writer.
 """
 
 from __future__ import annotations

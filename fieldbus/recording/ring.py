@@ -13,12 +13,16 @@ Per cycle and row: an int64 vector (cycle, times, per-bus status, see
 :data:`COMMON` and :data:`BUS`), per bus the per-slave fresh flags (and NMT
 states on CANopen), per axis group the bytes of its output and input images
 (engineering values and wire bytes as :class:`~fieldbus.core.pdo.image.DirectionImage`
-lays them out). Copies use ``np.copyto`` and a memoryview over preallocated
-arrays: nothing is allocated that outlives the call.
+lays them out). Copies use ``struct.pack_into`` and memoryview slices over
+preallocated arrays (no numpy call per cycle): nothing is allocated that
+outlives the call.
 """
 
 from __future__ import annotations
 
+import struct
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -54,12 +58,15 @@ class BusSlot:
 
     index: int  # of the bus in the network
     base: int  # first column of the bus in the int64 row
+    offset: int  # its byte offset in the row (base * 8)
     status: BusStatus
     backend: Backend
     fresh: npt.NDArray[np.bool_]  # (rows, slaves)
     nmt: npt.NDArray[np.int16] | None  # (rows, slaves): CANopen heartbeat states
     nmt_src: npt.NDArray[np.int16] | None
     has_emcy: bool
+    last_error: str | None = None  # the bus's recovery error text last seen (compared by identity)
+    error_seq: int = 0  # changes of that text so far
 
 
 @dataclass
@@ -91,7 +98,10 @@ class Ring:
         backends = op._net.backends
         self.width = len(COMMON) + len(BUS) * len(backends)
         self.ints = np.zeros((rows, self.width), dtype=np.int64)
-        self._mv = self.ints.reshape(-1).data  # a memoryview: item stores without numpy scalars
+        self.row_bytes = self.width * 8
+        self._buf = _flat_bytes(self.ints).data  # struct.pack_into targets: no numpy scalars
+        self._pack_common = struct.Struct(f"<{len(COMMON)}q").pack_into
+        self._pack_bus = struct.Struct(f"<{len(BUS)}q").pack_into
         self.buses: list[BusSlot] = []
         for k, (b, st) in enumerate(zip(backends, op.result.buses, strict=True)):
             nmt_src = getattr(b, "nmt_state", None)
@@ -101,6 +111,7 @@ class Ring:
                 BusSlot(
                     index=k,
                     base=len(COMMON) + len(BUS) * k,
+                    offset=8 * (len(COMMON) + len(BUS) * k),
                     status=st,
                     backend=b,
                     fresh=np.zeros((rows, b.n_slaves), dtype=bool),
@@ -123,84 +134,149 @@ class Ring:
                         in_src,
                     )
                 )
-        # recovery errors: the last text seen per bus (by identity) and a small ring of texts
-        self._last_error: list[str | None] = [st.recovery_error for st in op.result.buses]
-        self._error_seq: list[int] = [0] * len(backends)
+        for slot in self.buses:
+            slot.last_error = slot.status.recovery_error
+        # what capture() copies per row: (the ring's flat bytes, the source's bytes, bytes per row)
+        pairs: list[tuple[npt.NDArray[Any], npt.NDArray[Any]]] = []
+        for slot in self.buses:
+            pairs.append((slot.fresh, slot.status.fresh))
+            if slot.nmt is not None and slot.nmt_src is not None:
+                pairs.append((slot.nmt, slot.nmt_src))
+        for gs in self.groups:
+            pairs += [(gs.out, gs.out_src), (gs.inp, gs.in_src)]
+        self._copies = tuple(
+            (_flat_bytes(dst).data, _flat_bytes(src).data, _flat_bytes(src).size) for dst, src in pairs
+        )
+        # recovery error texts, a small ring per bus (by error_seq % TEXTS)
         self.texts: list[list[str | None]] = [[None] * TEXTS for _ in backends]
         self.wakeup_ns = NO_VALUE  # set before the cycle by whoever measures it (run_cycles' tap)
+        self.noted: deque[dict[str, Any]] = deque()  # events the cycle saw (note()), in cycle order
         self.count = 0  # cycles captured: written by the cycle only
         self.stopped = False  # set by the recorder: capture() does nothing any more
+        self.capture = self._compile_capture()  # what exchange() calls (through the recorder) each cycle
 
-    def capture(self, res: CycleResult, t0_ns: int) -> None:
-        """Copy this cycle (``res``, started at ``t0_ns``) into the next row. Never blocks."""
-        if self.stopped:
-            return
-        n = self.count
-        row = n % self.rows
-        mv = self._mv
-        c = row * self.width
-        mv[c] = res.cycle - 1
-        mv[c + 1] = t0_ns
-        mv[c + 2] = self.wakeup_ns
-        self.wakeup_ns = NO_VALUE
-        mv[c + 3] = res.exchange_ns
-        mv[c + 4] = res.fresh
-        mv[c + 5] = res.safe_stop
-        for slot in self.buses:
-            st = slot.status
-            j = c + slot.base
-            mv[j] = st.ran
-            mv[j + 1] = st.verdict
-            mv[j + 2] = st.wkc
-            mv[j + 3] = st.consecutive_misses
-            mv[j + 4] = st.safe_stop
-            mv[j + 5] = st.recovering
-            mv[j + 6] = st.recoveries
-            dc = st.dc_time_ns
-            mv[j + 7] = NO_VALUE if dc is None else dc
-            dc = st.dc_sync_error_ns
-            mv[j + 8] = NO_VALUE if dc is None else dc
-            mv[j + 9] = len(slot.backend.emergencies) if slot.has_emcy else -1  # type: ignore[attr-defined]
-            err = st.recovery_error
-            k = slot.index
-            if err is not self._last_error[k]:
-                self._last_error[k] = err
-                seq = self._error_seq[k] + 1
-                self._error_seq[k] = seq
-                self.texts[k][seq % TEXTS] = err
-            mv[j + 10] = self._error_seq[k]
-            np.copyto(slot.fresh[row], st.fresh)
-            if slot.nmt_src is not None and slot.nmt is not None:
-                np.copyto(slot.nmt[row], slot.nmt_src)
-        for g in self.groups:
-            np.copyto(g.out[row], g.out_src)
-            np.copyto(g.inp[row], g.in_src)
-        self.count = n + 1
+    def _compile_capture(self) -> Callable[[CycleResult, int], None]:
+        """:attr:`capture`: a closure over the ring's constants (no attribute look-ups but the counters)."""
+        ring = self
+        rows, row_bytes, buf = self.rows, self.row_bytes, self._buf
+        pack_common, pack_bus = self._pack_common, self._pack_bus
+        buses = tuple((s, s.status, s.offset, s.backend if s.has_emcy else None) for s in self.buses)
+        copies = self._copies
+        new_error = self._new_error
+        no_value = NO_VALUE
+
+        def capture(res: CycleResult, t0_ns: int) -> None:
+            """Copy this cycle (``res``, started at ``t0_ns``) into the next row. Never blocks.
+
+            About 2 us with warm caches, 5 us inside a cycle (one bus, one group of 12 axes): one
+            ``struct.pack_into`` for the cycle's and one per bus's int64 fields, one memoryview slice
+            copy per image (fresh flags, NMT states, output and input bytes); no numpy call, nothing kept.
+            """
+            if ring.stopped:
+                return
+            n = ring.count
+            row = n % rows
+            c = row * row_bytes
+            pack_common(
+                buf, c, res.cycle - 1, t0_ns, ring.wakeup_ns, res.exchange_ns, res.fresh, res.safe_stop
+            )
+            ring.wakeup_ns = no_value
+            for slot, st, off, emcy in buses:
+                err = st.recovery_error
+                if err is not slot.last_error:
+                    new_error(slot, err)
+                dc = st.dc_time_ns
+                sync = st.dc_sync_error_ns
+                pack_bus(
+                    buf, c + off, st.ran, st.verdict, st.wkc, st.consecutive_misses, st.safe_stop,
+                    st.recovering, st.recoveries, no_value if dc is None else dc, no_value if sync is None else sync,
+                    -1 if emcy is None else len(emcy.emergencies),  # type: ignore[attr-defined]
+                    slot.error_seq,
+                )  # fmt: skip
+            for dst, src, w in copies:  # one slice copy per image row
+                o = row * w
+                dst[o : o + w] = src
+            ring.count = n + 1
+
+        return capture
+
+    def note(self, cycle: int, kind: str, **fields: Any) -> None:
+        """An event the cycle saw at ``cycle`` (e.g. an SDO abort); the writer adds that cycle's ``t_ns``.
+
+        Called from the cycle thread when the event happens (rare: it allocates the event).
+        """
+        if not self.stopped:
+            self.noted.append({"cycle": cycle, "t_ns": 0, "kind": kind, **fields})
+
+    def _new_error(self, slot: BusSlot, err: str | None) -> None:
+        slot.last_error = err
+        slot.error_seq += 1
+        self.texts[slot.index][slot.error_seq % TEXTS] = err
 
     # -- the writer's side ---------------------------------------------------------------
-    def snapshot(self, start: int, stop: int) -> Snapshot | None:
-        """Copies of cycles ``[start, stop)`` (one block at most), or None when the cycle overwrote them meanwhile."""
-        if self.count >= start + self.rows:
-            return None
+    def intact_from(self) -> int:
+        """The oldest cycle whose row the cycle has not started to overwrite (it may be writing ``count``)."""
+        return self.count - self.rows + 1
+
+    def snapshot(self, start: int, stop: int, into: Snapshot | None = None) -> tuple[int, Snapshot | None]:
+        """Copies of cycles ``[start, stop)`` (at most :attr:`rows`, all captured already).
+
+        Returns ``(first, snap)``: the cycle overwrote the rows of cycles before
+        ``first`` while (or before) they were copied, ``snap`` holds ``[first, stop)``
+        (None when nothing is left). ``into``: copy into the first rows of these
+        arrays (:meth:`buffers`; reused, so no fresh pages to fault in) and return
+        views of them. One numpy call per stream (two where the range wraps).
+        """
+        n = stop - start
+        if not 0 < n <= self.rows:
+            raise ValueError(f"cannot copy cycles {start}..{stop} out of a ring of {self.rows} rows")
         lo = start % self.rows
-        hi = lo + (stop - start)
+        hi = lo + n
+        rows = self.rows
+
+        def take(a: npt.NDArray[Any], out: npt.NDArray[Any] | None) -> npt.NDArray[Any]:
+            out = np.empty((n, *a.shape[1:]), dtype=a.dtype) if out is None else out[:n]
+            if hi <= rows:
+                np.copyto(out, a[lo:hi])
+            else:
+                np.copyto(out[: rows - lo], a[lo:])
+                np.copyto(out[rows - lo :], a[: hi - rows])
+            return out
+
+        b = into
         snap = Snapshot(
-            ints=self.ints[lo:hi].copy(),
-            fresh=[s.fresh[lo:hi].copy() for s in self.buses],
-            nmt=[None if s.nmt is None else s.nmt[lo:hi].copy() for s in self.buses],
-            out=[g.out[lo:hi].copy() for g in self.groups],
-            inp=[g.inp[lo:hi].copy() for g in self.groups],
+            ints=take(self.ints, None if b is None else b.ints),
+            fresh=[take(s.fresh, None if b is None else b.fresh[k]) for k, s in enumerate(self.buses)],
+            nmt=[
+                None if s.nmt is None else take(s.nmt, None if b is None else b.nmt[k])
+                for k, s in enumerate(self.buses)
+            ],
+            out=[take(g.out, None if b is None else b.out[k]) for k, g in enumerate(self.groups)],
+            inp=[take(g.inp, None if b is None else b.inp[k]) for k, g in enumerate(self.groups)],
         )
-        # the cycle writes row `count` before it counts it: rows of this block are intact while
-        # the cycle has not reached start + rows (where it writes this block's first row again)
-        if self.count >= start + self.rows:
-            return None
-        return snap
+        # the cycle writes row `count` before it counts it: the rows of cycles from count - rows + 1 on are
+        # intact now, so they were all along the copy
+        first = max(start, self.intact_from())
+        if first >= stop:
+            return first, None
+        return first, snap.tail(first - start)
+
+    def buffers(self, n: int) -> Snapshot:
+        """Arrays for :meth:`snapshot` ``into``, ``n`` rows each."""
+        return Snapshot(
+            ints=np.empty((n, self.width), dtype=np.int64),
+            fresh=[np.empty((n, s.fresh.shape[1]), dtype=bool) for s in self.buses],
+            nmt=[
+                None if s.nmt is None else np.empty((n, s.nmt.shape[1]), dtype=np.int16) for s in self.buses
+            ],
+            out=[np.empty((n, g.out.shape[1]), dtype=np.uint8) for g in self.groups],
+            inp=[np.empty((n, g.inp.shape[1]), dtype=np.uint8) for g in self.groups],
+        )
 
 
 @dataclass
 class Snapshot:
-    """One block copied out of the ring (the writer's private copy)."""
+    """Consecutive cycles copied out of the ring (the writer's private copy)."""
 
     ints: npt.NDArray[np.int64]  # (rows, width)
     fresh: list[npt.NDArray[np.bool_]]
@@ -211,3 +287,15 @@ class Snapshot:
     @property
     def n(self) -> int:
         return int(self.ints.shape[0])
+
+    def tail(self, k: int) -> Snapshot:
+        """The same rows without the first ``k`` (views)."""
+        if k == 0:
+            return self
+        return Snapshot(
+            ints=self.ints[k:],
+            fresh=[f[k:] for f in self.fresh],
+            nmt=[None if m is None else m[k:] for m in self.nmt],
+            out=[o[k:] for o in self.out],
+            inp=[i[k:] for i in self.inp],
+        )

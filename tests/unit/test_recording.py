@@ -274,3 +274,46 @@ def test_the_official_mcap_reader_reads_the_file(op: Operational, tmp_path: Path
         assert rows == {"/cycle": 450, "/bus/joints": 450, "/group/joints": 450}
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
         assert meta["fieldbus"]["format"] == schema.FORMAT and meta["fieldbus.stats"]["cycles"] == "450"
+
+
+def test_an_sdo_abort_in_op_is_an_event_at_the_cycle_that_served_it(op: Operational, tmp_path: Path) -> None:
+    from fieldbus.errors import SdoAbortError, abort_name
+
+    path = tmp_path / "sdo.mcap"
+    rec = op.record(path, block_cycles=64)
+    _steps(op, 100)
+    missing = op.submit_sdo_read("joints", "j1", 0x2FFF, 0)  # no such object
+    at_read = op.result.cycle  # the next exchange() serves it
+    _steps(op, 1)
+    fine = op.submit_sdo_read("joints", "j0", 0x1000, 0)  # answered: no event
+    _steps(op, 30)
+    read_only = op.submit_sdo_write("joints", "j2", 0x1000, 0, b"\0\0\0\0")
+    at_write = op.result.cycle
+    _steps(op, 200)
+    rec.close()
+    assert isinstance(missing.exception(0), SdoAbortError) and isinstance(
+        read_only.exception(0), SdoAbortError
+    )
+    assert fine.result(0)
+    r = load(path)
+    aborts = [e for e in r.events if e["kind"] == "sdo_abort"]
+    assert [
+        (e["cycle"], e["bus"], e["slave"], e["access"], e["index"], e["sub_index"], e["code"]) for e in aborts
+    ] == [
+        (at_read, "joints", "j1", "read", 0x2FFF, 0, 0x06020000),
+        (at_write, "joints", "j2", "write", 0x1000, 0, 0x06010002),
+    ]
+    assert [e["name"] for e in aborts] == [abort_name(0x06020000), abort_name(0x06010002)]
+    assert "Object does not exist" in aborts[0]["name"] and "0x2FFF" in aborts[0]["detail"]
+    assert [e["t_ns"] for e in aborts] == [int(r.cycles["t_ns"][at_read]), int(r.cycles["t_ns"][at_write])]
+
+
+def test_an_sdo_abort_before_recording_is_not_an_event(op: Operational, tmp_path: Path) -> None:
+    """Only what the recorded cycles served: an abort served before record() is not in the file."""
+    before = op.submit_sdo_read("joints", "j1", 0x2FFF, 0)
+    _steps(op, 2)
+    assert before.exception(0) is not None
+    rec = op.record(tmp_path / "none.mcap")
+    _steps(op, 50)
+    rec.close()
+    assert [e for e in load(tmp_path / "none.mcap").events if e["kind"] == "sdo_abort"] == []
