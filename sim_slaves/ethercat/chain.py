@@ -138,6 +138,7 @@ class EscChain:
         self._stepped = np.zeros(self.bank.n, dtype=np.bool_)
         self._last_out_ns = np.full(n, -1, dtype=np.int64)
         self._od_synced_ns = np.full(n, -1, dtype=np.int64)  # outputs up to this write are in the OD
+        self._watchdog_ns: npt.NDArray[np.int64] | None = None  # per slave, from 0x0400/0x0420
         self._slow_touched: list[Esc] = []
         self._offset_cache: dict[int, tuple[Any, Any, Any]] = {}
         self._plan_sig: list[tuple[bool, tuple[tuple[int, int, int, bool], ...], int]] | None = None
@@ -407,10 +408,7 @@ class EscChain:
         slaves = self.slaves
         if now_ns - self._watchdog_checked >= WATCHDOG_CHECK_NS:
             self._watchdog_checked = now_ns
-            self._sync_watchdogs()
-            for s in slaves:
-                if s.state == AlState.OP:
-                    s.check_watchdog(now_ns)
+            self._check_watchdogs(now_ns)
         if faults.drop:
             faults.drop -= 1
             return 0
@@ -450,8 +448,9 @@ class EscChain:
                 targets = [slaves[pos]] if pos < count else []
                 wkc += self._rmw(targets, buf, doff, length, ado, now_ns)
                 _put16(buf, off + 2, adp + count)
-            if cmd in _ADDRESS_WRITERS and ado <= 0x0103 and ado + length > 0x0010:
+            if cmd in _ADDRESS_WRITERS and ado <= 0x0421 and ado + length > 0x0010:
                 self._stations = None  # station address / alias / DL control may have changed
+                self._watchdog_ns = None  # and the watchdog divider / time
             if faults.corrupt_frames and (logical or faults.corrupt_all):
                 wkc += faults.corrupt_delta
             _put16(buf, woff, wkc)
@@ -501,6 +500,29 @@ class EscChain:
         if self._link_stale:
             self._rebuild_link()
         return True
+
+    def _check_watchdogs(self, now_ns: int) -> None:
+        """Process-data watchdogs; slaves whose outputs the copy plans wrote within their time are skipped."""
+        time_ns = self._watchdog_ns
+        if time_ns is None:
+            rows = self.memory.reshape(len(self.slaves), MEM_SIZE)
+            time_ns = (
+                (rows[:, 0x0420] | rows[:, 0x0421].astype(np.int64) << 8)
+                * ((rows[:, 0x0400] | rows[:, 0x0401].astype(np.int64) << 8) + 2)
+                * 40
+            )
+            self._watchdog_ns = time_ns
+        last = self._last_out_ns
+        fine = (last >= 0) & (now_ns - last <= time_ns)
+        if fine.all():
+            return
+        for i in np.flatnonzero(~fine).tolist():
+            s = self.slaves[i]
+            if s.state == AlState.OP:
+                t = int(last[i])
+                if s.fast and t >= 0 and (s.last_output_ns is None or t > s.last_output_ns):
+                    s.last_output_ns = t
+                s.check_watchdog(now_ns)
 
     def _sync_watchdogs(self) -> None:
         """Fast slaves' last output write (kept in an array by the copy plans) into the slaves."""
@@ -683,6 +705,7 @@ class EscChain:
             reset()
         self._last_out_ns[slave] = -1
         self._stations = None
+        self._watchdog_ns = None
         self._rebuild()
 
     def refuse_state(self, slave: int, state: AlState, code: int) -> None:

@@ -200,6 +200,22 @@ def test_process_data_watchdog_drops_to_safeop() -> None:
     assert all(s.state == AlState.SAFE_OP and s.error and s.status_code == 0x001B for s in c.slaves)
 
 
+def test_watchdog_of_slaves_on_the_copy_plans() -> None:
+    """Slaves without an application take the chain's copy plans (no Esc.cycle): the watchdog still holds."""
+    c = EscChain.from_maps([io16()] * 3, app=None)
+    plan = bring_up(c, now_ns=0)
+    for k in range(1, 60):
+        reply = c.process(plan.lrw(), k * 1_000_000)
+        assert reply is not None
+    assert all(s.fast for s in c.slaves)
+    assert all(s.state == AlState.OP for s in c.slaves)
+    brd = [Datagram.physical(Command.BRD, 0, 0x0130, bytes(2))]
+    exchange(c, brd, 150_000_000)  # 91 ms after the last outputs: still within 100 ms
+    assert all(s.state == AlState.OP for s in c.slaves)
+    exchange(c, brd, 200_000_000)  # > 100 ms without outputs: the next frame finds it
+    assert all(s.state == AlState.SAFE_OP and s.error and s.status_code == 0x001B for s in c.slaves)
+
+
 # -- SII through the EEPROM interface --
 
 
