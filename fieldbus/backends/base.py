@@ -95,6 +95,7 @@ class Backend(abc.ABC):
 
     kind = "abstract"
     pdo_align = 1  # 1: EtherCAT bit packing inside a slave; 8: one CAN frame per PDO
+    emcy_count = 0  # emergencies received since open, ever (the kept list is bounded; this never falls)
 
     def __init__(self, bus: Bus, **options: object) -> None:
         """``options`` are backend specific (for example fault hooks of the sim backend)."""

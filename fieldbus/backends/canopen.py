@@ -338,6 +338,7 @@ class CanopenBackend(Backend):
                     del self.emergencies[: MAX_EMERGENCIES // 2]
                 emcy = Emergency.decode(node, bytes(msg.data), time.monotonic())
                 self.emergencies.append(emcy)
+                self.emcy_count += 1
                 self.last_emergency[node] = emcy
         elif self._recovering is not None and cob == COB_TSDO + self._recovering:
             self._reply = bytes(msg.data)

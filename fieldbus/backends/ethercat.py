@@ -525,6 +525,7 @@ class EthercatBackend(Backend):
                 raise SdoAbortError(exc.abort_code, index=index, sub_index=sub_index, slave=name) from None
             except pysoem.Emergency as exc:
                 self.emergencies.append((slave, exc.error_code, exc.error_reg))
+                self.emcy_count += 1
                 last = f"emergency 0x{exc.error_code:04X}"
             except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
                 last = f"{type(exc).__name__}: {getattr(exc, 'message', None) or exc}"

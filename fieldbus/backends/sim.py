@@ -296,3 +296,8 @@ class SimBackend(Backend):
     def emergencies(self) -> list[tuple[int, int, int]]:
         """CoE emergencies seen in the mailbox: (station, error code, error register)."""
         return self.master.emergencies
+
+    @property
+    def emcy_count(self) -> int:  # type: ignore[override]
+        """Emergencies seen in the mailbox since open."""
+        return len(self.master.emergencies)

@@ -117,7 +117,7 @@ class Ring:
                     fresh=np.zeros((rows, b.n_slaves), dtype=bool),
                     nmt=None if nmt_src is None else np.zeros((rows, b.n_slaves), dtype=np.int16),
                     nmt_src=nmt_src,
-                    has_emcy=isinstance(getattr(b, "emergencies", None), list),
+                    has_emcy=True,  # every backend counts its emergencies (Backend.emcy_count)
                 )
             )
         self.groups: list[GroupSlot] = []
@@ -190,7 +190,7 @@ class Ring:
                 pack_bus(
                     buf, c + off, st.ran, st.verdict, st.wkc, st.consecutive_misses, st.safe_stop,
                     st.recovering, st.recoveries, no_value if dc is None else dc, no_value if sync is None else sync,
-                    -1 if emcy is None else len(emcy.emergencies),  # type: ignore[attr-defined]
+                    -1 if emcy is None else emcy.emcy_count,
                     slot.error_seq,
                 )  # fmt: skip
             for dst, src, w in copies:  # one slice copy per image row
