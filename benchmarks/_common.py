@@ -12,6 +12,7 @@ import os
 import platform
 import random
 import statistics
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -19,6 +20,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 Step = Callable[[], object]
+
+
+class RoundProgress:
+    """``round 3/10 (30%) ... s left`` on stderr while a benchmark runs; nothing when stderr is no terminal."""
+
+    def __init__(self, total: int) -> None:
+        self.total = total
+        self.done = 0
+        self.t0 = time.perf_counter_ns()
+        self.stream = sys.stderr if sys.stderr.isatty() else None
+
+    def step(self) -> None:
+        from fieldbus.runtime.loop import progress
+
+        self.done += 1
+        if self.stream is not None:
+            line = progress(self.done, self.total, time.perf_counter_ns() - self.t0, "round")
+            self.stream.write(f"\r{line}   " + ("\n" if self.done >= self.total else ""))
+            self.stream.flush()
 
 
 def cycles_per_batch(step: Step, target_s: float, max_cycles: int = 1_000_000) -> int:
@@ -82,12 +102,14 @@ def interleaved(
     rng = random.Random(seed)
     batches = {g: {c: cycles_per_batch(s, batch_s) for c, s in cs.items()} for g, cs in groups.items()}
     out = {g: Samples({c: [] for c in cs}) for g, cs in groups.items()}
+    shown = RoundProgress(rounds)
     for _ in range(rounds):
         for g, cs in groups.items():
             order = list(cs)
             rng.shuffle(order)
             for c in order:
                 out[g].per_round[c].append(time_batch(cs[c], batches[g][c]))
+        shown.step()
     return out
 
 

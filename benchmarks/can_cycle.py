@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import can
 import canopen
 
-from benchmarks._common import machine_note, table
+from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.network import open_network
@@ -168,6 +168,7 @@ def main() -> int:
             f"     slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, node_id: 1, count: {args.axes}}}]}}\n"
         )
         pairs, misses = [], []
+        shown = RoundProgress(args.rounds)
         for k in range(args.rounds):
             order = ("canopen", "fieldbus") if k % 2 == 0 else ("fieldbus", "canopen")
             got = {}
@@ -179,6 +180,7 @@ def main() -> int:
                 )
             pairs.append((got["fieldbus"][0], got["canopen"][0]))
             misses.append((got["fieldbus"][1], got["canopen"][1]))
+            shown.step()
         with open_network(net_file) as net:
             op = net.bring_up()
             blocks = net_blocks(op.exchange, args.alloc_cycles, warmup=200)

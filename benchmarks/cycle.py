@@ -45,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._common import machine_note, table
+from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.network import Operational, open_network
 from fieldbus.runtime.allocs import net_blocks
@@ -180,6 +180,7 @@ def record_rounds(
             step()
         on: list[float] = []
         off: list[float] = []
+        shown = RoundProgress(rounds)
         for k in range(rounds):
             for who in ("on", "off") if k % 2 == 0 else ("off", "on"):
                 if who == "off":
@@ -192,6 +193,7 @@ def record_rounds(
                 rec.close()
                 if rec.error is not None or rec.dropped_blocks:
                     raise RuntimeError(f"recording failed: {rec.error}, {rec.dropped_blocks} blocks dropped")
+            shown.step()
         # blocks larger than the count: the writer stays idle, what is counted is the cycle's copy (the
         # emulated drives allocate now and then in exchange(): the same count with recording off beside it)
         blocks_off = net_blocks(step, alloc_cycles)

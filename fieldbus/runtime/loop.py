@@ -112,12 +112,12 @@ def run_cycles(
     return timer
 
 
-def progress(done: int, total: int, elapsed_ns: int) -> str:
+def progress(done: int, total: int, elapsed_ns: int, what: str = "cycle") -> str:
     """``cycle 1200/10000 (12%) 998/s 8.8 s left``: where a long run is and when it ends."""
     rate = done / (elapsed_ns / 1e9) if elapsed_ns > 0 else 0.0
     left = (total - done) / rate if rate > 0 else float("inf")
     when = f"{left:.1f} s" if left < 120 else f"{left / 60:.1f} min"
-    return f"cycle {done}/{total} ({100 * done // max(total, 1)}%) {rate:.0f}/s {when} left"
+    return f"{what} {done}/{total} ({100 * done // max(total, 1)}%) {rate:.0f}/s {when} left"
 
 
 def default_status_stream(enabled: bool) -> TextIO | None:

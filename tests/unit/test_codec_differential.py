@@ -21,6 +21,9 @@ from __future__ import annotations
 
 import math
 import struct
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from typing import Any
 
@@ -41,11 +44,21 @@ from fieldbus.core.pdo.layout import (
 from fieldbus.core.pdo.model import Channel, Direction
 
 # overflow to inf on the way is expected (it saturates); an invalid cast (the undefined
-# float -> integer conversion past a type's range) is a bug
-pytestmark = [
-    pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning"),
-    pytest.mark.filterwarnings("error:invalid value encountered:RuntimeWarning"),
-]
+# float -> integer conversion past a type's range) is a bug: recorded and asserted absent
+# (not raised: a warning turned into an exception inside numpy left this process in a state
+# where later tests' emulated drives never enabled)
+pytestmark = [pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")]
+
+
+@contextmanager
+def no_invalid_casts() -> Iterator[None]:
+    """Fail when numpy warns "invalid value encountered" (an undefined float -> integer cast)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        yield
+    bad = [str(w.message) for w in caught if "invalid value" in str(w.message)]
+    assert not bad, bad
+
 
 INT_TYPES = ["int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64"]
 FLOAT_TYPES = ["float", "double"]
@@ -219,6 +232,12 @@ def _same(a: DirectionImage, b: DirectionImage, what: str) -> None:
     n=st.integers(1, 4),
 )
 def test_c_and_numpy_codecs_agree(direction: Direction, dl_data: st.DataObject, n: int) -> None:
+    with no_invalid_casts():
+        _round_trip(direction, dl_data, n)
+
+
+def _round_trip(direction: Direction, dl_data: st.DataObject, n: int) -> None:
+    """Encode three cycles and decode once with both engines; every byte and value the same."""
     draw = dl_data.draw
     dl = draw(direction_layouts(direction))
     pair = _pair(dl, n)
@@ -282,6 +301,11 @@ def _one_channel_layout(dt: DataType, factor: float, offset: float, bit_offset: 
 def test_engines_follow_the_saturation_rule(
     type_name: str, factor: float, offset: float, bit_offset: int
 ) -> None:
+    with no_invalid_casts():
+        _check_rule(type_name, factor, offset, bit_offset)
+
+
+def _check_rule(type_name: str, factor: float, offset: float, bit_offset: int) -> None:
     dt = _type(type_name)
     dl = _one_channel_layout(dt, factor, offset, bit_offset)
     e = dl.entry("x")
