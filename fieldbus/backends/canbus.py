@@ -1,9 +1,10 @@
-"""Opening a python-can bus for a network's CAN bus (shared by the CANopen and raw-CAN backends)."""
+"""A CAN backend's python-can bus: opened (or handed in), logged, closed (CANopen and raw-CAN backends)."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from fieldbus.backends.canlog import CanLogWriter, LoggedBus
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
 
@@ -23,3 +24,20 @@ def open_can_bus(bus: Bus, default_interface: str = "socketcan") -> Any:
         raise FieldbusError(
             f"bus '{bus.name}': cannot open {interface} channel {bus.interface}: {exc}"
         ) from exc
+
+
+def attach_can_bus(bus: Bus, current: Any, log: CanLogWriter | None) -> Any:
+    """The bus a backend's ``open`` uses: ``current`` (handed in as ``can_bus``) or one opened here,
+    wrapped to log every frame when ``log`` is given (once)."""
+    port = current if current is not None else open_can_bus(bus)
+    return LoggedBus(port, log) if log is not None and not isinstance(port, LoggedBus) else port
+
+
+def release_can_bus(port: Any, owned: bool, log: CanLogWriter | None) -> None:
+    """Shut ``port`` down if the backend opened it, and close the frame log whatever happens."""
+    try:
+        if port is not None and owned:
+            port.shutdown()
+    finally:
+        if log is not None:
+            log.close()

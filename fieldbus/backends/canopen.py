@@ -46,8 +46,8 @@ import numpy.typing as npt
 
 from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
-from fieldbus.backends.canbus import open_can_bus
-from fieldbus.backends.canlog import LoggedBus, open_log
+from fieldbus.backends.canbus import attach_can_bus, release_can_bus
+from fieldbus.backends.canlog import open_log
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.candecode import NMT_STATES
 from fieldbus.core.emcy import Emergency
@@ -164,10 +164,7 @@ class CanopenBackend(Backend):
     # -- bring-up ---------------------------------------------------------------------
     def open(self) -> None:
         """Open the CAN bus, NMT pre-operational to all, identity 0x1018:1/2 of every node against its map."""
-        if self._bus is None:
-            self._bus = open_can_bus(self.bus)
-        if self._log is not None and not isinstance(self._bus, LoggedBus):
-            self._bus = LoggedBus(self._bus, self._log)
+        self._bus = attach_can_bus(self.bus, self._bus, self._log)
         self._open = True
         self._nmt(NMT_PRE_OP)
         time.sleep(0.01)
@@ -496,13 +493,8 @@ class CanopenBackend(Backend):
             self._nmt(NMT_PRE_OP)
 
     def close(self) -> None:
-        try:
-            if self._bus is not None and self._own_bus:
-                self._bus.shutdown()
-        finally:
-            self._bus = None
-            if self._log is not None:
-                self._log.close()
+        port, self._bus = self._bus, None
+        release_can_bus(port, self._own_bus, self._log)
         self._open = False
 
     # -- acyclic ------------------------------------------------------------------------------

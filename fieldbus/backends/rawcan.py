@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
-from fieldbus.backends.canbus import open_can_bus
-from fieldbus.backends.canlog import LoggedBus, open_log
+from fieldbus.backends.canbus import attach_can_bus, release_can_bus
+from fieldbus.backends.canlog import open_log
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
 
@@ -91,10 +91,7 @@ class RawCanBackend(Backend):
         return self.n_slaves
 
     def open(self) -> None:
-        if self._bus is None:
-            self._bus = open_can_bus(self.bus)
-        if self._log is not None and not isinstance(self._bus, LoggedBus):
-            self._bus = LoggedBus(self._bus, self._log)
+        self._bus = attach_can_bus(self.bus, self._bus, self._log)
 
     def configure(self) -> None:
         """MIT-mode motors have no object dictionary: nothing to configure."""
@@ -177,10 +174,5 @@ class RawCanBackend(Backend):
             self._special("exit")
 
     def close(self) -> None:
-        try:
-            if self._bus is not None and self._own_bus:
-                self._bus.shutdown()
-        finally:
-            self._bus = None
-            if self._log is not None:
-                self._log.close()
+        port, self._bus = self._bus, None
+        release_can_bus(port, self._own_bus, self._log)

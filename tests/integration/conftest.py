@@ -6,10 +6,16 @@
 Everything is torn down afterwards, also when the test fails. Skips only when
 the machine refuses (not root, no ``ip``, ``ip link add`` refused), with the
 reason.
+
+``tshark`` gives ``count(pcap, display_filter)``: the frames of a capture that
+tshark's filter selects (skips when tshark is not installed; scripts/test
+installs it as root).
 """
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -45,3 +51,21 @@ def ethercat_emulator(tmp_path: Path) -> Iterator[Callable[..., Emulator]]:
                 pytest.skip(str(exc))
 
         yield start
+
+
+@pytest.fixture
+def tshark() -> Callable[[Path, str], int]:
+    """``count(pcap, display_filter)``: how many frames of ``pcap`` tshark's display filter selects."""
+    if shutil.which("tshark") is None:
+        pytest.skip("tshark is not installed (apt-get install tshark)")
+
+    def count(pcap: Path, display_filter: str) -> int:
+        res = subprocess.run(
+            ["tshark", "-n", "-r", str(pcap), "-Y", display_filter],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return len([line for line in res.stdout.splitlines() if line.strip()])
+
+    return count

@@ -10,10 +10,8 @@ from __future__ import annotations
 import errno
 import itertools
 import json
-import shutil
-import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -191,9 +189,9 @@ def test_writer_turns_ring_frames_into_the_same_frames(tmp_path: Path) -> None:
     assert [m.timestamp for m in back] == pytest.approx([m.timestamp for m in sent])
 
 
-def test_ethercat_pcap_of_the_master_decodes_in_tshark(ethercat_emulator: Any, tmp_path: Path) -> None:
-    if shutil.which("tshark") is None:
-        pytest.skip("tshark is not installed (apt-get install tshark)")
+def test_ethercat_pcap_of_the_master_decodes_in_tshark(
+    ethercat_emulator: Any, tmp_path: Path, tshark: Callable[[Path, str], int]
+) -> None:
     emu = ethercat_emulator([DEMO_MAP], count=2)
     net_file = tmp_path / "net.yaml"
     net_file.write_text(
@@ -208,15 +206,6 @@ def test_ethercat_pcap_of_the_master_decodes_in_tshark(ethercat_emulator: Any, t
         capture = net.backends[0].capture  # type: ignore[attr-defined]
     assert capture.error is None
 
-    def count(display_filter: str) -> int:
-        res = subprocess.run(
-            ["tshark", "-n", "-r", str(pcap), "-Y", display_filter],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return len([line for line in res.stdout.splitlines() if line.strip()])
-
-    assert count("_ws.malformed || _ws.expert.severity >= error") == 0
-    assert count("ecat.cmd == 12") >= 2 * CYCLES  # LRW: every cycle's request and its reply
-    assert count("ecat_mailbox.coe") > 0  # the bring-up's SDOs are in it too
+    assert tshark(pcap, "_ws.malformed || _ws.expert.severity >= error") == 0
+    assert tshark(pcap, "ecat.cmd == 12") >= 2 * CYCLES  # LRW: every cycle's request and its reply
+    assert tshark(pcap, "ecat_mailbox.coe") > 0  # the bring-up's SDOs are in it too
