@@ -13,9 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fieldbus.scan.model import Device, as_json
+
+if TYPE_CHECKING:
+    from fieldbus.scan.writemaps import Written
 
 
 def register(sub: Any) -> None:
@@ -77,10 +80,7 @@ def run_ethercat(args: argparse.Namespace) -> int:
         placed = [Placed(s, s.position, coe="CoE" in s.mailbox_protocols) for s in result.slaves]
         written = write_maps(placed, args.write_maps, spec, _source(args))
     if args.json:
-        out = {"bus": "ethercat", **as_json(result)}
-        if written is not None:
-            out["written"] = {"network": str(written.network), "maps": [str(p) for p in written.maps]}
-        print(json.dumps(out))
+        _print_json("ethercat", as_json(result), written)
         return 0
     print(f"{len(result.slaves)} slaves on {args.interface}")
     for s in result.slaves:
@@ -98,6 +98,14 @@ def run_ethercat(args: argparse.Namespace) -> int:
         _print_pdos(s, f"mapping from {s.mapping_source}")
     _print_written(written)
     return 0
+
+
+def _print_json(bus: str, scanned: Any, written: Written | None) -> None:
+    """The ``--json`` object: the bus kind, what the scan found and, with --write-maps, what was written."""
+    out = {"bus": bus, **scanned}
+    if written is not None:
+        out["written"] = {"network": str(written.network), "maps": [str(p) for p in written.maps]}
+    print(json.dumps(out))
 
 
 def run_canopen(args: argparse.Namespace) -> int:
@@ -120,10 +128,7 @@ def run_canopen(args: argparse.Namespace) -> int:
         placed = [Placed(n, 0, node_id=n.node_id, heartbeat_ms=n.heartbeat_ms) for n in result.nodes]
         written = write_maps(placed, args.write_maps, spec, _source(args))
     if args.json:
-        out = {"bus": "canopen", **as_json(result)}
-        if written is not None:
-            out["written"] = {"network": str(written.network), "maps": [str(p) for p in written.maps]}
-        print(json.dumps(out))
+        _print_json("canopen", as_json(result), written)
         return 0
     print(f"{len(result.nodes)} nodes on {args.channel} ({args.interface})")
     for n in result.nodes:
