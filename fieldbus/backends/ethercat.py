@@ -58,6 +58,7 @@ REDUNDANT_SLACK_US = 200  # a reply handed over this long past the timeout is st
 ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
 PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
 RECOVERY_FRAME_TIMEOUT_US = 1000  # one register read/write during recovery (a lost frame costs this)
+RECOVERY_FRAME_TRIES = 4  # a register write whose reply is lost or late is sent again, one try per cycle
 RECOVERY_SDO_TIMEOUT_US = (
     20_000  # SOEM's mailbox timeout for the plan's SDOs during recovery (default 700 ms)
 )
@@ -254,17 +255,21 @@ class EthercatBackend(Backend):
         """
         s, area = self._slaves[i], self.areas[i]
         t = RECOVERY_FRAME_TIMEOUT_US
+        step = "INIT request"
         try:
-            s._fpwr(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]), t)
-            yield
+            yield from self._write(i, REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
+            step = "waiting for INIT"
             yield from self._await_state(i, AL_INIT)
-            s._fpwr(REG_EEPROM_CONFIG, b"\x01", t)  # EEPROM to PDI, as SOEM does
+            step = "EEPROM to PDI"
+            yield from self._write(i, REG_EEPROM_CONFIG, b"\x01")  # EEPROM to PDI, as SOEM does
             for address, data in self._sm_regs[i]:
-                s._fpwr(address, data, t)
-                yield
-            s._fpwr(REG_AL_CONTROL, bytes([AL_PREOP, 0]), t)
-            yield
+                step = f"SyncManager register 0x{address:04X}"
+                yield from self._write(i, address, data)
+            step = "PRE-OP request"
+            yield from self._write(i, REG_AL_CONTROL, bytes([AL_PREOP, 0]))
+            step = "waiting for PRE-OP"
             yield from self._await_state(i, AL_PREOP)
+            step = "SDO plan"
             m = self.master
             saved = m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries
             m.sdo_read_timeout = m.sdo_write_timeout = RECOVERY_SDO_TIMEOUT_US
@@ -273,27 +278,51 @@ class EthercatBackend(Backend):
                 yield from plan_transfers(coe_plan(area.slave.map), *self.plan_io(i), slave=area.slave.name)
             finally:
                 m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries = saved
-            s._fpwr(REG_AL_CONTROL, bytes([AL_SAFEOP, 0]), t)
-            yield
+            step = "SAFE-OP request"
+            yield from self._write(i, REG_AL_CONTROL, bytes([AL_SAFEOP, 0]))
+            step = "waiting for SAFE-OP"
             yield from self._await_state(i, AL_SAFEOP)
             for address, data in self._fmmu_regs[i]:
-                s._fpwr(address, data, t)
-                yield
+                step = f"FMMU register 0x{address:04X}"
+                yield from self._write(i, address, data)
         except Exception as exc:
             self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
             with contextlib.suppress(Exception):
                 s._fpwr(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]), t)
             raise StateTransitionError(
                 f"bus '{self.bus.name}': position {i} ({area.slave.name}) could not be configured again after "
-                f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {exc}"
+                f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {step}: {_describe(exc)}"
             ) from exc
 
-    def _await_state(self, i: int, state: int) -> Generator[None, None, None]:
-        """Read slave ``i``'s AL status once per step until it shows ``state``; give up after a while."""
+    def _write(self, i: int, address: int, data: bytes) -> Generator[None, None, None]:
+        """One register write to slave ``i``, then a step; a lost or late reply is sent again next step.
+
+        Every register written during recovery is idempotent (AL control, EEPROM
+        owner, SM and FMMU entries), so a repeat is safe, as in SOEM's own
+        ``ecx_FPWRw``, which repeats a frame until its (longer) timeout.
+        """
         s = self._slaves[i]
+        for attempt in range(RECOVERY_FRAME_TRIES):
+            try:
+                s._fpwr(address, data, RECOVERY_FRAME_TIMEOUT_US)
+            except (pysoem.WkcError, pysoem.PacketError):
+                if attempt == RECOVERY_FRAME_TRIES - 1:
+                    raise
+            else:
+                yield
+                return
+            yield
+
+    def _await_state(self, i: int, state: int) -> Generator[None, None, None]:
+        """Read slave ``i``'s AL status once per step until it shows ``state``; give up after a while.
+
+        A read without answer (lost or late frame) counts as one poll that did not see it yet.
+        """
         for _ in range(STATE_POLL_STEPS):
-            raw = s._fprd(REG_AL_STATUS, 2, RECOVERY_FRAME_TIMEOUT_US)
-            got = int.from_bytes(raw, "little")
+            got = self._al_status(i)
+            if got is None:
+                yield
+                continue
             if got & 0x0F == state:
                 return
             if got & AL_ERROR and state != AL_INIT:
@@ -406,14 +435,14 @@ class EthercatBackend(Backend):
                     continue
                 all_ok = False
                 if action is Recovery.ACK_ERROR:
-                    s._fpwr(REG_AL_CONTROL, bytes([AL_SAFEOP | AL_ACK, 0]), RECOVERY_FRAME_TIMEOUT_US)
+                    yield from self._write(i, REG_AL_CONTROL, bytes([AL_SAFEOP | AL_ACK, 0]))
                 elif action is Recovery.REQUEST_OP:
-                    s._fpwr(REG_AL_CONTROL, bytes([AL_OP, 0]), RECOVERY_FRAME_TIMEOUT_US)
+                    yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
                 elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle
                     if time.monotonic() < self._retry_at[i]:
                         continue  # its configuration failed a moment ago: not every cycle
                     yield from self._reconfigure(i)
-                    s._fpwr(REG_AL_CONTROL, bytes([AL_OP, 0]), RECOVERY_FRAME_TIMEOUT_US)
+                    yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
                 elif action is Recovery.RECOVER:  # silent at its address: find it by position (SOEM)
                     s.is_lost = s.recover(timeout=RECONFIG_TIMEOUT_US) <= 0
                 yield
@@ -533,3 +562,13 @@ class EthercatBackend(Backend):
             f"bus '{self.bus.name}' slave {name}: no answer to SDO {what} 0x{index:04X}:{sub_index:02X} "
             f"after {tries} {'try' if tries == 1 else 'tries'} ({last})"
         )
+
+
+def _describe(exc: BaseException) -> str:
+    """An exception as a reason: its message, or its type when it has none (pysoem's WkcError)."""
+    text = str(exc)
+    return (
+        f"{type(exc).__name__}: {text}"
+        if text
+        else f"{type(exc).__name__} (no answer at the slave's address)"
+    )

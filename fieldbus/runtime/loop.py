@@ -25,9 +25,15 @@ SPIN_NS = 150_000
 
 @contextmanager
 def gc_held() -> Iterator[None]:
-    """Freeze existing objects and disable the collector; restore both on exit."""
+    """Freeze existing objects and disable the collector; restore both on exit.
+
+    No collection on entry: the loop starts right after bring-up, and a full
+    collection of a large heap (a test run, a robot application) can take
+    longer than the slaves' SyncManager watchdog (100 ms by default), during
+    which no frame goes out - the drives would drop to SAFE-OP before the
+    first cycle. Garbage frozen here is collected after the loop.
+    """
     was_enabled = gc.isenabled()
-    gc.collect()
     gc.freeze()
     gc.disable()
     try:
