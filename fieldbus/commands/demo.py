@@ -77,7 +77,8 @@ def register(sub: Any) -> None:
         "--delay-us",
         type=float,
         default=0.0,
-        help="sim: every drive acts on its targets this late (emulator command_delay_us; default 0)",
+        help="sim, ethercat: every emulated drive acts on its targets this late "
+        "(emulator command_delay_us; default 0)",
     )
     p.add_argument(
         "--latency",
@@ -98,8 +99,10 @@ def run(args: argparse.Namespace) -> int:
         args.rate = DEFAULT_RATE_HZ[args.backend]
     if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
         raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
-    if args.delay_us < 0 or (args.delay_us and args.backend != "sim"):
-        raise FieldbusError("--delay-us must be >= 0 and needs --backend sim")
+    if args.delay_us < 0 or (args.delay_us and args.backend not in ("sim", "ethercat")):
+        raise FieldbusError(
+            "--delay-us must be >= 0 and needs --backend sim or ethercat (the EtherCAT emulators)"
+        )
     if args.latency:
         return _latency(args)
     cycleopts.check_record(args)
@@ -183,7 +186,7 @@ class DemoSetup:
 def demo_network(
     backend: str, axes: int, rate_hz: float, workdir: Path, *, delay_us: float = 0.0
 ) -> Iterator[DemoSetup]:
-    """Write the demo's network file and start its emulator (``delay_us``: sim drives' command delay)."""
+    """Write the demo's network file and start its emulator (``delay_us``: the emulated drives' command delay)."""
     cycle_us = max(1, round(1e6 / rate_hz))
     head = f"name: demo\ncycle_time_us: {cycle_us}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US[backend]}\n"
     options = f", emulator: {{command_delay_us: {delay_us:g}}}" if delay_us else ""
@@ -195,7 +198,12 @@ def demo_network(
     elif backend == "ethercat":
         from sim_slaves.ethercat.veth import emulated_segment
 
-        with emulated_segment([DEMO_MAP], count=axes, workdir=workdir) as emu:
+        # the emulator builds its drives (and their emulator: options) from the same slaves
+        emulated = workdir / "emulated.yaml"
+        emulated.write_text(
+            head + "buses:\n  - name: joints\n    type: ethercat\n    interface: veth\n" + slaves
+        )
+        with emulated_segment([DEMO_MAP], workdir=workdir, network=emulated) as emu:
             net.write_text(
                 head + f"buses:\n  - name: joints\n    type: ethercat\n    interface: {emu.iface}\n" + slaves
             )

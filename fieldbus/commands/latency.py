@@ -109,6 +109,7 @@ class DitherProbe:
         self.found = np.full(n, -1)
         self.delays: list[list[int]] = [[] for _ in range(n)]
         self.done_steps = 0
+        self.fresh_since = 0  # fresh exchanges since every axis was enabled
 
     @property
     def finished(self) -> bool:
@@ -123,7 +124,10 @@ class DitherProbe:
                 self.enabled_at = k
                 self.base[:] = self.position
             return
-        t = k - self.enabled_at
+        # phases count the exchanges that returned (a lost frame must not skip a step's start or
+        # end); delays count every cycle from the one that carried the step
+        self.fresh_since += 1
+        t = self.fresh_since
         if t < self.hold or self.finished:  # settle before the first step; stay after the last
             self.window.append(np.array(self.position, dtype=np.float64))
             return

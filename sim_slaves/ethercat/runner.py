@@ -1,11 +1,15 @@
 """Run an :class:`~sim_slaves.ethercat.chain.EscChain` on a network interface (AF_PACKET, ethertype 0x88A4).
 
-    python -m sim_slaves.ethercat --iface IFACE --map MAP.yaml [--map ...] [--count N]
+    python -m sim_slaves.ethercat --iface IFACE (--map MAP.yaml [--map ...] [--count N] | --network NET [--bus NAME])
         [--pcap FILE] [--control PATH] [--app auto|loopback|none]
         [--drift-ppm X [--drift-seed N]] [--esc-delays-ns TP TF] [--cable-m M] [--dc-min-sample-us US]
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
-times. The process prints ``ready <iface> <n> slaves`` on stdout once it
+times; or, with ``--network``, the slaves of one EtherCAT bus of a network
+file (``--bus``, default its only one), each with its ``emulator:`` options
+(command delay, current loop, encoder, friction, thermal: see
+:mod:`fieldbus.core.emulator_opts`) - the same drives the ``sim`` backend
+builds from that file. The process prints ``ready <iface> <n> slaves`` on stdout once it
 listens and runs until SIGTERM/SIGINT.
 
 Like a real ESC on port 0, it processes every EtherCAT frame that arrives
@@ -70,6 +74,7 @@ from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.errors import FieldbusError
 from fieldbus.interop.device import load_device
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
@@ -110,6 +115,24 @@ def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
     return LoopbackApp(pairs)
 
 
+def network_slaves(path: str, bus_name: str | None) -> tuple[list[DriveMap], list[dict[str, Any] | None]]:
+    """The drive maps and emulator options (``DriveParams`` keywords) of one EtherCAT bus of a network file."""
+    from fieldbus.core.network import load_network
+
+    net = load_network(path)
+    buses = [b for b in net.buses if b.type == "ethercat"]
+    if bus_name is not None:
+        buses = [b for b in buses if b.name == bus_name]
+    if len(buses) != 1:
+        names = ", ".join(b.name for b in net.buses if b.type == "ethercat") or "none"
+        which = (
+            f"no EtherCAT bus '{bus_name}'" if bus_name else "more than one EtherCAT bus: name one with --bus"
+        )
+        raise FieldbusError(f"{path}: {which} (EtherCAT buses: {names})")
+    slaves = buses[0].slaves
+    return [s.map for s in slaves], [s.emulator.drive_params() if s.emulator else None for s in slaves]
+
+
 def build_chain(
     maps: list[str],
     count: int,
@@ -120,8 +143,12 @@ def build_chain(
     dc_timing: EscTiming | None = None,
     cable_m: float = 1.0,
     dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
+    devices: list[DriveMap] | None = None,
+    drive_params: list[dict[str, Any] | None] | None = None,
 ) -> EscChain:
-    drives = [load_device(m) for m in maps] * count  # drive maps, ESI or EDS files
+    """The chain of ``maps`` (drive maps, ESI or EDS files) repeated ``count`` times, or of ``devices``
+    (already loaded, with per-slave ``drive_params``), as the options of :func:`main` say."""
+    drives = devices if devices is not None else [load_device(m) for m in maps] * count
     factory: str | AppFactory | None = {"auto": "auto", "none": None, "loopback": loopback_app}[app]
     drifts = spread_drifts(len(drives), drift_ppm, drift_seed).tolist() if drift_ppm else None
     return EscChain.from_maps(
@@ -131,6 +158,7 @@ def build_chain(
         dc_timing=dc_timing,
         cable_m=cable_m,
         dc_min_sample_interval_ns=dc_min_sample_interval_ns,
+        drive_params=drive_params,
     )
 
 
@@ -391,9 +419,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--map",
         action="append",
-        required=True,
         help="drive map YAML, or a vendor ESI (FILE.xml[#DEVICE]) or EDS (repeatable, wire order)",
     )
+    p.add_argument("--network", help="instead of --map: the slaves of an EtherCAT bus of this network file")
+    p.add_argument("--bus", help="with --network: which EtherCAT bus (default: its only one)")
     p.add_argument("--count", type=int, default=1, help="repeat the list of maps this many times")
     p.add_argument("--pcap", help="write requests and replies to this pcap file")
     p.add_argument("--control", help="UNIX datagram socket path for fault-injection commands (JSON)")
@@ -417,11 +446,23 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.count < 1:
         p.error("--count must be >= 1")
+    if bool(args.map) == bool(args.network):
+        p.error("give either --map (one or more) or --network")
+    if args.network and args.count != 1:
+        p.error("--count repeats --map; a network file lists its slaves itself")
+    if args.bus and not args.network:
+        p.error("--bus needs --network")
+    devices, params = None, None
+    if args.network:
+        try:
+            devices, params = network_slaves(args.network, args.bus)
+        except FieldbusError as exc:
+            p.error(str(exc))
     if args.drift_ppm < 0 or args.cable_m < 0 or args.dc_min_sample_us < 0:
         p.error("--drift-ppm, --cable-m and --dc-min-sample-us must be >= 0")
     timing = EscTiming(*args.esc_delays_ns) if args.esc_delays_ns else None
     chain = build_chain(
-        args.map,
+        args.map or [],
         args.count,
         args.app,
         drift_ppm=args.drift_ppm,
@@ -429,6 +470,8 @@ def main(argv: list[str] | None = None) -> int:
         dc_timing=timing,
         cable_m=args.cable_m,
         dc_min_sample_interval_ns=round(args.dc_min_sample_us * 1000),
+        devices=devices,
+        drive_params=params,
     )
     serve(chain, args.iface, pcap=args.pcap, control=args.control)
     return 0

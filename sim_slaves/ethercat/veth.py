@@ -272,16 +272,22 @@ def start_runner(
     app: str = "auto",
     stderr: Path | None = None,
     command: Sequence[str] | None = None,
+    network: Path | None = None,
 ) -> subprocess.Popen[str]:
     """Start ``python -m sim_slaves.ethercat`` on ``iface`` and wait until it is ready.
 
     Its stderr goes to the file ``stderr`` (default: ``runner-<iface>.err`` beside ``control``).
-    ``command`` replaces the runner's command line (tests of this function).
+    ``command`` replaces the runner's command line (tests of this function). With ``network``
+    the slaves are that file's EtherCAT bus, with their ``emulator:`` options (``maps`` unused).
     """
-    cmd = [sys.executable, "-m", "sim_slaves.ethercat", "--iface", iface, "--count", str(count)]
+    cmd = [sys.executable, "-m", "sim_slaves.ethercat", "--iface", iface]
     cmd += ["--control", str(control), "--app", app]
-    for m in maps:
-        cmd += ["--map", str(m)]
+    if network is not None:
+        cmd += ["--network", str(network)]
+    else:
+        cmd += ["--count", str(count)]
+        for m in maps:
+            cmd += ["--map", str(m)]
     if pcap is not None:
         cmd += ["--pcap", str(pcap)]
     env = {
@@ -310,14 +316,21 @@ def emulated_segment(
     pcap: Path | None = None,
     app: str = "auto",
     workdir: Path | None = None,
+    network: Path | None = None,
 ) -> Iterator[Emulator]:
-    """A veth pair with the emulator on one end; yields the :class:`Emulator` (``iface`` = master end)."""
+    """A veth pair with the emulator on one end; yields the :class:`Emulator` (``iface`` = master end).
+
+    ``network``: build the slaves from that network file's EtherCAT bus instead of ``maps``
+    (with the slaves' ``emulator:`` options; the file's interface name is not used).
+    """
     master, slave = make_veth_pair()
     try:
         with tempfile.TemporaryDirectory(prefix="fieldbus-emu-") as tmp:
             control = Path(workdir or tmp) / f"ctl-{slave}.sock"
             err = control.parent / f"runner-{slave}.err"
-            proc = start_runner(slave, maps, count=count, control=control, pcap=pcap, app=app, stderr=err)
+            proc = start_runner(
+                slave, maps, count=count, control=control, pcap=pcap, app=app, stderr=err, network=network
+            )
             emu = Emulator(master, slave, proc, control, pcap, err)
             try:
                 yield emu
