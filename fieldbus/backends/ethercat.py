@@ -59,9 +59,10 @@ ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the
 PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
 RECOVERY_FRAME_TIMEOUT_US = 1000  # one register read/write during recovery (a lost frame costs this)
 RECOVERY_FRAME_TRIES = 4  # a register write whose reply is lost or late is sent again, one try per cycle
-RECOVERY_SDO_TIMEOUT_US = (
-    20_000  # SOEM's mailbox timeout for the plan's SDOs during recovery (default 700 ms)
-)
+# SOEM's mailbox timeout for one of the plan's SDOs during recovery (default 700 ms): the cycle that
+# carries it waits at most this long; a transfer without answer is sent again next cycle
+RECOVERY_SDO_TIMEOUT_US = 3_000
+RECOVERY_SDO_TRIES = 4
 STATE_POLL_STEPS = 200  # cycles a reconfigured slave may take to reach a state
 SNAPSHOT_TIMEOUT_US = 20_000
 SM_SNAPSHOT, FMMU_SNAPSHOT = 8, 4  # SyncManagers and FMMUs kept per slave (SOEM: EC_MAXSM, EC_MAXFMMU)
@@ -275,7 +276,12 @@ class EthercatBackend(Backend):
             m.sdo_read_timeout = m.sdo_write_timeout = RECOVERY_SDO_TIMEOUT_US
             self._sdo_tries = 1
             try:
-                yield from plan_transfers(coe_plan(area.slave.map), *self.plan_io(i), slave=area.slave.name)
+                yield from plan_transfers(
+                    coe_plan(area.slave.map),
+                    *self.plan_io(i),
+                    slave=area.slave.name,
+                    tries=RECOVERY_SDO_TRIES,
+                )
             finally:
                 m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries = saved
             step = "SAFE-OP request"

@@ -165,3 +165,36 @@ def test_abort_error_names_code() -> None:
     assert e.name == "Object does not exist in the object dictionary" == abort_name(0x06020000)
     assert str(e) == "hip: SDO abort 0x06020000 'Object does not exist in the object dictionary' on 0x6060:00"
     assert abort_name(0x12345678) == "unknown abort code"
+
+
+def test_a_transfer_without_answer_is_tried_again_at_the_next_step() -> None:
+    """Recovery runs a plan one SDO per cycle with a short timeout: a lost answer costs a cycle, not the plan."""
+    from fieldbus.backends.sdo_exec import plan_transfers
+    from fieldbus.errors import BusTimeoutError
+
+    plan = coe_plan(drive_map_from_text(TWO_PDO, "two.yaml"))
+    od: dict[tuple[int, int], bytes] = {}
+    silent = {(0x1600, 2): 1, (0x6060, 0): 2}  # these stay unanswered this many times
+
+    def write(index: int, sub: int, data: bytes) -> None:
+        if silent.get((index, sub), 0):
+            silent[(index, sub)] -= 1
+            raise BusTimeoutError(f"no answer to 0x{index:04X}:{sub:02X}")
+        od[(index, sub)] = data
+
+    def read(index: int, sub: int, size: int) -> bytes:
+        return od.get((index, sub), bytes(size))
+
+    gen = plan_transfers(plan, write, read, slave="j0", tries=3)
+    yields = 0
+    with pytest.raises(StopIteration) as done:
+        while True:
+            next(gen)
+            yields += 1
+    writes = [s for s in plan.steps if s.kind is StepKind.WRITE]
+    assert done.value.value == len(writes) + len(plan.checks)
+    assert yields == len(writes) + len(plan.checks) + 3  # one more step per lost answer
+    silent[(0x6060, 0)] = 3  # more than the tries: the plan fails with the object named
+    with pytest.raises(BusTimeoutError, match="0x6060:00"):
+        for _ in plan_transfers(plan, write, read, slave="j0", tries=3):
+            pass
