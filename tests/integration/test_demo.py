@@ -46,6 +46,23 @@ def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str]) -> None:
     assert code == 0  # misses the policy absorbed do not fail the demo (see --help)
 
 
+@pytest.mark.veth
+def test_thirty_joints_over_veth_hold_1_khz_for_10000_cycles(capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 15's humanoid case: 30 emulated drives, real pysoem, 1 kHz, no safe stop in 10,000 cycles."""
+    pytest.importorskip("pysoem")
+    from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
+
+    try:
+        master, _ = make_veth_pair()
+        delete_link(master)
+    except VethUnavailable as exc:
+        pytest.skip(str(exc))
+    code, r = _demo(capsys, "--backend", "ethercat", "--axes", "30", "--cycles", "10000")
+    assert r["enabled"] and r["safe_stops"] == 0, r
+    assert r["buses"][0]["expected_wkc"] == 90 and r["missed"] <= 100, r["buses"]
+    assert code == 0
+
+
 def test_demo_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--axes", "0"]) == 1
     assert "--axes" in capsys.readouterr().err
