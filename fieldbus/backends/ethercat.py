@@ -402,9 +402,10 @@ class EthercatBackend(Backend):
         judged here as a miss (counted in :attr:`late_replies`), inputs held.
         """
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
+        self.late_wkc = None
         if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._late_ns:
             self.late_replies += 1
-            wkc = -1
+            self.late_wkc, wkc = wkc, -1
         if self._host_sync is not None and wkc >= 0:
             dc = int(self.master.dc_time)
             self.dc_time_ns = dc
