@@ -62,8 +62,9 @@ def test_a_cycle_with_recording_on_allocates_nothing(io_op: Operational, tmp_pat
     op = io_op
     rec = op.record(tmp_path / "a.mcap", raw=True, block_cycles=8192, ring_blocks=2)
     # a per-cycle allocation would leave >= 4000 blocks; tracemalloc also traces the (idle) writer thread and
-    # the emulator, whose one transient object at a snapshot shows as +-1 now and then: 0 per cycle
-    assert net_blocks(op.exchange, cycles=4000, warmup=500) <= 1
+    # the in-process emulator, whose transient objects at a snapshot show as a few blocks now and then
+    # (4 once in a full run): 0 per cycle
+    assert net_blocks(op.exchange, cycles=4000, warmup=500) <= 8
     assert rec.ring.count == 5000  # every cycle went through capture()
     rec.close()
     assert load(tmp_path / "a.mcap").cycles.size == 5000
