@@ -42,7 +42,11 @@ def test_soak_accounts_for_every_fault(backend: str) -> None:
         except VethUnavailable as exc:
             pytest.skip(str(exc))
     faults = "loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1"
-    r = soak(_args(backend, faults=faults), FaultSpec.parse(faults))
+    # sim: the emulator runs inside exchange(); the cycles after a power-cycled drive comes back step
+    # its bank in pieces (one drive in another state), up to 2.7 ms on a quiet machine and 6.7 ms
+    # once in a loaded full run - emulator work, so the sim run gets 10 ms of margin instead of 5
+    extra = {"margin_us": 10_000.0} if backend == "sim" else {}
+    r = soak(_args(backend, faults=faults, **extra), FaultSpec.parse(faults))
     assert r["violation_count"] == 0, r["violations"]
     assert r["injected"] == r["detected"]
     assert r["injected"]["power_cycle"] == 3 and r["recovered_power_cycles"] == 3
