@@ -19,6 +19,7 @@ not to be in OP; a power-cycled slave is configured again step by step (SOEM's
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from collections import deque
 from collections.abc import Generator
@@ -27,7 +28,7 @@ from typing import Any
 from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.ecat_pcap import EthercatCapture
-from fieldbus.backends.sdo_exec import apply_plan, plan_transfers
+from fieldbus.backends.sdo_exec import apply_plan, plan_transfers, retried
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.network import Bus
@@ -307,17 +308,9 @@ class EthercatBackend(Backend):
         owner, SM and FMMU entries), so a repeat is safe, as in SOEM's own
         ``ecx_FPWRw``, which repeats a frame until its (longer) timeout.
         """
-        s = self._slaves[i]
-        for attempt in range(RECOVERY_FRAME_TRIES):
-            try:
-                s._fpwr(address, data, RECOVERY_FRAME_TIMEOUT_US)
-            except (pysoem.WkcError, pysoem.PacketError):
-                if attempt == RECOVERY_FRAME_TRIES - 1:
-                    raise
-            else:
-                yield
-                return
-            yield
+        fpwr = functools.partial(self._slaves[i]._fpwr, address, data, RECOVERY_FRAME_TIMEOUT_US)
+        yield from retried(fpwr, RECOVERY_FRAME_TRIES, (pysoem.WkcError, pysoem.PacketError))
+        yield
 
     def _await_state(self, i: int, state: int) -> Generator[None, None, None]:
         """Read slave ``i``'s AL status once per step until it shows ``state``; give up after a while.

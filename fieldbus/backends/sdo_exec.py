@@ -9,12 +9,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Generator
 from functools import partial
+from typing import TypeVar
 
 from fieldbus.core.sdo import SdoPlan, StepKind
 from fieldbus.errors import BusTimeoutError, SdoAbortError, SdoMismatchError
 
 Write = Callable[[int, int, bytes], None]
 Read = Callable[[int, int, int], bytes]  # (index, sub, expected size) -> bytes
+T = TypeVar("T")
 
 
 def apply_plan(plan: SdoPlan, write: Write, read: Read, *, slave: str) -> int:
@@ -45,12 +47,12 @@ def plan_transfers(
     try:
         for step in plan.steps:
             if step.kind is StepKind.WRITE:
-                yield from _answered(partial(write, step.index, step.sub_index, step.data), tries)
+                yield from retried(partial(write, step.index, step.sub_index, step.data), tries)
                 transfers += 1
                 yield
         for step in plan.checks:
             assert step.readback is not None
-            got = yield from _answered(partial(read, step.index, step.sub_index, len(step.readback)), tries)
+            got = yield from retried(partial(read, step.index, step.sub_index, len(step.readback)), tries)
             transfers += 1
             if got[: len(step.readback)] != step.readback or (
                 len(got) > len(step.readback) and any(got[len(step.readback) :])
@@ -72,13 +74,17 @@ def plan_transfers(
     return transfers
 
 
-def _answered(transfer: Callable[[], bytes | None], tries: int) -> Generator[None, None, bytes]:
-    """``transfer()``, tried again after a step while it gets no answer (``tries`` in all)."""
-    for attempt in range(tries):
+def retried(
+    call: Callable[[], T], tries: int, retry_on: tuple[type[BaseException], ...] = (BusTimeoutError,)
+) -> Generator[None, None, T]:
+    """``call()``, made again after a step while it raises one of ``retry_on`` (``tries`` calls in all).
+
+    For idempotent transfers inside the cycle: a lost or late answer costs one step, not the whole
+    sequence; the last failure is raised.
+    """
+    for _ in range(tries - 1):
         try:
-            return transfer() or b""
-        except BusTimeoutError:
-            if attempt == tries - 1:
-                raise
-        yield
-    raise AssertionError("unreachable")  # pragma: no cover
+            return call()
+        except retry_on:
+            yield
+    return call()
