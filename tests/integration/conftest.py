@@ -7,6 +7,9 @@ Everything is torn down afterwards, also when the test fails. Skips only when
 the machine refuses (not root, no ``ip``, ``ip link add`` refused), with the
 reason.
 
+``veth_possible`` skips a test that makes its own pair (the demo, the soak) for the same
+reasons only.
+
 ``tshark`` gives ``count(pcap, display_filter)``: the frames of a capture that
 tshark's filter selects (skips when tshark is not installed; scripts/test
 installs it as root).
@@ -22,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_slaves.ethercat.veth import Emulator, VethUnavailable, emulated_segment
+from sim_slaves.ethercat.veth import Emulator, VethUnavailable, delete_link, emulated_segment, make_veth_pair
 
 
 @pytest.fixture
@@ -34,6 +37,18 @@ def generous_pysoem_timeouts() -> Iterator[None]:
     t.ret = 20_000
     yield
     t.ret = old
+
+
+@pytest.fixture
+def veth_possible() -> None:
+    """For tests whose code makes its own veth pair (the demo, the soak): pysoem is there and this
+    machine lets us create a pair; skips with the machine's reason otherwise."""
+    pytest.importorskip("pysoem")
+    try:
+        master, _ = make_veth_pair()
+        delete_link(master)
+    except VethUnavailable as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture

@@ -29,15 +29,7 @@ def test_demo_on_the_sim_backend(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 @pytest.mark.veth
-def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("pysoem")
-    from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
-
-    try:  # the demo makes its own pair; skip only when this machine refuses one
-        master, _ = make_veth_pair()
-        delete_link(master)
-    except VethUnavailable as exc:
-        pytest.skip(str(exc))
+def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str], veth_possible: None) -> None:
     code, r = _demo(capsys, "--backend", "ethercat", "--axes", "6", "--cycles", "1000")
     assert r["backend"] == "ethercat" and r["enabled"], r
     assert r["tracking_error"]["max_rad"] < 10e-3, r["tracking_error"]
@@ -47,16 +39,10 @@ def test_demo_over_veth_with_pysoem(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 @pytest.mark.veth
-def test_thirty_joints_over_veth_hold_1_khz_for_10000_cycles(capsys: pytest.CaptureFixture[str]) -> None:
+def test_thirty_joints_over_veth_hold_1_khz_for_10000_cycles(
+    capsys: pytest.CaptureFixture[str], veth_possible: None
+) -> None:
     """Issue 15's humanoid case: 30 emulated drives, real pysoem, 1 kHz, no safe stop in 10,000 cycles."""
-    pytest.importorskip("pysoem")
-    from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
-
-    try:
-        master, _ = make_veth_pair()
-        delete_link(master)
-    except VethUnavailable as exc:
-        pytest.skip(str(exc))
     code, r = _demo(capsys, "--backend", "ethercat", "--axes", "30", "--cycles", "10000")
     assert r["enabled"] and r["safe_stops"] == 0, r
     assert r["buses"][0]["expected_wkc"] == 90 and r["missed"] <= 100, r["buses"]

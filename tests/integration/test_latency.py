@@ -85,16 +85,10 @@ def test_two_ms_of_delay_with_the_default_gains_tracks_the_sine_worse() -> None:
 
 
 @pytest.mark.veth
-def test_the_veth_emulator_takes_the_delay_from_the_network_file(capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_veth_emulator_takes_the_delay_from_the_network_file(
+    capsys: pytest.CaptureFixture[str], veth_possible: None
+) -> None:
     """``python -m sim_slaves.ethercat --network``: real pysoem over veth measures the configured 3 cycles."""
-    pytest.importorskip("pysoem")
-    from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
-
-    try:  # the demo makes its own pair; skip only when this machine refuses one
-        master, _ = make_veth_pair()
-        delete_link(master)
-    except VethUnavailable as exc:
-        pytest.skip(str(exc))
     args = ["demo", "--backend", "ethercat", "--axes", "2", "--latency", "--json"]
     assert main([*args, "--delay-us", "3000"]) == 0
     delayed = json.loads(capsys.readouterr().out)

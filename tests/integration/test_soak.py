@@ -30,17 +30,10 @@ def _args(backend: str, **kw: object) -> argparse.Namespace:
 
 
 @pytest.mark.parametrize("backend", ["sim", pytest.param("ethercat", marks=pytest.mark.veth)])
-def test_soak_accounts_for_every_fault(backend: str) -> None:
+def test_soak_accounts_for_every_fault(backend: str, request: pytest.FixtureRequest) -> None:
     """EtherCAT: frame loss, late replies, WKC errors, power cycles, a loss burst, an SDO abort at bring-up."""
     if backend == "ethercat":
-        pytest.importorskip("pysoem")
-        from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair
-
-        try:
-            master, _ = make_veth_pair()
-            delete_link(master)
-        except VethUnavailable as exc:
-            pytest.skip(str(exc))
+        request.getfixturevalue("veth_possible")
     faults = "loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1"
     # sim: the emulator runs inside exchange(); the cycles after a power-cycled drive comes back step
     # its bank in pieces (one drive in another state), up to 2.7 ms on a quiet machine and 6.7 ms
