@@ -1,7 +1,8 @@
 """Events derived from consecutive recorded cycles, in the writer thread (the cycle only copies rows).
 
 Each block is compared with the row before it (the previous block's last row,
-kept across blocks): a bus's safe stop latched or cleared, a recovery started
+kept across blocks; for the first block, the counters as recording began, so
+a change inside a dropped block is reported at the first cycle recorded after it): a bus's safe stop latched or cleared, a recovery started
 or finished, the recovery counter grown, a new recovery error, new EMCY
 messages, a CANopen node's NMT state changed, an axis's CiA 402 state
 (decoded from its ``statusword`` input) changed. An event carries the index
@@ -55,8 +56,8 @@ class EventDeriver:
             )
             for g in ring.groups
         ]
-        self._prev: npt.NDArray[np.int64] | None = None
-        self._prev_nmt: list[npt.NDArray[np.int16] | None] = [None] * len(ring.buses)
+        self._prev: npt.NDArray[np.int64] | None = ring.baseline  # counters as recording began
+        self._prev_nmt: list[npt.NDArray[np.int16] | None] = list(ring.baseline_nmt)
         self._prev_states: list[npt.NDArray[np.int8] | None] = [None] * len(ring.groups)
 
     def block(self, snap: Snapshot, inputs: list[npt.NDArray[Any]]) -> list[dict[str, Any]]:

@@ -154,6 +154,13 @@ class Ring:
         self.count = 0  # cycles captured: written by the cycle only
         self.stopped = False  # set by the recorder: capture() does nothing any more
         self.capture = self._compile_capture()  # what exchange() calls (through the recorder) each cycle
+        # the counters and NMT states as recording begins (captured once into row 0, then row 0 is
+        # free again): the events of the first recorded row compare with them, so a change in a
+        # block the writer had to drop still shows up, at the first cycle recorded after it
+        self.capture(op.result, 0)
+        self.baseline = self.ints[0].copy()
+        self.baseline_nmt = [None if s.nmt is None else s.nmt[0].copy() for s in self.buses]
+        self.count = 0
 
     def _compile_capture(self) -> Callable[[CycleResult, int], None]:
         """:attr:`capture`: a closure over the ring's constants (no attribute look-ups but the counters)."""

@@ -130,6 +130,26 @@ def test_a_stalled_writer_drops_the_oldest_blocks_and_never_holds_the_cycle(
     assert gaps and all(int(np.flatnonzero(cyc == g["cycle"])[0]) % 16 == 0 for g in gaps)
 
 
+def test_a_change_inside_a_dropped_first_block_is_still_an_event(
+    op: Operational, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the writer's first look comes after the ring has wrapped: the first blocks are gone
+    monkeypatch.setattr("fieldbus.recording.writer.POLL_S", 0.5)
+    rec = op.record(tmp_path / "late.mcap", block_cycles=4, ring_blocks=2)
+    master = op._net.backends[0].master
+    for k in range(40):
+        if k == 2:  # an EMCY in cycle 2, which the writer never sees
+            master.emergencies.append((0x1001, 0x2310, 0x02))
+        op.exchange()
+    time.sleep(0.7)  # the writer takes what is left
+    rec.close()
+    r = load(tmp_path / "late.mcap")
+    assert r.dropped_blocks > 0 and int(r.cycles["cycle"][0]) > 2
+    emcys = [e for e in r.events if e["kind"] == "emcy"]
+    assert [(e["old"], e["new"]) for e in emcys] == [(0, 1)]
+    assert emcys[0]["cycle"] == int(r.cycles["cycle"][0])  # reported at the first cycle recorded
+
+
 class _FullDisk(io.RawIOBase):
     """A file on a disk with ``room`` bytes left: the write that does not fit writes what fits, then ENOSPC."""
 
