@@ -117,6 +117,9 @@ class Entry:
         return self.dtype.encode(self.value)
 
 
+# a writable VISIBLE_STRING every emulated device has (manufacturer area), for long downloads
+USER_LABEL = 0x2100
+
 # CiA 402 objects: type name and a fallback default (sim_slaves.drive402 supplies better ones).
 CIA402_TYPES: dict[int, str] = {
     0x603F: "uint16",  # error code
@@ -374,6 +377,7 @@ class ObjectDictionary:
         od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="Device type")
         od.add(0x1001, 0, U8, 0, access=Access.RO, name="Error register")
         od.add_string(0x1008, drive.name, "Manufacturer device name")
+        od.add(USER_LABEL, 0, None, b"", access=Access.RW, name="User label")
         ident = (
             drive.vendor_id,
             drive.product_id,

@@ -53,6 +53,11 @@ def test_sdo_on_ethercat(ethercat_emulator: Any, tmp_path: Path, capsys: pytest.
     assert code == 0 and "slave 1 (generic_cia402) 0x6060:00 <- -3 [int8, 1 bytes]" in out
     code, out, _ = _run(capsys, "sdo", "read", *bus, "--slave", "1", "0x6060", "0")
     assert code == 0 and "0x6060:00 = -3 (0xFD)  [int8, 1 bytes]" in out
+    # a string longer than the mailbox: a segmented CoE download, typed by SDO Information (no --type)
+    code, out, _ = _run(capsys, "sdo", "write", *bus, "--slave", "1", "0x2100", "0", LONG_NAME[::-1])
+    assert code == 0 and f"0x2100:00 <- {LONG_NAME[::-1]} [string, {len(LONG_NAME)} bytes]" in out
+    code, out, _ = _run(capsys, "sdo", "read", *bus, "--slave", "1", "0x2100", "0", "--json")
+    assert code == 0 and json.loads(out)["value"] == LONG_NAME[::-1]
     code, out, _ = _run(capsys, "sdo", "read", *bus, "--slave", "1", "0x1018", "2")
     assert code == 0 and "= 1026 (0x00000402)  [uint32, 4 bytes]" in out
 
@@ -116,6 +121,16 @@ def test_sdo_on_canopen(can_nodes: Any, can_channel: str, capsys: pytest.Capture
     assert can_nodes.node(4).od.get_value(0x6060, 0) == 9
     code, out, _ = _run(capsys, "sdo", "read", *bus, "--node", "4", "0x6060", "0")
     assert code == 0 and "node 4 0x6060:00 = 9 (0x09)  [int8, 1 bytes]" in out
+    # a segmented download: 155 bytes in 23 segments, toggle bits checked by the node
+    code, out, _ = _run(
+        capsys, "sdo", "write", *bus, "--node", "4", "0x2100", "0", LONG_NAME, "--type", "string"
+    )
+    assert code == 0 and f"node 4 0x2100:00 <- {LONG_NAME} [string, {len(LONG_NAME)} bytes]" in out
+    assert can_nodes.node(4).od.entry(0x2100, 0).value == LONG_NAME.encode()
+    code, out, _ = _run(
+        capsys, "sdo", "read", *bus, "--node", "4", "0x2100", "0", "--type", "string", "--json"
+    )
+    assert code == 0 and json.loads(out)["value"] == LONG_NAME
     code, out, _ = _run(capsys, "sdo", "read", *bus, "--node", "4", "0x1A00", "1", "--type", "uint32")
     assert code == 0 and "= 1614872592 (0x60410010)" in out
 
