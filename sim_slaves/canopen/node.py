@@ -459,8 +459,16 @@ class CanopenNode:
 
         ``now``: the caller's clock in seconds (inhibit time and event timer of event-driven TPDOs).
         """
-        if self.bus_off or self.state != NmtState.OPERATIONAL:
+        if not self.sync_inputs():
             return []
+        if self.app is not None:
+            self.app.step(self.od, dt_s)
+        return self.sync_outputs(now)
+
+    def sync_inputs(self) -> bool:
+        """First half of :meth:`sync`: apply the synchronous RPDOs; False when the node does not take part."""
+        if self.bus_off or self.state != NmtState.OPERATIONAL:
+            return False
         self._refresh_pdos()
         self.sync_count += 1
         if self._pending:
@@ -469,8 +477,10 @@ class CanopenNode:
                 if rt is not None:
                     rt.codec.unpack(data)
             self._pending.clear()
-        if self.app is not None:
-            self.app.step(self.od, dt_s)
+        return True
+
+    def sync_outputs(self, now: float) -> list[Frame]:
+        """Second half of :meth:`sync`, after the drive stepped: the TPDOs due on this SYNC."""
         out: list[Frame] = []
         for rt in self._tpdos:
             t = rt.transmission_type

@@ -20,23 +20,22 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
+from sim_slaves.drive402 import DriveParams
+from sim_slaves.drive_bank import DriveBank
 
 TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
 IDLE_WAIT_S = 0.005  # longest wait for a frame before the timers are looked at again
 
 
-def _default_app(drive: DriveMap) -> Any:
-    rx = {c.index for p in drive.rpdo for c in p.channels}
-    if drive.profile != "cia402" and 0x6040 not in rx:
-        return None
-    from sim_slaves.drive402 import Cia402Drive
-
-    return Cia402Drive()
+def _is_drive(drive: DriveMap) -> bool:
+    """A CiA 402 drive is emulated for ``profile: cia402`` maps and maps that map the controlword."""
+    return drive.profile == "cia402" or any(c.index == 0x6040 for p in drive.rpdo for c in p.channels)
 
 
 class CanopenSimulator(BusThread):
@@ -60,10 +59,17 @@ class CanopenSimulator(BusThread):
         self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
         self.nodes: dict[int, CanopenNode] = {}
+        ids = [node_id for _, node_id in nodes]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"node id {next(i for i in ids if ids.count(i) > 1)} used twice")
+        # every CiA 402 drive in one bank, stepped together on SYNC (slot k: the k-th drive node)
+        drives = [node_id for drive, node_id in nodes if _is_drive(drive)]
+        self.bank = DriveBank([DriveParams() for _ in drives])
+        self._slot = {node_id: k for k, node_id in enumerate(drives)}
         for drive, node_id in nodes:
-            if node_id in self.nodes:
-                raise ValueError(f"node id {node_id} used twice")
-            self.nodes[node_id] = CanopenNode(drive, node_id, _default_app(drive))
+            k = self._slot.get(node_id)
+            self.nodes[node_id] = CanopenNode(drive, node_id, None if k is None else self.bank.drives[k])
+        self._active = np.zeros(len(drives), dtype=np.bool_)  # drive slots stepping on this SYNC
         self.errors: list[str] = []
         self.syncs = 0
         self.sync_cpu_s = 0.0  # thread CPU time on SYNCs (RPDOs applied, drives stepped, TPDOs sent)
@@ -158,10 +164,7 @@ class CanopenSimulator(BusThread):
                 dt = 0.001 if self._last_sync is None else min(0.01, max(1e-4, now - self._last_sync))
             self._last_sync = now
             self.syncs += 1
-            for n in self.nodes.values():
-                frames = n.sync(dt, now)
-                if frames:
-                    self._send(frames)
+            self._sync(dt, now)
             self.sync_cpu_s += time.thread_time() - t0
             return
         if cob == COB_NMT:
@@ -194,6 +197,36 @@ class CanopenSimulator(BusThread):
         if consumers is not None:
             for n in consumers:
                 n.rpdo(cob, data)
+
+    def _sync(self, dt: float, now: float) -> None:
+        """Every OPERATIONAL node's RPDOs applied, their drives stepped as runs of the bank, TPDOs sent."""
+        bank, active, slot = self.bank, self._active, self._slot
+        active.fill(False)
+        taking_part: list[CanopenNode] = []
+        for node_id, n in self.nodes.items():
+            if n.sync_inputs():
+                taking_part.append(n)
+                k = slot.get(node_id)
+                if k is not None:
+                    bank.load_inputs(k, n.od)
+                    active[k] = True
+        k = 0
+        while k < bank.n:  # contiguous runs of drives that take part (a stopped node's drive stands still)
+            if not active[k]:
+                k += 1
+                continue
+            end = k
+            while end < bank.n and active[end]:
+                end += 1
+            bank.step(k, end, dt)
+            k = end
+        for n in taking_part:
+            k2 = slot.get(n.node_id)
+            if k2 is not None:
+                bank.store_outputs(k2, n.od)
+            frames = n.sync_outputs(now)
+            if frames:
+                self._send(frames)
 
     def _build_routes(self) -> dict[int, list[CanopenNode]]:
         routes: dict[int, list[CanopenNode]] = {}

@@ -145,6 +145,39 @@ def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
         assert ctrl.all_reached and np.all(np.abs(pos - start) < 2e-3)
 
 
+def test_one_drive_of_the_bank_faults_while_the_others_keep_tracking(
+    nodes: CanopenSimulator, channel: str, tmp_path: Path
+) -> None:
+    """The 12 emulated drives are one DriveBank stepped together on SYNC; a fault in one stops only it."""
+    assert nodes.bank.n == 12 and all(nodes.node(n).app is nodes.bank.drives[n - 1] for n in range(1, 13))
+    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=1000)) as net:
+        op = net.bring_up()
+        img = op["bus"]
+        sw, cw = img.inputs["statusword"], img.outputs["controlword"]
+        display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
+        pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
+        ctrl = Cia402Controller(12, mode=Mode.CSP)
+        ctrl.set_goal(Goal.ENABLE)
+        for _ in range(100):
+            if op.exchange().fresh:
+                ctrl.step(sw, cw, display, mode)
+                target[:] = pos
+                if ctrl.all_reached:
+                    break
+        assert ctrl.all_reached, ctrl.state
+        start = pos.copy()
+        nodes.node(5).app.inject_fault(0x2310)  # over-current in node 5's drive
+        for k in range(1, 101):
+            target[:] = start + 0.002 * k  # 0.4 rad/s ramp
+            op.exchange()
+        states = [nodes.node(n).app.state for n in range(1, 13)]
+        assert states[4] is State402.FAULT
+        assert states[:4] + states[5:] == [State402.OPERATION_ENABLED] * 11
+        others = np.arange(12) != 4
+        assert np.all(np.abs(pos[others] - target[others]) < 5e-3)  # they still follow the ramp
+        assert abs(pos[4] - start[4]) < 0.05  # the faulted one stopped (its quick-stop ramp, then still)
+
+
 def test_sdo_abort_at_bring_up_names_node_object_code_and_enables_nothing(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
