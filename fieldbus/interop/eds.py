@@ -145,8 +145,12 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
             if cob_var is not None:
                 cob_rel = _relative_cob(cob_var)
                 cob_val = _value(cob_var)
-                if cob_val is not None and int(cob_val) & 0x80000000:
-                    skipped.append(f"{label}: COB-ID 0x{int(cob_val):08X} is invalid (bit 31) by default")
+                invalid = next(
+                    (int(v) for v in (cob_val, cob_rel) if v is not None and int(v) & 0x80000000), None
+                )
+                if invalid is not None:  # absolute, resolved, or $NODEID+0x80000380 without a node id
+                    shown = f"0x{invalid:08X}" if cob_val is not None else f"$NODEID+0x{invalid:08X}"
+                    skipped.append(f"{label}: COB-ID {shown} is invalid (bit 31) by default")
                     continue
                 if cob_rel is not None:
                     can["cob_id"] = cob_rel & 0x7FF
