@@ -428,24 +428,28 @@ class ObjectDictionary:
                     )
                     if ch.sub_index and ch.index not in od._objects:
                         od.describe(ch.index, ch.name)
+        # a fixed assignment (ethercat.pdo_assign: false) and a fixed PDO's mapping are read-only
+        assign_access = Access.RW if drive.ethercat.pdo_assign else Access.RO
         for assign, pdos in ((RXPDO_ASSIGN, drive.rpdo), (TXPDO_ASSIGN, drive.tpdo)):
             kind = "RxPDO" if assign == RXPDO_ASSIGN else "TxPDO"
             od.describe(assign, f"{kind} assign", ObjectCode.ARRAY, 0x0006)
-            od.add(assign, 0, U8, len(pdos), name="Highest sub-index supported")
+            od.add(assign, 0, U8, len(pdos), access=assign_access, name="Highest sub-index supported")
             for sub in range(1, max(ASSIGN_CAPACITY, len(pdos)) + 1):
                 od.add(
                     assign,
                     sub,
                     U16,
                     pdos[sub - 1].index if sub <= len(pdos) else 0,
+                    access=assign_access,
                     name=f"SubIndex {sub:03d}",
                 )
             for pdo in pdos:
+                access = Access.RO if pdo.fixed else Access.RW
                 od.describe(pdo.index, f"{kind} mapping {pdo.number}", ObjectCode.RECORD, DEFTYPE_PDO_MAPPING)
-                od.add(pdo.index, 0, U8, len(pdo.channels), name="Highest sub-index supported")
+                od.add(pdo.index, 0, U8, len(pdo.channels), access=access, name="Highest sub-index supported")
                 for sub in range(1, max(MAPPING_CAPACITY, len(pdo.channels)) + 1):
                     raw = pdo.channels[sub - 1].mapping_value if sub <= len(pdo.channels) else 0
-                    od.add(pdo.index, sub, U32, raw, name=f"SubIndex {sub:03d}")
+                    od.add(pdo.index, sub, U32, raw, access=access, name=f"SubIndex {sub:03d}")
         od.fix_subindex0()
         return od
 

@@ -38,6 +38,9 @@ _TYPES: dict[str, str] = {
     "INTEGER8": "int8", "INTEGER16": "int16", "INTEGER32": "int32", "INTEGER64": "int64",
     "UNSIGNED8": "uint8", "UNSIGNED16": "uint16", "UNSIGNED32": "uint32", "UNSIGNED64": "uint64",
     "BOOLEAN": "bool",
+    # not ETG.2000 names, but written by some ESI generators (Pollen's Orbita2d file)
+    "INT8": "int8", "INT16": "int16", "INT32": "int32", "INT64": "int64",
+    "UINT8": "uint8", "UINT16": "uint16", "UINT32": "uint32", "UINT64": "uint64",
 }  # fmt: skip
 _BIT_RE = re.compile(r"^BIT([2-8])$")
 _ODD_RE = re.compile(r"^(U?)INT(24|40|48|56)$")
@@ -505,16 +508,36 @@ def import_esi(
     dev_info, dev = _pick(doc, _devices(doc), device)
     warnings: list[str] = []
 
+    mailbox = _child(dev, "Mailbox")
+    coe_elem = None if mailbox is None else _child(mailbox, "CoE")
+    coe = coe_elem is not None
+    # ETG.2000: the master downloads the assignment (0x1C1x) only with PdoAssign, the mapping only with
+    # PdoConfig (both default false); otherwise the device's own is used (and a mapping is verified)
+    fixed_assign = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoAssign")
+    fixed_config = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoConfig")
     all_pdos = _pdos(doc, dev)
     for p in all_pdos:
         lo, hi = (0x1600, 0x17FF) if p.rx else (0x1A00, 0x1BFF)
         if not lo <= p.index <= hi:
             kind = "RxPdo" if p.rx else "TxPdo"
-            raise doc.err(p.elem, f"{kind} index 0x{p.index:04X} is outside 0x{lo:04X}-0x{hi:04X}", "Index")
+            if not (fixed_assign and 0x1600 <= p.index <= 0x1BFF):
+                raise doc.err(
+                    p.elem, f"{kind} index 0x{p.index:04X} is outside 0x{lo:04X}-0x{hi:04X}", "Index"
+                )
+            warnings.append(
+                f"line {doc.lines.get(id(p.elem))}: {kind} index 0x{p.index:04X} is outside ETG.1000.6's "
+                f"0x{lo:04X}-0x{hi:04X}; kept as the device names it (its PDO assignment is fixed)"
+            )
+    if fixed_assign and alternatives:
+        raise doc.err(
+            dev if coe_elem is None else coe_elem,
+            "--alternative: the device's PDO assignment is fixed (CoE@PdoAssign is not true)",
+        )
     assigned = _assign(doc, dev, all_pdos, alternatives)
     imported: dict[bool, list[ImportedPdo]] = {True: [], False: []}
     for p in assigned:
-        imported[p.rx].append(ImportedPdo(p.index, p.name, _entries(doc, p, warnings), fixed=p.fixed))
+        entries = _entries(doc, p, warnings)
+        imported[p.rx].append(ImportedPdo(p.index, p.name, entries, fixed=p.fixed or fixed_config))
     others = tuple(f"0x{p.index:04X} {p.name}".strip() for p in all_pdos if p not in assigned)
 
     modes = _dc_modes(doc, dev)
@@ -527,8 +550,6 @@ def import_esi(
     elif dc_mode is None:
         chosen_dc = next((m for m in modes if m.values["assign_activate"]), None)
 
-    mailbox = _child(dev, "Mailbox")
-    coe = mailbox is not None and _child(mailbox, "CoE") is not None
     mbx_size = None
     for sm in _children(dev, "Sm"):
         if _text(sm) == "MBoxOut":
@@ -567,6 +588,8 @@ def import_esi(
     lines += pdo_lines("tpdo", tx)
     lines += _sm_lines(doc, dev, assigned)
     eth = [f"  coe: {'true' if coe else 'false'}"]
+    if fixed_assign:
+        eth.append("  pdo_assign: false  # CoE@PdoAssign is not true: the device's own assignment is used")
     if coe and mbx_size is not None and 32 <= mbx_size <= 1486:
         eth.append(f"  mailbox_size: {mbx_size}")
     if chosen_dc is not None:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fieldbus.core.al import AL_ERROR, al_status_name, state_name
+from fieldbus.core.sdo.info import ACCESS_WRITE_PREOP
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, SdoAbortError
 from fieldbus.scan.model import Device, Identity, PdoEntry, ScannedPdo, entry_name, entry_type, mapping_entry
 
@@ -280,33 +281,45 @@ def _coe(pysoem: Any, s: Any, out: EthercatSlave, use_info: bool) -> None:
         out.rpdo, out.tpdo = [], []
         return
     wanted = {(e.index, e.sub_index) for p in out.rpdo + out.tpdo for e in p.entries}
-    described = _describe(s, wanted, out) if use_info else {}
+    config = {(RXPDO_ASSIGN, 0), (TXPDO_ASSIGN, 0)} | {(p.index, 0) for p in out.rpdo + out.tpdo}
+    described = _describe(s, wanted | config, out) if use_info else {}
     for p in out.rpdo + out.tpdo:
         for e in p.entries:
-            code, name = described.get((e.index, e.sub_index), (None, None))
+            code, name, _ = described.get((e.index, e.sub_index), (None, None, None))
             e.type, e.source = entry_type(e.index, e.sub_index, e.bits, code)
             e.name = entry_name(e.index, e.sub_index, name)
+
+    def read_only(key: tuple[int, int]) -> bool:
+        access = described.get(key, (None, None, None))[2]
+        return access is not None and not access & ACCESS_WRITE_PREOP
+
+    for p in out.rpdo + out.tpdo:
+        p.fixed = read_only((p.index, 0))
+    outside = any(not 0x1600 <= p.index <= 0x17FF for p in out.rpdo) or any(
+        not 0x1A00 <= p.index <= 0x1BFF for p in out.tpdo
+    )
+    out.assign_fixed = outside or read_only((RXPDO_ASSIGN, 0)) or read_only((TXPDO_ASSIGN, 0))
 
 
 def _describe(
     s: Any, wanted: set[tuple[int, int]], out: EthercatSlave
-) -> dict[tuple[int, int], tuple[int, str]]:
-    """(CoE data type, name) of the mapped objects from SDO Information (pysoem's ``slave.od``)."""
+) -> dict[tuple[int, int], tuple[int, str, int | None]]:
+    """(CoE data type, name, access bits or None) of objects from SDO Information (pysoem's ``slave.od``)."""
     if not out.sdo_info or not wanted:
         return {}
     indices = {i for i, _ in wanted if i > 0x0007}
-    found: dict[tuple[int, int], tuple[int, str]] = {}
+    found: dict[tuple[int, int], tuple[int, str, int | None]] = {}
     try:
         for obj in s.od:
             if obj.index not in indices:
                 continue
             entries = obj.entries
             if not entries:
-                found[(obj.index, 0)] = (int(obj.data_type), c_string(obj.name))
+                found[(obj.index, 0)] = (int(obj.data_type), c_string(obj.name), None)
                 continue
             for sub, e in enumerate(entries):
                 if (obj.index, sub) in wanted:
-                    found[(obj.index, sub)] = (int(e.data_type), c_string(e.name))
+                    found[(obj.index, sub)] = (int(e.data_type), c_string(e.name), int(e.obj_access))
     except Exception as exc:  # pysoem raises SdoInfoError with a message only
         out.errors.append(f"SDO Information: {getattr(exc, 'message', exc)}")
     return found

@@ -49,6 +49,7 @@ class ScannedPdo:
     transmission_type: int | None = None
     inhibit_time: int | None = None
     event_timer: int | None = None
+    fixed: bool = False  # EtherCAT: SDO Information says its mapping object is read-only
 
 
 @dataclass
@@ -62,6 +63,9 @@ class Device:
     device_type: int | None = None
     device_name: str | None = None
     errors: list[str] = field(default_factory=list)  # what could not be read, with the reason
+    # EtherCAT: the device's PDO assignment (0x1C12/0x1C13) is read-only (SDO Information), or it names a
+    # PDO outside ETG.1000.6's ranges: a map written for it says ethercat.pdo_assign: false
+    assign_fixed: bool = False
 
 
 def entry_type(index: int, sub: int, bits: int, coe_code: int | None = None) -> tuple[str, str]:

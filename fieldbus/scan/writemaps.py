@@ -156,6 +156,8 @@ def map_text(p: Placed, bus: BusSpec, source: str) -> str:
         names: set[str] = set()
         for pdo in used:
             lines.append(f"  - index: 0x{pdo.index:04X}")
+            if pdo.fixed and not can:
+                lines.append("    fixed: true  # its mapping object is read-only: verified, never written")
             lines.append("    channels:")
             for e in pdo.entries:
                 name = e.name or default_name(e.index, e.sub_index)
@@ -168,6 +170,10 @@ def map_text(p: Placed, bus: BusSpec, source: str) -> str:
                 )
     if not p.coe and not can:
         lines.append("ethercat: {coe: false}")
+    elif d.assign_fixed and not can:
+        lines.append(
+            "ethercat: {pdo_assign: false}  # the device's own PDO assignment (read-only or off-range)"
+        )
     if can:
         lines.append("canopen:")
         if p.heartbeat_ms is not None:

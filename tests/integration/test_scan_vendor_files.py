@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 
 from fieldbus.cli import main
+from fieldbus.core.network import load_network
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.interop.device import load_device
 
@@ -85,3 +86,42 @@ def test_canopen_emulator_from_an_eds_scans_as_the_file_says(capsys: pytest.Capt
     assert node["node_id"] == 2
     assert (node["identity"]["vendor_id"], node["identity"]["product_id"]) == (src.vendor_id, src.product_id)
     assert _scanned(node) == _entries(src)
+
+
+ORBITA = str(DATA / "esi" / "pollen_orbita2d.xml")
+
+
+@pytest.mark.veth
+@pytest.mark.timeout(300)
+@pytest.mark.usefixtures("generous_pysoem_timeouts")
+def test_a_fixed_assignment_servo_from_its_esi_scans_and_runs(
+    ethercat_emulator: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Orbita2d (CoE, DC, TxPDOs 0x1700/0x1800, no PdoAssign): the emulator built from the file has a
+    read-only assignment and fixed mappings, so a bring-up that wrote either would abort."""
+    emu = ethercat_emulator([ORBITA, ORBITA], app="none")
+    assert main(["import", "esi", ORBITA, "-o", str(tmp_path / "orbita2d.yaml")]) == 0
+    capsys.readouterr()
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 8000\nreceive_timeout_us: 6000\nbuses:\n"
+        f"  - {{name: arm, type: ethercat, interface: {emu.iface}, "
+        "slaves: [{name: 'o{i}', map: orbita2d.yaml, count: 2}]}\n"
+    )
+    code = main(["run", str(net), "--cycles", "200", "--json"])
+    (b,) = json.loads(capsys.readouterr().out)["buses"]
+    assert (b["expected_wkc"], b["short"]) == (6, 0)
+    assert b["timeouts"] <= 10 and code in (0, 3)  # a user-space emulator: late now and then
+    # the scan reads the device's own assignment (0x1C13 = 0x1700, 0x1800) and writes a map that runs too
+    out_dir = tmp_path / "maps"
+    args = ["--json", "--write-maps", str(out_dir), "--cycle-time-us", "8000", "--receive-timeout-us", "6000"]
+    assert main(["scan", "ethercat", emu.iface, *args]) == 0
+    slaves = json.loads(capsys.readouterr().out)["slaves"]
+    src = load_device(ORBITA)
+    assert all(_scanned(s) == _entries(src) for s in slaves)
+    assert all(s["assign_fixed"] and all(p["fixed"] for p in s["rpdo"] + s["tpdo"]) for s in slaves)
+    written = load_network(out_dir / "network.yaml").buses[0].slaves[0].map
+    assert not written.ethercat.pdo_assign and all(p.fixed for p in (*written.rpdo, *written.tpdo))
+    code = main(["run", str(out_dir / "network.yaml"), "--cycles", "200", "--json"])
+    (b,) = json.loads(capsys.readouterr().out)["buses"]
+    assert (b["expected_wkc"], b["short"]) == (6, 0) and b["timeouts"] <= 10 and code in (0, 3)

@@ -11,6 +11,7 @@ from fieldbus import load_drive_map
 from fieldbus.cli import main
 from fieldbus.core.pdo.load import drive_map_from_text
 from fieldbus.core.pdo.model import Direction
+from fieldbus.core.sdo.plan import StepKind, coe_plan
 from fieldbus.errors import PdoMapError
 from fieldbus.interop.esi import EsiDeviceChoiceError, import_esi, list_devices, parse_int
 
@@ -44,7 +45,7 @@ SERVO = """<?xml version="1.0" encoding="ISO-8859-1"?>
         <Entry><Index>#x6064</Index><SubIndex>0</SubIndex><BitLen>32</BitLen><Name>Position actual value</Name><DataType>DINT</DataType></Entry>
         <Entry><Index>#x2002</Index><SubIndex>1</SubIndex><BitLen>32</BitLen><Name>Motor temperature</Name><DataType>REAL</DataType></Entry>
       </TxPdo>
-      <Mailbox DataLinkLayer="true"><CoE SdoInfo="true" PdoAssign="true"/></Mailbox>
+      <Mailbox DataLinkLayer="true"><CoE SdoInfo="true" PdoAssign="true" PdoConfig="true"/></Mailbox>
       <Dc>
         <OpMode><Name>Synchron</Name><Desc>SM-Synchron</Desc><AssignActivate>#x0</AssignActivate></OpMode>
         <OpMode><Name>DC</Name><Desc>DC-Synchron</Desc><AssignActivate>#x300</AssignActivate>
@@ -137,6 +138,25 @@ def test_servo_identity_pdos_and_dc() -> None:
     ]  # fmt: skip
     assert r.alternatives == ("0x1601 RxPDO CSV",)
     assert "Servo drive" in d.description  # the English name, not the German one
+
+
+def test_without_pdo_assign_and_pdo_config_the_device_keeps_its_own() -> None:
+    # ETG.2000: CoE@PdoAssign and @PdoConfig default to false - the master then neither assigns nor maps
+    plain = SERVO.replace(' PdoAssign="true" PdoConfig="true"', "")
+    r = import_esi(plain, "servo.xml")
+    d = r.drive
+    assert d.ethercat.pdo_assign is False and all(p.fixed for p in (*d.rpdo, *d.tpdo))
+    assert "pdo_assign: false" in r.text
+    plan = coe_plan(d)
+    assert not {s.index for s in plan.steps} & {0x1C12, 0x1C13}  # the assignment is never written
+    assert {s.index for s in plan.steps if s.kind is StepKind.VERIFY} == {0x1600, 0x1A00}  # mappings checked
+    with pytest.raises(PdoMapError, match=r"the device's PDO assignment is fixed") as ei:
+        import_esi(plain, "servo.xml", alternatives=["0x1601"])
+    assert ei.value.line == _line(plain, "<CoE")
+    # assignable, mapping fixed (a terminal with selectable predefined PDOs): assignment written, mapping verified
+    d2 = import_esi(SERVO.replace(' PdoConfig="true"', ""), "servo.xml").drive
+    assert d2.ethercat.pdo_assign and all(p.fixed for p in (*d2.rpdo, *d2.tpdo))
+    assert {0x1C12, 0x1C13} <= {s.index for s in coe_plan(d2).steps}
 
 
 def test_alternative_replaces_the_pdo_it_excludes() -> None:

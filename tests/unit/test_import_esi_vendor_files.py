@@ -3,7 +3,7 @@
 Three shapes: a file with several devices and two revisions of one product and no
 CoE (AB&T EasyCAT), a digital I/O board whose PDOs are single bits (rt-labs'
 EVB-LAN9252 demo), and a robot actuator with CoE and DC whose TxPDOs break the
-ETG index ranges (Pollen Robotics' Orbita2d): refused, with the line and the rule.
+ETG index ranges (Pollen Robotics' Orbita2d): its assignment is fixed, so they are kept, with a warning.
 Expected values below were read from the files by hand.
 """
 
@@ -15,7 +15,6 @@ import pytest
 
 from fieldbus import load_drive_map
 from fieldbus.cli import main
-from fieldbus.errors import PdoMapError
 from fieldbus.interop.esi import EsiDeviceChoiceError, import_esi_file, list_devices
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "esi"
@@ -68,9 +67,22 @@ def test_bit_entries_of_a_digital_io_board(tmp_path: Path) -> None:
     assert main(["validate", str(out)]) == 0
 
 
-def test_a_txpdo_outside_the_etg_range_is_refused_where_it_is_written() -> None:
-    """Orbita2d's TxPDOs are 0x1700 and 0x1800 (ETG.1000.6: 0x1A00-0x1BFF); nothing is guessed."""
-    with pytest.raises(PdoMapError, match=r"TxPdo index 0x1700 is outside 0x1A00-0x1BFF") as info:
-        import_esi_file(str(ORBITA))
-    assert info.value.line == 119  # the <Index> of the first TxPdo
-    assert "Descriptions/Devices/Device/TxPdo" in str(info.value)
+def test_a_fixed_assignment_servo_imports_as_the_device_names_its_pdos(tmp_path: Path) -> None:
+    """Orbita2d: CoE without PdoAssign/PdoConfig (line 250), so its own assignment and mapping are used;
+    its TxPDOs are 0x1700 and 0x1800 (ETG.1000.6: 0x1A00-0x1BFF), kept with a warning naming the line."""
+    r = import_esi_file(str(ORBITA))
+    d = r.drive
+    assert (d.vendor_id, d.product_id, d.revision) == (0xF3F, 0x1, 0x1)
+    assert d.ethercat.pdo_assign is False and d.ethercat.coe
+    assert [p.index for p in d.rpdo] == [0x1600] and [p.index for p in d.tpdo] == [0x1700, 0x1800]
+    assert all(p.fixed for p in (*d.rpdo, *d.tpdo))
+    assert [w.split(":")[0] for w in r.warnings if "outside" in w] == ["line 119", "line 194"]
+    # out: UINT16 + UINT8 + 10 REAL = 344 bits; in: 0x1700 UINT16 + UINT8 + 8 REAL = 280,
+    # 0x1800 3 UINT16 + UINT8 + 6 REAL = 248 (REAL is float; UINT16/UINT8 are taken as uint16/uint8)
+    assert [c.type.name for c in d.rpdo[0].channels][:3] == ["uint16", "uint8", "float"]
+    assert [p.bits for p in (*d.rpdo, *d.tpdo)] == [344, 280, 248]
+    assert d.profile is None  # the file maps 0x6041 in its RxPDO and 0x6040 in its TxPDO
+    assert d.assign_activate == 0x0300  # DC mode DC_Sync
+    out = tmp_path / "orbita2d.yaml"
+    out.write_text(r.text)
+    assert load_drive_map(out).tpdo == d.tpdo  # what was written loads back as the same map

@@ -50,7 +50,9 @@ _CHANNEL_KEYS = (
 )  # fmt: skip
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
-_ETHERCAT_KEYS = ("coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes")
+_ETHERCAT_KEYS = (
+    "coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes", "pdo_assign",
+)  # fmt: skip
 _DC_MODE_KEYS = (
     "name", "description", "assign_activate", "sync0_cycle_factor", "sync0_cycle_ns", "sync0_shift_ns",
     "sync1_cycle_factor", "sync1_cycle_ns", "sync1_shift_ns",
@@ -95,11 +97,18 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     canopen = _canopen(r, canopen_raw) if "canopen" in top else None
     can_pdos = _canopen_pdos(r, canopen_raw) if isinstance(canopen_raw, Mapping) else {}
 
+    ethercat = _ethercat(r, top.get("ethercat"))
+    if not ethercat.pdo_assign and canopen is not None:
+        raise r.err(
+            ("ethercat", "pdo_assign"),
+            "a fixed PDO assignment takes PDO indexes as the device names them; "
+            "a map with a canopen section needs the CiA 301 ranges (0x1600-0x17FF, 0x1A00-0x1BFF)",
+        )
     if rawcan is not None:
         rpdo, tpdo = raw_rpdo, raw_tpdo
     else:
-        rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos)
-        tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos)
+        rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos, ethercat.pdo_assign)
+        tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos, ethercat.pdo_assign)
     for index, (_, path) in can_pdos.items():
         if not any(p.index == index for p in (*rpdo, *tpdo)):
             raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
@@ -117,7 +126,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         rpdo=rpdo,
         tpdo=tpdo,
         sm=_sync_managers(r, top.get("sm")),
-        ethercat=_ethercat(r, top.get("ethercat")),
+        ethercat=ethercat,
         canopen=canopen,
         rawcan=rawcan,
         source=doc.file,
@@ -158,9 +167,10 @@ def _pdos(
     direction: Direction,
     canopen: CanopenConfig | None,
     can_pdos: dict[int, tuple[int, PathT]],
+    pdo_assign: bool = True,
 ) -> tuple[Pdo, ...]:
     key = direction.yaml_key
-    lo, hi = COE_RANGES[direction]
+    lo, hi = COE_RANGES[direction] if pdo_assign else (0x1600, 0x1BFF)
     pdos: list[Pdo] = []
     seen_index: dict[int, int] = {}
     seen_names: dict[str, PathT] = {}
@@ -175,8 +185,9 @@ def _pdos(
         index = r.integer(m["index"], (*ppath, "index"), 0, 0xFFFF)
         if not lo <= index <= hi:
             what = "RxPDO (master outputs)" if direction is Direction.OUTPUTS else "TxPDO (master inputs)"
+            hint = " (fixed assignment? ethercat.pdo_assign: false)" if 0x1600 <= index <= 0x1BFF else ""
             raise r.err(
-                (*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}"
+                (*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}{hint}"
             )
         if index in seen_index:
             raise r.err(
@@ -489,6 +500,7 @@ def _ethercat(r: Reader, raw: Any) -> EthercatConfig:
         sync1_cycle_ns=r.integer(m.get("sync1_cycle_ns", 0), (*path, "sync1_cycle_ns"), 0, 2**32 - 1),
         serial=r.integer(m.get("serial", 0), (*path, "serial"), 0, 0xFFFFFFFF),
         dc_modes=_dc_modes(r, m.get("dc_modes")),
+        pdo_assign=r.boolean(m.get("pdo_assign", True), (*path, "pdo_assign")),
     )
 
 

@@ -179,6 +179,9 @@ class EthercatConfig:
     revision: int = 0
     serial: int = 0
     dc_modes: tuple[DcMode, ...] = ()  # the device's DC operation modes (from its ESI); informational
+    # False: the device's PDO assignment (0x1C12/0x1C13) is fixed (ESI CoE@PdoAssign not true); bring-up
+    # never writes it, and PDO indexes anywhere in 0x1600-0x1BFF are taken as the device names them
+    pdo_assign: bool = True
 
 
 @dataclass(frozen=True)

@@ -117,6 +117,9 @@ def _startup_steps(drive: DriveMap) -> list[SdoStep]:
 def coe_plan(drive: DriveMap) -> SdoPlan:
     """The CoE (EtherCAT) plan: PDO assignment and mapping, then start-up SDOs.
 
+    With ``ethercat.pdo_assign: false`` the assignment is the device's own and
+    is not written; each PDO's mapping is still written (or, ``fixed``, verified).
+
     Empty for a map with ``ethercat.coe: false`` but start-up SDOs (mapping
     then comes from the SII).
     """
@@ -125,11 +128,13 @@ def coe_plan(drive: DriveMap) -> SdoPlan:
             raise FieldbusError(f"{drive.name}: start-up SDOs need CoE, but ethercat.coe is false")
         return SdoPlan(drive.name, "coe", ())
     steps: list[SdoStep] = []
-    if drive.rpdo or drive.tpdo:
+    assigns = (drive.rpdo or drive.tpdo) and drive.ethercat.pdo_assign  # False: the device's is fixed
+    if assigns:
         steps.append(_w(0x1C12, 0, _u8(0), "clear RxPDO assignment (SM2, outputs)", final=False))
         steps.append(_w(0x1C13, 0, _u8(0), "clear TxPDO assignment (SM3, inputs)", final=False))
-        for pdo in (*drive.rpdo, *drive.tpdo):
-            steps.extend(_mapping_steps(pdo, pdo.index))
+    for pdo in (*drive.rpdo, *drive.tpdo):
+        steps.extend(_mapping_steps(pdo, pdo.index))
+    if assigns:
         for assign, pdos in ((0x1C12, drive.rpdo), (0x1C13, drive.tpdo)):
             for i, pdo in enumerate(pdos, start=1):
                 steps.append(_w(assign, i, _u16(pdo.index), f"assign PDO 0x{pdo.index:04X}"))
