@@ -374,6 +374,10 @@ BAD = {
     "default input": HEAD + TPDO + "      - {index: 0x6041, sub_index: 0, type: uint16, default: 0}\n",
     "default fit": HEAD + RPDO + "      - {index: 0x6060, sub_index: 0, type: int8, default: 300}\n",
     "factor 0": HEAD + RPDO + "      - {index: 0x607A, sub_index: 0, type: int32, factor: 0}\n",
+    "factor tiny": HEAD + RPDO + "      - {index: 0x607A, sub_index: 0, type: int32, factor: 1.0e-320}\n",
+    "offset over factor": HEAD
+    + RPDO
+    + "      - {index: 0x607A, sub_index: 0, type: int32, factor: 1.0e-300, offset: 1.0e+300}\n",
     "scaled bits": HEAD + TPDO + "      - {index: 0x6000, sub_index: 1, type: bool, mask: 1, unit: V}\n",
     "float align": HEAD
     + TPDO

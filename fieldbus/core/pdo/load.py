@@ -299,7 +299,11 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
     factor = r.number(m["factor"], (*path, "factor")) if "factor" in m else 1.0
     if factor == 0.0:
         raise r.err((*path, "factor"), "factor 0 would lose the value")
+    if not math.isfinite(1.0 / factor):  # the codec divides by it (outputs) or by its inverse (inputs)
+        raise r.err((*path, "factor"), f"factor {factor!r} is too small: 1/factor overflows a double")
     offset = r.number(m["offset"], (*path, "offset")) if "offset" in m else 0.0
+    if not math.isfinite(offset / factor):
+        raise r.err((*path, "offset"), f"offset {offset!r} / factor {factor!r} overflows a double")
     unit = r.string(m["unit"], (*path, "unit")) if "unit" in m else None
     scaled = any(k in m for k in ("factor", "offset", "unit"))
     if scaled and (dt.is_bits):
