@@ -8,7 +8,9 @@ enter-motor-mode frame to every motor and waits for each to answer;
 ``stop()`` sends exit-motor-mode.
 
 ``receive()`` returns the number of replies that arrived (the "working
-counter" of a CAN cycle) and ``arrived()`` says which motors answered.
+counter" of a CAN cycle) and ``arrived()`` says which motors answered. A
+reply that comes after its cycle's timeout is dropped at the next ``send()``
+and counted in ``late_replies``: it never passes for the next cycle's.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ class RawCanBackend(Backend):
         self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
         self._arrived = np.zeros(self.n_slaves, dtype=bool)
         self._timeout_s = bus.receive_timeout_us / 1e6
+        self.late_replies = 0  # replies that came after their cycle's receive timeout (dropped, never used)
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -124,6 +127,12 @@ class RawCanBackend(Backend):
         return [i for i in range(self.n_slaves) if not self._arrived[i]]
 
     def send(self) -> None:
+        # What is still queued came after the last receive(): a reply there answers an earlier
+        # command (late) and must not pass for this cycle's; it is counted and dropped.
+        bus = self._bus
+        while (msg := bus.recv(timeout=0)) is not None:
+            if not msg.is_extended_id and msg.arbitration_id in self._node_byte:
+                self.late_replies += 1
         for msg, rev, data in self._cmd:
             np.copyto(data, rev)
             self._bus.send(msg)

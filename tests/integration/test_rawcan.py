@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -135,6 +136,34 @@ def test_missing_replies_are_stale_and_held(network: tuple[Path, str]) -> None:
         sim.silence(4)
         stops = [op.exchange().safe_stop for _ in range(5)]
         assert stops == [False, False, False, True, True]
+
+
+def test_a_late_reply_is_counted_and_never_taken_for_the_next_cycles(network: tuple[Path, str]) -> None:
+    net_file, channel = network
+    drive = load_drive_map(MAP)
+    cfg = drive.rawcan
+    assert cfg is not None
+    reply_id = cfg.reply_id if cfg.reply_id is not None else cfg.command_id + 3
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        can.Bus(interface="virtual", channel=channel) as late_bus,
+        MitMotorSimulator(sim_bus, [(drive, n) for n in range(1, 5)], dt_s=0.002) as sim,
+        open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        legs = op["legs"]
+        for _ in range(5):
+            op.exchange()
+        sim.drop_replies(3, 1)
+        assert list(op.exchange().bus("legs").fresh) == [True, True, False, True]
+        # node 3's reply to that cycle turns up after the timeout: position at the top of its range
+        late = bytes([3, 0xFF, 0xFF, 0x80, 0x08, 0x00])
+        late_bus.send(can.Message(arbitration_id=reply_id, data=late, is_extended_id=False))
+        time.sleep(0.01)  # it is queued before the next cycle starts
+        res = op.exchange()
+        assert res.fresh  # this cycle's own reply, from the motor
+        assert abs(float(legs.inputs["position"][2])) < 1.0  # not the late frame's 12.5 rad
+        assert net.backends[0].late_replies == 1
 
 
 def test_safe_stop_zeroes_gains_and_torque_of_every_motor(network: tuple[Path, str]) -> None:
