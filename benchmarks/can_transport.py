@@ -1,0 +1,264 @@
+"""CAN between processes: python-can's udp_multicast against fieldbus_udp, the same master and nodes, in one run.
+
+The master (the raw-CAN backend, ``Operational.exchange()``) runs here; MIT-mode
+motors (``cubemars_ak80_9_mit.yaml``, ``sim_slaves.mit_motor``) run in child
+processes (``sim_slaves.can_process``), one per bus, on either transport:
+
+- **udp_multicast**: python-can's interface (msgpack per frame, the master
+  reads back every frame it sends);
+- **fieldbus_udp**: ``fieldbus.backends.udpcan`` (fixed 24-byte datagrams,
+  one preallocated receive buffer, own frames dropped by a tag).
+
+Rounds alternate the order of the two transports. Each round, per transport:
+
+a) 1 bus x 3 motors, ``exchange()`` back to back: p50 / p99 (µs);
+b) the seed's layout, 4 buses x 3 motors, paced at 1 kHz (``run_cycles``, as
+   ``fieldbus run`` does): ``exchange()`` p50 / p99 / max, overruns (cycles
+   that ended after their deadline), counted misses (bus cycles without every
+   reply), safe stops (10 misses in a row on a bus, the seed's rule).
+
+Both transports' emulator processes are started once and idle while the other
+transport runs. Percentiles are per round; the table shows their median over
+rounds (max: over all rounds), counts summed over rounds, and the ratio
+udp_multicast / fieldbus_udp of the p50s taken within each round (median).
+
+    python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import can
+import numpy as np
+
+from benchmarks._common import RoundProgress, machine_note, table
+from fieldbus import PDO_MAPS
+from fieldbus.core.pdo import load_drive_map
+from fieldbus.network import open_network
+from fieldbus.runtime.loop import gc_held, run_cycles
+from fieldbus.runtime.report import run_report
+from fieldbus.runtime.timing import CycleTimer
+from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
+from sim_slaves.mit_motor import MitMotorSimulator
+
+MIT_MAP = Path(PDO_MAPS) / "cubemars_ak80_9_mit.yaml"
+TRANSPORTS = ("udp_multicast", "fieldbus_udp")
+BUSES, MOTORS = 4, 3
+BACK_TO_BACK_TIMEOUT_US = 20_000  # (a): a round trip, never a timeout
+
+
+def network_text(buses: list[CanChannel], timeout_us: int, safe_stop_after: int = 10) -> str:
+    """A network file: one rawcan bus of MOTORS MIT motors per channel, 1 kHz."""
+    return (
+        f"cycle_time_us: 1000\nreceive_timeout_us: {timeout_us}\nsafe_stop_after: {safe_stop_after}\nbuses:\n"
+        + "".join(
+            f"  - {{name: leg{i}, type: rawcan, {b.network_keys()},\n"
+            f"     slaves: [{{name: 'leg{i}_m{{i}}', map: {json.dumps(str(MIT_MAP))}, node_id: 1, count: {MOTORS}}}]}}\n"
+            for i, b in enumerate(buses)
+        )
+    )
+
+
+def percentiles_us(ns: np.ndarray[Any, np.dtype[np.int64]]) -> tuple[float, float, float]:
+    """p50, p99 and max of durations in ns, as µs."""
+    p50, p99 = np.percentile(ns, [50, 99])
+    return float(p50) / 1e3, float(p99) / 1e3, float(ns.max()) / 1e3
+
+
+def back_to_back(net_file: Path, exchanges: int, warmup: int = 100) -> dict[str, float]:
+    """(a) ``exchange()`` back to back: p50 / p99 (µs) and missed cycles."""
+    with open_network(net_file) as net:
+        op = net.bring_up()
+        for _ in range(warmup):
+            op.exchange()
+        ns = np.zeros(exchanges, dtype=np.int64)
+        missed = 0
+        with gc_held():
+            for k in range(exchanges):
+                res = op.exchange()
+                ns[k] = res.exchange_ns
+                missed += not res.fresh
+    p50, p99, _ = percentiles_us(ns)
+    return {"p50_us": p50, "p99_us": p99, "missed": missed}
+
+
+def paced(net_file: Path, cycles: int) -> dict[str, float]:
+    """(b) every bus at 1 kHz on an absolute schedule: exchange percentiles, overruns, misses, safe stops."""
+    with open_network(net_file) as net:
+        op = net.bring_up()
+        ns = np.zeros(cycles, dtype=np.int64)
+
+        def step(k: int) -> None:
+            ns[k] = op.exchange().exchange_ns
+
+        timer = run_cycles(step, float(op.cycle_time_us), cycles, timer=CycleTimer(cycles))
+        report = run_report(op, timer, float(op.cycle_time_us))
+        fresh_at_end = bool(op.result.fresh)
+    p50, p99, mx = percentiles_us(ns)
+    return {
+        "p50_us": p50,
+        "p99_us": p99,
+        "max_us": mx,
+        "overruns": report["overruns"],
+        "missed": report["missed"],
+        "safe_stops": report["safe_stops"],
+        "fresh_at_end": fresh_at_end,
+    }
+
+
+def emulator_frame_us(frames: int = 500, batches: int = 5) -> float:
+    """The MIT emulator's own work per command frame (µs, median of ``batches``), here on a virtual bus."""
+    drive = load_drive_map(MIT_MAP)
+    with can.Bus(interface="virtual", channel=f"frame-cost-{time.monotonic_ns()}") as bus:
+        sim = MitMotorSimulator(bus, [(drive, n) for n in range(1, MOTORS + 1)], dt_s=0.001)
+        msg = can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False)
+        for _ in range(100):
+            sim.handle(msg)
+        per_batch = []
+        for _ in range(batches):
+            t0 = time.perf_counter()
+            for _ in range(frames):
+                sim.handle(msg)
+            per_batch.append((time.perf_counter() - t0) / frames * 1e6)
+        return statistics.median(per_batch)
+
+
+def summary(rounds: list[dict[str, dict[str, Any]]], who: str, scenario: str) -> dict[str, float]:
+    rows = [r[who][scenario] for r in rounds]
+    out: dict[str, float] = {
+        "p50_us": statistics.median(x["p50_us"] for x in rows),
+        "p99_us": statistics.median(x["p99_us"] for x in rows),
+        "missed": sum(x["missed"] for x in rows),
+    }
+    if scenario == "paced":
+        out["max_us"] = max(x["max_us"] for x in rows)
+        out["overruns"] = sum(x["overruns"] for x in rows)
+        out["safe_stops"] = sum(x["safe_stops"] for x in rows)
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--rounds", type=int, default=4)
+    p.add_argument("--exchanges", type=int, default=1000, help="(a) back-to-back exchanges per round")
+    p.add_argument("--cycles", type=int, default=2000, help="(b) paced 1 kHz cycles per round")
+    p.add_argument(
+        "--timeout-us", type=int, default=2000, help="(b) receive timeout per bus (µs, default 2000)"
+    )
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    args = p.parse_args()
+    rounds: list[dict[str, dict[str, Any]]] = []
+    frame_us = emulator_frame_us()  # before any emulator process runs
+    with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
+        files: dict[str, tuple[Path, Path]] = {}
+        for t, who in enumerate(TRANSPORTS):
+            buses = [udp_bus(10 * t + i, interface=who) for i in range(BUSES)]
+            for b in buses:
+                stack.enter_context(can_emulator_process("mit", MIT_MAP, range(1, MOTORS + 1), b, dt_s=0.001))
+            one, four = Path(tmp) / f"{who}-1.yaml", Path(tmp) / f"{who}-4.yaml"
+            one.write_text(network_text(buses[:1], BACK_TO_BACK_TIMEOUT_US))
+            four.write_text(network_text(buses, args.timeout_us))
+            files[who] = (one, four)
+        shown = RoundProgress(args.rounds)
+        for k in range(args.rounds):
+            order = TRANSPORTS if k % 2 == 0 else TRANSPORTS[::-1]
+            got: dict[str, dict[str, Any]] = {who: {} for who in TRANSPORTS}
+            for who in order:
+                got[who]["back_to_back"] = back_to_back(files[who][0], args.exchanges)
+            for who in order:
+                got[who]["paced"] = paced(files[who][1], args.cycles)
+            rounds.append(got)
+            shown.step()
+    result = {
+        "machine": machine_note(),
+        "rounds": args.rounds,
+        "exchanges": args.exchanges,
+        "cycles": args.cycles,
+        "timeout_us": args.timeout_us,
+        "emulator_frame_us": frame_us,
+        "summary": {
+            who: {s: summary(rounds, who, s) for s in ("back_to_back", "paced")} for who in TRANSPORTS
+        },
+        "ratio_p50": {
+            s: statistics.median(
+                r["udp_multicast"][s]["p50_us"] / r["fieldbus_udp"][s]["p50_us"] for r in rounds
+            )
+            for s in ("back_to_back", "paced")
+        },
+        "per_round": rounds,
+    }
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(f"# CAN between processes: udp_multicast vs fieldbus_udp ({machine_note()})\n")
+    s = result["summary"]
+    print(
+        f"(a) 1 bus x {MOTORS} MIT motors, exchange() back to back, {args.exchanges} per round, {args.rounds} rounds\n"
+    )
+    print(
+        table(
+            ["transport", "p50 [µs]", "p99 [µs]", "missed"],
+            [
+                [
+                    who,
+                    f"{s[who]['back_to_back']['p50_us']:.0f}",
+                    f"{s[who]['back_to_back']['p99_us']:.0f}",
+                    str(s[who]["back_to_back"]["missed"]),
+                ]
+                for who in TRANSPORTS
+            ],
+        )
+    )
+    print(f"\nratio of p50 (udp_multicast / fieldbus_udp): {result['ratio_p50']['back_to_back']:.2f}\n")
+    total = args.cycles * args.rounds
+    print(
+        f"(b) {BUSES} buses x {MOTORS} MIT motors, paced at 1 kHz, receive timeout {args.timeout_us} µs, "
+        f"{args.cycles} cycles per round ({total} in all)\n"
+    )
+    print(
+        table(
+            [
+                "transport",
+                "p50 [µs]",
+                "p99 [µs]",
+                "max [µs]",
+                "overruns",
+                "missed (bus cycles)",
+                "safe stops",
+            ],
+            [
+                [
+                    who,
+                    f"{s[who]['paced']['p50_us']:.0f}",
+                    f"{s[who]['paced']['p99_us']:.0f}",
+                    f"{s[who]['paced']['max_us']:.0f}",
+                    f"{s[who]['paced']['overruns']} / {total}",
+                    f"{s[who]['paced']['missed']} / {total * BUSES}",
+                    str(s[who]["paced"]["safe_stops"]),
+                ]
+                for who in TRANSPORTS
+            ],
+        )
+    )
+    print(f"\nratio of p50 (udp_multicast / fieldbus_udp): {result['ratio_p50']['paced']:.2f}")
+    print(
+        f"\nthe MIT emulator's own work: {frame_us:.0f} µs per command frame "
+        f"({BUSES * MOTORS} frames per cycle: {BUSES * MOTORS * frame_us / 1000:.2f} ms of CPU per 1 ms cycle "
+        "in the emulator processes)"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
