@@ -19,13 +19,51 @@ from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
 from fieldbus.backends.canlog import LoggedBus, open_log
-from fieldbus.core.pdo.image import ProcessImage
-from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.busthread import BusThread
+
+
+class MitFrame:
+    """One frame layout of a rawcan map, coded with Python integers (independent of fieldbus's image codec).
+
+    Fields in frame order, the first in the most significant bits of the big-endian frame; a field with
+    ``min``/``max`` is ``raw = rint((x - min) * steps / (max - min))`` clamped to ``0..2**bits - 1``
+    (``steps``: ``2**bits - 1``, or ``2**bits`` with ``span: power_of_two``), others are plain integers.
+    Decode plus encode: about 4 us per frame, against some 120 us through a one-motor ProcessImage.
+    """
+
+    def __init__(self, fields: Any, span: str) -> None:
+        total = sum(f.bits for f in fields)
+        self.size = total // 8
+        self.fields: list[tuple[str, int, int, float | None, float]] = []  # name, shift, mask, min, unit/raw
+        pos = total
+        for f in fields:
+            pos -= f.bits
+            mask = (1 << f.bits) - 1
+            if f.min is None or f.max is None:
+                self.fields.append((f.name, pos, mask, None, 1.0))
+            else:
+                steps = mask + (1 if span == "power_of_two" else 0)
+                self.fields.append((f.name, pos, mask, f.min, (f.max - f.min) / steps))
+
+    def decode(self, data: bytes) -> dict[str, float]:
+        """Engineering values (plain integers as floats) of the frame ``data``."""
+        x = int.from_bytes(data, "big")
+        return {
+            name: float((x >> shift) & mask) if lo is None else ((x >> shift) & mask) * per_raw + lo
+            for name, shift, mask, lo, per_raw in self.fields
+        }
+
+    def encode(self, values: dict[str, float]) -> bytes:
+        """The frame for ``values`` (a missing field is 0; out-of-range values saturate)."""
+        x = 0
+        for name, shift, mask, lo, per_raw in self.fields:
+            v = values.get(name, 0.0)
+            raw = int(v) if lo is None else round((v - lo) / per_raw)
+            x |= min(mask, max(0, raw)) << shift
+        return x.to_bytes(self.size, "big")
 
 
 @dataclass
@@ -65,13 +103,13 @@ class MitMotorSimulator(BusThread):
         self.log = open_log(log)  # every frame the motors see and send, python-can format by suffix
         self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
-        self._by_id: dict[int, tuple[MotorState, ProcessImage, Any]] = {}
+        self._by_id: dict[int, tuple[MotorState, tuple[MitFrame, MitFrame], Any]] = {}
         for drive, node in motors:
             cfg = drive.rawcan
             if cfg is None:
                 raise ValueError(f"{drive.name} has no rawcan section")
-            img = ProcessImage(layout(drive), 1, engine="numpy")
-            self._by_id[cfg.command_id + node] = (MotorState(node), img, cfg)
+            frames = (MitFrame(cfg.command, cfg.span), MitFrame(cfg.reply, cfg.span))
+            self._by_id[cfg.command_id + node] = (MotorState(node), frames, cfg)
         super().__init__()
         self._lock = threading.Lock()  # fault hooks (test thread) against the serving thread
         self.errors: list[str] = []
@@ -105,7 +143,7 @@ class MitMotorSimulator(BusThread):
 
     def handle(self, msg: can.Message) -> can.Message | None:
         """Process one command frame; returns (and sends) the reply, if any."""
-        st, img, cfg = self._by_id[msg.arbitration_id]
+        st, (command, reply_frame), cfg = self._by_id[msg.arbitration_id]
         data = bytes(msg.data)
         now = msg.timestamp or time.monotonic()
         if data == cfg.enter:
@@ -116,16 +154,8 @@ class MitMotorSimulator(BusThread):
             st.zero += st.position
             st.position = 0.0
         elif len(data) == cfg.command_bytes:
-            img.outputs.wire[0, :] = np.frombuffer(data[::-1], dtype=np.uint8)
-            img.outputs.from_wire()
-            v = img.outputs.values[0]
-            st.command = (
-                float(v["position"]),
-                float(v["velocity"]),
-                float(v["kp"]),
-                float(v["kd"]),
-                float(v["torque"]),
-            )
+            v = command.decode(data)
+            st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
             dt = (
                 self.dt_s
                 if self.dt_s is not None
@@ -141,17 +171,11 @@ class MitMotorSimulator(BusThread):
         if st.drop:
             st.drop -= 1
             return None
-        inp = img.inputs.values
-        for name, value in (("position", st.position), ("velocity", st.velocity), ("torque", st.torque)):
-            if name in (inp.dtype.names or ()):
-                inp[name][0] = value
+        values = {"position": st.position, "velocity": st.velocity, "torque": st.torque}
         if cfg.node_field:
-            inp[cfg.node_field][0] = st.node_id
-        img.inputs.to_wire()
+            values[cfg.node_field] = st.node_id
         reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
-        reply = can.Message(
-            arbitration_id=reply_id, data=bytes(img.inputs.wire[0, ::-1]), is_extended_id=False
-        )
+        reply = can.Message(arbitration_id=reply_id, data=reply_frame.encode(values), is_extended_id=False)
         self.bus.send(reply)
         return reply
 
