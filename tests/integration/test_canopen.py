@@ -119,16 +119,7 @@ def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
         sw, cw = img.inputs["statusword"], img.outputs["controlword"]
         display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
         pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
-        ctrl = Cia402Controller(12, mode=Mode.CSP)
-        ctrl.set_goal(Goal.ENABLE)
-        for _ in range(100):
-            if not op.exchange().fresh:  # the virtual bus is threads: a stall of > 20 ms is a counted miss
-                continue
-            ctrl.step(sw, cw, display, mode)
-            target[:] = pos  # follow the joint while enabling: no jump on enable
-            if ctrl.all_reached:
-                break
-        assert ctrl.all_reached, ctrl.state
+        ctrl = _enable_csp(op, 12)
         assert [nodes.node(n).app.state for n in range(1, 13)] == [State402.OPERATION_ENABLED] * 12
         start = pos.copy()
         amplitude = 0.5 * (1 + 0.1 * np.arange(12))
@@ -145,6 +136,24 @@ def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
         assert ctrl.all_reached and np.all(np.abs(pos - start) < 2e-3)
 
 
+def _enable_csp(op: Any, n: int) -> Cia402Controller:
+    """Bring the ``n`` drives of bus ``bus`` to OPERATION ENABLED in CSP, targets following the joints."""
+    img = op["bus"]
+    sw, cw = img.inputs["statusword"], img.outputs["controlword"]
+    display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
+    pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
+    ctrl = Cia402Controller(n, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    for _ in range(100):
+        if op.exchange().fresh:  # the virtual bus is threads: a stall of > 20 ms is a counted miss
+            ctrl.step(sw, cw, display, mode)
+            target[:] = pos  # follow the joint while enabling: no jump on enable
+            if ctrl.all_reached:
+                break
+    assert ctrl.all_reached, ctrl.state
+    return ctrl
+
+
 def test_one_drive_of_the_bank_faults_while_the_others_keep_tracking(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
@@ -152,19 +161,8 @@ def test_one_drive_of_the_bank_faults_while_the_others_keep_tracking(
     assert nodes.bank.n == 12 and all(nodes.node(n).app is nodes.bank.drives[n - 1] for n in range(1, 13))
     with open_network(_net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=1000)) as net:
         op = net.bring_up()
-        img = op["bus"]
-        sw, cw = img.inputs["statusword"], img.outputs["controlword"]
-        display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
-        pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
-        ctrl = Cia402Controller(12, mode=Mode.CSP)
-        ctrl.set_goal(Goal.ENABLE)
-        for _ in range(100):
-            if op.exchange().fresh:
-                ctrl.step(sw, cw, display, mode)
-                target[:] = pos
-                if ctrl.all_reached:
-                    break
-        assert ctrl.all_reached, ctrl.state
+        pos, target = op["bus"].inputs["position_actual_value"], op["bus"].outputs["target_position"]
+        _enable_csp(op, 12)
         start = pos.copy()
         nodes.node(5).app.inject_fault(0x2310)  # over-current in node 5's drive
         for k in range(1, 101):

@@ -119,7 +119,7 @@ class _BitField:
         if self.bool:
             np.copyto(self.stage, self.src.view(np.uint8), casting="unsafe")
             return
-        if self.src.dtype.kind == "f":
+        if self.src.dtype.kind == "f":  # a scaled entry: rounded raw values within [min, float(max)]
             dst = self.stage_i if self.signed else self.stage
             if self.top is not None:
                 self.top.cast(self.src, dst)
@@ -156,20 +156,7 @@ class _BitField:
             np.bitwise_and(col, keep, out=col)
             np.bitwise_or(col, self.part8, out=col)
             return
-        if self.src.dtype.kind == "f":  # a scaled entry: rounded raw values within [min, float(max)]
-            dst = self.stage_i if self.signed else self.stage
-            if self.top is not None:
-                self.top.cast(self.src, dst)
-            else:
-                np.copyto(dst, self.src, casting="unsafe")
-            if self.signed:
-                np.copyto(self.stage, self.stage_i, casting="unsafe")
-        elif self.signed:
-            np.copyto(self.stage_i, self.src, casting="unsafe")
-            np.copyto(self.stage, self.stage_i, casting="unsafe")
-        else:
-            np.copyto(self.stage, self.src, casting="unsafe")
-        np.bitwise_and(self.stage, self.width_mask, out=self.stage)
+        self.stage_raw()
         for (col, rel), (m, keep) in zip(self.bytes, self.masks, strict=True):
             if rel >= 0:
                 np.right_shift(self.stage, np.uint64(rel), out=self.part)
