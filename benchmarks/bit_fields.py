@@ -1,14 +1,17 @@
-"""Bit-level entries of the process image: one uint64 per 8-byte word against one entry at a time.
+"""Bit-level entries of the process image: the C codec, one uint64 per word (numpy), one entry at a time.
 
 The MIT-mode CAN frame (CubeMars AK80-9 map) is mostly 12-bit fields: the
 command has four (velocity, kp, kd, torque), the reply two (velocity,
-current). ``ProcessImage`` codes every bit-level entry that lies inside one
-8-byte word of the row through that word as a little-endian uint64
-(``_BitWord``); the contender ``per-entry`` is the same image with its
-``_bits`` list put back to one ``_BitField`` per entry (the path every entry
-took before, and still takes when it crosses a word). Both give the same
-bytes and values (asserted before timing). Interleaved rounds; the ratio is
-taken within each round.
+current), all scaled. Three ways to code them, in one run:
+
+- ``c``: the default, ``fieldbus._codec`` (its bit-level columns);
+- ``word``: the numpy engine, every bit-level entry inside one 8-byte word
+  of the row coded through that word as a little-endian uint64 (``_BitWord``);
+- ``per-entry``: the numpy engine with ``_bits`` put back to one
+  ``_BitField`` per entry (a handful of ufuncs per byte each entry touches).
+
+All three give the same bytes and values (asserted before timing).
+Interleaved rounds; ratios are taken within each round.
 
     python benchmarks/bit_fields.py [--rounds 15] [--json]
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -31,12 +35,13 @@ from fieldbus.core.pdo.image import ProcessImage, _BitField, _BitWord
 from fieldbus.core.pdo.layout import layout
 
 MAP = Path(PDO_MAPS) / "cubemars_ak80_9_mit.yaml"
+HOWS = ("c", "word", "per-entry")
 
 
-def _image(axes: int, per_entry: bool) -> ProcessImage:
-    img = ProcessImage(layout(load_drive_map(MAP)), axes)
-    for d in (img.outputs, img.inputs):
-        if per_entry:
+def _image(axes: int, how: str) -> ProcessImage:
+    img = ProcessImage(layout(load_drive_map(MAP)), axes, engine="c" if how == "c" else "numpy")
+    if how == "per-entry":
+        for d in (img.outputs, img.inputs):
             fields: list[_BitField] = []
             for b in d._bits:
                 fields += [bf for bf, _ in b.fields] if isinstance(b, _BitWord) else [b]
@@ -48,12 +53,14 @@ def _image(axes: int, per_entry: bool) -> ProcessImage:
     return img
 
 
-def _same(a: ProcessImage, b: ProcessImage) -> None:
-    for img in (a, b):
+def _same(images: list[ProcessImage]) -> None:
+    for img in images:
         img.outputs.to_wire()
         img.inputs.from_wire()
-    assert np.array_equal(a.outputs.wire, b.outputs.wire)
-    assert a.inputs.values.tobytes() == b.inputs.values.tobytes()
+    a = images[0]
+    for b in images[1:]:
+        assert np.array_equal(a.outputs.wire, b.outputs.wire)
+        assert a.inputs.values.tobytes() == b.inputs.values.tobytes()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,19 +68,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    groups = {}
+    groups: dict[str, dict[str, Callable[[], object]]] = {}
     for axes in (3, 12):
-        word, entry = _image(axes, False), _image(axes, True)
-        _same(word, entry)
-        for name, img in (("word", word), ("per-entry", entry)):
-            groups.setdefault(f"{axes} axes, command to_wire", {})[name] = img.outputs.to_wire
-            groups.setdefault(f"{axes} axes, reply from_wire", {})[name] = img.inputs.from_wire
+        imgs = {how: _image(axes, how) for how in HOWS}
+        assert imgs["c"].outputs.engine == "c" and imgs["word"].outputs.engine == "numpy"
+        _same(list(imgs.values()))
+        for how, img in imgs.items():
+            groups.setdefault(f"{axes} axes, command to_wire", {})[how] = img.outputs.to_wire
+            groups.setdefault(f"{axes} axes, reply from_wire", {})[how] = img.inputs.from_wire
     res = interleaved(groups, args.rounds, 0.05)
     rows = [
         [
             g,
-            f"{s.median_us('word'):.1f}",
-            f"{s.median_us('per-entry'):.1f}",
+            *(f"{s.median_us(h):.1f}" for h in HOWS),
+            f"{s.ratio('word', 'c'):.0f}",
             f"{s.ratio('per-entry', 'word'):.2f}",
         ]
         for g, s in res.items()
@@ -82,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"machine": machine_note(), "rows": rows}))
         return 0
     print(f"# bit-level entries, MIT-mode frames ({machine_note()}), {args.rounds} rounds\n")
-    print(table(["case", "word [µs]", "per-entry [µs]", "per-entry / word"], rows))
+    print(table(["case", "c [µs]", "word [µs]", "per-entry [µs]", "word / c", "per-entry / word"], rows))
     return 0
 
 

@@ -10,6 +10,10 @@
  *         UINT64_MAX; floats saturate to their largest finite value);
  *         stored little-endian at the column's wire offset.
  * decode: value = c*raw + d.
+ * Bit-level columns (x unsigned, y signed; ``bits`` wide from bit ``shift`` of
+ * the first byte, little-endian bit order): encoded as integers, a value at or
+ * above 2**bits (2**(bits-1) signed) as the largest one, as the numpy bit path;
+ * only the entry's bits of the bytes it spans change.
  * An offset of 0 comes as -0.0 (x + -0.0 == x, -0.0 included). The numpy path
  * is the reference: the same bits for every input (tests/unit/test_codec_differential.py).
  * Little-endian hosts only (checked in Python before use).
@@ -30,8 +34,10 @@
 
 typedef struct {
     int32_t wire_offset;
-    char type;  /* numpy type char: b B h H i I q Q f d */
-    char pad[3];
+    char type;  /* numpy type char: b B h H i I q Q f d; bit-level: x (unsigned), y (signed) */
+    uint8_t shift;  /* x / y: bit of the entry's bit 0 in its first byte (0-7) */
+    uint8_t bits;   /* x / y: width (1-64) */
+    char pad;
     double a, b, c, d, lo, hi;
 } Column;
 
@@ -80,6 +86,13 @@ static int codec_init(ScaledCodec *self, PyObject *args, PyObject *kwds) {
         Column *c = &self->cols[j];
         int width;
         switch (c->type) {
+            case 'x': case 'y':
+                if (c->shift > 7 || c->bits < 1 || c->bits > 64) {
+                    PyErr_SetString(PyExc_ValueError, "bit column: shift 0-7 and 1-64 bits");
+                    goto done;
+                }
+                width = (c->shift + c->bits + 7) / 8;
+                break;
             case 'b': case 'B': width = 1; break;
             case 'h': case 'H': width = 2; break;
             case 'i': case 'I': case 'f': width = 4; break;
@@ -106,6 +119,33 @@ static inline double clamp(double v, double lo, double hi) {
     return v < lo ? lo : (v > hi ? hi : v);
 }
 
+/* The entry's ``bits`` bits from bit ``shift`` of ``p`` (little-endian bit order), zero-extended. */
+static inline uint64_t get_bits(const uint8_t *p, int shift, int bits) {
+    uint64_t v = 0;
+    int got = 0;  /* entry bits read so far */
+    for (int k = 0; got < bits; k++) {
+        int lo = k ? 0 : shift;
+        int n = 8 - lo < bits - got ? 8 - lo : bits - got;
+        uint64_t part = ((uint64_t)p[k] >> lo) & ((1u << n) - 1u);
+        v |= part << got;
+        got += n;
+    }
+    return v;
+}
+
+/* Write the low ``bits`` bits of ``v`` from bit ``shift`` of ``p``; the other bits are kept. */
+static inline void put_bits(uint8_t *p, int shift, int bits, uint64_t v) {
+    int put = 0;
+    for (int k = 0; put < bits; k++) {
+        int lo = k ? 0 : shift;
+        int n = 8 - lo < bits - put ? 8 - lo : bits - put;
+        uint8_t m = (uint8_t)(((1u << n) - 1u) << lo);
+        uint8_t part = (uint8_t)(((v >> put) << lo) & m);
+        p[k] = (uint8_t)((p[k] & (uint8_t)~m) | part);
+        put += n;
+    }
+}
+
 static PyObject *codec_encode(ScaledCodec *self, PyObject *Py_UNUSED(ignored)) {
     uint8_t *base = (uint8_t *)self->buf.buf;
     double *last = (double *)self->last.buf;
@@ -125,6 +165,18 @@ static PyObject *codec_encode(ScaledCodec *self, PyObject *Py_UNUSED(ignored)) {
             }
             uint8_t *dst = row + c->wire_offset;
             switch (c->type) {
+                case 'x': {  /* v is integral and within [lo, hi]; hi may be one past the largest */
+                    uint64_t x = v >= ldexp(1.0, c->bits) ? (c->bits == 64 ? UINT64_MAX : (1ull << c->bits) - 1u)
+                                                          : (uint64_t)v;
+                    put_bits(dst, c->shift, c->bits, x);
+                    break;
+                }
+                case 'y': {
+                    int64_t top = c->bits == 64 ? INT64_MAX : (int64_t)((1ull << (c->bits - 1)) - 1u);
+                    int64_t x = v >= ldexp(1.0, c->bits - 1) ? top : (int64_t)v;
+                    put_bits(dst, c->shift, c->bits, (uint64_t)x);
+                    break;
+                }
                 case 'b': { int8_t x = (int8_t)v; memcpy(dst, &x, 1); break; }
                 case 'B': { uint8_t x = (uint8_t)v; memcpy(dst, &x, 1); break; }
                 case 'h': { int16_t x = (int16_t)v; memcpy(dst, &x, 2); break; }
@@ -157,6 +209,13 @@ static PyObject *codec_decode(ScaledCodec *self, PyObject *Py_UNUSED(ignored)) {
             const uint8_t *src = row + c->wire_offset;
             double raw = 0.0;
             switch (c->type) {
+                case 'x': raw = (double)get_bits(src, c->shift, c->bits); break;
+                case 'y': {
+                    uint64_t u = get_bits(src, c->shift, c->bits);
+                    if (c->bits < 64 && (u >> (c->bits - 1)) & 1u) u |= ~((1ull << c->bits) - 1u);
+                    raw = (double)(int64_t)u;
+                    break;
+                }
                 case 'b': { int8_t x; memcpy(&x, src, 1); raw = x; break; }
                 case 'B': { uint8_t x; memcpy(&x, src, 1); raw = x; break; }
                 case 'h': { int16_t x; memcpy(&x, src, 2); raw = x; break; }

@@ -13,8 +13,8 @@ min/max, min-1/max+1, the first float64 past a 64-bit range (2**63, 2**64),
 -0.0 and the largest floats just below the .5 rounding boundaries.
 
 A second test checks both engines against the rule itself (a scalar oracle), for
-every integer type, byte-aligned (the C codec) and not (the numpy bit path, which
-the C codec does not cover).
+every integer type, byte-aligned and not (the numpy bit path and the C codec's
+bit-level columns).
 """
 
 from __future__ import annotations
@@ -149,7 +149,8 @@ def direction_layouts(draw: Any, direction: Direction) -> DirectionLayout:
 
     Built by hand (the loader and the layout are tested elsewhere; this is fast),
     with the loader's placement rules: floats and 64-bit entries start on a byte.
-    Scaled entries start on a byte too: a scaled entry that does not has no C codec.
+    Scaled integers may start anywhere (the C codec's bit-level columns), and so
+    may scaled ``bitN`` entries (what a rawcan map makes of a 12-bit MIT field).
     """
     entries: list[EntryLayout] = []
     bit = 0
@@ -164,7 +165,8 @@ def direction_layouts(draw: Any, direction: Direction) -> DirectionLayout:
             add(Channel(0, 0, _type(f"bit{8 - bit % 8}"), ""))
 
     for k in range(draw(st.integers(1, 8))):
-        kind = draw(st.sampled_from(["scaled", "scaled", "scaled", "int", "float", "bool", "bits", "gap"]))
+        kinds = ["scaled", "scaled", "scaled", "scaledbits", "int", "float", "bool", "bits", "gap"]
+        kind = draw(st.sampled_from(kinds))
         name = f"c{k}"
         if kind == "gap":
             add(Channel(0, 0, _type(f"bit{draw(st.integers(1, 9))}"), ""))
@@ -180,8 +182,12 @@ def direction_layouts(draw: Any, direction: Direction) -> DirectionLayout:
                 pad()
             add(Channel(0x2000 + k, 1, dt, name))
         else:
-            pad()
-            dt = _type(draw(st.sampled_from(FLOAT_TYPES if kind == "float" else INT_TYPES + FLOAT_TYPES)))
+            if kind == "scaledbits":
+                dt = _type(draw(st.sampled_from([*INT_TYPES, f"bit{draw(st.integers(2, 63))}"])))
+            else:
+                dt = _type(draw(st.sampled_from(FLOAT_TYPES if kind == "float" else INT_TYPES + FLOAT_TYPES)))
+            if kind != "scaledbits" or dt.bits == 64:
+                pad()
             if kind == "float":
                 add(Channel(0x2000 + k, 1, dt, name))
                 continue
@@ -295,7 +301,9 @@ def _one_channel_layout(dt: DataType, factor: float, offset: float, bit_offset: 
 
 @pytest.mark.parametrize(
     ("type_name", "bit_offset"),
-    [(t, 0) for t in INT_TYPES + FLOAT_TYPES] + [(t, 3) for t in INT_TYPES],  # floats start on a byte
+    [(t, 0) for t in INT_TYPES + FLOAT_TYPES]
+    + [(t, 3) for t in INT_TYPES]  # floats start on a byte
+    + [("bit12", 4), ("bit57", 5)],  # a rawcan map's scaled bit fields (57: 2**57 - 1 is no double)
 )
 @pytest.mark.parametrize(("factor", "offset"), [(1.0, 0.0), (-2.0, 0.5)])
 def test_engines_follow_the_saturation_rule(
@@ -310,7 +318,7 @@ def _check_rule(type_name: str, factor: float, offset: float, bit_offset: int) -
     dl = _one_channel_layout(dt, factor, offset, bit_offset)
     e = dl.entry("x")
     values = [(r - offset) / factor for r in raw_specials(dt)] + raw_specials(dt) + ENG_SPECIALS
-    engines = ["numpy", "c"] if bit_offset == 0 else ["numpy", "auto"]  # not byte-aligned: numpy only
+    engines = ["numpy", "c"]  # the C codec has bit-level columns too
     for engine in engines:
         img = DirectionImage(dl, len(values), engine=engine)
         img["after"][:] = 0x55

@@ -28,9 +28,9 @@ a scaled output's raw value, in every type and both engines:
   puts garbage on the wire nor makes the drive jump to raw 0 (a position of 0
   can be far away); the raw value sent last is what the drive already follows.
 
-Two engines do this work: the C codec (``fieldbus._codec``, for byte-aligned
-scaled channels) and numpy (everything else, and everywhere when the C codec is
-not built). They give the same wire bytes and the same decoded values, bit for
+Two engines do this work: the C codec (``fieldbus._codec``, for the scaled
+channels, byte-aligned or bit-level integers) and numpy (everything else, and
+everywhere when the C codec is not built). They give the same wire bytes and the same decoded values, bit for
 bit (``tests/unit/test_codec_differential.py``). ``engine=`` chooses: ``"auto"``
 (C where it applies), ``"c"`` (C or an error) or ``"numpy"``.
 """
@@ -421,14 +421,19 @@ class DirectionImage:
                 self.values[e.name] = e.channel.default
         self.engine = "numpy"
         self._fast: Any = None
-        if engine in ("auto", "c") and k and not self._bit_scaled:
+        bit_floats = any(e.channel.type.is_float for _, e in self._bit_scaled)  # no bit-level floats in C
+        if engine in ("auto", "c") and k and not bit_floats:
             self._fast = _make_fast(self)
             if self._fast is not None:
                 self.engine = "c"
+                # the C codec codes the scaled bit-level entries itself; the others stay on the bit path
+                plain = [(e, bf) for e, bf in bit_entries if not e.channel.scaled]
+                words, alone = _bit_words(plain, self.wire, n_axes)
+                self._bits = [*words, *alone]
         if engine == "c" and self.engine != "c" and k:
             why = (
-                "it does not handle scaled entries that are not byte-aligned"
-                if self._bit_scaled
+                "it does not handle floats that are not byte-aligned"
+                if bit_floats
                 else "fieldbus._codec did not build or import"
             )
             raise FieldbusError(f"the C codec is not available: {why}")
@@ -512,11 +517,18 @@ def _make_fast(img: DirectionImage) -> Any:
         return None
     il = img.image_layout
     a, b, c, d, lo, hi = img._coef
+
+    def kind(e: EntryLayout) -> tuple[bytes, int, int]:
+        """Type code, bit shift and width of a column (bit-level: x unsigned, y signed)."""
+        if e.aligned:
+            return np.dtype(e.channel.type.numpy).char.encode(), 0, 0
+        return (b"y" if e.channel.type.signed else b"x"), e.shift, e.bits
+
     spec = b"".join(
         struct.pack(
-            "<ic3xdddddd",
+            "<icBBxdddddd",
             e.byte_offset,
-            np.dtype(e.channel.type.numpy).char.encode(),
+            *kind(e),
             a[j],
             b[j],
             c[j],
