@@ -315,18 +315,13 @@ def test_slaves_that_fall_to_safe_op_are_a_miss_at_once_and_come_back(
         _run_until_fresh(op, 10)
         time.sleep(0.3)  # no frame for longer than the slaves' 100 ms watchdog: SAFE-OP + error 0x001B
         res = op.exchange()
-        # a miss at once: SHORT, or over veth sometimes a late first reply after the pause (TIMEOUT)
-        assert not res.fresh, res.buses[0]
-        reads_only = res.buses[0].verdict is Verdict.SHORT and res.buses[0].wkc == 3
+        assert not res.fresh and res.buses[0].verdict is Verdict.SHORT, res.buses[0]
+        assert res.buses[0].wkc == 3  # the three reads only
         streak = 0
         for _ in range(3000):
-            res = op.exchange()
-            st = res.buses[0]
-            reads_only |= st.verdict is Verdict.SHORT and st.wkc == 3  # the three reads only
-            streak = streak + 1 if res.fresh else 0
+            streak = streak + 1 if op.exchange().fresh else 0
             if streak == 50:
                 break
-        assert reads_only, "never a working counter of 3: slaves in SAFE-OP still counted their outputs"
         assert streak == 50, f"not back after 3000 cycles: {op.result.buses[0]}"
         assert seg.control(cmd="status")["states"] == [AL_OP] * 3
         assert net.policies[0].stats.recoveries >= 1
