@@ -141,7 +141,7 @@ class EscChain:
         self._watchdog_ns: npt.NDArray[np.int64] | None = None  # per slave, from 0x0400/0x0420
         self._slow_touched: list[Esc] = []
         self._offset_cache: dict[int, tuple[Any, Any, Any]] = {}
-        self._plan_sig: list[tuple[bool, bool, tuple[tuple[int, int, int, bool], ...], int]] | None = None
+        self._plan_sig: list[tuple[bool, tuple[tuple[int, int, int, bool], ...], int]] | None = None
         self._link_stale = False
         self._pending_ns = 0
         self._lockstep_ns: int | None = -1  # every drive of the link last stepped at this time (-1: none yet)
@@ -151,9 +151,9 @@ class EscChain:
     def _invalidate(self) -> None:
         self._valid = False
 
-    def _signature(self) -> list[tuple[bool, bool, tuple[tuple[int, int, int, bool], ...], int]]:
+    def _signature(self) -> list[tuple[bool, tuple[tuple[int, int, int, bool], ...], int]]:
         """What the copy plans depend on: each slave's process-data state, FMMU map and image."""
-        return [(s.pd_active, s.outputs_active, s.lmap, id(s.image)) for s in self.slaves]
+        return [(s.pd_active, s.lmap, id(s.image)) for s in self.slaves]
 
     def _revalidate(self) -> None:
         """After a change: copy plans again only if FMMUs, SMs or layouts moved; the drive link later."""

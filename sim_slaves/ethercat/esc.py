@@ -140,7 +140,6 @@ class Esc:
         self.sm: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * N_SM  # start, length, control, activate
         self.lmap: tuple[tuple[int, int, int, bool], ...] = ()  # log start, log end, phys start, is-write
         self.pd_active = False
-        self.outputs_active = False
         self.sm0_full = False
         self.sm1_full = False
         self.sm1_buf = b""
@@ -373,7 +372,7 @@ class Esc:
             po = ps + s - ls
             fo = doff + s - laddr
             if wr:
-                if cmd != 10 and self.outputs_active:
+                if cmd != 10:
                     mem[po : po + e - s] = buf[fo : fo + e - s]
                     inc |= 2
             elif cmd != 11:
@@ -473,7 +472,6 @@ class Esc:
             self._sm_status()
         self.state = target
         self.pd_active = target in (AlState.SAFE_OP, AlState.OP)
-        self.outputs_active = target == AlState.OP  # SAFE-OP: inputs only, the output SM takes no writes
         if target == AlState.OP:
             self.last_output_ns = now_ns
         if not keep_error:

@@ -95,7 +95,7 @@ def build_copy_plan(
             lo, hi = max(ls, laddr), min(le, lend)
             fo, mo = doff + lo - laddr, i * MEM_SIZE + ps + lo - ls
             if wr:
-                if cmd != _LRD and s.outputs_active:
+                if cmd != _LRD:
                     ops.append((True, fo, mo, hi - lo))
                     inc |= 2
             elif cmd != _LWR:
