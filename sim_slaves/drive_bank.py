@@ -754,6 +754,16 @@ def _dry_friction(applied: F64, vel: F64, fc: F64) -> tuple[F64, F64]:
 _warmed = False
 
 
+def runs(idx: npt.NDArray[np.intp]) -> list[tuple[int, int]]:
+    """Sorted slot indices -> runs of consecutive ones as (start, stop): what :meth:`DriveBank.step` takes."""
+    if not len(idx):
+        return []
+    breaks = (np.flatnonzero(np.diff(idx) != 1) + 1).tolist()
+    starts = [0, *breaks]
+    ends = [*breaks, len(idx)]
+    return [(int(idx[a]), int(idx[b - 1]) + 1) for a, b in zip(starts, ends, strict=True)]
+
+
 def warm_up() -> None:
     """Run every path of a small throwaway bank once (first calls into numpy cost up to milliseconds).
 

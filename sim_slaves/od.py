@@ -372,8 +372,7 @@ class ObjectDictionary:
         that map 0x6040).
         """
         od = cls()
-        rx_objs = {(c.index, c.sub_index) for p in drive.rpdo for c in p.channels}
-        is402 = drive.profile == "cia402" or any(i == 0x6040 for i, _ in rx_objs)
+        is402 = is_cia402_drive(drive)
         od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="Device type")
         od.add(0x1001, 0, U8, 0, access=Access.RO, name="Error register")
         od.add_string(0x1008, drive.name, "Manufacturer device name")
@@ -452,6 +451,11 @@ class ObjectDictionary:
                     od.add(pdo.index, sub, U32, raw, access=access, name=f"SubIndex {sub:03d}")
         od.fix_subindex0()
         return od
+
+
+def is_cia402_drive(drive: DriveMap) -> bool:
+    """An emulated device is a CiA 402 drive for ``profile: cia402`` maps and maps that map the controlword."""
+    return drive.profile == "cia402" or any(c.index == 0x6040 for p in drive.rpdo for c in p.channels)
 
 
 def entry_type_code(e: Entry) -> int:

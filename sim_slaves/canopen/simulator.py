@@ -27,15 +27,11 @@ from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
 from sim_slaves.drive402 import DriveParams
-from sim_slaves.drive_bank import DriveBank
+from sim_slaves.drive_bank import DriveBank, runs
+from sim_slaves.od import is_cia402_drive
 
 TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
 IDLE_WAIT_S = 0.005  # longest wait for a frame before the timers are looked at again
-
-
-def _is_drive(drive: DriveMap) -> bool:
-    """A CiA 402 drive is emulated for ``profile: cia402`` maps and maps that map the controlword."""
-    return drive.profile == "cia402" or any(c.index == 0x6040 for p in drive.rpdo for c in p.channels)
 
 
 class CanopenSimulator(BusThread):
@@ -63,7 +59,7 @@ class CanopenSimulator(BusThread):
         if len(set(ids)) != len(ids):
             raise ValueError(f"node id {next(i for i in ids if ids.count(i) > 1)} used twice")
         # every CiA 402 drive in one bank, stepped together on SYNC (slot k: the k-th drive node)
-        drives = [node_id for drive, node_id in nodes if _is_drive(drive)]
+        drives = [node_id for drive, node_id in nodes if is_cia402_drive(drive)]
         self.bank = DriveBank([DriveParams() for _ in drives])
         self._slot = {node_id: k for k, node_id in enumerate(drives)}
         for drive, node_id in nodes:
@@ -210,16 +206,8 @@ class CanopenSimulator(BusThread):
                 if k is not None:
                     bank.load_inputs(k, n.od)
                     active[k] = True
-        k = 0
-        while k < bank.n:  # contiguous runs of drives that take part (a stopped node's drive stands still)
-            if not active[k]:
-                k += 1
-                continue
-            end = k
-            while end < bank.n and active[end]:
-                end += 1
-            bank.step(k, end, dt)
-            k = end
+        for a, b in runs(np.flatnonzero(active)):  # the drives that take part (a stopped node's stands still)
+            bank.step(a, b, dt)
         for n in taking_part:
             k2 = slot.get(n.node_id)
             if k2 is not None:

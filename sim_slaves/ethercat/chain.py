@@ -38,7 +38,7 @@ from fieldbus.core.dc.model import DcRegister, EscTiming, SyncActivation, wrap_s
 from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.drive402 import Cia402Drive, DriveParams
-from sim_slaves.drive_bank import DriveBank, warm_up
+from sim_slaves.drive_bank import DriveBank, runs, warm_up
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
 from sim_slaves.ethercat.esc import DEFAULT_DT_S, MEM_SIZE, App, Esc
@@ -199,7 +199,7 @@ class EscChain:
         self._link_op = self._link.op_slots()
         self._link_mask = np.zeros(bank.n, dtype=np.bool_)
         self._link_mask[self._link.slots] = True
-        self._link_runs = _runs(np.flatnonzero(self._link_mask))
+        self._link_runs = runs(np.flatnonzero(self._link_mask))
         self._lockstep_ns = self._common_step_time()
         for s in self.slaves:
             if s.fast and self._pd_ready(s) and s.image.inputs.size:
@@ -294,7 +294,7 @@ class EscChain:
         stepped = self._stepped[idx]
         dt_ns = now - self._last_step_ns[idx]
         dt = np.where(stepped, np.clip(dt_ns * 1e-9, 1e-6, 0.1), DEFAULT_DT_S)
-        for a, b in _runs(idx):
+        for a, b in runs(idx):
             lo = int(np.searchsorted(idx, a))
             d = dt[lo : lo + b - a]
             same = bool((d == d[0]).all())
@@ -763,16 +763,6 @@ def _next_sync0(dc: EscDc, now_ns: int) -> int | None:
     if ahead > 0 and cycle <= 0:
         return None  # the single pulse has gone
     return c.true_time_of_system(c.start_time_ns + k * cycle, now_ns)
-
-
-def _runs(idx: npt.NDArray[np.intp]) -> list[tuple[int, int]]:
-    """Sorted indices -> runs of consecutive ones as (start, stop)."""
-    if not len(idx):
-        return []
-    breaks = (np.flatnonzero(np.diff(idx) != 1) + 1).tolist()
-    starts = [0, *breaks]
-    ends = [*breaks, len(idx)]
-    return [(int(idx[a]), int(idx[b - 1]) + 1) for a, b in zip(starts, ends, strict=True)]
 
 
 def _put16(buf: bytearray, off: int, value: int) -> None:
