@@ -129,10 +129,7 @@ class RawCanBackend(Backend):
     def send(self) -> None:
         # What is still queued came after the last receive(): a reply there answers an earlier
         # command (late) and must not pass for this cycle's; it is counted and dropped.
-        bus = self._bus
-        while (msg := bus.recv(timeout=0)) is not None:
-            if not msg.is_extended_id and msg.arbitration_id in self._node_byte:
-                self.late_replies += 1
+        self.late_replies += self._drain()
         for msg, rev, data in self._cmd:
             np.copyto(data, rev)
             self._bus.send(msg)
@@ -167,9 +164,12 @@ class RawCanBackend(Backend):
         self._arrived[i] = True
         return True
 
-    def _drain(self) -> None:
-        while self._bus.recv(timeout=0) is not None:
-            pass
+    def _drain(self) -> int:
+        """Drop every frame already queued; returns how many of them were motor replies."""
+        replies = 0
+        while (msg := self._bus.recv(timeout=0)) is not None:
+            replies += not msg.is_extended_id and msg.arbitration_id in self._node_byte
+        return replies
 
     def arrived(self) -> npt.NDArray[np.bool_]:
         return self._arrived
