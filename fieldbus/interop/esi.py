@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from fieldbus.core import datatypes
-from fieldbus.core.pdo.load import drive_map_from_text
-from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.pdo.load import ANY_PDO_RANGE, COE_RANGES, drive_map_from_text
+from fieldbus.core.pdo.model import Direction, DriveMap
 from fieldbus.errors import FieldbusError, PdoMapError
 from fieldbus.interop.mapwriter import Entry, ImportedPdo, gap_types, is_cia402, pdo_lines, stem, yaml_str
 
@@ -516,11 +516,12 @@ def import_esi(
     fixed_assign = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoAssign")
     fixed_config = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoConfig")
     all_pdos = _pdos(doc, dev)
+    any_lo, any_hi = ANY_PDO_RANGE
     for p in all_pdos:
-        lo, hi = (0x1600, 0x17FF) if p.rx else (0x1A00, 0x1BFF)
+        lo, hi = COE_RANGES[Direction.OUTPUTS if p.rx else Direction.INPUTS]
         if not lo <= p.index <= hi:
             kind = "RxPdo" if p.rx else "TxPdo"
-            if not (fixed_assign and 0x1600 <= p.index <= 0x1BFF):
+            if not (fixed_assign and any_lo <= p.index <= any_hi):
                 raise doc.err(
                     p.elem, f"{kind} index 0x{p.index:04X} is outside 0x{lo:04X}-0x{hi:04X}", "Index"
                 )

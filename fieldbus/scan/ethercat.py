@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fieldbus.core.al import AL_ERROR, al_status_name, state_name
+from fieldbus.core.pdo.load import COE_RANGES
+from fieldbus.core.pdo.model import Direction
 from fieldbus.core.sdo.info import ACCESS_WRITE_PREOP
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, SdoAbortError
 from fieldbus.scan.model import Device, Identity, PdoEntry, ScannedPdo, entry_name, entry_type, mapping_entry
@@ -295,8 +297,13 @@ def _coe(pysoem: Any, s: Any, out: EthercatSlave, use_info: bool) -> None:
 
     for p in out.rpdo + out.tpdo:
         p.fixed = read_only((p.index, 0))
-    outside = any(not 0x1600 <= p.index <= 0x17FF for p in out.rpdo) or any(
-        not 0x1A00 <= p.index <= 0x1BFF for p in out.tpdo
+    outside = any(
+        not lo <= p.index <= hi
+        for (lo, hi), pdos in (
+            (COE_RANGES[Direction.OUTPUTS], out.rpdo),
+            (COE_RANGES[Direction.INPUTS], out.tpdo),
+        )
+        for p in pdos
     )
     out.assign_fixed = outside or read_only((RXPDO_ASSIGN, 0)) or read_only((TXPDO_ASSIGN, 0))
 

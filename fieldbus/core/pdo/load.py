@@ -33,6 +33,7 @@ from fieldbus.core.yamlsrc import Located, PathT, format_path, load_file, load_l
 CLASSIC_CAN_PDO_BYTES = 8
 CAN_FD_PDO_BYTES = 64
 COE_RANGES = {Direction.OUTPUTS: (0x1600, 0x17FF), Direction.INPUTS: (0x1A00, 0x1BFF)}
+ANY_PDO_RANGE = (0x1600, 0x1BFF)  # a device with a fixed PDO assignment may name its PDOs anywhere here
 # CiA 301 predefined connection set: default COB-IDs of PDO 1..4 (node id added).
 DEFAULT_COB_IDS = {
     Direction.OUTPUTS: (0x200, 0x300, 0x400, 0x500),
@@ -170,7 +171,7 @@ def _pdos(
     pdo_assign: bool = True,
 ) -> tuple[Pdo, ...]:
     key = direction.yaml_key
-    lo, hi = COE_RANGES[direction] if pdo_assign else (0x1600, 0x1BFF)
+    lo, hi = COE_RANGES[direction] if pdo_assign else ANY_PDO_RANGE
     pdos: list[Pdo] = []
     seen_index: dict[int, int] = {}
     seen_names: dict[str, PathT] = {}
@@ -185,7 +186,8 @@ def _pdos(
         index = r.integer(m["index"], (*ppath, "index"), 0, 0xFFFF)
         if not lo <= index <= hi:
             what = "RxPDO (master outputs)" if direction is Direction.OUTPUTS else "TxPDO (master inputs)"
-            hint = " (fixed assignment? ethercat.pdo_assign: false)" if 0x1600 <= index <= 0x1BFF else ""
+            any_lo, any_hi = ANY_PDO_RANGE
+            hint = " (fixed assignment? ethercat.pdo_assign: false)" if any_lo <= index <= any_hi else ""
             raise r.err(
                 (*ppath, "index"), f"0x{index:04X} is not a {what} mapping index 0x{lo:04X}-0x{hi:04X}{hint}"
             )
