@@ -398,16 +398,6 @@ class DirectionImage:
             self._groups.append(
                 (wv, self._last[:, cols], self._scaled[:, cols], self._c[:, cols], not dt.is_float, top)
             )
-        # bit-level entries
-        bit_entries: list[tuple[EntryLayout, _BitField]] = []
-        for e in dl.channels:
-            if e.aligned:
-                continue
-            src = self._work[:, il.scaled.index(e)] if e.channel.scaled else self.values[e.name]
-            bit_entries.append((e, _BitField(e, self.wire, src, n_axes)))
-        # one uint64 per 8-byte word of the row for the entries inside it; the others one by one
-        words, alone = _bit_words(bit_entries, self.wire, n_axes)
-        self._bits: list[_BitWord | _BitField] = [*words, *alone]
         self._bit_scaled = [(il.scaled.index(e), e) for e in il.scaled if not e.aligned]
         # defaults: plain ones straight into values; scaled ones as the initial raw value
         for e in dl.channels:
@@ -426,10 +416,6 @@ class DirectionImage:
             self._fast = _make_fast(self)
             if self._fast is not None:
                 self.engine = "c"
-                # the C codec codes the scaled bit-level entries itself; the others stay on the bit path
-                plain = [(e, bf) for e, bf in bit_entries if not e.channel.scaled]
-                words, alone = _bit_words(plain, self.wire, n_axes)
-                self._bits = [*words, *alone]
         if engine == "c" and self.engine != "c" and k:
             why = (
                 "it does not handle floats that are not byte-aligned"
@@ -437,6 +423,16 @@ class DirectionImage:
                 else "fieldbus._codec did not build or import"
             )
             raise FieldbusError(f"the C codec is not available: {why}")
+        # bit-level entries on the numpy bit path: all of them, or only the unscaled ones when the C
+        # codec codes the scaled ones; one uint64 per 8-byte word of the row for the entries inside it
+        bit_entries: list[tuple[EntryLayout, _BitField]] = []
+        for e in dl.channels:
+            if e.aligned or (self._fast is not None and e.channel.scaled):
+                continue
+            src = self._work[:, il.scaled.index(e)] if e.channel.scaled else self.values[e.name]
+            bit_entries.append((e, _BitField(e, self.wire, src, n_axes)))
+        words, alone = _bit_words(bit_entries, self.wire, n_axes)
+        self._bits: list[_BitWord | _BitField] = [*words, *alone]
 
     @property
     def names(self) -> tuple[str, ...]:
