@@ -278,6 +278,9 @@ def test_a_redundant_port_gets_its_own_nonblocking_socket_and_the_timeout_holds(
             assert fresh >= 85, fresh
             lost_us: list[float] = []
             for _ in range(10):
+                # a reply handed over late leaves its frame possibly still queued at the emulator,
+                # which would take the drop meant for the next one: start from a cycle answered in time
+                assert any(op.exchange().fresh for _ in range(20))
                 emu.command(cmd="drop", count=1, pd=True)
                 backend.send()
                 t0 = time.perf_counter_ns()
@@ -287,6 +290,6 @@ def test_a_redundant_port_gets_its_own_nonblocking_socket_and_the_timeout_holds(
             lost_us.sort()
             # SOEM waits on both ports until its timer; the blocking recv would take 4-10 ms
             assert lost_us[len(lost_us) // 2] < 500 + 100, lost_us
-            assert op.exchange().fresh
+            assert any(op.exchange().fresh for _ in range(20))
     finally:
         delete_link(spare)
