@@ -2,7 +2,9 @@
 
 The master (the raw-CAN backend, ``Operational.exchange()``) runs here; MIT-mode
 motors (``cubemars_ak80_9_mit.yaml``, ``sim_slaves.mit_motor``) run in child
-processes (``sim_slaves.can_process``), one per bus, on either transport:
+processes (``sim_slaves.can_process``) on either transport: one process serving
+every bus (``--emulators one``, the default: one thread, one ``select`` over the
+buses) or one process per bus (``--emulators per-bus``):
 
 - **udp_multicast**: python-can's interface (msgpack per frame, the master
   reads back every frame it sends);
@@ -22,7 +24,8 @@ transport runs. Percentiles are per round; the table shows their median over
 rounds (max: over all rounds), counts summed over rounds, and the ratio
 udp_multicast / fieldbus_udp of the p50s taken within each round (median).
 
-    python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000] [--json]
+    python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000]
+        [--emulators one|per-bus] [--json]
 """
 
 from __future__ import annotations
@@ -156,6 +159,12 @@ def main() -> int:
     p.add_argument(
         "--timeout-us", type=int, default=2000, help="(b) receive timeout per bus (µs, default 2000)"
     )
+    p.add_argument(
+        "--emulators",
+        choices=("one", "per-bus"),
+        default="one",
+        help="one emulator process serving every bus (default) or one process per bus",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = p.parse_args()
     rounds: list[dict[str, dict[str, Any]]] = []
@@ -164,8 +173,9 @@ def main() -> int:
         files: dict[str, tuple[Path, Path]] = {}
         for t, who in enumerate(TRANSPORTS):
             buses = [udp_bus(10 * t + i, interface=who) for i in range(BUSES)]
-            for b in buses:
-                stack.enter_context(can_emulator_process("mit", MIT_MAP, range(1, MOTORS + 1), b, dt_s=0.001))
+            groups = [buses] if args.emulators == "one" else [[b] for b in buses]
+            for g in groups:
+                stack.enter_context(can_emulator_process("mit", MIT_MAP, range(1, MOTORS + 1), g, dt_s=0.001))
             one, four = Path(tmp) / f"{who}-1.yaml", Path(tmp) / f"{who}-4.yaml"
             one.write_text(network_text(buses[:1], BACK_TO_BACK_TIMEOUT_US))
             four.write_text(network_text(buses, args.timeout_us))
@@ -186,6 +196,7 @@ def main() -> int:
         "exchanges": args.exchanges,
         "cycles": args.cycles,
         "timeout_us": args.timeout_us,
+        "emulators": args.emulators,
         "emulator_frame_us": frame_us,
         "summary": {
             who: {s: summary(rounds, who, s) for s in ("back_to_back", "paced")} for who in TRANSPORTS
@@ -224,7 +235,8 @@ def main() -> int:
     total = args.cycles * args.rounds
     print(
         f"(b) {BUSES} buses x {MOTORS} MIT motors, paced at 1 kHz, receive timeout {args.timeout_us} µs, "
-        f"{args.cycles} cycles per round ({total} in all)\n"
+        f"{args.cycles} cycles per round ({total} in all), emulators: "
+        f"{'one process for every bus' if args.emulators == 'one' else 'one process per bus'}\n"
     )
     print(
         table(

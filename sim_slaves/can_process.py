@@ -10,12 +10,17 @@ fixed-size datagrams on the loopback, the lean one), python-can's
 bus, or any other python-can interface.
 
     python -m sim_slaves.can_process --kind mit --map MAP.yaml --nodes 1,2,3 \\
-        --interface fieldbus_udp --channel 239.74.163.2 --option port=43114
+        --interface fieldbus_udp --channel 239.74.163.2 --option port=43114 \\
+        [--channel 239.74.163.3 --option port=43115 ...]
 
-prints ``ready`` once the nodes listen and runs until SIGTERM, SIGINT or its
-stdin closes. :func:`can_emulator_process` starts one from Python and stops it;
-:func:`udp_bus` picks a group and port nobody else on this host uses, for
-either UDP interface.
+Several ``--channel``: one bus each, the same nodes on every bus, all served by
+one thread (:func:`sim_slaves.busthread.serve_together`: one ``select`` over the
+buses), so the emulators of a robot's buses take one CPU between them instead
+of one process each. An ``--option`` belongs to the ``--channel`` before it (to
+every bus when it comes first). Prints ``ready`` once the nodes listen and runs
+until SIGTERM, SIGINT or its stdin closes. :func:`can_emulator_process` starts
+one from Python and stops it; :func:`udp_bus` picks a group and port nobody
+else on this host uses, for either UDP interface.
 """
 
 from __future__ import annotations
@@ -30,10 +35,12 @@ import sys
 import tempfile
 import threading
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from sim_slaves.busthread import serve_together
 
 READY_TIMEOUT_S = 20.0
 UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
@@ -91,7 +98,32 @@ def _option(text: str) -> tuple[str, str | int | float | bool]:
     return key, parsed
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _stop_when_stdin_closes(stop: threading.Event) -> None:
+    """The parent went away when stdin closes (it never writes to it)."""
+    sys.stdin.readline()
+    stop.set()
+
+
+class _ChannelAction(argparse.Action):
+    """``--channel``: a new bus (its channel and, from the ``--option``\\s after it, its options)."""
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None) -> None:
+        namespace.buses = [*(namespace.buses or []), (str(values), {})]
+
+
+class _OptionAction(argparse.Action):
+    """``--option KEY=VALUE``: for the last ``--channel``, or for every bus before the first."""
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None) -> None:
+        key, value = values
+        if namespace.buses:
+            namespace.buses[-1][1][key] = value
+        else:
+            namespace.common = {**(namespace.common or {}), key: value}
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line (see the module)."""
     p = argparse.ArgumentParser(prog="python -m sim_slaves.can_process", description=__doc__.splitlines()[0])
     p.add_argument("--kind", choices=("canopen", "mit"), required=True)
     p.add_argument("--map", required=True, help="drive map of every node")
@@ -101,12 +133,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="udp_multicast",
         help="python-can interface (default udp_multicast; fieldbus_udp is the lean one)",
     )
-    p.add_argument("--channel", required=True)
     p.add_argument(
-        "--option", type=_option, action="append", default=[], help="more Bus arguments, KEY=VALUE"
+        "--channel", dest="buses", action=_ChannelAction, required=True, help="a bus (repeat for several)"
+    )
+    p.add_argument(
+        "--option",
+        dest="common",
+        type=_option,
+        action=_OptionAction,
+        help="more Bus arguments, KEY=VALUE, for the --channel before it (every bus when first)",
     )
     p.add_argument("--dt-s", type=float, help="the drives' time step per SYNC / command (s)")
-    args = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+def bus_arguments(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """``can.Bus`` keyword arguments of every bus of parsed ``args``, in ``--channel`` order."""
+    return [
+        {"interface": args.interface, "channel": channel, **(args.common or {}), **options}
+        for channel, options in args.buses
+    ]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
 
     import can
 
@@ -117,24 +167,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    with can.Bus(interface=args.interface, channel=args.channel, **dict(args.option)) as bus:
-        sim: Any
-        if args.kind == "canopen":
-            from sim_slaves.canopen import CanopenSimulator
-
-            sim = CanopenSimulator(bus, nodes, dt_s=args.dt_s)
+    threading.Thread(target=_stop_when_stdin_closes, args=(stop,), daemon=True).start()
+    emulator: Any
+    if args.kind == "canopen":
+        from sim_slaves.canopen import CanopenSimulator as emulator
+    else:
+        from sim_slaves.mit_motor import MitMotorSimulator as emulator
+    with ExitStack() as stack:
+        sims = [
+            emulator(stack.enter_context(can.Bus(**kwargs)), nodes, dt_s=args.dt_s)
+            for kwargs in bus_arguments(args)
+        ]
+        if len(sims) == 1:
+            with sims[0]:
+                print("ready", flush=True)
+                while not stop.wait(0.2):
+                    pass
         else:
-            from sim_slaves.mit_motor import MitMotorSimulator
-
-            sim = MitMotorSimulator(bus, nodes, dt_s=args.dt_s)
-        with sim:
+            serving = threading.Thread(target=serve_together, args=(sims, stop), name="can-emulators")
+            serving.start()  # boots the nodes first; "ready" follows at once, as with one bus
             print("ready", flush=True)
-            while not stop.is_set():
-                readable, _, _ = select.select([sys.stdin], [], [], 0.2)
-                if readable and not sys.stdin.readline():  # the parent went away
-                    break
-        if getattr(sim, "errors", None):
-            print("\n".join(sim.errors), file=sys.stderr)
+            serving.join()
+        for sim in sims:
+            if sim.errors:
+                print("\n".join(sim.errors), file=sys.stderr)
     return 0
 
 
@@ -143,11 +199,18 @@ def can_emulator_process(
     kind: str,
     drive_map: str | Path,
     node_ids: Sequence[int],
-    where: CanChannel,
+    where: CanChannel | Sequence[CanChannel],
     *,
     dt_s: float | None = None,
 ) -> Iterator[subprocess.Popen[str]]:
-    """Run emulated nodes in a child process on ``where``; stopped (SIGTERM) on exit."""
+    """Run emulated nodes in a child process on ``where``; stopped (SIGTERM) on exit.
+
+    Several channels: the same nodes on each, every bus served by the child's one thread.
+    """
+    channels = [where] if isinstance(where, CanChannel) else list(where)
+    interfaces = {c.interface for c in channels}
+    if len(interfaces) != 1:
+        raise ValueError(f"can_emulator_process: one interface for every bus, got {sorted(interfaces)}")
     cmd = [
         sys.executable,
         "-m",
@@ -159,12 +222,12 @@ def can_emulator_process(
         "--nodes",
         ",".join(str(n) for n in node_ids),
         "--interface",
-        where.interface,
-        "--channel",
-        where.channel,
+        channels[0].interface,
     ]
-    for key, value in where.options:
-        cmd += ["--option", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
+    for c in channels:
+        cmd += ["--channel", c.channel]
+        for key, value in c.options:
+            cmd += ["--option", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     if dt_s is not None:
         cmd += ["--dt-s", str(dt_s)]
     env = dict(os.environ)

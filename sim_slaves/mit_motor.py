@@ -82,6 +82,7 @@ class MotorState:
     drop: int = 0
     silent: bool = False
     last_t: float | None = None
+    torque_limit: float = 1e9  # N·m, the command's torque field range
     history: list[tuple[float, float]] = field(default_factory=list)
     # the last command received, in engineering units: position, velocity, kp, kd, torque (feed-forward)
     command: tuple[float, float, float, float, float] | None = None
@@ -109,7 +110,8 @@ class MitMotorSimulator(BusThread):
             if cfg is None:
                 raise ValueError(f"{drive.name} has no rawcan section")
             frames = (MitFrame(cfg.command, cfg.span), MitFrame(cfg.reply, cfg.span))
-            self._by_id[cfg.command_id + node] = (MotorState(node), frames, cfg)
+            tmax = next((f.max for f in cfg.command if f.name == "torque" and f.max is not None), 1e9)
+            self._by_id[cfg.command_id + node] = (MotorState(node, torque_limit=tmax), frames, cfg)
         super().__init__()
         self._lock = threading.Lock()  # fault hooks (test thread) against the serving thread
         self.errors: list[str] = []
@@ -130,16 +132,17 @@ class MitMotorSimulator(BusThread):
         with self._lock:
             self.motor(node_id).silent = silent
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            msg = self.bus.recv(timeout=0.05)
-            if msg is None or msg.is_extended_id or msg.arbitration_id not in self._by_id:
-                continue
+    def serve(self, timeout: float) -> bool:
+        msg = self.bus.recv(timeout=timeout)
+        if msg is None:
+            return False
+        if not msg.is_extended_id and msg.arbitration_id in self._by_id:
             try:
                 with self._lock:
                     self.handle(msg)
             except Exception as exc:  # keep serving; a test reads .errors
                 self.errors.append(f"{type(exc).__name__}: {exc}")
+        return True
 
     def handle(self, msg: can.Message) -> can.Message | None:
         """Process one command frame; returns (and sends) the reply, if any."""
@@ -153,7 +156,7 @@ class MitMotorSimulator(BusThread):
         elif data == cfg.zero:
             st.zero += st.position
             st.position = 0.0
-        elif len(data) == cfg.command_bytes:
+        elif len(data) == command.size:
             v = command.decode(data)
             st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
             dt = (
@@ -161,7 +164,7 @@ class MitMotorSimulator(BusThread):
                 if self.dt_s is not None
                 else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
             )
-            self._step(st, cfg, *st.command, dt)
+            self._step(st, *st.command, dt)
             st.commands += 1
         else:
             return None
@@ -181,18 +184,20 @@ class MitMotorSimulator(BusThread):
 
     @staticmethod
     def _step(
-        st: MotorState, cfg: Any, p_des: float, v_des: float, kp: float, kd: float, tau_ff: float, dt: float
+        st: MotorState, p_des: float, v_des: float, kp: float, kd: float, tau_ff: float, dt: float
     ) -> None:
-        tmax = next((f.max for f in cfg.command if f.name == "torque" and f.max is not None), 1e9)
-        tau = kp * (p_des - st.position) + kd * (v_des - st.velocity) + tau_ff if st.enabled else 0.0
-        tau = max(-tmax, min(tmax, tau))
-        st.torque = tau
-        # semi-implicit Euler in small sub-steps: stiff gains stay stable
+        """Integrate ``dt`` s of the impedance law (semi-implicit Euler in 0.1 ms sub-steps: stiff gains
+        stay stable); ``st.torque`` is the last sub-step's torque."""
+        tmax, p, v = st.torque_limit, st.position, st.velocity
+        if not st.enabled:
+            kp = kd = tau_ff = 0.0
         n = max(1, int(dt / 1e-4))
         h = dt / n
+        h_j, damp = h / st.inertia, st.friction
+        t = 0.0
         for _ in range(n):
-            t = kp * (p_des - st.position) + kd * (v_des - st.velocity) + tau_ff if st.enabled else 0.0
-            t = max(-tmax, min(tmax, t))
-            st.velocity += h * (t - st.friction * st.velocity) / st.inertia
-            st.position += h * st.velocity
-        st.torque = t if n else tau
+            t = kp * (p_des - p) + kd * (v_des - v) + tau_ff
+            t = -tmax if t < -tmax else (tmax if t > tmax else t)
+            v += h_j * (t - damp * v)
+            p += h * v
+        st.position, st.velocity, st.torque = p, v, t

@@ -52,6 +52,8 @@ class RawCanBackend(Backend):
         self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
         self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
         self._arrived = np.zeros(self.n_slaves, dtype=bool)
+        # each motor's reply bytes as the frame has them: its input row, reversed (a view)
+        self._reply_rows = [self.in_row(i)[::-1] for i in range(self.n_slaves)]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self.late_replies = 0  # replies that came after their cycle's receive timeout (dropped, never used)
         for i, area in enumerate(self.areas):
@@ -136,31 +138,34 @@ class RawCanBackend(Backend):
 
     def receive(self) -> int | None:
         self._arrived.fill(False)
-        deadline = time.perf_counter() + self._timeout_s
+        recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
+        clock = time.perf_counter
+        deadline = clock() + self._timeout_s
         count = 0
-        while count < self.n_slaves:
-            remaining = deadline - time.perf_counter()
+        while count < n:
+            remaining = deadline - clock()
             if remaining <= 0:
                 break
-            if self._accept(self._bus.recv(timeout=remaining), copy=True):
+            if accept(recv(timeout=remaining), copy=True):
                 count += 1
         return count if count else None
 
     def _accept(self, msg: Any, *, copy: bool) -> bool:
         if msg is None or msg.is_extended_id:
             return False
-        byte = self._node_byte.get(msg.arbitration_id)
+        can_id = msg.arbitration_id
+        byte = self._node_byte.get(can_id)
         if byte is None:
             return False
-        node = msg.data[byte] if 0 <= byte < len(msg.data) else -1
-        i = self._route.get((msg.arbitration_id, node if byte >= 0 else -1))
+        data = msg.data
+        i = self._route.get((can_id, (data[byte] if byte < len(data) else -1) if byte >= 0 else -1))
         if i is None or self._arrived[i]:
             return False
-        row = self.in_row(i)
         if copy:
-            if len(msg.data) != row.size:
+            row = self._reply_rows[i]
+            if len(data) != row.size:
                 return False
-            row[::-1] = np.frombuffer(msg.data, dtype=np.uint8)
+            row[:] = np.frombuffer(data, dtype=np.uint8)
         self._arrived[i] = True
         return True
 

@@ -8,8 +8,10 @@ master in this one. Datagrams go over the loopback only (``127.0.0.1``, TTL 0).
 Each frame is one fixed-size 24-byte datagram (:data:`FRAME`): magic, flags
 (extended / remote / error), DLC, the sender instance's 64-bit tag, CAN id and
 8 data bytes. No serializer, one ``send`` per frame; receiving reads into one
-preallocated buffer and drops the instance's own frames (the multicast loopback
-hands them back) by their tag before any ``can.Message`` is built, unless
+preallocated buffer. The multicast loopback hands every frame back to its
+sender as well: a socket filter on the tag drops the instance's own frames in
+the kernel, so they never queue nor cost a read (where the filter is refused,
+the tag is checked before any ``can.Message`` is built), unless
 ``receive_own_messages=True``. Classic CAN only (no FD).
 
     can.Bus(interface="fieldbus_udp", channel="239.74.163.2", port=43114)
@@ -24,6 +26,7 @@ instance at a time (the receive buffer is shared); sending is thread-safe.
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import math
 import os
@@ -36,6 +39,8 @@ from typing import Any
 import can
 from can.typechecking import AutoDetectedConfig
 
+from fieldbus.backends.sockfilter import attach_filter, drop_udp_payload_u64
+
 INTERFACE = "fieldbus_udp"
 DEFAULT_GROUP = "239.74.163.2"
 DEFAULT_PORT = 43113
@@ -45,6 +50,8 @@ MAGIC = 0xCA7F
 FRAME = struct.Struct("<HBBQI8s")
 _HEADER = struct.Struct("<HBBQI")  # FRAME without the data: parsed in place, data sliced after
 DATA_OFFSET = _HEADER.size
+TAG_OFFSET = 4  # the sender tag's place in a datagram
+FRAME_TAG = struct.Struct("<Q")
 FLAG_EXTENDED, FLAG_REMOTE, FLAG_ERROR = 1, 2, 4
 _SELECT_MAX_FD = 1024  # select() takes descriptors below FD_SETSIZE only; above, poll() (1 ms steps)
 
@@ -95,6 +102,9 @@ class UdpCanBus(can.BusABC):
             rx.bind((group, port))  # the group's address: other groups on this port stay out
             membership = socket.inet_aton(group) + socket.inet_aton(LOOPBACK)
             rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
+            if not self.receive_own_messages:  # the loopback's copies of own frames never queue
+                with contextlib.suppress(OSError):  # refused: the tag check below still drops them
+                    attach_filter(rx, drop_udp_payload_u64(TAG_OFFSET, FRAME_TAG.pack(self._tag)))
             rx.setblocking(False)
             tx = self._tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(LOOPBACK))

@@ -42,6 +42,7 @@ class CanopenSimulator(BusThread):
     """
 
     thread_name = "canopen-nodes"
+    idle_wait_s = IDLE_WAIT_S
 
     def __init__(
         self,
@@ -136,19 +137,29 @@ class CanopenSimulator(BusThread):
         for cob, data in frames:
             self.bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            msg = self.bus.recv(timeout=IDLE_WAIT_S)
-            with self._lock:
-                try:
-                    if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
-                        self.handle(msg.arbitration_id, bytes(msg.data))
-                    now = time.monotonic()
-                    if now >= self._next_tick:
-                        self._next_tick = now + TIMER_TICK_S
-                        self.tick(now)
-                except Exception as exc:  # keep serving; tests read .errors
-                    self.errors.append(f"{type(exc).__name__}: {exc}")
+    def serve(self, timeout: float) -> bool:
+        msg = self.bus.recv(timeout=timeout)
+        with self._lock:
+            try:
+                if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
+                    self.handle(msg.arbitration_id, bytes(msg.data))
+                self._timers()
+            except Exception as exc:  # keep serving; tests read .errors
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+        return msg is not None
+
+    def idle(self) -> None:
+        with self._lock:
+            try:
+                self._timers()
+            except Exception as exc:  # keep serving; tests read .errors
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def _timers(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_tick:
+            self._next_tick = now + TIMER_TICK_S
+            self.tick(now)
 
     def handle(self, cob: int, data: bytes) -> None:
         """One frame from the bus (without the thread: tests and fuzzing call this directly)."""

@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import json
 import os
 import select
@@ -70,6 +69,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.backends.ecat_pcap import PcapWriter
+from fieldbus.backends.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
@@ -89,15 +89,13 @@ PACKET_ADD_MEMBERSHIP = 1
 PACKET_MR_PROMISC = 1
 PACKET_AUXDATA = 8
 PACKET_IGNORE_OUTGOING = 23  # Linux >= 4.20; PACKET_OUTGOING is checked as well
-SO_ATTACH_FILTER = 26
 TP_STATUS_VLAN_VALID = 0x10
 TP_STATUS_VLAN_TPID_VALID = 0x40
 _AUXDATA = struct.Struct("<IIIHHHH")  # tpacket_auxdata: status, len, snaplen, mac, net, vlan_tci, vlan_tpid
 _AUX_SPACE = socket.CMSG_SPACE(_AUXDATA.size)
 _VLAN_TAG = struct.Struct(">HH")  # TPID, TCI as on the wire
-_BPF = struct.Struct("HBBI")  # classic BPF instruction: code, jt, jf, k
 # ldh [12]; jeq #0x88A4 ? accept : drop (the kernel has taken a VLAN tag out of the data already)
-_ECAT_ONLY = ((0x28, 0, 0, 12), (0x15, 0, 1, ETHERTYPE_ECAT), (0x06, 0, 0, 0x40000), (0x06, 0, 0, 0))
+_ECAT_ONLY = ((LDH_ABS, 0, 0, 12), (JEQ_K, 0, 1, ETHERTYPE_ECAT), (RET_K, 0, 0, 0x40000), (RET_K, 0, 0, DROP))
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
 
 
@@ -271,10 +269,7 @@ def open_port0(iface: str) -> socket.socket:
             mreq = struct.pack("iHH8s", socket.if_nametoindex(iface), PACKET_MR_PROMISC, 0, b"")
             sock.setsockopt(SOL_PACKET, PACKET_ADD_MEMBERSHIP, mreq)
         with contextlib.suppress(OSError):
-            code = ctypes.create_string_buffer(b"".join(_BPF.pack(*i) for i in _ECAT_ONLY))
-            # struct sock_fprog: instruction count, pointer (the kernel copies the program)
-            prog = struct.pack("HL", len(_ECAT_ONLY), ctypes.addressof(code))
-            sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, prog)
+            attach_filter(sock, _ECAT_ONLY)
         sock.setblocking(False)
     except BaseException:
         sock.close()

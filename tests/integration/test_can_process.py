@@ -8,6 +8,7 @@ one interpreter lock. The seed's layout: 4 CAN buses with 3 MIT-mode motors each
 from __future__ import annotations
 
 import json
+import time
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -93,6 +94,80 @@ def test_canopen_nodes_in_another_process_are_configured_and_enabled(tmp_path: P
         assert fresh >= 270
         assert ctrl.all_reached  # the goal, read from the statuswords the nodes sent
         assert [decode_state(int(w)) for w in img.inputs["statusword"]] == [State402.OPERATION_ENABLED] * 3
+
+
+def test_one_process_serves_canopen_nodes_on_two_buses(tmp_path: Path) -> None:
+    """``serve_together``: both buses' SDO plans, NMT, SYNC and heartbeats (timers) from one thread."""
+    where = [udp_bus(6 + i, interface="fieldbus_udp") for i in range(2)]
+    f = tmp_path / "arms.yaml"
+    f.write_text(
+        "cycle_time_us: 5000\nreceive_timeout_us: 20000\nsafe_stop_after: 1000\nbuses:\n"
+        + "".join(
+            f"  - {{name: arm{k}, type: canopen, {w.network_keys()},\n"
+            f"     slaves: [{{name: 'a{k}_{{i}}', map: '{DEMO_MAP}', node_id: 1, count: 2}}]}}\n"
+            for k, w in enumerate(where)
+        )
+    )
+    with can_emulator_process("canopen", DEMO_MAP, [1, 2], where, dt_s=0.005) as proc:
+        import can
+
+        # a listener on the second bus: heartbeats keep coming while the master is silent there
+        with can.Bus(interface="fieldbus_udp", channel=where[1].channel, **dict(where[1].options)) as spy:
+            heartbeats = set()
+            deadline = time.monotonic() + 3.0
+            while len(heartbeats) < 2 and time.monotonic() < deadline:
+                msg = spy.recv(timeout=0.5)
+                if msg is not None and 0x701 <= msg.arbitration_id <= 0x702:
+                    heartbeats.add(msg.arbitration_id)
+        assert heartbeats == {0x701, 0x702}
+        with open_network(f) as net:
+            op = net.bring_up()
+            ctrls = {name: Cia402Controller(2, mode=Mode.CSP) for name in ("arm0", "arm1")}
+            for c in ctrls.values():
+                c.set_goal(Goal.ENABLE)
+            for _ in range(300):
+                op.exchange()
+                for name, c in ctrls.items():
+                    c.step(op[name].inputs["statusword"], op[name].outputs["controlword"])
+            for name in ctrls:
+                words = op[name].inputs["statusword"]
+                assert [decode_state(int(w)) for w in words] == [State402.OPERATION_ENABLED] * 2, name
+        assert proc.poll() is None  # one process, still serving
+
+
+def test_the_command_line_gives_each_channel_its_options() -> None:
+    from sim_slaves.can_process import bus_arguments, parse_args
+
+    args = parse_args(
+        [
+            "--kind",
+            "mit",
+            "--map",
+            "m.yaml",
+            "--nodes",
+            "1",
+            "--interface",
+            "fieldbus_udp",
+            "--option",
+            "bitrate=1000000",
+            "--channel",
+            "239.1.1.1",
+            "--option",
+            "port=4000",
+            "--channel",
+            "239.1.1.2",
+            "--option",
+            "port=4001",
+            "--option",
+            "fd=false",
+        ]
+    )
+    assert bus_arguments(args) == [
+        {"interface": "fieldbus_udp", "channel": "239.1.1.1", "bitrate": 1000000, "port": 4000},
+        {"interface": "fieldbus_udp", "channel": "239.1.1.2", "bitrate": 1000000, "port": 4001, "fd": False},
+    ]
+    with pytest.raises(SystemExit):
+        parse_args(["--kind", "mit", "--map", "m.yaml", "--nodes", "1"])  # no --channel
 
 
 def test_can_options_are_checked_where_they_are_written(tmp_path: Path) -> None:
