@@ -145,10 +145,16 @@ class MitMotorSimulator(BusThread):
         return True
 
     def handle(self, msg: can.Message) -> can.Message | None:
-        """Process one command frame; returns (and sends) the reply, if any."""
+        """Process one command frame; returns (and sends) the reply, if any.
+
+        As a motor's firmware does, the reply carries the state measured when the
+        command arrives; the command then acts for ``dt_s`` (or as long as the time since
+        the command before), so a reply never tells of a time still to come.
+        """
         st, (command, reply_frame), cfg = self._by_id[msg.arbitration_id]
         data = bytes(msg.data)
         now = msg.timestamp or time.monotonic()
+        step = False
         if data == cfg.enter:
             st.enabled = True
         elif data == cfg.exit:
@@ -159,27 +165,31 @@ class MitMotorSimulator(BusThread):
         elif len(data) == command.size:
             v = command.decode(data)
             st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
-            dt = (
-                self.dt_s
-                if self.dt_s is not None
-                else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
-            )
-            self._step(st, *st.command, dt)
             st.commands += 1
+            step = True
         else:
             return None
+        dt = (
+            self.dt_s
+            if self.dt_s is not None
+            else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
+        )
         st.last_t = now
-        if st.silent:
-            return None
+        reply = None
         if st.drop:
             st.drop -= 1
-            return None
-        values = {"position": st.position, "velocity": st.velocity, "torque": st.torque}
-        if cfg.node_field:
-            values[cfg.node_field] = st.node_id
-        reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
-        reply = can.Message(arbitration_id=reply_id, data=reply_frame.encode(values), is_extended_id=False)
-        self.bus.send(reply)
+        elif not st.silent:
+            values = {"position": st.position, "velocity": st.velocity, "torque": st.torque}
+            if cfg.node_field:
+                values[cfg.node_field] = st.node_id
+            reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
+            reply = can.Message(
+                arbitration_id=reply_id, data=reply_frame.encode(values), is_extended_id=False
+            )
+            self.bus.send(reply)
+        if step:
+            assert st.command is not None
+            self._step(st, *st.command, dt)
         return reply
 
     @staticmethod
