@@ -85,6 +85,8 @@ def serve_together(emulators: Sequence[BusThread], stop: threading.Event) -> Non
     while not stop.is_set():
         ready, _, _ = select.select(fds, [], [], wait)
         for fd in ready:
-            by_fd[fd].serve(0.0)
+            e = by_fd[fd]
+            while e.serve(0.0):  # a bus's frames in the order they came, before the next bus's
+                pass
         for e in emulators:
             e.idle()
