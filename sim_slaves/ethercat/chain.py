@@ -147,6 +147,9 @@ class EscChain:
         self._lockstep_ns: int | None = -1  # every drive of the link last stepped at this time (-1: none yet)
         self._link_mask = np.zeros(self.bank.n, dtype=np.bool_)
         self._link_runs: list[tuple[int, int]] = []
+        # slaves exchanging process data with their outputs off (SAFE-OP): their writes do not count
+        self._outputs_off = np.zeros(n, dtype=np.bool_)
+        self._any_outputs_off = False
 
     def _invalidate(self) -> None:
         self._valid = False
@@ -157,6 +160,9 @@ class EscChain:
 
     def _revalidate(self) -> None:
         """After a change: copy plans again only if FMMUs, SMs or layouts moved; the drive link later."""
+        off = self._outputs_off
+        off[:] = [s.pd_active and not s.outputs_active for s in self.slaves]
+        self._any_outputs_off = bool(off.any())
         if self._signature() == self._plan_sig:
             self._valid = True
             self._link_stale = True  # e.g. SAFE-OP -> OP: same copies, other drives take outputs
@@ -329,6 +335,10 @@ class EscChain:
             if written:
                 s.outputs_written = True
             self._slow_touched.append(s)
+        if self._any_outputs_off and len(plan.writers):
+            # SAFE-OP: the output SyncManager took no write (the bytes the plan copied are never used:
+            # a drive takes targets in OP only); only its reads count
+            return plan.wkc - plan.write_inc * int(np.count_nonzero(self._outputs_off[plan.writers]))
         return plan.wkc
 
     @classmethod

@@ -140,6 +140,7 @@ class Esc:
         self.sm: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * N_SM  # start, length, control, activate
         self.lmap: tuple[tuple[int, int, int, bool], ...] = ()  # log start, log end, phys start, is-write
         self.pd_active = False
+        self.outputs_active = False  # OP only: in SAFE-OP the output SyncManager takes no writes
         self.sm0_full = False
         self.sm1_full = False
         self.sm1_buf = b""
@@ -372,7 +373,7 @@ class Esc:
             po = ps + s - ls
             fo = doff + s - laddr
             if wr:
-                if cmd != 10:
+                if cmd != 10 and self.outputs_active:
                     mem[po : po + e - s] = buf[fo : fo + e - s]
                     inc |= 2
             elif cmd != 11:
@@ -472,6 +473,7 @@ class Esc:
             self._sm_status()
         self.state = target
         self.pd_active = target in (AlState.SAFE_OP, AlState.OP)
+        self.outputs_active = target == AlState.OP
         if target == AlState.OP:
             self.last_output_ns = now_ns
         if not keep_error:

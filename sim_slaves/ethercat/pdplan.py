@@ -6,6 +6,9 @@ slave's FMMUs and kept until an FMMU, a SyncManager or an AL state changes:
 index arrays of the frame bytes copied into slave memory and of the memory
 bytes copied into the frame (two numpy copies per datagram, whatever the
 number of slaves), the working-counter increment and which slaves it touched.
+A plan does not depend on whether its slaves are in SAFE-OP or OP: outside OP
+an ESC's output SyncManager takes no writes, and the chain takes those slaves'
+writes off the working counter per datagram (``writers``).
 A datagram whose copies interact (a slave reading bytes an earlier slave
 wrote in the same datagram, as in SOEM's overlapping LRW) keeps the exact
 order of the slaves: its plan is a list of slice copies in wire order.
@@ -42,7 +45,9 @@ class CopyPlan:
     write_mem: Index
     read_frame: Index  # memory byte -> frame byte (inputs)
     read_mem: Index
-    wkc: int
+    wkc: int  # with every slave's outputs taken (all in OP); see ``writers``
+    writers: Index  # wire indices of the slaves whose outputs it writes (each counts ``write_inc``)
+    write_inc: int  # a write's share of the working counter: LRW 2, LWR 1
     fast_written: Index  # wire indices of fast slaves whose outputs were written
     fast_touched: Index  # bank slots of fast drives that got outputs (or have none and exchanged inputs)
     fast_read: Index  # bank slots of fast drives whose inputs the datagram reads
@@ -83,6 +88,7 @@ def build_copy_plan(
     written: list[int] = []
     touched: list[int] = []
     read: list[int] = []
+    writers: list[int] = []
     slow: list[tuple[Esc, bool]] = []
     lend = laddr + length
     for i, s in enumerate(slaves):
@@ -104,6 +110,8 @@ def build_copy_plan(
         if not inc:
             continue
         wkc += 1 if cmd == _LWR else inc
+        if inc & 2:
+            writers.append(i)
         if fast[i]:
             if inc & 2:
                 written.append(i)
@@ -126,6 +134,8 @@ def build_copy_plan(
         read_frame=rf,
         read_mem=rm,
         wkc=wkc,
+        writers=np.array(writers, dtype=np.intp),
+        write_inc=1 if cmd == _LWR else 2,
         fast_written=np.array(written, dtype=np.intp),
         fast_touched=np.array(touched, dtype=np.intp),
         fast_read=np.array(read, dtype=np.intp),

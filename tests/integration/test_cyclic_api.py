@@ -303,6 +303,35 @@ def test_a_power_cycled_slave_comes_back_to_op_without_user_action(segment: Call
         assert longest_ns < 50e6, longest_ns
 
 
+@pytest.mark.parametrize("segment", ["sim", pytest.param("ethercat", marks=pytest.mark.veth)], indirect=True)
+def test_slaves_that_fall_to_safe_op_are_a_miss_at_once_and_come_back(
+    segment: Callable[..., Segment],
+) -> None:
+    """An ESC in SAFE-OP takes no output writes, so its share of the LRW's working counter drops from 3
+    to 1: the master sees the first cycle after the SyncManager watchdog fired, and recovery brings it back."""
+    seg = segment([DEMO_MAP], count=3, safe_stop_after=100_000)
+    with seg.open() as net:
+        op = net.bring_up()
+        _run_until_fresh(op, 10)
+        time.sleep(0.3)  # no frame for longer than the slaves' 100 ms watchdog: SAFE-OP + error 0x001B
+        res = op.exchange()
+        # a miss at once: SHORT, or over veth sometimes a late first reply after the pause (TIMEOUT)
+        assert not res.fresh, res.buses[0]
+        reads_only = res.buses[0].verdict is Verdict.SHORT and res.buses[0].wkc == 3
+        streak = 0
+        for _ in range(3000):
+            res = op.exchange()
+            st = res.buses[0]
+            reads_only |= st.verdict is Verdict.SHORT and st.wkc == 3  # the three reads only
+            streak = streak + 1 if res.fresh else 0
+            if streak == 50:
+                break
+        assert reads_only, "never a working counter of 3: slaves in SAFE-OP still counted their outputs"
+        assert streak == 50, f"not back after 3000 cycles: {op.result.buses[0]}"
+        assert seg.control(cmd="status")["states"] == [AL_OP] * 3
+        assert net.policies[0].stats.recoveries >= 1
+
+
 def test_a_plan_that_aborts_during_recovery_is_reported_and_the_slave_stays_out(
     segment: Callable[..., Segment],
 ) -> None:

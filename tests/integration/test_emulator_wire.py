@@ -188,6 +188,11 @@ class Bus:
     def expected_wkc(self) -> int:
         return sum((2 if m.out_size else 0) + (1 if m.in_size else 0) for m in self.maps)
 
+    @property
+    def safe_op_wkc(self) -> int:
+        """In SAFE-OP the output SyncManagers take no writes: only the reads count."""
+        return sum(1 if m.in_size else 0 for m in self.maps)
+
     def lrw_datagram(self, outputs: bytes, idx: int) -> Datagram:
         return Datagram(Command.LRW, idx, 0, outputs + bytes(self.in_bytes))
 
@@ -260,9 +265,9 @@ def bring_up(port: RawPort, n: int = N) -> Bus:
         assert master.fprd(st, 0x081A, 2) == (struct.pack("<H", i), 1)
     bus = Bus(port, master, infos, maps, out_bytes, in_bytes)
     inputs = bytes(in_bytes)
-    for k in range(3):  # valid outputs before OP
+    for k in range(3):  # valid outputs before OP (SAFE-OP: inputs only count)
         got = bus.cycle(_outputs(inputs, n), k)
-        assert got is not None and got[1] == bus.expected_wkc
+        assert got is not None and got[1] == bus.safe_op_wkc
         inputs = got[0]
     for st in stations:
         master.request_state(st, AL_OP)
