@@ -61,8 +61,8 @@ class BusThread:
 def serve_together(emulators: Sequence[BusThread], stop: threading.Event) -> None:
     """Serve every emulator's bus from the calling thread until ``stop`` is set.
 
-    One ``select`` over the buses' descriptors, one frame per readable bus per
-    round: a single thread, so the emulators of several buses take one CPU and
+    One ``select`` over the buses' descriptors, then every frame queued on each
+    readable bus, in order, before the next bus's: a single thread, so the emulators of several buses take one CPU and
     no interpreter-lock hand-over between threads. Boots each first (as
     :meth:`BusThread.start` does). Raises ``ValueError`` for a bus without a
     descriptor (python-can's ``fileno()``: the ``virtual`` interface has none).
