@@ -68,10 +68,6 @@ class RawCanConfig:
     exit: bytes = MIT_EXIT
     zero: bytes = MIT_ZERO
 
-    @property
-    def command_bytes(self) -> int:
-        return sum(f.bits for f in self.command) // 8
-
 
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
     """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""
