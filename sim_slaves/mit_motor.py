@@ -154,7 +154,7 @@ class MitMotorSimulator(BusThread):
         st, (command, reply_frame), cfg = self._by_id[msg.arbitration_id]
         data = bytes(msg.data)
         now = msg.timestamp or time.monotonic()
-        step = False
+        new: tuple[float, float, float, float, float] | None = None  # a command to act from now on
         if data == cfg.enter:
             st.enabled = True
         elif data == cfg.exit:
@@ -164,9 +164,8 @@ class MitMotorSimulator(BusThread):
             st.position = 0.0
         elif len(data) == command.size:
             v = command.decode(data)
-            st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
+            new = st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
             st.commands += 1
-            step = True
         else:
             return None
         dt = (
@@ -187,9 +186,8 @@ class MitMotorSimulator(BusThread):
                 arbitration_id=reply_id, data=reply_frame.encode(values), is_extended_id=False
             )
             self.bus.send(reply)
-        if step:
-            assert st.command is not None
-            self._step(st, *st.command, dt)
+        if new is not None:
+            self._step(st, *new, dt)
         return reply
 
     @staticmethod
