@@ -209,20 +209,19 @@ class CanopenSimulator(BusThread):
         """Every OPERATIONAL node's RPDOs applied, their drives stepped as runs of the bank, TPDOs sent."""
         bank, active, slot = self.bank, self._active, self._slot
         active.fill(False)
-        taking_part: list[CanopenNode] = []
+        taking_part: list[tuple[CanopenNode, int | None]] = []  # node, its drive's bank slot
         for node_id, n in self.nodes.items():
             if n.sync_inputs():
-                taking_part.append(n)
                 k = slot.get(node_id)
+                taking_part.append((n, k))
                 if k is not None:
                     bank.load_inputs(k, n.od)
                     active[k] = True
         for a, b in runs(np.flatnonzero(active)):  # the drives that take part (a stopped node's stands still)
             bank.step(a, b, dt)
-        for n in taking_part:
-            k2 = slot.get(n.node_id)
-            if k2 is not None:
-                bank.store_outputs(k2, n.od)
+        for n, k in taking_part:
+            if k is not None:
+                bank.store_outputs(k, n.od)
             frames = n.sync_outputs(now)
             if frames:
                 self._send(frames)
