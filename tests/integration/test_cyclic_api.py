@@ -24,7 +24,7 @@ from fieldbus.commands.demo import DEMO_MAP, SineFollower
 from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.core.wkc import Verdict
-from fieldbus.errors import FieldbusError, SdoAbortError, StateTransitionError
+from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError, StateTransitionError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 
@@ -288,6 +288,13 @@ def test_a_power_cycled_slave_comes_back_to_op_without_user_action(segment: Call
         _run_until_fresh(op, 10)
         seg.control(cmd="power_cycle", slave=1)
         res = op.exchange()
+        assert not res.fresh
+        # the emulator process, having just spent ms on the power cycle, may be scheduled too late for
+        # the next frame on a loaded machine (measured: 4-6 ms beside one CPU burner): a timeout then
+        for _ in range(10):
+            if res.buses[0].verdict is not Verdict.TIMEOUT:
+                break
+            res = op.exchange()
         assert not res.fresh and res.buses[0].verdict is Verdict.SHORT  # the LRW lost slave 1's share
         streak, longest_ns = 0, 0
         for _ in range(3000):
@@ -372,14 +379,28 @@ def test_sdo_access_in_op_from_another_thread_never_stalls_the_cycle(segment: Ca
         op = net.bring_up()
         _run_until_fresh(op, 10)
         results: list[Any] = []
+        asked_again = 0
+
+        def again(transfer: Callable[[], Any]) -> Any:
+            """A drive slower than the in-cycle budget gets a BusTimeoutError, to be asked again (documented):
+            the emulator is, now and then, when the machine is loaded. At most 3 tries."""
+            nonlocal asked_again
+            for _ in range(2):
+                try:
+                    return transfer()
+                except BusTimeoutError:
+                    asked_again += 1
+            return transfer()
 
         def tuner() -> None:
             try:
                 for _ in range(5):
-                    results.append(op.sdo_read("bus", "j2", 0x1018, 1))
-                    results.append(op.sdo_read("bus", "j0", 0x1008, 0))  # a string: segmented on CANopen
-                    op.sdo_write("bus", "j1", 0x6060, 0, b"\x08")  # modes of operation: CSP, as it is
-                    results.append(op.sdo_read("bus", "j1", 0x6060, 0))
+                    results.append(again(lambda: op.sdo_read("bus", "j2", 0x1018, 1)))
+                    # a string: segmented on CANopen
+                    results.append(again(lambda: op.sdo_read("bus", "j0", 0x1008, 0)))
+                    # modes of operation: CSP, as it is
+                    again(lambda: op.sdo_write("bus", "j1", 0x6060, 0, b"\x08"))
+                    results.append(again(lambda: op.sdo_read("bus", "j1", 0x6060, 0)))
             except Exception as exc:
                 results.append(exc)
 
@@ -400,6 +421,7 @@ def test_sdo_access_in_op_from_another_thread_never_stalls_the_cycle(segment: Ca
         timeout_ms = net.backends[0].bus.receive_timeout_us / 1000
         assert longest / 1e6 < timeout_ms + 3 + 5, (longest, timeout_ms)  # + budget + scheduling margin
         assert misses <= 3, misses  # a loaded machine may lose a frame; the SDOs themselves cost none
+        assert asked_again <= 5, asked_again  # of 20 transfers
         with pytest.raises(FieldbusError, match="this thread runs the cycle"):
             op.sdo_read("bus", "j0", 0x1018, 1)  # would wait for itself
 
