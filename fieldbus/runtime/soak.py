@@ -47,7 +47,7 @@ from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
-from fieldbus.runtime.loop import progress
+from fieldbus.runtime.loop import gc_held, progress
 from fieldbus.runtime.monitor import monitor_context
 from fieldbus.runtime.timing import CycleTimer
 
@@ -278,7 +278,9 @@ class Soak:
         limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
         prev_fresh = True
-        with monitor_context(op, None, self.monitor):
+        # gc held as run_cycles holds it (fieldbus run): a full collection of a large heap is a pause of
+        # many ms in whichever cycle it lands, the harness's doing, not the bus's
+        with monitor_context(op, None, self.monitor), gc_held():
             for k in range(cycles):
                 event = plan.get(k)
                 if event is not None and event[0] in IN_FLIGHT and not prev_fresh:

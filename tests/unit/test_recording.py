@@ -61,10 +61,13 @@ def test_a_cycle_with_recording_on_allocates_nothing(io_op: Operational, tmp_pat
     # so what is counted is the cycle's copy into the ring
     op = io_op
     rec = op.record(tmp_path / "a.mcap", raw=True, block_cycles=8192, ring_blocks=2)
-    # a per-cycle allocation would leave >= 4000 blocks; tracemalloc also traces the (idle) writer thread and
-    # the in-process emulator, whose transient objects at a snapshot show as a few blocks now and then
-    # (4 once in a full run): 0 per cycle
-    assert net_blocks(op.exchange, cycles=4000, warmup=500) <= 8
+    # a per-cycle allocation would leave >= 4000 blocks (the next test shows it does); tracemalloc also
+    # traces the (idle) writer thread, the in-process emulator and its own machinery, whose transient
+    # objects at a snapshot show as a few blocks now and then (4, then 17 once, in full runs): so
+    # "0 per cycle" is asserted as under 1 % of the cycles, with the lines that held them on failure
+    sites: list[str] = []
+    blocks = net_blocks(op.exchange, cycles=4000, warmup=500, sites=sites)
+    assert blocks < 40, (blocks, sites[:10])
     assert rec.ring.count == 5000  # every cycle went through capture()
     rec.close()
     assert load(tmp_path / "a.mcap").cycles.size == 5000
