@@ -61,7 +61,8 @@ class Reader:
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.err(path, f"expected an integer, got {_kind(value)}")
         if not lo <= value <= hi:
-            raise self.err(path, f"{_num(value)} out of range {_num(lo)}..{_num(hi)}")
+            hexa = hi > 255 and hi & (hi + 1) == 0  # a field as wide as its bits (index, id, register): hex
+            raise self.err(path, f"{_num(value, hexa)} out of range {_num(lo, hexa)}..{_num(hi, hexa)}")
         return value
 
     def number(self, value: Any, path: PathT, *, allow_nan: bool = False) -> float:
@@ -117,5 +118,5 @@ def _kind(value: Any) -> str:
     return f"{type(value).__name__} ({value!r})"
 
 
-def _num(v: int) -> str:
-    return f"0x{v:X}" if v > 255 else str(v)
+def _num(v: int, hexa: bool) -> str:
+    return f"0x{v:X}" if hexa and v > 255 else str(v)

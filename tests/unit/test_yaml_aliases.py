@@ -328,3 +328,21 @@ def test_bomb_where_a_choice_is_expected_is_named_by_kind() -> None:
     with pytest.raises(PdoMapError, match="expected one of cia402, got a list"):
         drive_map_from_text(text, "bomb.yaml")
     assert time.perf_counter() - start < 1.0
+
+
+def test_a_count_out_of_range_is_said_in_decimal_an_index_in_hex(tmp_path: Path) -> None:
+    """Range errors write a value the way such a field is written: a count in decimal, an index in hex."""
+    from fieldbus.core.network import load_network
+
+    f = tmp_path / "net.yaml"
+    f.write_text("cycle_time_us: 1000\nsafe_stop_after: 1000000\nbuses: []\n")
+    with pytest.raises(PdoMapError, match=r"safe_stop_after: 1000000 out of range 1\.\.100000$"):
+        load_network(f)
+    from fieldbus.commands.demo import DEMO_MAP
+
+    m = tmp_path / "m.yaml"
+    text = DEMO_MAP.read_text()
+    assert "{index: 0x6040," in text
+    m.write_text(text.replace("{index: 0x6040,", "{index: 0x10000,", 1))
+    with pytest.raises(PdoMapError, match=r"0x10000 out of range 0\.\.0xFFFF"):
+        load_drive_map(m)
