@@ -61,7 +61,9 @@ class Reader:
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.err(path, f"expected an integer, got {_kind(value)}")
         if not lo <= value <= hi:
-            hexa = hi > 255 and hi & (hi + 1) == 0  # a field as wide as its bits (index, id, register): hex
+            # hex for what is written in hex: an identifier, an index, a field as wide as its bits
+            name = str(path[-1]) if path else ""
+            hexa = name.endswith(("id", "index")) or (hi > 255 and hi & (hi + 1) == 0)
             raise self.err(path, f"{_num(value, hexa)} out of range {_num(lo, hexa)}..{_num(hi, hexa)}")
         return value
 
