@@ -22,8 +22,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator, Mapping
-from concurrent.futures import Future
-from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures import Future, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -440,21 +439,18 @@ class Operational(_Phase):
                 "sdo_read/sdo_write in OP wait for the cycle, and this thread runs the cycle: call them from "
                 "another thread, or use submit_sdo_read/submit_sdo_write and look at the future in later cycles"
             )
-        for waited in (timeout_s, 2 * timeout_s):
-            try:
-                return future.result(timeout_s)
-            except FutureTimeout:
-                if future.done():  # the transfer's own error: BusTimeoutError is a TimeoutError too
-                    raise
-            # not served: withdrawn, so it cannot run after the caller was told it failed (a write applied late)
-            if future.cancel():
-                raise BusTimeoutError(
-                    f"SDO transfer not served within {waited:g} s (withdrawn): is exchange() being called?"
-                )
-            # the cycle took it up meanwhile: wait as long again for its outcome
-        raise BusTimeoutError(
-            f"SDO transfer started but not finished within {2 * timeout_s:g} s: it may still be applied"
-        )
+        # wait() reports done or not without raising, so the transfer's own BusTimeoutError (a
+        # TimeoutError, as the future's timeout is) cannot be taken for "not served"
+        if not wait((future,), timeout_s).done and future.cancel():
+            # withdrawn: it cannot run after the caller was told it failed (a write applied late)
+            raise BusTimeoutError(
+                f"SDO transfer not served within {timeout_s:g} s (withdrawn): is exchange() being called?"
+            )
+        if not wait((future,), timeout_s).done:  # the cycle took it up meanwhile: as long again
+            raise BusTimeoutError(
+                f"SDO transfer started but not finished within {2 * timeout_s:g} s: it may still be applied"
+            )
+        return future.result()
 
     def _serve_sdo(self, k: int, b: Backend) -> None:
         req = self._sdo_current[k]

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.network import load_network, network_from_text
 from fieldbus.core.pdo import drive_map_from_text, load_drive_map
 from fieldbus.core.yamlsrc import MAX_ALIAS_NODES, load_located
@@ -332,14 +333,10 @@ def test_bomb_where_a_choice_is_expected_is_named_by_kind() -> None:
 
 def test_a_count_out_of_range_is_said_in_decimal_an_index_in_hex(tmp_path: Path) -> None:
     """Range errors write a value the way such a field is written: a count in decimal, an index in hex."""
-    from fieldbus.core.network import load_network
-
     f = tmp_path / "net.yaml"
     f.write_text("cycle_time_us: 1000\nsafe_stop_after: 1000000\nbuses: []\n")
     with pytest.raises(PdoMapError, match=r"safe_stop_after: 1000000 out of range 1\.\.100000$"):
         load_network(f)
-    from fieldbus.commands.demo import DEMO_MAP
-
     m = tmp_path / "m.yaml"
     text = DEMO_MAP.read_text()
     assert "{index: 0x6040," in text
