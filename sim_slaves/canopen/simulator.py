@@ -139,27 +139,24 @@ class CanopenSimulator(BusThread):
 
     def serve(self, timeout: float) -> bool:
         msg = self.bus.recv(timeout=timeout)
+        self._serve_locked(msg)
+        return msg is not None
+
+    def idle(self) -> None:
+        self._serve_locked(None)
+
+    def _serve_locked(self, msg: can.Message | None) -> None:
+        """``msg`` (None: no frame), then the timers that are due; an error is kept in :attr:`errors`."""
         with self._lock:
             try:
                 if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
                     self.handle(msg.arbitration_id, bytes(msg.data))
-                self._timers()
+                now = time.monotonic()
+                if now >= self._next_tick:
+                    self._next_tick = now + TIMER_TICK_S
+                    self.tick(now)
             except Exception as exc:  # keep serving; tests read .errors
                 self.errors.append(f"{type(exc).__name__}: {exc}")
-        return msg is not None
-
-    def idle(self) -> None:
-        with self._lock:
-            try:
-                self._timers()
-            except Exception as exc:  # keep serving; tests read .errors
-                self.errors.append(f"{type(exc).__name__}: {exc}")
-
-    def _timers(self) -> None:
-        now = time.monotonic()
-        if now >= self._next_tick:
-            self._next_tick = now + TIMER_TICK_S
-            self.tick(now)
 
     def handle(self, cob: int, data: bytes) -> None:
         """One frame from the bus (without the thread: tests and fuzzing call this directly)."""
