@@ -1,4 +1,4 @@
-"""Build the optional C codec; fieldbus works without it (numpy path)."""
+"""Build the optional C speed-ups; fieldbus and its emulators work without them (Python paths)."""
 
 from setuptools import Extension, setup
 
@@ -6,6 +6,9 @@ setup(
     ext_modules=[
         Extension(
             "fieldbus._codec", sources=["fieldbus/_codec.c"], optional=True, extra_compile_args=["-O2"]
+        ),
+        Extension(
+            "sim_slaves._dcloop", sources=["sim_slaves/_dcloop.c"], optional=True, extra_compile_args=["-O2"]
         ),
     ]
 )

@@ -40,9 +40,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
+
 from fieldbus.core.dc.master import line_timing
-from fieldbus.core.dc.model import DcRegister, EscTiming
-from sim_slaves.ethercat.dc_clock import DC_END, DC_FIRST, DcSlaveClock
+from fieldbus.core.dc.model import FILTER_REF_INTERVAL_NS, DcRegister, EscTiming
+from sim_slaves.ethercat.dc_clock import DC_END, DC_FIRST, ClockArrays, DcSlaveClock, LineClock
 
 __all__ = ["DC_END", "DC_FIRST", "DC_MIN_SAMPLE_INTERVAL_NS", "DcLine", "EscDc"]
 
@@ -84,6 +86,8 @@ class EscDc:
         self._clock = DcSlaveClock(
             drift_ppm=self._clock.drift_ppm, initial_local_ns=self.initial_local_ns, timing=self.timing
         )
+        if self.line is not None:
+            self.line.adopt(self)
 
     @property
     def clock(self) -> DcSlaveClock:
@@ -156,8 +160,19 @@ class DcLine:
         self.skipped = 0  # distributions answered but not given to the loops (min_sample_interval_ns)
         self._last_sample_ns: int | None = None
         self._only_ref = -1  # the reference of every queued distribution (-1: they differ)
+        n = len(self.units)
+        self.clocks = ClockArrays(n)  # the units' loop state, stepped together by flush()
+        self._index = np.arange(n)
+        self._port0 = np.zeros(n, dtype=np.int64)
         for u in self.units:
             u.line = self
+            self.adopt(u)
+
+    def adopt(self, unit: EscDc) -> None:
+        """Move ``unit``'s clock state into :attr:`clocks` (at the unit's place on the line)."""
+        i = self.units.index(unit)
+        unit._clock = LineClock(self.clocks, i, unit._clock)
+        self._port0[i] = unit.port0_ns
 
     def place(self, timing: EscTiming, cable_m: float) -> None:
         """Every ESC with delays ``timing``, ``cable_m`` metres of cable per hop (master -> 0 included)."""
@@ -170,6 +185,7 @@ class DcLine:
             p1 = float(lt.port1_ns[i])
             u.timing = timing
             u.place(round(float(lt.port0_ns[i])), None if math.isnan(p1) else round(p1))
+            self._port0[i] = u.port0_ns
 
     def reference_time(self, reference: int, now_ns: int) -> int:
         """System time of unit ``reference`` as a frame sent at ``now_ns`` passes it.
@@ -207,8 +223,15 @@ class DcLine:
         if not self.pending:
             return
         pending, self.pending = self.pending, []
-        units = self.units
+        clocks, units, n = self.clocks, self.units, len(self.units)
+        loop = clocks.loop
         for ref, sent, ref_time, now in pending:
+            # units before the reference compare what the master sent, units after it the reference's time
+            if loop is not None:
+                times = self._port0 + now
+                loop(clocks.rec, sent, times, 0, ref, FILTER_REF_INTERVAL_NS)
+                loop(clocks.rec, ref_time, times, ref + 1, n, FILTER_REF_INTERVAL_NS)
+                continue
             for u in units[:ref]:
                 u._clock.time_control_input(sent, now + u.port0_ns)
             for u in units[ref + 1 :]:

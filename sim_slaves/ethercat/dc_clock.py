@@ -18,10 +18,12 @@ sent by the master at ``t_master_ns``.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from fieldbus.core.dc.master import LineTiming, line_timing, sync1_period_ns
 from fieldbus.core.dc.model import (
@@ -358,6 +360,130 @@ class DcSlaveClock:
             self.sync0_cycle_ns = u(DcRegister.SYNC0_CYCLE_TIME, 4)
         if any(r in touched for r in range(DcRegister.SYNC1_CYCLE_TIME, DcRegister.SYNC1_CYCLE_TIME + 4)):
             self.sync1_cycle_ns = u(DcRegister.SYNC1_CYCLE_TIME, 4)
+
+
+#: one clock of a line, as :class:`ClockArrays` holds it (the C loop's ``Clock`` record)
+CLOCK_RECORD = np.dtype(
+    [
+        ("anchor_local", np.uint64),  # local ns at the anchor (64-bit, wraps)
+        ("anchor_frac", np.float64),  # sub-ns part of it
+        ("anchor_true", np.int64),  # true ns of the anchor
+        ("rate", np.float64),  # local ns per true ns
+        ("drift_factor", np.float64),  # 1 + drift
+        ("offset", np.uint64),  # 0x0920
+        ("delay", np.uint64),  # 0x0928
+        ("last_sample", np.uint64),  # local ns of the last loop sample
+        ("diff", np.float64),  # filtered system time difference (ns)
+        ("integral", np.float64),  # integral rate correction (fraction)
+        ("correction", np.float64),  # rate correction (fraction)
+        ("weight", np.float64),  # 2^-depth of the difference filter
+        ("tau", np.float64),  # loop time constant (ns)
+        ("cmax", np.float64),  # bound of the correction (fraction)
+        ("has_last", np.bool_),
+        ("primed", np.bool_),
+    ],
+    align=True,
+)
+
+#: ``time_control(rec, received, now, a, b, ref_ns)``: the loop samples of clocks a..b-1 in C
+LoopFunction = Callable[[npt.NDArray[np.void], int, npt.NDArray[np.int64], int, int, float], None]
+
+
+def _c_loop() -> LoopFunction | None:
+    """``sim_slaves._dcloop.time_control`` if it is built for :data:`CLOCK_RECORD`'s layout, else None."""
+    try:
+        from sim_slaves import _dcloop  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    fields = CLOCK_RECORD.fields
+    assert fields is not None
+    ours = tuple((name, fields[name][1]) for name in CLOCK_RECORD.names or ())
+    if tuple(_dcloop.layout) != ours or _dcloop.record_size != CLOCK_RECORD.itemsize:
+        return None
+    loop: LoopFunction = _dcloop.time_control
+    return loop
+
+
+class ClockArrays:
+    """The time-control state of a line of clocks: one :data:`CLOCK_RECORD` per clock.
+
+    :class:`LineClock` objects keep their anchor and loop state here
+    (:attr:`field`: a view of the records per field), so a line can run the
+    loops of all its clocks in one call of :attr:`loop`: about 3 us for 64
+    clocks, against about 1.5 us per clock one by one, with the same bits.
+    """
+
+    #: the C loop, or None where ``sim_slaves._dcloop`` is not built (then clock by clock)
+    loop: LoopFunction | None = _c_loop()
+
+    def __init__(self, n: int) -> None:
+        self.rec = np.zeros(n, dtype=CLOCK_RECORD)
+        for name in ("rate", "drift_factor", "weight", "tau", "cmax"):
+            self.rec[name] = 1.0
+        self.field: dict[str, npt.NDArray[Any]] = {name: self.rec[name] for name in CLOCK_RECORD.names or ()}
+
+
+class LineClock(DcSlaveClock):
+    """A :class:`DcSlaveClock` whose time-control state is element ``index`` of a line's :class:`ClockArrays`.
+
+    It behaves as the clock it was made from (``source``, whose state it
+    takes over); the line steps the loops of all its clocks together.
+    """
+
+    def __init__(self, arrays: ClockArrays, index: int, source: DcSlaveClock) -> None:
+        self.arrays = arrays
+        self.index = index
+        for name, value in vars(source).items():
+            setattr(self, name, value)
+
+
+def _element(array: str, cast: Callable[[Any], Any]) -> property:
+    def get(self: LineClock) -> Any:
+        return cast(self.arrays.field[array][self.index])
+
+    def put(self: LineClock, value: Any) -> None:
+        self.arrays.field[array][self.index] = value
+
+    return property(get, put)
+
+
+def _last_sample_get(self: LineClock) -> int | None:
+    f, i = self.arrays.field, self.index
+    return int(f["last_sample"][i]) if f["has_last"][i] else None
+
+
+def _last_sample_put(self: LineClock, value: int | None) -> None:
+    f, i = self.arrays.field, self.index
+    f["has_last"][i] = value is not None
+    f["last_sample"][i] = 0 if value is None else value
+
+
+def _loop_consts_get(self: LineClock) -> tuple[float, float, float]:
+    f, i = self.arrays.field, self.index
+    return float(f["weight"][i]), float(f["tau"][i]), float(f["cmax"][i])
+
+
+def _loop_consts_put(self: LineClock, value: tuple[float, float, float]) -> None:
+    f, i = self.arrays.field, self.index
+    f["weight"][i], f["tau"][i], f["cmax"][i] = value
+
+
+for _name, _array, _cast in (
+    ("_anchor_local", "anchor_local", int),
+    ("_anchor_frac", "anchor_frac", float),
+    ("_anchor_true", "anchor_true", int),
+    ("_rate", "rate", float),
+    ("_drift_factor", "drift_factor", float),
+    ("offset_ns", "offset", int),
+    ("delay_ns", "delay", int),
+    ("_diff", "diff", float),
+    ("_integral", "integral", float),
+    ("_correction", "correction", float),
+    ("_primed", "primed", bool),
+):
+    setattr(LineClock, _name, _element(_array, _cast))
+LineClock._last_sample_local = property(_last_sample_get, _last_sample_put)  # type: ignore[assignment]
+LineClock._loop_consts = property(_loop_consts_get, _loop_consts_put)  # type: ignore[assignment]
 
 
 @dataclass

@@ -34,7 +34,8 @@ from fieldbus.core.dc import (
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import drive_map_from_text
 from sim_slaves.ethercat import EscChain
-from sim_slaves.ethercat.dc_clock import DcSlaveClock
+from sim_slaves.ethercat.dc import DcLine, EscDc
+from sim_slaves.ethercat.dc_clock import ClockArrays, DcSlaveClock
 from sim_slaves.ethercat.runner import handle_control
 
 IO16 = (Path(__file__).resolve().parents[1] / "data" / "io16.yaml").read_text()
@@ -441,3 +442,59 @@ def test_control_commands_report_and_configure_the_clocks() -> None:
     assert (ans["dc"]["samples"], ans["dc"]["skipped"], ans["dc"]["min_sample_interval_ns"]) == (1, 1, 0)
     with pytest.raises(ValueError, match="need 4 drifts"):
         handle_control(chain, {"cmd": "dc_config", "drift_ppm": [1.0]}, now_ns=now)
+
+
+@pytest.mark.parametrize("c_loop", [True, False], ids=["c", "python"])
+def test_a_line_steps_its_loops_together_as_each_clock_would_alone(
+    c_loop: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """DcLine.flush (the C loop over the line's records, or clock by clock) gives every clock its own bits."""
+    if c_loop:
+        assert ClockArrays.loop is not None, (
+            "sim_slaves._dcloop is not built (python setup.py build_ext --inplace)"
+        )
+    else:
+        monkeypatch.setattr(ClockArrays, "loop", None)
+    rng = np.random.default_rng(11)
+    n = 9
+    drifts = rng.uniform(-80, 80, n)
+    starts = [int(x) for x in rng.integers(0, 2**63, n - 1)] + [2**64 - 3 * MS]  # one wraps soon
+    units = [EscDc(drift_ppm=drifts[i], initial_local_ns=starts[i]) for i in range(n)]
+    line = DcLine(units, min_sample_interval_ns=0)
+    line.place(EscTiming(), 2.0)
+    alone = [DcSlaveClock(drift_ppm=drifts[i], initial_local_ns=starts[i]) for i in range(n)]
+    port0 = [u.port0_ns for u in units]
+
+    def write(i: int, reg: int, value: int, size: int, t: int) -> None:
+        units[i].write(reg, value.to_bytes(size, "little"), t)
+        alone[i].write_register(reg, value.to_bytes(size, "little"), t + port0[i])
+
+    for i in range(n):  # system times lined up to within 20 us (as SOEM does), delays, two own loops
+        offset = (MASTER_TIME - alone[i].local_time(port0[i]) + int(rng.integers(-20_000, 20_000))) % 2**64
+        write(i, DcRegister.SYSTEM_TIME_OFFSET, offset, 8, 0)
+        write(i, DcRegister.SYSTEM_TIME_DELAY, port0[i], 4, 0)
+    write(4, DcRegister.SYSTEM_TIME_DIFF_FILTER_DEPTH, 2, 1, 0)
+    write(6, DcRegister.SPEED_COUNTER_START, 0x0400, 2, 0)
+    t = 0
+    for k in range(300):
+        t += int(rng.integers(50_000, 2_000_000))
+        ref = 0 if k % 5 else int(rng.integers(0, n))
+        ref_time = units[ref].clock.system_time(t + port0[ref])
+        sent = (MASTER_TIME + t + int(rng.normal(0, 2_000))) % 2**64  # the master's own idea of the time
+        if k == 100:  # one sample far off: the loops saturate and hold their integrals
+            ref_time = (ref_time + 2**31 - 1) % 2**64
+        line.distribute(ref, sent, ref_time, t)
+        for i in range(n):
+            if i != ref:
+                alone[i].time_control_input(sent if i < ref else ref_time, t + port0[i])
+        if k == 150:  # a power cycle: the new clock takes its place on the line
+            units[2].power_on()
+            alone[2] = DcSlaveClock(drift_ppm=drifts[2], initial_local_ns=starts[2])
+        if k % 3 == 0 or k == 299:
+            line.flush()
+            for i in range(n):
+                got, want = units[i].clock, alone[i]
+                assert got.local_time(t) == want.local_time(t), (k, i)
+                assert got.rate == want.rate, (k, i)
+                assert got.loop_state == want.loop_state, (k, i)
+    assert all(units[i].clock.loop_state.primed[0] for i in range(n))
