@@ -234,6 +234,20 @@ _OPTIONAL_OUTPUTS = (
 )
 
 
+def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
+    """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
+
+    Under a torque held over the substep: velocity' = e x velocity + f x
+    torque, position' = position + g x velocity + hh x torque. Returns
+    (e, f, g, hh).
+    """
+    if b > 0.0:
+        e = math.exp(-b * h / j)  # velocity decay over h
+        g = (1.0 - e) * j / b  # position per unit initial velocity
+        return e, (1.0 - e) / b, g, (h - g) / b  # f: velocity, hh: position per unit torque
+    return 1.0, h / j, h, h * h / (2.0 * j)
+
+
 class Cia402Drive:
     """One emulated CiA 402 servo drive. Call :meth:`step` once per cycle.
 
@@ -524,16 +538,10 @@ class Cia402Drive:
 
     def _coefficients(self, h: float) -> None:
         p = self.params
-        j, b = p.inertia_kg_m2, p.friction_nm_s_per_rad
         self._h = h
-        if b > 0.0:
-            e = math.exp(-b * h / j)
-            self._e = e  # velocity decay over h
-            self._f = (1.0 - e) / b  # velocity per unit torque
-            self._g = (1.0 - e) * j / b  # position per unit initial velocity
-            self._hh = (h - self._g) / b  # position per unit torque
-        else:
-            self._e, self._f, self._g, self._hh = 1.0, h / j, h, h * h / (2.0 * j)
+        self._e, self._f, self._g, self._hh = integration_coefficients(
+            p.inertia_kg_m2, p.friction_nm_s_per_rad, h
+        )
 
     def _physics(
         self, dt_s: float, state: State402, mode: int, target_rad: float, target_v: float, target_tau: float

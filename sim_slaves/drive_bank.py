@@ -51,6 +51,7 @@ from sim_slaves.drive402 import (
     Cia402Drive,
     DriveParams,
     ObjectStore,
+    integration_coefficients,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -164,6 +165,17 @@ def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], flo
     return np.array([get(p) for p in params], dtype=np.float64)
 
 
+def _rotor_coefficients(j: F64, fb: F64, h: F64 | float) -> tuple[F64, F64, F64, F64]:
+    """:func:`~sim_slaves.drive402.integration_coefficients` element by element: e, f, g, hh."""
+    viscous = fb > 0.0
+    fb_safe = np.where(viscous, fb, 1.0)
+    e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
+    f_ = np.where(viscous, (1.0 - e_) / fb_safe, h / j)
+    g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
+    hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
+    return e_, f_, g_, hh_
+
+
 class DriveBank:
     """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`BankDrive`).
 
@@ -271,7 +283,8 @@ class DriveBank:
         self._calm: set[tuple[int, int]] = set()  # runs whose state machines have nothing pending
         rate = self.control_rate
         self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
-        self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64, ...]]] = {}
+        self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
+        self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
         self.drives = [BankDrive(self, i, p) for i, p in enumerate(params)]
 
     # -- per-drive bookkeeping --
@@ -423,19 +436,28 @@ class DriveBank:
             return "idle"
         return "general"
 
-    def _coefficients(self, a: int, b: int, h: float) -> tuple[F64, ...]:
-        """Exact-integration factors of the run for substep ``h`` [s] (cached): e, f, g, hh, ki·h."""
+    def _coefficients(self, a: int, b: int, h: float) -> tuple[F64 | float, ...]:
+        """Exact-integration factors of the run for substep ``h`` [s] (cached): e, f, g, hh, ki·h.
+
+        A run of drives with one inertia, friction and ki (the usual robot:
+        the same drive many times) gets numbers, computed as the scalar drive
+        does; others arrays.
+        """
         cached = self._coeffs.get((a, b))
         if cached is None or cached[0] != h:
             sl = slice(a, b)
-            j, fb = self.inertia[sl], self.friction[sl]
-            viscous = fb > 0.0
-            fb_safe = np.where(viscous, fb, 1.0)
-            e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
-            f_ = np.where(viscous, (1.0 - e_) / fb_safe, h / j)
-            g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
-            hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
-            cached = self._coeffs[(a, b)] = (h, (e_, f_, g_, hh_, self.ki[sl] * h))
+            j, fb, ki = self.inertia[sl], self.friction[sl], self.ki[sl]
+            same = self._same_mechanics.get((a, b))
+            if same is None:
+                same = self._same_mechanics[(a, b)] = bool(
+                    (j == j[0]).all() and (fb == fb[0]).all() and (ki == ki[0]).all()
+                )
+            coeffs: tuple[F64 | float, ...]
+            if same:
+                coeffs = (*integration_coefficients(float(j[0]), float(fb[0]), h), float(ki[0]) * h)
+            else:
+                coeffs = (*_rotor_coefficients(j, fb, h), ki * h)
+            cached = self._coeffs[(a, b)] = (h, coeffs)
         return cached[1]
 
     def _idle(self, a: int, b: int, dt: float, steps: int) -> None:
@@ -589,13 +611,7 @@ class DriveBank:
     ) -> None:
         steps = int(n[0])
         h = dt / n
-        j, fb = self.inertia[sl], self.friction[sl]
-        viscous = fb > 0.0
-        fb_safe = np.where(viscous, fb, 1.0)
-        e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
-        f_ = np.where(viscous, (1.0 - e_) / fb_safe, h / j)
-        g_ = np.where(viscous, (1.0 - e_) * j / fb_safe, h)
-        hh_ = np.where(viscous, (h - g_) / fb_safe, h * h / (2.0 * j))
+        e_, f_, g_, hh_ = _rotor_coefficients(self.inertia[sl], self.friction[sl], h)
         kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
         tmax = self.tmax[sl]
         thermal = self.thermal[sl]
