@@ -28,6 +28,7 @@ Inputs (the master's outputs) go into :attr:`DriveBank.controlword`,
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -366,8 +367,11 @@ class DriveBank:
             raise ValueError(f"dt_s must be > 0, got {dt_s}")
         n = np.maximum(1, np.rint(dt * self.control_rate[sl])).astype(np.int64)
         if b - a > 1 and (n != n[0]).any():
-            for i in range(a, b):  # different substep counts: one drive at a time
-                self._advance(i, i + 1, dt[i - a : i - a + 1], n[i - a : i - a + 1])
+            # different substep counts (a drive stepped at another time, e.g. after a power cycle):
+            # the stretches of drives with the same count, each together
+            edges = [0, *(np.flatnonzero(np.diff(n)) + 1).tolist(), b - a]
+            for lo, hi in pairwise(edges):
+                self._advance(a + lo, a + hi, dt[lo:hi], n[lo:hi])
             return
         self._advance(a, b, dt, n)
 

@@ -35,9 +35,10 @@ def test_soak_accounts_for_every_fault(backend: str, request: pytest.FixtureRequ
     if backend == "ethercat":
         request.getfixturevalue("veth_possible")
     faults = "loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1"
-    # sim: the emulator runs inside exchange(); the cycles after a power-cycled drive comes back step
-    # its bank in pieces (one drive in another state), up to 2.7 ms on a quiet machine and 6.7 ms
-    # once in a loaded full run - emulator work, so the sim run gets 10 ms of margin instead of 5.
+    # sim: the emulator runs inside exchange(); the cycles after a power-cycled drive comes back
+    # rebuild the copy plans and step the bank in stretches (one drive with another step length),
+    # up to 2.7 ms on a quiet machine and 6.7 ms once in a loaded full run (before the stretches:
+    # one drive at a time) - emulator work, so the sim run gets 10 ms of margin instead of 5.
     # EtherCAT: miss cycles measure max 3.9-4.5 ms alone (timeout 2 ms); one full-suite run on this
     # 2-CPU VM had one at 7.1 ms in 10,000 cycles (cyclictest's own worst wake-up here is 3.5 ms
     # quiet): 7 ms of margin, still far below the 5-10 ms a lost frame cost before issue 12

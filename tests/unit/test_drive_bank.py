@@ -6,6 +6,7 @@ import math
 import time
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from fieldbus.core.cia402 import State402
@@ -41,8 +42,24 @@ def _commands(k: int, i: int) -> tuple[int, int, int, int]:
     return cw, position, round(50_000 * math.cos(2 * math.pi * t)), round(400 * math.sin(9 * t))
 
 
-def test_a_bank_stepped_together_matches_scalar_drives_step_for_step() -> None:
-    """Mixed modes, quick stop, an injected fault and its reset, delay, current lag, friction, heat."""
+def _steps(k: int, n: int, per_drive: bool) -> npt.NDArray[np.float64]:
+    """The step of each drive at step ``k`` [s]: one for all, or stretches of drives with other substep counts."""
+    dt = np.full(n, DT)
+    if per_drive:
+        if k % 3 == 0:
+            dt[2:4] = 0.5e-3  # 2 substeps at 4 kHz, beside the others' 4
+        if k % 5 == 0:
+            dt[5] = 0.75e-3
+    return dt
+
+
+@pytest.mark.parametrize("per_drive", [False, True], ids=["one-dt", "dt-per-drive"])
+def test_a_bank_stepped_together_matches_scalar_drives_step_for_step(per_drive: bool) -> None:
+    """Mixed modes, quick stop, an injected fault and its reset, delay, current lag, friction, heat.
+
+    dt-per-drive: stretches of the bank step with other substep counts in the same call (as after a
+    power cycle), each stretch together.
+    """
     params = [p for p, _ in MIXED]
     scalar = [Cia402Drive(p) for p in params]
     bank = DriveBank(params)
@@ -57,6 +74,7 @@ def test_a_bank_stepped_together_matches_scalar_drives_step_for_step() -> None:
         if k == 600:
             scalar[2].inject_fault(0x5000)
             bank.drives[2].inject_fault(0x5000)
+        dts = _steps(k, len(params), per_drive)
         for i in range(len(params)):
             cw, tp, tv, tt = _commands(k, i)
             for od in (s_ods[i], b_ods[i]):
@@ -64,9 +82,9 @@ def test_a_bank_stepped_together_matches_scalar_drives_step_for_step() -> None:
                 od.values[(Obj.TARGET_POSITION, 0)] = tp
                 od.values[(Obj.TARGET_VELOCITY, 0)] = tv
                 od.values[(Obj.TARGET_TORQUE, 0)] = tt
-            scalar[i].step(s_ods[i], DT)
+            scalar[i].step(s_ods[i], float(dts[i]))
             bank.load_inputs(i, b_ods[i])
-        bank.step(0, len(params), DT)
+        bank.step(0, len(params), dts if per_drive else DT)
         for i, d in enumerate(scalar):
             bank.store_outputs(i, b_ods[i])
             b = bank.drives[i]
