@@ -163,7 +163,6 @@ class DcLine:
         self._only_ref = -1  # the reference of every queued distribution (-1: they differ)
         n = len(self.units)
         self.clocks = ClockArrays(n)  # the units' loop state, stepped together by flush()
-        self._index = np.arange(n)
         self._port0 = np.zeros(n, dtype=np.int64)
         for u in self.units:
             u.line = self

@@ -434,7 +434,10 @@ class LineClock(DcSlaveClock):
         self.arrays = arrays
         self.index = index
         for name, value in vars(source).items():
-            setattr(self, name, value)
+            if name not in ("arrays", "index"):
+                setattr(self, name, value)
+        for name in _IN_ARRAYS:  # (a LineClock source keeps these in its arrays, not in vars())
+            setattr(self, name, getattr(source, name))
 
 
 def _element(array: str, cast: Callable[[Any], Any]) -> property:
@@ -468,7 +471,7 @@ def _loop_consts_put(self: LineClock, value: tuple[float, float, float]) -> None
     f["weight"][i], f["tau"][i], f["cmax"][i] = value
 
 
-for _name, _array, _cast in (
+_ELEMENTS = (
     ("_anchor_local", "anchor_local", int),
     ("_anchor_frac", "anchor_frac", float),
     ("_anchor_true", "anchor_true", int),
@@ -480,10 +483,13 @@ for _name, _array, _cast in (
     ("_integral", "integral", float),
     ("_correction", "correction", float),
     ("_primed", "primed", bool),
-):
+)
+for _name, _array, _cast in _ELEMENTS:
     setattr(LineClock, _name, _element(_array, _cast))
 LineClock._last_sample_local = property(_last_sample_get, _last_sample_put)  # type: ignore[assignment]
 LineClock._loop_consts = property(_loop_consts_get, _loop_consts_put)  # type: ignore[assignment]
+#: the attributes of a :class:`LineClock` that live in its line's :class:`ClockArrays`
+_IN_ARRAYS = (*(name for name, _, _ in _ELEMENTS), "_last_sample_local", "_loop_consts")
 
 
 @dataclass

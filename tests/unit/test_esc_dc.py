@@ -498,3 +498,17 @@ def test_a_line_steps_its_loops_together_as_each_clock_would_alone(
                 assert got.rate == want.rate, (k, i)
                 assert got.loop_state == want.loop_state, (k, i)
     assert all(units[i].clock.loop_state.primed[0] for i in range(n))
+
+
+def test_a_clock_moved_to_another_line_keeps_its_state() -> None:
+    """A LineClock taken over by a new line (its state read from the old line's records) runs on as before."""
+    units = [EscDc(drift_ppm=10.0 * i, initial_local_ns=MS * i) for i in range(3)]
+    line = DcLine(units, min_sample_interval_ns=0)
+    line.place(EscTiming(), 1.0)
+    for k in range(1, 50):
+        line.distribute(0, MASTER_TIME + k * MS, units[0].clock.system_time(k * MS), k * MS)
+    line.flush()
+    before = [(u.clock.local_time(60 * MS), u.clock.rate, u.clock.loop_state) for u in units]
+    moved = DcLine(units, min_sample_interval_ns=0)
+    assert moved.clocks is not line.clocks and all(u.clock.arrays is moved.clocks for u in units)  # type: ignore[attr-defined]
+    assert [(u.clock.local_time(60 * MS), u.clock.rate, u.clock.loop_state) for u in units] == before
