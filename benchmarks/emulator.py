@@ -65,16 +65,16 @@ def in_process(n: int, app: str, seconds: float, enable: bool = False) -> float:
     chain = EscChain.from_maps([load_drive_map(MAXON)] * n, app="auto" if app == "auto" else None)
     plan = bring_up(chain)
     frames = [bytearray(f) for f in plan.lrw_frames()]
+    work = [(bytearray(f), len(f)) for f in frames]  # processed in place: refilled from the frames each cycle
     now = 0
 
-    def cycle(frames: list[bytearray]) -> None:
+    def cycle(sent: list[bytearray]) -> None:
         nonlocal now
         now += 250_000
         for i, (buf, size) in enumerate(work):
-            buf[:] = frames[i]
+            buf[:] = sent[i]
             chain.process_into(buf, size, now)
 
-    work = [(bytearray(f), len(f)) for f in frames]
     if enable and app == "auto":
         for cw in ENABLE:
             image = (outputs(cw) * n).ljust(plan.size, b"\0")
