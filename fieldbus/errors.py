@@ -174,3 +174,7 @@ class BackendUnavailableError(FieldbusError, ImportError):
 
 class PhaseError(FieldbusError, RuntimeError):
     """A verb was called in a bring-up phase where it is not allowed."""
+
+
+class RequestError(FieldbusError, ValueError):
+    """A request (an SDO transfer asked for in OP) is malformed: refused at submit, nothing queued."""

@@ -18,8 +18,10 @@ disables it, and closes the buses.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, wait
@@ -35,16 +37,50 @@ from fieldbus.backends import backend_class
 from fieldbus.backends.base import AxisGroup, Backend, SdoRequest
 from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
+from fieldbus.core.drivefault import DriveFault, DriveFaultWatch
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
-from fieldbus.core.wkc import PolicyConfig, Verdict, WkcPolicy
-from fieldbus.errors import BusTimeoutError, FieldbusError, PhaseError, SdoAbortError, abort_name
+from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
+from fieldbus.core.winddown import DISABLE_CYCLES, MAX_BUDGET_S, WindDown, WindDownReport
+from fieldbus.errors import (
+    BusTimeoutError,
+    FieldbusError,
+    PhaseError,
+    RequestError,
+    SdoAbortError,
+    abort_name,
+)
+from fieldbus.runtime.clock import WALL, Clock
 
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder
 
-CLOSE_CYCLES = 5  # cycles of quick stop, then of disable voltage, sent on close
+CLOSE_CYCLES = DISABLE_CYCLES  # cycles of disable voltage sent on close, after the quick stop is done
 PER_BUS_OPTIONS = ("can_bus", "can_log", "pcap")  # options naming one bus's own instance or file
+MAX_SDO_BYTES = 1 << 20  # the largest SDO download accepted at submit, bytes
+
+
+@dataclass(frozen=True)
+class BusEvent:
+    """Something a bus did in one cycle: ``safe_stop`` latched, ``released``, ``bus_error``, ``acyclic_error``."""
+
+    cycle: int
+    bus: str
+    kind: str
+    detail: str = ""
+
+    def __str__(self) -> str:
+        return f"cycle {self.cycle} bus '{self.bus}': {self.kind}" + (
+            f" ({self.detail})" if self.detail else ""
+        )
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception as a reason kept in BusStatus: its type and text."""
+    t = type(exc)
+    name = t.__name__ if t.__module__ == "builtins" else f"{t.__module__.split('.')[0]}.{t.__name__}"
+    text = str(exc)
+    return f"{name}: {text}" if text else name
 
 
 @dataclass
@@ -64,6 +100,10 @@ class BusStatus:
     recovering: bool = False  # a slave is being brought back to OP
     recoveries: int = 0  # slaves / passes brought back to OP since bring-up
     recovery_error: str | None = None  # the last failed recovery attempt, if any
+    error: str | None = None  # this cycle: the exception the bus raised (type: text); None: none
+    errors: int = 0  # cycles whose bus raised since bring-up (each one a miss that latches the safe stop)
+    last_error: str | None = None  # the newest bus error, kept after the bus is back
+    release_pending: bool = False  # clear_safe_stop() was asked; the latch opens after enough fresh cycles
 
 
 @dataclass
@@ -75,6 +115,12 @@ class CycleResult:
     fresh: bool = False  # every slave of every bus fresh
     safe_stop: bool = False  # any bus escalated to a safe stop (latched)
     exchange_ns: int = 0  # time spent in exchange(), ns
+    events: list[BusEvent | DriveFault] = field(
+        default_factory=list
+    )  # what happened in this cycle (new list each)
+    drive_faults: dict[str, npt.NDArray[np.int64]] = field(
+        default_factory=dict
+    )  # per group, fault edges per axis
     _by_name: dict[str, BusStatus] = field(default_factory=dict, repr=False)
 
     def bus(self, name: str) -> BusStatus:
@@ -128,19 +174,32 @@ class Network(_Phase):
             raise FieldbusError(
                 f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
             )
+        # ``clock``: a fieldbus.runtime.clock.Clock paces the close wind-down and is the emulators' time
+        # (its now_ns goes to every backend); a bare ``() -> ns`` callable goes to the backends only
+        clock = backend_options.get("clock")
+        if clock is not None and hasattr(clock, "now_ns") and hasattr(clock, "sleep"):
+            backend_options["clock"] = clock.now_ns
+        else:
+            clock = None
+        release_after = backend_options.pop("release_after", DEFAULT_RELEASE_AFTER)
+        wind_down_cap_s = backend_options.pop("wind_down_max_s", MAX_BUDGET_S)
+        if not isinstance(release_after, int) or isinstance(release_after, bool) or release_after < 1:
+            raise FieldbusError(f"release_after must be a whole number of cycles >= 1, not {release_after!r}")
+        if not isinstance(wind_down_cap_s, int | float) or not 0 < float(wind_down_cap_s) <= 60:
+            raise FieldbusError(
+                f"wind_down_max_s must be a number of seconds in (0, 60], not {wind_down_cap_s!r}"
+            )
+        self.clock: Clock = WALL if clock is None else clock
+        self.release_after = release_after
+        self.wind_down_cap_s = float(wind_down_cap_s)
+        self.last_wind_down: WindDownReport | None = None  # the outcome of the last close() from OP
+        self.close_errors: list[str] = []  # what the buses raised while closing (close() itself does not)
         per_instance = [k for k in backend_options if k in PER_BUS_OPTIONS]
         if per_instance and len(names) > 1:
             raise FieldbusError(
                 f"option {per_instance[0]!r} is one bus's own (an interface instance) and this network has "
                 f"{len(names)} buses: pass it per bus, bus_options={{'{names[0]}': {{'{per_instance[0]}': ...}}}}"
             )
-        self.backends: list[Backend] = []
-        for bus in model.buses:
-            cls = backend_class(backend or bus.type)
-            self.backends.append(cls(bus, **{**backend_options, **(bus_options or {}).get(bus.name, {})}))
-        self.policies = [
-            WkcPolicy(b.expected_wkc, b.n_slaves, PolicyConfig(b.bus.safe_stop_after)) for b in self.backends
-        ]
         base = min(bus.cycle_time_us for bus in model.buses)
         for bus in model.buses:
             if bus.cycle_time_us % base:
@@ -148,6 +207,27 @@ class Network(_Phase):
                     f"{model.source}: bus '{bus.name}' cycle_time_us {bus.cycle_time_us} is not a whole multiple "
                     f"of the shortest bus cycle ({base} us): a bus runs every n-th cycle of the fastest"
                 )
+        # atomic construction: every check above ran before anything exists; a backend that fails to
+        # construct takes down the ones made before it (none has opened its interface yet)
+        self.backends: list[Backend] = []
+        try:
+            for bus in model.buses:
+                cls = backend_class(backend or bus.type)
+                self.backends.append(cls(bus, **{**backend_options, **(bus_options or {}).get(bus.name, {})}))
+        except BaseException:
+            for made in self.backends:
+                with contextlib.suppress(Exception):  # the construction error is the one to report
+                    made.close()
+            raise
+        self.policies = [
+            SafetyPolicy(
+                b.expected_wkc,
+                b.n_slaves,
+                PolicyConfig(b.bus.safe_stop_after, release_after),
+                name=b.bus.name,
+            )
+            for b in self.backends
+        ]
         self.groups: dict[str, AxisGroup] = {g.name: g for b in self.backends for g in b.groups}
         self._phase: _Phase = self
         self._opened = False
@@ -193,16 +273,20 @@ class Network(_Phase):
         self.close()
 
     def close(self) -> None:
-        """Bring every drive down (safe outputs, then disable voltage), leave OP, close every bus.
+        """Bring every drive down (a controlled stop, then disable voltage), leave OP, close every bus.
 
-        Whatever raises on the way (a dead bus, a second Ctrl-C), every bus is
-        still stopped and closed; afterwards the first error is raised again.
-        Calling it again retries what did not close; once all closed it does nothing.
+        Never raises for a bus fault (invariant S1): whatever a bus raises on
+        the way, every bus is still stopped and closed, and the errors are kept
+        in :attr:`close_errors` and warned about (``RuntimeWarning``). A
+        KeyboardInterrupt or SystemExit meanwhile does not cut it short and is
+        raised again at the end. Calling it again retries what did not close;
+        once all closed it does nothing.
         """
         if self._closed and not self._open_backends:
             return
         self._closed = True
-        first: BaseException | None = None
+        interrupt: BaseException | None = None
+        errors: list[str] = []
         phase = self._phase
         self._phase = _Closed(self)  # no verb of the old phase runs from now on
         if isinstance(phase, Operational):
@@ -211,21 +295,25 @@ class Network(_Phase):
             phase._fail_pending_sdo()
             try:
                 phase._wind_down()
-            except BaseException as exc:  # KeyboardInterrupt included: keep going, re-raise at the end
-                first = exc
-        for b in list(self._open_backends):
-            try:
-                b.stop()
-            except BaseException as exc:
-                first = first or exc
-        for b in list(self._open_backends):
-            try:
-                b.close()
-                self._open_backends.remove(b)
-            except BaseException as exc:
-                first = first or exc
-        if first is not None:
-            raise first
+            except Exception as exc:
+                errors.append(f"wind-down: {_reason(exc)}")
+            except BaseException as exc:  # KeyboardInterrupt: keep going, re-raise at the end
+                interrupt = exc
+        for verb in ("stop", "close"):
+            for b in list(self._open_backends):
+                try:
+                    getattr(b, verb)()
+                    if verb == "close":
+                        self._open_backends.remove(b)
+                except Exception as exc:
+                    errors.append(f"bus '{b.bus.name}' {verb}: {_reason(exc)}")
+                except BaseException as exc:
+                    interrupt = interrupt or exc
+        self.close_errors.extend(errors)
+        for text in errors:
+            warnings.warn(f"fieldbus: closing the network: {text}", RuntimeWarning, stacklevel=2)
+        if interrupt is not None:
+            raise interrupt
 
 
 class _Closed(_Phase):
@@ -302,6 +390,17 @@ class Operational(_Phase):
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
         self._recorders: tuple[Recorder, ...] = ()  # each copies every cycle into its ring (record())
+        # drive faults (CiA 402 statusword bit 3), watched on the rows each cycle accepted; per bus
+        self._faults: list[list[tuple[DriveFaultWatch, npt.NDArray[np.bool_]]]] = []
+        for b, p in zip(net.backends, net.policies, strict=True):
+            watches = []
+            for g in b.groups:
+                w = DriveFaultWatch(g.name, g.image, tuple(s.name for s in g.slaves))
+                if w.active:
+                    watches.append((w, p.fresh[g.first : g.first + len(g.slaves)]))
+                    self.result.drive_faults[g.name] = w.faults
+            self._faults.append(watches)
+        self._code_reads: list[tuple[DriveFault, Future[bytes | None]]] = []  # 0x603F read when not in a PDO
 
     @property
     def groups(self) -> dict[str, AxisGroup]:
@@ -318,12 +417,17 @@ class Operational(_Phase):
         return iter(self._net.groups)
 
     def exchange(self) -> CycleResult:
-        """One cycle on every bus that is due: encode outputs, send, receive, judge, decode fresh inputs.
+        """One cycle on every bus that is due: encode outputs, send, receive, judge, accept fresh inputs.
 
-        While a safe stop is latched, every group's safe outputs overwrite what
-        the controller wrote. Recovery of lost slaves advances here - its one
-        caller - by one bounded step per bus per cycle, after a miss and while
-        the bus reports it is recovering.
+        Never raises for a bus fault (invariant S1): an exception from a
+        backend's send or receive becomes that bus's verdict ERROR, with the
+        reason in :attr:`BusStatus.error`, and latches the safe stop. While a
+        safe stop is latched, every group's safe outputs overwrite what the
+        controller wrote. Inputs of a slave that is not fresh are not touched
+        (S2). Recovery of lost slaves advances here - its one caller - by one
+        bounded step per bus per cycle, after a miss and while the bus reports
+        it is recovering. Raises only for caller errors (:class:`PhaseError`
+        after close).
         """
         self._check()
         t0 = time.perf_counter_ns()
@@ -331,50 +435,128 @@ class Operational(_Phase):
             self._cycle_thread = threading.get_ident()
         res = self.result
         cycle = res.cycle
+        if res.events:
+            res.events = []  # a new list only after a cycle that had events: the caller may keep the old one
         if res.safe_stop:
             for w in self._writers:
                 w.apply()
         for b, _, st, every in self._pairs:
             st.ran = cycle % every == 0
+            st.error = None
             if st.ran:
-                for g in b.groups:
-                    g.image.outputs.to_wire()
-                b.send()
+                try:
+                    for g in b.groups:
+                        g.image.outputs.to_wire()
+                    b.send()
+                except Exception as exc:
+                    st.error = _reason(exc)
         all_fresh = True
         any_stop = False
         for k, (b, policy, st, _) in enumerate(self._pairs):
             if st.ran:
-                wkc = b.receive()
-                verdict = policy.judge(wkc, b.arrived())
-                st.verdict = verdict
-                st.wkc = policy.last_wkc
-                st.consecutive_misses = policy.consecutive_misses
-                st.safe_stop = policy.safe_stop
-                st.dc_time_ns = b.dc_time_ns
-                st.dc_sync_error_ns = b.dc_sync_error_ns
-                if verdict is Verdict.OK or (verdict is Verdict.SHORT and b.arrived() is not None):
-                    for g in b.groups:
-                        g.image.inputs.from_wire()  # CAN: rows of silent nodes still hold their last bytes
-                if verdict is not Verdict.OK or b.recovering:
-                    b.recover_step()
-                st.recovering = b.recovering
-                st.recoveries = b.recoveries
-                st.recovery_error = b.last_recovery_error
-                if not st.recovering and (self._sdo_current[k] is not None or self._sdo_pending[k]):
-                    self._serve_sdo(k, b)
+                self._receive(k, b, policy, st, cycle)
             all_fresh = all_fresh and st.verdict is Verdict.OK
             any_stop = any_stop or policy.safe_stop
+        if self._code_reads:
+            self._collect_codes(cycle)
         res.fresh = all_fresh
         latched = any_stop and not res.safe_stop
         res.safe_stop = any_stop
         res.cycle = cycle + 1
         res.exchange_ns = time.perf_counter_ns() - t0
+        if res.events and self._recorders:
+            self._note_events(res.events)
         for rec in self._recorders:  # before the safe outputs below: it records what this cycle sent
             rec.capture(res, t0)
         if latched:
             for w in self._writers:  # effective from the next cycle's outputs
                 w.apply()
         return res
+
+    def _receive(self, k: int, b: Backend, policy: SafetyPolicy, st: BusStatus, cycle: int) -> None:
+        """Receive, judge and accept one bus's cycle; recovery and acyclic steps. Never raises (S1)."""
+        wkc: int | None = None
+        arrived = None
+        if st.error is None:
+            try:
+                wkc = b.receive()
+                arrived = b.arrived()
+            except Exception as exc:
+                st.error = _reason(exc)
+        verdict = policy.judge(wkc, arrived, st.error)
+        st.verdict = verdict
+        st.wkc = policy.last_wkc
+        st.consecutive_misses = policy.consecutive_misses
+        st.safe_stop = policy.safe_stop
+        st.release_pending = policy.clear_requested
+        st.dc_time_ns = b.dc_time_ns
+        st.dc_sync_error_ns = b.dc_sync_error_ns
+        events = self.result.events
+        if st.error is not None:
+            st.errors += 1
+            st.last_error = st.error
+            events.append(BusEvent(cycle, st.name, "bus_error", st.error))
+        if policy.latched_now:
+            events.append(BusEvent(cycle, st.name, "safe_stop", f"{policy.consecutive_misses} misses"))
+        if policy.released_now:
+            events.append(BusEvent(cycle, st.name, "released"))
+        if policy.fresh.any():
+            b.accept_inputs(policy.fresh)  # rows of stale slaves keep their last accepted bytes (S2)
+            for watch, rows in self._faults[k]:
+                for fault in watch.step(rows, cycle):
+                    events.append(fault)
+                    if fault.code is None:
+                        self._read_code(b, fault)
+        if st.error is None and (verdict is not Verdict.OK or b.recovering):
+            try:
+                b.recover_step()
+            except Exception as exc:  # recover_step never raises by contract; a backend bug is a miss reason
+                st.last_error = _reason(exc)
+        st.recovering = b.recovering
+        st.recoveries = b.recoveries
+        st.recovery_error = b.last_recovery_error
+        if not st.recovering and (self._sdo_current[k] is not None or self._sdo_pending[k]):
+            try:
+                self._serve_sdo(k, b)
+            except Exception as exc:  # fails that transfer only, with its cause (S5)
+                req = self._sdo_current[k]
+                self._sdo_current[k] = None
+                text = _reason(exc)
+                if req is not None:
+                    req.finish(error=FieldbusError(f"SDO transfer failed in the cycle: {text}"))
+                st.last_error = text
+                events.append(BusEvent(cycle, st.name, "acyclic_error", text))
+
+    def _read_code(self, b: Backend, fault: DriveFault) -> None:
+        """Ask for 0x603F of a faulted drive whose map does not have it in a PDO (served by the cycle)."""
+        k = self._net.backends.index(b)
+        slave = b.slave_index(fault.slave)
+        req = SdoRequest(slave, 0x603F, 0, None)
+        self._sdo_pending[k].append(req)
+        self._code_reads.append((fault, req.future))
+
+    def _collect_codes(self, cycle: int) -> None:
+        """Drive faults whose 0x603F read finished: the fault again, with its code, as an event."""
+        keep = []
+        for fault, fut in self._code_reads:
+            if not fut.done():
+                keep.append((fault, fut))
+                continue
+            data = None if fut.cancelled() or fut.exception() is not None else fut.result()
+            if data and len(data) >= 2:
+                code = int.from_bytes(data[:2], "little")
+                self.result.events.append(DriveFault(cycle, fault.group, fault.axis, fault.slave, code))
+        self._code_reads = keep
+
+    def _note_events(self, events: list[BusEvent | DriveFault]) -> None:
+        for rec in self._recorders:
+            for e in events:
+                if isinstance(e, DriveFault):
+                    rec.ring.note(
+                        e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name
+                    )
+                elif e.kind in ("bus_error", "acyclic_error"):
+                    rec.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
 
     def record(self, path: str | Path, *, raw: bool = False, **options: Any) -> Recorder:
         """Record every cycle from now on to the MCAP file ``path`` (see :mod:`fieldbus.recording`).
@@ -409,6 +591,8 @@ class Operational(_Phase):
         self, bus: str, slave: str, index: int, sub_index: int, data: bytes
     ) -> Future[bytes | None]:
         """Queue an SDO download of ``data`` for the running cycle to serve (see :meth:`submit_sdo_read`)."""
+        if not isinstance(data, bytes | bytearray | memoryview):
+            raise RequestError(f"SDO data must be bytes, not {type(data).__name__}")
         return self._submit(bus, slave, index, sub_index, bytes(data))
 
     def sdo_read(self, bus: str, slave: str, index: int, sub_index: int, *, timeout_s: float = 2.0) -> bytes:
@@ -426,8 +610,22 @@ class Operational(_Phase):
     def _submit(
         self, bus: str, slave: str, index: int, sub_index: int, data: bytes | None
     ) -> Future[bytes | None]:
+        """Check the request at the door (S5): a malformed one raises here and nothing is queued."""
         self._check()
         b = self._net.backend(bus)
+        for what, value, top in (("index", index, 0xFFFF), ("sub_index", sub_index, 0xFF)):
+            if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= top:
+                shown = (
+                    f"0x{value:X}" if isinstance(value, int) and not isinstance(value, bool) else repr(value)
+                )
+                raise RequestError(
+                    f"SDO {what} {shown} out of range 0..0x{top:X} (bus '{bus}' slave '{slave}')"
+                )
+        if data is not None and not 1 <= len(data) <= MAX_SDO_BYTES:
+            raise RequestError(
+                f"SDO download to 0x{index:04X}:{sub_index:02X} of '{slave}': {len(data)} bytes "
+                f"(1..{MAX_SDO_BYTES} accepted)"
+            )
         req = SdoRequest(b.slave_index(slave), index, sub_index, data)
         self._sdo_pending[self._net.backends.index(b)].append(req)
         return req.future
@@ -506,41 +704,87 @@ class Operational(_Phase):
                 return b.dc_correction_ns()
         return 0
 
-    def clear_safe_stop(self) -> None:
-        """Release a latched safe stop (the controller then re-enables drives through CiA 402)."""
+    def clear_safe_stop(self) -> bool:
+        """Ask to release a latched safe stop (S4); True when every bus's latch is open now.
+
+        Refused with :class:`~fieldbus.core.safety.SafeStopClearError` while a
+        latched bus is still missing (nothing is changed then). Otherwise each
+        latched bus opens once it has had ``release_after`` fresh cycles in a
+        row (at once if it already has; a miss meanwhile cancels the request);
+        until then its safe outputs keep overwriting the controller's. The
+        controller then re-enables its drives through CiA 402.
+        """
+        self._check()
+        for _, policy, _, _ in self._pairs:
+            if policy.safe_stop and policy.last_verdict is not Verdict.OK:
+                policy.clear_safe_stop()  # raises SafeStopClearError with this bus's reason
         for _, policy, st, _ in self._pairs:
             policy.clear_safe_stop()
-            st.safe_stop = False
-        self.result.safe_stop = False
+            st.safe_stop = policy.safe_stop
+            st.release_pending = policy.clear_requested
+        self.result.safe_stop = any(p.safe_stop for _, p, _, _ in self._pairs)
+        return not self.result.safe_stop
 
     def close(self) -> None:
         self._net.close()
 
     def _wind_down(self) -> None:
-        """Safe outputs (CiA 402 quick stop), then disable voltage, a few cycles each, on every bus.
+        """A controlled stop (S6): quick stop until every drive reports it done, then disable voltage.
 
-        A bus that fails on the way is left out of the remaining cycles; the
-        others still get theirs. A KeyboardInterrupt meanwhile does not cut the
-        wind-down short (it takes 2 x CLOSE_CYCLES cycles). Raises the first
-        error or interrupt afterwards.
+        Each cycle goes through the same never-raising path as :meth:`exchange`
+        (a bus that fails keeps its miss; the others still get their cycles).
+        The quick stop lasts until every CiA 402 axis is done
+        (:class:`~fieldbus.core.winddown.WindDown`), at most its budget; then
+        ``CLOSE_CYCLES`` cycles of disable voltage. A KeyboardInterrupt
+        meanwhile does not cut it short; it is raised again afterwards. The
+        outcome is in :attr:`Network.last_wind_down`.
         """
+        net = self._net
+        groups = [
+            (g.name, g.image, g.slaves[0].map, p.fresh[g.first : g.first + len(g.slaves)])
+            for b, p, _, _ in self._pairs
+            for g in b.groups
+        ]
+        dead_after = min(p.config.safe_stop_after for _, p, _, _ in self._pairs)
+        wd = WindDown(groups, self.cycle_time_us, cap_s=net.wind_down_cap_s, dead_after=dead_after)
+        net.last_wind_down = wd.report
         first: BaseException | None = None
-        alive = [b for b, _, _, _ in self._pairs]
-        for word in (SafeStop.QUICK_STOP, SafeStop.DISABLE_VOLTAGE):
-            for _ in range(CLOSE_CYCLES):
-                for w in self._writers:
-                    w.apply(word)
-                for b in list(alive):
-                    try:
-                        for g in b.groups:
-                            g.image.outputs.to_wire()
-                        b.send()
-                        b.receive()
-                    except Exception as exc:  # this bus failed: the others still get their cycles
-                        first = first or exc
-                        alive.remove(b)
-                    except BaseException as exc:  # a second Ctrl-C: finish stopping the drives first
-                        first = first or exc
-                time.sleep(self.cycle_time_us / 1e6)
+        period_s = self.cycle_time_us / 1e6
+        done = False
+        for _ in range(wd.budget_cycles + 1):
+            try:
+                self._wind_down_cycle(SafeStop.QUICK_STOP)
+                done = wd.step()
+            except BaseException as exc:  # a second Ctrl-C: finish stopping the drives first
+                first = first or exc
+            if done:
+                break
+            net.clock.sleep(period_s)
+        wd.finish()
+        for _ in range(CLOSE_CYCLES):
+            try:
+                self._wind_down_cycle(SafeStop.DISABLE_VOLTAGE)
+                wd.report.disable_cycles += 1
+            except BaseException as exc:
+                first = first or exc
+            net.clock.sleep(period_s)
         if first is not None:
             raise first
+
+    def _wind_down_cycle(self, word: SafeStop) -> None:
+        """One cycle of the wind-down on every bus, the safe outputs with ``word`` written first."""
+        for w in self._writers:
+            w.apply(word)
+        res = self.result
+        cycle = res.cycle
+        for b, _, st, _ in self._pairs:
+            st.ran, st.error = True, None
+            try:
+                for g in b.groups:
+                    g.image.outputs.to_wire()
+                b.send()
+            except Exception as exc:
+                st.error = _reason(exc)
+        for k, (b, policy, st, _) in enumerate(self._pairs):
+            self._receive(k, b, policy, st, cycle)
+        res.cycle = cycle + 1

@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.core.network import Bus, Slave
-from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.image import DirectionImage, ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
 from fieldbus.errors import FieldbusError, StateTransitionError, WorkingCounterError
 
@@ -111,6 +111,9 @@ class Backend(abc.ABC):
                 runs[-1].append(i)
             else:
                 runs.append([i])
+        # receive scratch, one per group: backends write replies here, never into the image, so a
+        # reply the policy rejects cannot change what the controller reads (invariant S2)
+        self.rx: list[npt.NDArray[np.uint8]] = []
         for run in runs:
             first = bus.slaves[run[0]]
             name = bus.name if len(runs) == 1 else f"{bus.name}.{first.name}"
@@ -118,6 +121,7 @@ class Backend(abc.ABC):
             for row, i in enumerate(run):
                 self.areas.append(SlaveArea(bus.slaves[i], layouts[i], len(self.groups), row))
             self.groups.append(AxisGroup(name, tuple(bus.slaves[i] for i in run), image, run[0]))
+            self.rx.append(np.zeros_like(image.inputs.wire))
         self.out_bytes = sum(a.out_size for a in self.areas)
         self.in_bytes = sum(a.in_size for a in self.areas)
         # recovery bookkeeping, bounded (the cycle reports it in BusStatus)
@@ -125,6 +129,10 @@ class Backend(abc.ABC):
         self.recovery_errors: deque[str] = deque(maxlen=RECOVERY_LOG)  # newest last
         self.last_recovery_error: str | None = None
         self._recovery: Generator[None, None, bool] | None = None
+        self._accept_plan: (
+            list[tuple[DirectionImage, npt.NDArray[np.uint8], npt.NDArray[np.bool_]]] | None
+        ) = None
+        self._accept_src: npt.NDArray[np.bool_] | None = None
 
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
         """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
@@ -133,10 +141,31 @@ class Backend(abc.ABC):
         return row
 
     def in_row(self, i: int) -> npt.NDArray[np.uint8]:
-        """Slave ``i``'s input (TxPDO) wire bytes: a contiguous view into its group's image."""
+        """Where slave ``i``'s input (TxPDO) wire bytes are received: a contiguous row of the receive scratch.
+
+        The network copies a row into the image only when the policy accepts
+        that slave's inputs for the cycle (:meth:`accept_inputs`).
+        """
         a = self.areas[i]
-        row: npt.NDArray[np.uint8] = self.groups[a.group].image.inputs.wire[a.row]
+        row: npt.NDArray[np.uint8] = self.rx[a.group][a.row]
         return row
+
+    def accept_inputs(self, fresh: npt.NDArray[np.bool_]) -> None:
+        """Copy the rows of the slaves fresh this cycle (per slave, bus order) into the images and decode.
+
+        Rows of stale slaves are not touched: their values stay bit-identical to
+        the last accepted ones. Allocation-free (the masks are views made once).
+        """
+        if self._accept_plan is None or self._accept_src is not fresh:
+            self._accept_src = fresh
+            self._accept_plan = [
+                (g.image.inputs, self.rx[k], fresh[g.first : g.first + len(g.slaves)].reshape(-1, 1))
+                for k, g in enumerate(self.groups)
+            ]
+        for inputs, rx, rows in self._accept_plan:
+            if rows.any():
+                np.copyto(inputs.wire, rx, where=rows)
+                inputs.from_wire()
 
     @property
     def n_slaves(self) -> int:
@@ -225,11 +254,13 @@ class Backend(abc.ABC):
 
     @abc.abstractmethod
     def receive(self) -> int | None:
-        """Wait up to the receive timeout; copy replies into the slaves' ``in_row``.
+        """Wait up to the receive timeout; copy replies into the slaves' ``in_row`` (the receive scratch).
 
         Returns the working counter (CAN: the number of expected frames that
-        arrived) or None on timeout. Inputs may be partly written on a miss:
-        the Network only decodes them when the policy calls the cycle fresh.
+        arrived) or None on timeout. The scratch may be partly written on a
+        miss: the Network copies a slave's row into the image only when the
+        policy calls that slave fresh. May raise on a bus fault: the Network
+        turns any exception into this bus's verdict ERROR (never out of ``exchange()``).
         """
 
     def arrived(self) -> npt.NDArray[np.bool_] | None:

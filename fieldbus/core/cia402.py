@@ -483,6 +483,11 @@ class Cia402Controller:
 
     A fault reset is a pulse on bit 7: ``fault_reset_cycles`` cycles high
     (the rising edge), as many low, repeated while the drive stays in FAULT.
+    Automatic resets are bounded (invariant S7 of ``docs/safety.md``): at most
+    ``max_fault_resets`` per axis within ``fault_reset_window_cycles``; beyond
+    that the axis stays in FAULT, :attr:`gave_up` says so, and only
+    :meth:`reset_fault_budget` lets it try again. :attr:`fault_resets` counts
+    the resets sent per axis.
     """
 
     def __init__(
@@ -493,6 +498,8 @@ class Cia402Controller:
         safe_stop_word: SafeStop = SafeStop.QUICK_STOP,
         fault_reset_cycles: int = 1,
         mode: Mode = Mode.CSP,
+        max_fault_resets: int = 3,
+        fault_reset_window_cycles: int = 10_000,
     ) -> None:
         if n_axes < 1:
             raise ValueError(f"n_axes must be >= 1, got {n_axes}")
@@ -500,6 +507,13 @@ class Cia402Controller:
             raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
         if fault_reset_cycles < 1:
             raise ValueError(f"fault_reset_cycles must be >= 1, got {fault_reset_cycles}")
+        if max_fault_resets < 0 or fault_reset_window_cycles < 1:
+            raise ValueError(
+                f"max_fault_resets must be >= 0 and fault_reset_window_cycles >= 1, got "
+                f"{max_fault_resets} and {fault_reset_window_cycles}"
+            )
+        self.max_fault_resets = max_fault_resets
+        self.fault_reset_window_cycles = fault_reset_window_cycles
         self.n_axes = n_axes
         self.timeout_cycles = timeout_cycles
         self.safe_stop_word = SafeStop(safe_stop_word)
@@ -514,6 +528,11 @@ class Cia402Controller:
         self.since_progress: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)
         self.mode_request: npt.NDArray[np.int8] = np.full(n, int(mode), dtype=np.int8)
         self.mode_ok: npt.NDArray[np.bool_] = np.ones(n, dtype=bool)
+        self.fault_resets: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # resets sent per axis, ever
+        self.gave_up: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)  # too many resets: left in FAULT
+        self._window_start = np.zeros(n, dtype=np.int64)
+        self._window_count = np.zeros(n, dtype=np.int64)
+        self._cycle = 0
         # scratch, preallocated once
         self._prev_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._idx = np.zeros(n, dtype=np.intp)
@@ -599,10 +618,15 @@ class Cia402Controller:
             np.logical_or(self.mode_ok, self._goal_not_enable, out=self._b2)
             np.logical_and(self.reached, self._b2, out=self.reached)
 
-        # fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat
+        # fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat; bounded per axis
         phase = self._phase
+        np.greater(self._pulse, self.gave_up, out=self._pulse)  # an axis that gave up gets no pulse
         np.multiply(phase, self._pulse, out=phase)
         np.remainder(phase, 2 * self.fault_reset_cycles, out=self._tmp_i32)
+        np.equal(self._tmp_i32, 0, out=self._b2)
+        np.logical_and(self._b2, self._pulse, out=self._b2)  # a reset begins now
+        if self._b2.any():
+            self._count_resets(self._b2)
         np.less(self._tmp_i32, self.fault_reset_cycles, out=self._b1)
         np.logical_and(self._b1, self._pulse, out=self._b1)
         np.bitwise_or(sm, self._bit7, out=sm, where=self._b1)
@@ -620,6 +644,26 @@ class Cia402Controller:
         np.logical_or(self._changed, self.reached, out=self._b1)
         np.copyto(self.since_progress, self._zero_i32, where=self._b1)
         np.greater(self.since_progress, self.timeout_cycles, out=self.stuck)
+        self._cycle += 1
+
+    def _count_resets(self, starting: npt.NDArray[np.bool_]) -> None:
+        """Axes whose reset pulse begins this cycle: count it, or give up past the budget (rare path)."""
+        for i in np.flatnonzero(starting):
+            if self._cycle - self._window_start[i] >= self.fault_reset_window_cycles:
+                self._window_start[i] = self._cycle
+                self._window_count[i] = 0
+            if self._window_count[i] >= self.max_fault_resets:
+                self.gave_up[i] = True
+                self._pulse[i] = False
+                continue
+            self._window_count[i] += 1
+            self.fault_resets[i] += 1
+
+    def reset_fault_budget(self, axes: Any = slice(None)) -> None:
+        """Let ``axes`` that gave up (:attr:`gave_up`) reset their faults again, with a fresh budget."""
+        self.gave_up[axes] = False
+        self._window_count[axes] = 0
+        self._window_start[axes] = self._cycle
 
     def safe_stop(self, controlword_out: npt.NDArray[Any]) -> None:
         """Write the safe-stop command into every controlword (master outputs) now, and make it the goal.

@@ -72,15 +72,16 @@ def test_close_closes_every_bus_when_the_first_close_raises(tmp_path: Path) -> N
         raise Boom("legs will not close")
 
     legs.close = failing_close  # type: ignore[method-assign]
-    with pytest.raises(Boom):
-        net.close()
+    with pytest.warns(RuntimeWarning, match="legs will not close"):
+        net.close()  # a bus fault while closing is kept and warned about, never raised (S1)
+    assert net.close_errors == ["bus 'legs' close: Boom: legs will not close"]
     assert not arms._open  # type: ignore[attr-defined]  # the second bus was closed all the same
     assert calls == ["legs"]
     # every drive was brought below OPERATION ENABLED, on both buses
     for bus in (0, 1):
         assert State402.OPERATION_ENABLED not in _drive_states(net, bus), bus
     with pytest.raises(fieldbus.PhaseError):
-        op.exchange()  # the phase is over, even though close raised
+        op.exchange()  # the phase is over, even though a bus failed to close
     # a retry closes what is still open, then close() is a no-op
     legs.close = real_close  # type: ignore[method-assign]
     net.close()

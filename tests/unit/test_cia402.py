@@ -323,10 +323,16 @@ def test_stuck_axis_is_detected() -> None:
     assert ctl.stuck[5] and ctl.stuck.sum() == 1
     assert ctl.state[5] == S.FAULT
     assert ctl.cycles[5] >= 20 and not ctl.reached[5]
-    # the reset pulse kept coming: bit 7 toggles every cycle (fault_reset_cycles=1)
-    bits = [int(c[5]) & 0x80 for c in chain.cw_history[-6:]]
-    assert bits in ([0x80, 0, 0x80, 0, 0x80, 0], [0, 0x80, 0, 0x80, 0, 0x80])
+    # the reset pulse came max_fault_resets times, then the axis gave up and stays in FAULT (S7)
+    bits = [0] + [int(c[5]) & 0x80 for c in chain.cw_history]
+    rising = sum(1 for a, b in zip(bits[:-1], bits[1:], strict=True) if b and not a)
+    assert rising == ctl.max_fault_resets == ctl.fault_resets[5] == 3
+    assert ctl.gave_up[5] and ctl.gave_up.sum() == 1
+    assert not any(int(c[5]) & 0x80 for c in chain.cw_history[-50:])
     chain.drives[5].clear_fault_cause()
+    chain.run(ctl, 20)
+    assert not ctl.reached[5] and ctl.state[5] == S.FAULT  # a give-up is lifted only on purpose
+    ctl.reset_fault_budget(5)
     chain.run(ctl, 20)
     assert ctl.all_reached and not ctl.any_stuck
 

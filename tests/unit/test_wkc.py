@@ -60,8 +60,12 @@ def test_safe_stop_fires_exactly_at_threshold(threshold: int) -> None:
     assert p.safe_stop and p.stats.safe_stops == 1
     p.judge(3)  # a good cycle does not release the latch
     assert p.safe_stop and p.consecutive_misses == 0
-    p.clear_safe_stop()
-    assert not p.safe_stop
+    assert not p.clear_safe_stop()  # asked: it opens after release_after fresh cycles in a row
+    for _ in range(p.config.release_after - 2):
+        p.judge(3)
+        assert p.safe_stop
+    p.judge(3)
+    assert not p.safe_stop and p.stats.releases == 1
 
 
 def test_default_threshold_is_the_seeds_10() -> None:
