@@ -217,7 +217,7 @@ def test_a_can_transmit_error_is_a_verdict_that_latches_and_close_does_not_raise
 
 
 def test_a_malformed_request_is_refused_at_the_door_and_the_cycle_runs_on(enabled: Any) -> None:
-    net, op, _ = enabled
+    _, op, _ = enabled
     errors: list[BaseException] = []
 
     def other_thread() -> None:
@@ -253,7 +253,7 @@ def test_a_request_that_fails_while_served_fails_alone_with_its_cause(enabled: A
     after = op.submit_sdo_read("arm", "j1", 0x1018, 2)
     for _ in range(5):
         assert op.exchange().fresh
-    with pytest.raises(fieldbus.FieldbusError, match="struct.error: argument out of range"):
+    with pytest.raises(fieldbus.FieldbusError, match=r"struct\.error: argument out of range"):
         bad.result(0)
     assert after.result(0) == (0xD01).to_bytes(4, "little")
     assert op.result.bus("arm").last_error == "struct.error: argument out of range"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 from pathlib import Path
 
@@ -325,7 +326,7 @@ def test_stuck_axis_is_detected() -> None:
     assert ctl.cycles[5] >= 20 and not ctl.reached[5]
     # the reset pulse came max_fault_resets times, then the axis gave up and stays in FAULT (S7)
     bits = [0] + [int(c[5]) & 0x80 for c in chain.cw_history]
-    rising = sum(1 for a, b in zip(bits[:-1], bits[1:], strict=True) if b and not a)
+    rising = sum(1 for a, b in itertools.pairwise(bits) if b and not a)
     assert rising == ctl.max_fault_resets == ctl.fault_resets[5] == 3
     assert ctl.gave_up[5] and ctl.gave_up.sum() == 1
     assert not any(int(c[5]) & 0x80 for c in chain.cw_history[-50:])
