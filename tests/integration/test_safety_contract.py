@@ -29,6 +29,7 @@ from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.errors import RequestError
 from fieldbus.network import BusEvent
+from fieldbus.runtime.clock import VirtualClock
 
 MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 _channels = itertools.count()
@@ -263,7 +264,8 @@ def test_a_request_that_fails_while_served_fails_alone_with_its_cause(enabled: A
 
 
 def test_close_holds_the_quick_stop_until_the_drive_has_stopped(tmp_path: Path) -> None:
-    net = fieldbus.open_network(_net_file(tmp_path, axes=1), backend="sim")
+    clock = VirtualClock()  # the emulated drives' time: 1 ms per cycle, whatever the machine's load
+    net = fieldbus.open_network(_net_file(tmp_path, axes=1), backend="sim", clock=clock)
     op = net.bring_up()
     ctrl = Cia402Controller(1, mode=Mode.CSP)
     ctrl.set_goal(Goal.ENABLE)
@@ -271,6 +273,7 @@ def test_close_holds_the_quick_stop_until_the_drive_has_stopped(tmp_path: Path) 
     drive = _chain(net).slaves[0].app
     q = 0.0
     for k in range(800):
+        clock.advance(1_000_000)
         op.exchange()
         ctrl.step(img.inputs["statusword"], img.outputs["controlword"])
         if ctrl.all_reached:
