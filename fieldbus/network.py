@@ -28,7 +28,7 @@ from concurrent.futures import Future, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -73,6 +73,76 @@ class BusEvent:
         return f"cycle {self.cycle} bus '{self.bus}': {self.kind}" + (
             f" ({self.detail})" if self.detail else ""
         )
+
+
+class CycleObserver(Protocol):
+    """What :meth:`Operational.add_observer` takes: a recording, a monitor, a test's probe.
+
+    ``capture`` runs in the cycle's thread at the end of every ``exchange()``
+    (keep it short and allocation-free); ``note_events`` gets the cycle's
+    events when there are any, before ``capture``; ``close`` runs when the
+    network closes.
+    """
+
+    def capture(self, res: CycleResult, t0_ns: int) -> None: ...
+
+    def note_events(self, events: list[BusEvent | DriveFault]) -> None: ...
+
+    def close(self) -> None: ...
+
+
+COUNTERS = (
+    "late_replies",
+    "stale_frames",
+    "late_frames",
+    "extra_frames",
+    "tx_errors",
+    "bus_off",
+    "emcy_count",
+)
+
+
+@dataclass(frozen=True)
+class BusView:
+    """One bus as an observer sees it (:attr:`Operational.buses`): its status, statistics and counters.
+
+    The public face of a running bus for monitors, reports and recordings; it
+    reads the backend's counters on demand, never in the cycle.
+    """
+
+    backend: Backend
+    policy: SafetyPolicy
+    status: BusStatus
+
+    @property
+    def name(self) -> str:
+        return self.backend.bus.name
+
+    @property
+    def kind(self) -> str:
+        return self.backend.kind
+
+    @property
+    def slaves(self) -> tuple[str, ...]:
+        return tuple(a.slave.name for a in self.backend.areas)
+
+    def counters(self) -> dict[str, int]:
+        """Faults the bus absorbed since bring-up: late replies, stale and extra frames, transmit errors,
+        bus-off events, emergencies (0 where the bus has no such thing), and the policy's misses and errors.
+        """
+        out = {name: int(getattr(self.backend, name, 0) or 0) for name in COUNTERS}
+        st = self.policy.stats
+        out.update(misses=st.misses, timeouts=st.timeouts, short=st.short, errors=st.errors)
+        out.update(safe_stops=st.safe_stops, releases=st.releases, recoveries=self.backend.recoveries)
+        return out
+
+    def slave_state(self, i: int) -> str:
+        """Slave ``i``'s state: ``OP`` when its EtherCAT process data were fresh this cycle (a full
+        working counter proves every slave processed the LRW in OP), else what the backend last read."""
+        if self.backend.pdo_align == 1 and self.policy.fresh[i]:
+            return "OP"
+        state_of = getattr(self.backend, "slave_state", None)
+        return str(state_of(i)) if state_of is not None else "-"
 
 
 def _reason(exc: BaseException) -> str:
@@ -290,8 +360,11 @@ class Network(_Phase):
         phase = self._phase
         self._phase = _Closed(self)  # no verb of the old phase runs from now on
         if isinstance(phase, Operational):
-            for rec in phase._recorders:
-                rec.close()  # never raises: a failed recording was already warned about
+            for obs in phase._observers:
+                try:
+                    obs.close()  # a recording never raises: a failed write was already warned about
+                except Exception as exc:
+                    errors.append(f"observer {type(obs).__name__}: {_reason(exc)}")
             phase._fail_pending_sdo()
             try:
                 phase._wind_down()
@@ -389,7 +462,8 @@ class Operational(_Phase):
             plan = safe_stop_plan(g.slaves[0].map, g.image.layout)
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
-        self._recorders: tuple[Recorder, ...] = ()  # each copies every cycle into its ring (record())
+        self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
+        self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
         # drive faults (CiA 402 statusword bit 3), watched on the rows each cycle accepted; per bus
         self._faults: list[list[tuple[DriveFaultWatch, npt.NDArray[np.bool_]]]] = []
         for b, p in zip(net.backends, net.policies, strict=True):
@@ -464,10 +538,11 @@ class Operational(_Phase):
         res.safe_stop = any_stop
         res.cycle = cycle + 1
         res.exchange_ns = time.perf_counter_ns() - t0
-        if res.events and self._recorders:
-            self._note_events(res.events)
-        for rec in self._recorders:  # before the safe outputs below: it records what this cycle sent
-            rec.capture(res, t0)
+        if res.events:
+            for obs in self._observers:
+                obs.note_events(res.events)
+        for obs in self._observers:  # before the safe outputs below: it records what this cycle sent
+            obs.capture(res, t0)
         if latched:
             for w in self._writers:  # effective from the next cycle's outputs
                 w.apply()
@@ -548,16 +623,6 @@ class Operational(_Phase):
                 self.result.events.append(DriveFault(cycle, fault.group, fault.axis, fault.slave, code))
         self._code_reads = keep
 
-    def _note_events(self, events: list[BusEvent | DriveFault]) -> None:
-        for rec in self._recorders:
-            for e in events:
-                if isinstance(e, DriveFault):
-                    rec.ring.note(
-                        e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name
-                    )
-                elif e.kind in ("bus_error", "acyclic_error"):
-                    rec.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
-
     def record(self, path: str | Path, *, raw: bool = False, **options: Any) -> Recorder:
         """Record every cycle from now on to the MCAP file ``path`` (see :mod:`fieldbus.recording`).
 
@@ -576,7 +641,23 @@ class Operational(_Phase):
     @property
     def recorders(self) -> tuple[Recorder, ...]:
         """The recordings running on this network (:meth:`record`)."""
-        return self._recorders
+        from fieldbus.recording import Recorder
+
+        return tuple(o for o in self._observers if isinstance(o, Recorder))
+
+    @property
+    def network(self) -> Network:
+        """The network this phase belongs to (its model, backends and last wind-down)."""
+        return self._net
+
+    def add_observer(self, observer: CycleObserver) -> None:
+        """Call ``observer`` every cycle from now on (see :class:`CycleObserver`)."""
+        self._check()
+        self._observers = (*self._observers, observer)
+
+    def remove_observer(self, observer: CycleObserver) -> None:
+        """Stop calling ``observer`` (no error if it was not added)."""
+        self._observers = tuple(o for o in self._observers if o is not observer)
 
     # -- acyclic access in OP --------------------------------------------------------------
     def submit_sdo_read(self, bus: str, slave: str, index: int, sub_index: int) -> Future[bytes | None]:
@@ -659,7 +740,7 @@ class Operational(_Phase):
                 return
         if b.acyclic_step(req):
             self._sdo_current[k] = None
-            if self._recorders:
+            if self._observers:
                 self._note_sdo_abort(b, req)
 
     def _note_sdo_abort(self, b: Backend, req: SdoRequest) -> None:
@@ -667,7 +748,7 @@ class Operational(_Phase):
         exc = req.future.exception(0) if req.future.done() else None
         if not isinstance(exc, SdoAbortError):
             return
-        for rec in self._recorders:
+        for rec in self.recorders:
             rec.ring.note(
                 self.result.cycle,  # this cycle's index (exchange() counts it when done)
                 "sdo_abort",

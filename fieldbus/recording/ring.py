@@ -95,7 +95,7 @@ class Ring:
         self.block_cycles = block_cycles
         self.ring_blocks = ring_blocks
         self.rows = rows = block_cycles * ring_blocks
-        backends = op._net.backends
+        backends = [v.backend for v in op.buses]
         self.width = len(COMMON) + len(BUS) * len(backends)
         self.ints = np.zeros((rows, self.width), dtype=np.int64)
         self.row_bytes = self.width * 8

@@ -83,6 +83,9 @@ EVENT_SCHEMA: dict[str, Any] = {
                 "nmt_state",
                 "cia402_state",
                 "sdo_abort",
+                "drive_fault",
+                "bus_error",
+                "acyclic_error",
                 "gap",
             ],
         },
@@ -95,8 +98,15 @@ EVENT_SCHEMA: dict[str, Any] = {
         "access": {"enum": ["read", "write"], "description": "sdo_abort: the transfer asked for"},
         "index": {"type": "integer", "description": "sdo_abort: object index"},
         "sub_index": {"type": "integer", "description": "sdo_abort: object sub-index"},
-        "code": {"type": "integer", "description": "sdo_abort: the abort code (CiA 301 / ETG.1000.6)"},
-        "name": {"type": "string", "description": "sdo_abort: the abort code's name"},
+        "code": {
+            "type": ["integer", "null"],
+            "description": "sdo_abort: the abort code (CiA 301 / ETG.1000.6); drive_fault: the error code 0x603F "
+            "(null until read)",
+        },
+        "name": {
+            "type": "string",
+            "description": "sdo_abort: the abort code's name; drive_fault: the error's",
+        },
     },
     "required": ["cycle", "t_ns", "kind"],
 }

@@ -164,7 +164,7 @@ class Recorder:
             target=self._run, name=f"fieldbus-record {self.path.name}", daemon=True
         )
         self._thread.start()
-        op._recorders = (*op._recorders, self)
+        op.add_observer(self)
 
     # -- file layout ---------------------------------------------------------------------
     def _channel(self, w: Any, topic: str, dtype: np.dtype[Any], fields: dict[str, str], **meta: str) -> int:
@@ -183,7 +183,7 @@ class Recorder:
         )
 
     def _setup(self, w: Any, op: Operational) -> None:
-        net = op._net
+        net = op.network
         self._cycle_dtype = schema.cycle_dtype()
         self._cycle_ch = self._channel(w, "/cycle", self._cycle_dtype, schema.CYCLE_FIELDS)
         self._bus_dtypes: list[np.dtype[Any]] = []
@@ -394,6 +394,16 @@ class Recorder:
         """Cycles are still being recorded (not closed, no write failed)."""
         return not self.ring.stopped
 
+    def note_events(self, events: list[Any]) -> None:
+        """The cycle's drive faults and bus errors as events in the recording (the cycle calls it)."""
+        from fieldbus.core.drivefault import DriveFault
+
+        for e in events:
+            if isinstance(e, DriveFault):
+                self.ring.note(e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name)
+            elif e.kind in ("bus_error", "acyclic_error"):
+                self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
+
     def close(self) -> None:
         """Stop recording, write what the ring holds, finish the file. Idempotent; never raises for the file
         (a failed write was already warned about: :attr:`error`)."""
@@ -401,7 +411,7 @@ class Recorder:
             return
         self._closed = True
         self.ring.stopped = True  # the cycle copies nothing more
-        self._op._recorders = tuple(r for r in self._op._recorders if r is not self)
+        self._op.remove_observer(self)
         self._closing = True
         self._thread.join()
 

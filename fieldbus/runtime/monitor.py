@@ -57,10 +57,9 @@ class Monitor:
         }
         if self.latency is not None:
             out["latency_us"] = self.latency.to_json()
-        net = op._net
-        for b, policy, st in zip(net.backends, net.policies, res.buses, strict=True):
+        for view in op.buses:
+            b, policy, st = view.backend, view.policy, view.status
             slaves = []
-            state_of = getattr(b, "slave_state", None)
             emcy_of = getattr(b, "last_emergency", None)
             for i, area in enumerate(b.areas):
                 group = b.groups[area.group]
@@ -73,7 +72,7 @@ class Monitor:
                 slaves.append(
                     {
                         "name": area.slave.name,
-                        "state": state_of(i) if state_of is not None else "-",
+                        "state": view.slave_state(i),
                         "cia402": _name402(sw),
                         "fresh": bool(policy.fresh[i]),
                         "stale_cycles": int(policy.stale_cycles[i]),
@@ -93,6 +92,8 @@ class Monitor:
                     "recovering": st.recovering,
                     "recoveries": st.recoveries,
                     "recovery_error": st.recovery_error,
+                    "last_error": st.last_error,
+                    "counters": view.counters(),
                     "slaves": slaves,
                 }
             )

@@ -18,23 +18,38 @@ def run_report(op: Operational, timer: CycleTimer, cycle_time_us: float) -> dict
     buses = []
     missed = 0
     safe_stops = 0
-    for b, policy in zip(op._net.backends, op._net.policies, strict=True):
-        st = policy.stats
+    for view in op.buses:
+        b, st = view.backend, view.policy.stats
         missed += st.misses
         safe_stops += st.safe_stops
+        counters = view.counters()
         buses.append(
             {
-                "name": b.bus.name,
-                "type": b.kind,
+                "name": view.name,
+                "type": view.kind,
                 "slaves": b.n_slaves,
                 "expected_wkc": b.expected_wkc,
                 "cycles": st.cycles,
                 "missed": st.misses,
                 "timeouts": st.timeouts,
                 "short": st.short,
+                "errors": st.errors,
                 "longest_streak": st.longest_streak,
                 "recoveries": st.recoveries,
                 "safe_stops": st.safe_stops,
+                "releases": st.releases,
+                "last_error": view.status.last_error,
+                "late_replies": counters["late_replies"],
+                "stale_frames": counters["stale_frames"],
+                "late_frames": counters["late_frames"],
+                "extra_frames": counters["extra_frames"],
+                "tx_errors": counters["tx_errors"],
+                "bus_off": counters["bus_off"],
+                "drive_faults": {
+                    g.name: [int(x) for x in op.result.drive_faults[g.name]]
+                    for g in b.groups
+                    if g.name in op.result.drive_faults
+                },
             }
         )
     return {

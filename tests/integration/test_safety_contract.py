@@ -351,3 +351,57 @@ def test_the_safe_stop_writes_and_the_drive_is_held_in_quick_stop_while_latched(
     states = [int(s.app.state) for s in _chain(net).slaves]
     assert State402.OPERATION_ENABLED not in states
     assert np.all(op["arm"].outputs["controlword"] & 0x0F == 0x02)
+
+
+# -- what was hidden, shown: one public observer interface -------------------------------------------
+
+
+def test_faults_reach_the_observers_the_recording_the_monitor_and_the_report(
+    enabled: Any, tmp_path: Path
+) -> None:
+    from fieldbus.recording import load
+    from fieldbus.runtime.monitor import Monitor
+    from fieldbus.runtime.report import run_report
+    from fieldbus.runtime.timing import CycleTimer
+
+    net, op, ctrl = enabled
+    img = op["arm"]
+    seen: list[Any] = []
+
+    class Probe:
+        def capture(self, res: fieldbus.CycleResult, t0_ns: int) -> None:
+            seen.append(res.cycle)
+
+        def note_events(self, events: list[Any]) -> None:
+            seen.extend(events)
+
+        def close(self) -> None:
+            seen.append("closed")
+
+    probe = Probe()
+    op.add_observer(probe)
+    rec = op.record(tmp_path / "run.mcap")
+    assert Monitor(op).snapshot()["buses"][0]["slaves"][0]["state"] == "OP"  # not SOEM's cached PRE-OP
+    b = net.backend("arm")
+    real = b.receive
+    b.receive = lambda: (_ for _ in ()).throw(OSError(100, "Network is down"))  # type: ignore[method-assign]
+    op.exchange()
+    b.receive = real  # type: ignore[method-assign]
+    _chain(net).slaves[0].app.inject_fault(0x2310)  # continuous over-current
+    for _ in range(30):
+        op.exchange()
+        ctrl.step(img.inputs["statusword"], img.outputs["controlword"])
+    rec.close()
+    events = load(tmp_path / "run.mcap").events
+    kinds = {e["kind"] for e in events}
+    assert {"bus_error", "drive_fault", "safe_stop"} <= kinds, kinds
+    assert any(e["kind"] == "drive_fault" and e["code"] == 0x2310 for e in events)
+    assert any(isinstance(e, BusEvent) and e.kind == "bus_error" for e in seen)
+    assert any(isinstance(e, DriveFault) and e.code == 0x2310 for e in seen)
+    view = op.buses[0]
+    assert view.counters()["errors"] == 1 and view.status.last_error == "OSError: [Errno 100] Network is down"
+    report = run_report(op, CycleTimer(capacity=4), 1000.0)
+    (bus,) = report["buses"]
+    assert bus["errors"] == 1 and bus["drive_faults"] == {"arm": [1, 0]}
+    net.close()
+    assert seen[-1] == "closed"
