@@ -122,10 +122,10 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     warnings: list[str] = []
     if text is None:
         try:
-            raw = Path(file).read_bytes()
+            data = Path(file).read_bytes()
         except OSError as exc:
             raise PdoMapError(f"cannot read: {exc.strerror}", file=file) from None
-        text, note = decode_vendor_text(raw)
+        text, note = decode_vendor_text(data)
         if note:
             warnings.append(note)
     try:
