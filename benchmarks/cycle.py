@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import struct
 import sys
@@ -48,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.network import Operational, open_network
+from fieldbus.runtime import capabilities
 from fieldbus.runtime.allocs import net_blocks
 
 RECEIVE_TIMEOUT_US = 10_000
@@ -268,7 +268,7 @@ def main() -> int:
             net.close()
         results["sim"] = (pairs, blocks)
         # -- over veth: fieldbus vs bare pysoem on one emulator --
-        if os.geteuid() == 0:
+        if not capabilities.missing(capabilities.CAP_NET_ADMIN, capabilities.CAP_NET_RAW):
             from sim_slaves.ethercat.veth import emulated_segment
 
             with emulated_segment([DEMO_MAP], count=args.axes, workdir=tmp) as emu:

@@ -32,6 +32,7 @@ from pathlib import Path
 from fieldbus.core.cia402 import State402
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import load_drive_map
+from fieldbus.runtime import capabilities
 from sim_slaves.ethercat import EscChain
 from sim_slaves.ethercat.bringup import bring_up
 
@@ -173,7 +174,7 @@ def main() -> int:
     p.add_argument("--enable", action="store_true", help="drives enabled in CSP, holding position")
     p.add_argument("--no-veth", action="store_true")
     args = p.parse_args()
-    veth = not args.no_veth and os.geteuid() == 0
+    veth = not args.no_veth and not capabilities.missing(capabilities.CAP_NET_ADMIN, capabilities.CAP_NET_RAW)
     print(f"cpus: {os.cpu_count()}, python {sys.version.split()[0]}")
     print(
         f"{'slaves':>6} {'app':>5} {'in-process [cycles/s]':>28} {'veth+pysoem [cycles/s]':>28} {'bad WKC':>8}"

@@ -80,23 +80,88 @@ def plot(result: NetworkResult, path: str) -> None:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise BackendUnavailableError("pip install 'fieldbus[plot]'") from exc
+    fig = plt.figure()
+    draw_cycles(fig, result)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# chart geometry in inches: the bars' area is fixed before any label is measured, so that a label
+# found to fit its bar still fits in the saved figure
+_WIDTH, _LEFT, _RIGHT = 10.0, 1.7, 0.3
+_ROW, _TOP, _AXIS = 1.0, 0.45, 0.55  # height per bus; title above; x axis and its label below
+_KEY_ROW, _KEY_COLUMNS = 0.14, 3  # legend: height per line, entries per line
+
+
+def draw_cycles(fig: Any, result: NetworkResult) -> None:
+    """One cycle per bus on matplotlib figure ``fig`` (sized here): a bar per frame (µs from the
+    cycle start), the first bus on top, the cycle period dashed red. A frame's label sits in its bar,
+    across or else upright, where it fits there; the others are named in a legend under the chart
+    (colour, bus, label, duration), so no two labels ever overlap."""
+    from matplotlib import colormaps
+    from matplotlib.patches import Patch
+
     n = max(1, len(result.buses))
-    fig, ax = plt.subplots(figsize=(10, 1.0 + 0.8 * n))
-    colours = plt.get_cmap("tab20")
-    for row, b in enumerate(result.buses):
-        bars = [(s.start_us, s.duration_us) for s in b.timeline]
-        ax.broken_barh(bars, (row - 0.35, 0.7), facecolors=[colours(i % 20) for i in range(len(bars))])
-        for s in b.timeline:
-            if s.duration_us > 0:
-                ax.text(s.start_us + s.duration_us / 2, row, s.label, ha="center", va="center",
-                        fontsize=6, rotation=90 if len(b.timeline) > 8 else 0)  # fmt: skip
-        ax.axvline(1e6 / b.rate_hz, ymin=row / n, ymax=(row + 1) / n, color="red", linestyle="--")
+    chart_h = _ROW * n
+    fig.set_size_inches(_WIDTH, _TOP + chart_h + _AXIS)
+    ax = fig.add_axes((_LEFT / _WIDTH, 0.0, 1 - (_LEFT + _RIGHT) / _WIDTH, 0.5))  # placed again below
+    tab20 = colormaps["tab20"]
+    colours = [tab20(i) for i in range(20)]  # 20 colours: neighbouring frames never share one
+    end = max(
+        [1e6 / b.rate_hz for b in result.buses]
+        + [s.start_us + s.duration_us for b in result.buses for s in b.timeline]
+        + [1.0]
+    )
+    ax.set_xlim(0, end * 1.02)
+    ax.set_ylim(n - 0.5, -0.5)  # bus 0 on top
     ax.set_yticks(range(n), [f"{b.name} ({b.type})" for b in result.buses])
     ax.set_xlabel("time from cycle start (µs); red dashes: cycle period")
     ax.set_title(f"one cycle per bus, bottleneck: {result.bottleneck}")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    renderer = _renderer(fig)
+    dpi = fig.dpi
+    bar_px = 0.7 * _ROW * dpi
+    keyed: list[Any] = []
+    for row, b in enumerate(result.buses):
+        slots = [s for s in b.timeline if s.duration_us > 0]
+        for k, s in enumerate(slots):
+            colour = colours[k % len(colours)]
+            ax.broken_barh([(s.start_us, s.duration_us)], (row - 0.35, 0.7), facecolors=colour)
+            left, right = (
+                ax.transData.transform((x, 0))[0] for x in (s.start_us, s.start_us + s.duration_us)
+            )
+            width_px = 0.9 * (right - left)
+            text = ax.text(s.start_us + s.duration_us / 2, row, s.label, ha="center", va="center", fontsize=6)
+            box = text.get_window_extent(renderer)
+            if box.width <= width_px and box.height <= bar_px:
+                continue  # across the bar
+            if box.height <= width_px and box.width <= 0.9 * bar_px:
+                text.set_rotation(90)  # upright in a narrow bar
+                continue
+            text.remove()
+            keyed.append(Patch(color=colour, label=f"{b.name}: {s.label} ({s.duration_us:.1f} µs)"))
+        ax.plot([1e6 / b.rate_hz] * 2, [row - 0.5, row + 0.5], color="red", linestyle="--")
+    lines = -(-len(keyed) // _KEY_COLUMNS)
+    key_h = _KEY_ROW * lines + (0.25 if keyed else 0.0)
+    height = _TOP + chart_h + _AXIS + key_h
+    fig.set_size_inches(_WIDTH, height)  # taller, not wider: the bars keep their widths in pixels
+    ax.set_position(
+        (_LEFT / _WIDTH, (key_h + _AXIS) / height, 1 - (_LEFT + _RIGHT) / _WIDTH, chart_h / height)
+    )
+    if keyed:
+        fig.legend(
+            handles=keyed, fontsize=6, ncol=_KEY_COLUMNS, loc="lower left", frameon=False,
+            bbox_to_anchor=(_LEFT / _WIDTH, 0.05 / height), borderaxespad=0.0,
+        )  # fmt: skip
+
+
+def _renderer(fig: Any) -> Any:
+    """The figure's renderer (text sizes in pixels); an Agg canvas where the figure has none yet."""
+    get = getattr(fig.canvas, "get_renderer", None)
+    if get is None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        get = FigureCanvasAgg(fig).get_renderer
+    return get()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -155,7 +155,8 @@ def plot_latency(latency: CycleLatency, path: str, title: str) -> None:
 
 
 def draw_histogram(ax: Any, name: str, hist: LatencyHistogram) -> None:
-    """One latency histogram (log counts over µs, 1 µs bins) on matplotlib axes ``ax``."""
+    """One latency histogram (log counts over µs, 1 µs bins) on matplotlib axes ``ax``; an empty one
+    (no cycle measured) is titled "not measured", never as percentiles of 0 µs."""
     import numpy as np
 
     nz = np.flatnonzero(hist.counts)
@@ -166,7 +167,11 @@ def draw_histogram(ax: Any, name: str, hist: LatencyHistogram) -> None:
         ax.set_xscale("log")
         ax.set_yscale("log")
     s = hist.to_json()
-    ax.set_title(f"{name}: p50 {s['p50']:g}, p99 {s['p99']:g}, max {s['max']:g} µs", fontsize=9)
+    if not s["cycles"]:  # nothing measured (e.g. a soak in virtual time): say so, as `report` does
+        ax.set_title(f"{name}: not measured", fontsize=9)
+        ax.text(0.5, 0.5, "not measured", transform=ax.transAxes, ha="center", va="center", color="tab:gray")
+    else:
+        ax.set_title(f"{name}: p50 {s['p50']:g}, p99 {s['p99']:g}, max {s['max']:g} µs", fontsize=9)
     ax.set_xlabel("µs (+1, log)")
     ax.set_ylabel("cycles")
 

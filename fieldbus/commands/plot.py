@@ -2,13 +2,16 @@
 
 Per axis group: targets (outputs, dashed) and actuals (inputs) of every axis,
 and the tracking error (actual minus the target sent one cycle earlier); then
-the wake-up latency and ``exchange()`` time histograms, and the misses over
-time per bus with the recording's events marked.
+the wake-up latency and ``exchange()`` time histograms ("not measured" where the
+recording has none), and the misses over time per bus with the recording's events
+marked, a colour and line style per kind (:data:`EVENT_STYLES`) and a legend.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,10 +65,56 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise BackendUnavailableError("fieldbus plot needs matplotlib: pip install 'fieldbus[plot]'") from exc
     rec = load(args.file)
+    fig = plt.figure(figsize=figure_size(rec), dpi=90)
+    draw_recording(fig, rec)
+    fig.tight_layout()
+    fig.savefig(args.output)
+    plt.close(fig)
+    print(f"wrote {args.output}")
+    return 0
+
+
+# how each event kind is marked on the misses panel: (colour, line style, width); safe stops solid red,
+# recoveries green, bus and device messages in their own colours; a kind not listed is grey
+EVENT_STYLES: dict[str, tuple[str, str, float]] = {
+    "safe_stop": ("tab:red", "-", 1.4),
+    "safe_stop_cleared": ("tab:pink", "--", 1.0),
+    "recovery_started": ("tab:orange", "-.", 1.0),
+    "recovery_finished": ("tab:olive", "--", 1.0),
+    "recovered": ("tab:green", "-", 1.2),
+    "recovery_error": ("tab:brown", ":", 1.2),
+    "emcy": ("tab:purple", ":", 1.0),
+    "nmt_state": ("tab:blue", "-.", 0.8),
+    "sdo_abort": ("tab:cyan", "--", 0.8),
+    "gap": ("black", ":", 0.8),
+}
+OTHER_EVENT = ("tab:gray", ":", 0.8)
+UNMARKED_EVENTS = ("cia402_state",)  # one per axis and step: too many to mark
+
+
+def _groups(rec: Recording) -> list[tuple[str, tuple[str, str]]]:
+    return [(g, pair) for g in rec.groups if (pair := tracked(rec, g)) is not None]
+
+
+def figure_size(rec: Recording) -> tuple[float, float]:
+    """(width, height) in inches of :func:`draw_recording`'s figure."""
+    return 10.0, 2.4 * (2 * len(_groups(rec)) + 2)
+
+
+def title(rec: Recording) -> str:
+    """The figure's title: the recording's file name and its network file's name where that file
+    still exists (a demo's or a soak's generated network is a temporary file, gone by now)."""
+    network = rec.meta.get("network", "")
+    if network and Path(network).is_file():
+        return f"{rec.path.name}: network {Path(network).name}"
+    return rec.path.name
+
+
+def draw_recording(fig: Any, rec: Recording) -> None:
+    """The recording at a glance on matplotlib figure ``fig`` (see the module docstring)."""
     t = _seconds(rec)
-    groups = [(g, pair) for g in rec.groups if (pair := tracked(rec, g)) is not None]
+    groups = _groups(rec)
     rows = 2 * len(groups) + 2
-    fig = plt.figure(figsize=(10, 2.4 * rows), dpi=90)
     spec = fig.add_gridspec(rows, 2)
     r = 0
     for g, (o, i) in groups:
@@ -92,26 +141,29 @@ def run(args: argparse.Namespace) -> int:
     for bus, b in rec.buses.items():
         missed = np.cumsum((b["verdict"] != 0) & b["ran"])
         ax.step(t, missed, where="post", label=f"{bus}: {int(missed[-1]) if missed.size else 0} misses")
+    _mark_events(ax, rec, t)
     first = int(rec.cycles["cycle"][0]) if t.size else 0
-    marked = set()
-    for e in rec.events:
-        if e["kind"] == "cia402_state":
-            continue  # one per axis and step: too many to mark
-        k = int(np.searchsorted(rec.cycles["cycle"], e["cycle"]))
-        if k < t.size:
-            ax.axvline(
-                t[k], color="tab:red", lw=0.6, ls=":", label=None if e["kind"] in marked else e["kind"]
-            )
-            marked.add(e["kind"])
     ax.set_title(
-        f"misses over time (cumulative; cycles {first}..{first + t.size - 1}), events dotted", fontsize=9
+        f"misses over time (cumulative; cycles {first}..{first + t.size - 1}) and events", fontsize=9
     )
     ax.set_xlabel("s since the first recorded cycle")
     ax.set_ylabel("cycles")
-    ax.legend(fontsize=7, loc="upper left")
-    fig.suptitle(f"{rec.path.name}: {rec.meta.get('network', '')}", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(args.output)
-    plt.close(fig)
-    print(f"wrote {args.output}")
-    return 0
+    ax.legend(fontsize=7, loc="upper left", ncol=2)
+    fig.suptitle(title(rec), fontsize=10)
+
+
+def _mark_events(ax: Any, rec: Recording, t: npt.NDArray[np.float64]) -> None:
+    """A vertical line per event at its cycle, styled by kind; one legend entry per kind with its count."""
+    counts = Counter(e["kind"] for e in rec.events if e["kind"] not in UNMARKED_EVENTS)
+    labelled: set[str] = set()
+    for e in rec.events:
+        kind = e["kind"]
+        if kind in UNMARKED_EVENTS:
+            continue
+        k = int(np.searchsorted(rec.cycles["cycle"], e["cycle"]))
+        if k >= t.size:
+            continue
+        colour, style, width = EVENT_STYLES.get(kind, OTHER_EVENT)
+        label = None if kind in labelled else f"{kind.replace('_', ' ')} ({counts[kind]})"
+        ax.axvline(t[k], color=colour, ls=style, lw=width, label=label)
+        labelled.add(kind)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
+from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
 
 JsonScalar = int | float | str | bool | None | tuple[int, ...]
@@ -159,6 +160,8 @@ class CanFrame:
     background frame (heartbeat, EMCY budget) with that minimum inter-arrival
     time, counted as load and as interference, not in the per-cycle figures.
     ``frame_bits`` overrides the computed length (textbook models, e.g. "130 bits").
+    ``after``: the label of the frame this one answers (a raw-CAN motor's reply follows its
+    command): the timeline never puts it earlier, whatever its priority.
     """
 
     can_id: int
@@ -168,6 +171,7 @@ class CanFrame:
     fd: bool = False
     period_us: float | None = None
     frame_bits: int | None = None
+    after: str | None = None
 
     @property
     def priority_key(self) -> tuple[int, int, int]:
@@ -526,7 +530,7 @@ def can_cycle(
         extras.append(("schedulable", all(r is not None and r <= cycle_us for r in cyc_resp)))
     timeline: list[Slot] = []
     t = 0.0
-    for f in sorted(cyclic, key=lambda f: f.priority_key):
+    for f in _arbitration_order(cyclic):
         d = params.frame_time_us(f)
         timeline.append(Slot(f.label or hex(f.can_id), t, d))
         t += d
@@ -543,6 +547,21 @@ def can_cycle(
         extras=tuple(extras),
         timeline=tuple(timeline),
     )
+
+
+def _arbitration_order(frames: Sequence[CanFrame]) -> list[CanFrame]:
+    """The cycle's frames in the order they take the bus: each time the bus is free, the
+    highest-priority frame that is ready wins; a frame with ``after`` is ready once that frame is sent."""
+    pending = sorted(frames, key=lambda f: f.priority_key)
+    labels = {f.label for f in frames}
+    sent: set[str] = set()
+    order: list[CanFrame] = []
+    while pending:
+        ready = next(f for f in pending if f.after is None or f.after in sent or f.after not in labels)
+        pending.remove(ready)
+        order.append(ready)
+        sent.add(ready.label)
+    return order
 
 
 def ethercat_cycle(
@@ -701,6 +720,9 @@ def can_frames(
         cfg = s.map.canopen or CanopenConfig()
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
+        if s.map.rawcan is not None:  # one command frame and its reply per motor, not PDOs
+            frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb)
+            continue
         for tx, pdos in ((False, s.map.rpdo), (True, s.map.tpdo)):
             for pdo in pdos:
                 if pdo.size > limit:
@@ -721,6 +743,20 @@ def can_frames(
         if options.emcy_per_s > 0:
             frames.append(CanFrame(0x080 + node, 8, f"{s.name} EMCY", period_us=1e6 / options.emcy_per_s))
     return frames
+
+
+def _motor_frames(
+    name: str, cfg: RawCanConfig, node: int, rpdo: Sequence[Pdo], tpdo: Sequence[Pdo], frame_bits: int | None
+) -> list[CanFrame]:
+    """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
+    (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them."""
+    command_id = cfg.command_id + node
+    reply_id = cfg.reply_id if cfg.reply_id is not None else command_id
+    command = CanFrame(command_id, sum(p.size for p in rpdo), f"{name} command", frame_bits=frame_bits)
+    reply = CanFrame(
+        reply_id, sum(p.size for p in tpdo), f"{name} reply", frame_bits=frame_bits, after=command.label
+    )
+    return [command, reply]
 
 
 def bus_bandwidth(

@@ -81,6 +81,33 @@ def _sub(od: Any, index: int, sub: int) -> Any:
         return None
 
 
+# tried in turn: vendor files in the wild are UTF-8 (with or without a BOM), else mostly Windows-1252;
+# Latin-1 decodes any byte, so it ends the list
+ENCODINGS = ("utf-8-sig", "cp1252", "latin-1")
+
+
+def decode_vendor_text(raw: bytes) -> tuple[str, str | None]:
+    """``raw`` as text: UTF-8, else Windows-1252, else Latin-1; and a note naming the fallback taken.
+
+    The note names the first byte that is not UTF-8 by value and line, never the text around it.
+    """
+    try:
+        return raw.decode(ENCODINGS[0]), None
+    except UnicodeDecodeError as exc:
+        bad = raw[exc.start]
+        line = raw.count(b"\n", 0, exc.start) + 1
+    for enc in ENCODINGS[1:]:
+        try:
+            text = raw.decode(enc)
+        except UnicodeDecodeError:
+            continue
+        return text, f"not UTF-8 (byte 0x{bad:02X} on line {line}): read as {_ENC_NAMES[enc]}"
+    raise AssertionError("latin-1 decodes every byte")  # pragma: no cover
+
+
+_ENC_NAMES = {"cp1252": "Windows-1252 (cp1252)", "latin-1": "Latin-1 (ISO 8859-1)"}
+
+
 def import_eds(source: str | Path, *, text: str | None = None, node_id: int | None = None) -> EdsImport:
     """Build a drive map (with a ``canopen:`` section) from an EDS or DCF file.
 
@@ -92,15 +119,19 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     file = str(source)
     if not file.lower().endswith((".eds", ".dcf")):
         raise PdoMapError("expected an .eds or .dcf file", file=file)
+    warnings: list[str] = []
+    if text is None:
+        try:
+            data = Path(file).read_bytes()
+        except OSError as exc:
+            raise PdoMapError(f"cannot read: {exc.strerror}", file=file) from None
+        text, note = decode_vendor_text(data)
+        if note:
+            warnings.append(note)
     try:
-        if text is not None:
-            fp = io.StringIO(text)
-            fp.name = file
-            od = canopen.objectdictionary.import_od(fp, node_id)
-        else:
-            od = canopen.objectdictionary.import_od(file, node_id)
-    except OSError as exc:
-        raise PdoMapError(f"cannot read: {exc.strerror}", file=file) from None
+        fp = io.StringIO(text)
+        fp.name = file
+        od = canopen.objectdictionary.import_od(fp, node_id)
     except Exception as exc:  # configparser / canopen errors: name them, not a traceback
         raise PdoMapError(
             f"canopen could not read this EDS/DCF: {type(exc).__name__}: {exc}", file=file
@@ -108,7 +139,6 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     if node_id is None:
         node_id = getattr(od, "node_id", None)
 
-    warnings: list[str] = []
     skipped: list[str] = []
     dirs: dict[Direction, list[ImportedPdo]] = {Direction.OUTPUTS: [], Direction.INPUTS: []}
     for direction, map_base, comm_base in (

@@ -329,7 +329,28 @@ def _describe(
                     found[(obj.index, sub)] = (int(e.data_type), c_string(e.name), int(e.obj_access))
     except Exception as exc:  # pysoem raises SdoInfoError with a message only
         out.errors.append(f"SDO Information: {getattr(exc, 'message', exc)}")
+    finally:
+        _drop_queued_errors(s)
     return found
+
+
+SOEM_ERROR_LIST = 64  # EC_MAXELIST: SOEM's error queue holds at most this many
+
+
+def _drop_queued_errors(s: Any) -> None:
+    """Empty SOEM's error queue after reading SDO Information.
+
+    SOEM asks for every sub-index up to an object's highest; a device with gaps in an object
+    (0x6000:11 without 0x6000:01) answers an SDO Information error for each, which SOEM queues
+    and pysoem's ``od`` leaves there. The next SDO call on *another* slave would pop it and fail
+    pysoem's assertion that the error is its own. ``mbx_receive`` pops one queued error a call.
+    """
+    for _ in range(SOEM_ERROR_LIST + 1):
+        try:
+            s.mbx_receive()
+            return
+        except Exception:  # an error popped (pysoem raises a bare Exception for SDO Information errors)
+            continue
 
 
 def c_string(raw: Any) -> str:

@@ -23,6 +23,8 @@ from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD, default_name
 from fieldbus.errors import FieldbusError
 from fieldbus.scan.model import Device, ScannedPdo
 
+GAP_MAX_INDEX = 0x0007  # entries at 0x0000-0x0007 are gaps: the data-type "dummy" objects of CoE
+
 
 @dataclass(frozen=True)
 class BusSpec:
@@ -160,6 +162,10 @@ def map_text(p: Placed, bus: BusSpec, source: str) -> str:
                 lines.append("    fixed: true  # its mapping object is read-only: verified, never written")
             lines.append("    channels:")
             for e in pdo.entries:
+                if e.index <= GAP_MAX_INDEX:  # padding (ETG.1000.6 dummy entries): no name, units or default
+                    sub = e.sub_index if e.index else 0  # a 0x0000 gap has sub-index 0 whatever was read
+                    lines.append(f"      - {{index: 0x{e.index:04X}, sub_index: {sub}, type: bit{e.bits}}}")
+                    continue
                 name = e.name or default_name(e.index, e.sub_index)
                 base, n = name, 2
                 while name in names:

@@ -387,7 +387,7 @@ class CanopenNode:
     def _upload_initiate(self, index: int, sub: int) -> bytes:
         self._seg = None
         data = self.od.read(index, sub)
-        if len(data) <= 4:
+        if 1 <= len(data) <= 4:  # expedited carries 1-4 bytes; 0 bytes: segmented, size 0, one empty segment
             return struct.pack("<BHB", 0x43 | (4 - len(data)) << 2, index, sub) + data.ljust(4, b"\0")
         self._seg = _Segmented(index, sub, bytearray(data), 0)
         return struct.pack("<BHBI", 0x41, index, sub, len(data))

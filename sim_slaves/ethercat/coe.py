@@ -3,7 +3,8 @@
 Works on CoE payloads (after the 6-byte mailbox header): u16 CoE header
 (number bits 0-8, service bits 12-15), then the SDO command byte, u16 index,
 u8 sub-index and 4 data bytes. Expedited, normal and segmented transfers in
-both directions; the SDO Information service (:mod:`sim_slaves.ethercat.sdoinfo`,
+both directions (an empty object uploads as a normal transfer of size 0: an
+expedited one carries 1-4 bytes); the SDO Information service (:mod:`sim_slaves.ethercat.sdoinfo`,
 answers in fragments when they exceed the mailbox); complete access is not
 offered (the SII CoE details say so). Aborts carry CiA 301 codes and travel as service 2
 ("SDO request"), as ETG.1000.6 prescribes and SOEM expects.
@@ -153,7 +154,7 @@ class SdoServer:
         if cmd & 0x10:
             raise SdoAbortError(ABORT_UNSUPPORTED, index=index, sub_index=sub, detail="complete access")
         data = self.od.read(index, sub)
-        if len(data) <= 4:
+        if 1 <= len(data) <= 4:  # expedited carries 1-4 bytes; 0 bytes go as a normal upload of size 0
             head = 0x43 | (4 - len(data)) << 2
             return _SDO.pack(CoeService.SDO_RESPONSE << 12, head, index, sub) + data.ljust(4, b"\x00")
         room = self.mailbox_in - MBX_HEADER_SIZE - 2 - SDO_HEADER_SIZE

@@ -6,7 +6,7 @@ both ends up (IPv6 and ARP off: no stray frames on the segment), starts
 and yields an :class:`Emulator` whose ``iface`` is the master's end. On exit
 the runner is terminated and the pair deleted, also after an error.
 
-Needs root (CAP_NET_ADMIN for the pair, CAP_NET_RAW for the sockets);
+Needs CAP_NET_ADMIN (the pair) and CAP_NET_RAW (the sockets), as root has them outside a container;
 :class:`VethUnavailable` says precisely why when the machine refuses.
 
 Names and ownership: a pair is ``fbm<6 hex>``/``fbs<6 hex>`` (9 characters,
@@ -55,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.errors import FieldbusError
+from fieldbus.runtime import capabilities
 
 REPO = Path(__file__).resolve().parents[2]
 READY_TIMEOUT_S = 30.0
@@ -105,9 +106,10 @@ def make_veth_pair() -> tuple[str, str]:
     Pairs left by dead processes are removed first (:func:`remove_orphaned_pairs`);
     an existing name is never deleted, another one is drawn.
     """
-    if os.geteuid() != 0:
+    if lacking := capabilities.missing(capabilities.CAP_NET_ADMIN, capabilities.CAP_NET_RAW):
         raise VethUnavailable(
-            "needs root: creating a veth pair and raw AF_PACKET sockets require CAP_NET_ADMIN/CAP_NET_RAW"
+            f"this process lacks {' and '.join(lacking)}: creating a veth pair needs CAP_NET_ADMIN, "
+            "its raw AF_PACKET sockets CAP_NET_RAW (root has both outside a container)"
         )
     if shutil.which("ip") is None:
         raise VethUnavailable("the 'ip' command (iproute2) is not installed")

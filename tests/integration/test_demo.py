@@ -88,15 +88,24 @@ def test_demo_real_time_flags_latency_histograms_and_plot(
 ) -> None:
     import os
 
+    from fieldbus.runtime.capabilities import memory_lock_refused
+
     png = tmp_path / "latency.png"
-    args = ["--axes", "2", "--cycles", "400", "--cpu", "0", "--lock-memory", "--plot", str(png)]
+    cpu = min(os.sched_getaffinity(0))  # one this process may run on (a container's cpuset may leave out 0)
+    args = ["--axes", "2", "--cycles", "400", "--cpu", str(cpu), "--lock-memory", "--plot", str(png)]
     code, r = _demo(capsys, *args)
     assert code == 0
     for kind in ("wakeup", "exchange"):
         s = r["latency_us"][kind]
         assert s["cycles"] == 400 and 0 < s["p50"] <= s["p99"] <= s["p99.9"] <= s["max"] + 1, s
-    if os.geteuid() == 0:
-        assert "pinned to CPU 0" in r["realtime"]["applied"] and not r["realtime"]["refused"]
+    assert f"pinned to CPU {cpu}" in r["realtime"]["applied"]  # needs no privilege
+    # locked memory as far as this machine allows it (the kernel asked, not the user id): applied,
+    # or refused with the line that names what it needs, and the demo runs either way
+    if memory_lock_refused() is None:
+        assert not r["realtime"]["refused"], r["realtime"]
+    else:
+        (refused,) = r["realtime"]["refused"]
+        assert refused.startswith("mlockall refused") and "CAP_IPC_LOCK" in refused
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
 

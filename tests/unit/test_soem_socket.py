@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-import os
 import socket
 
 import pytest
 
 from fieldbus.backends import soem_socket
+from fieldbus.runtime import capabilities
 
 
 def test_the_new_packet_socket_is_found_among_others() -> None:
-    if os.geteuid() != 0:
-        pytest.skip("an AF_PACKET socket needs root (CAP_NET_RAW)")
+    if capabilities.missing(capabilities.CAP_NET_RAW):
+        pytest.skip("an AF_PACKET socket needs CAP_NET_RAW, which this process lacks")
     before = soem_socket.open_sockets()
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(0x88A4))

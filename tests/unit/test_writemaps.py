@@ -56,3 +56,20 @@ def test_entry_types_and_names() -> None:
     assert entry_name(0x6041, 0, "Status Word") == "status_word"
     assert entry_name(0x6041, 0, None) == "statusword"
     assert entry_name(0x2000, 3, "  ") == "x2000_03"
+
+
+def test_padding_entries_are_written_as_unnamed_gaps(tmp_path: Path) -> None:
+    # an Elmo-style fixed PDO ends in 8 bits of padding (0x0000:00) and a dummy int16 (0x0003:00)
+    d = _drive([PdoEntry(0x6041, 0, 16, "uint16", "statusword"), PdoEntry(0x0000, 0, 8, "uint8", "x0000_00")])
+    d.rpdo[0].entries += [
+        PdoEntry(0x0003, 0, 16, "uint16", "x0003_00"),
+        PdoEntry(0x0000, 0, 8, "uint8", "pad"),
+    ]
+    written = write_maps([Placed(d, 0)], tmp_path, BUS, "scan")
+    m = load_network(written.network).buses[0].slaves[0].map
+    assert [(c.index, c.bits, c.is_gap) for c in m.rpdo[0].channels] == [
+        (0x6040, 16, False),
+        (0x0003, 16, True),
+        (0x0000, 8, True),
+    ]
+    assert [(c.index, c.bits, c.is_gap) for c in m.tpdo[0].channels] == [(0x6041, 16, False), (0, 8, True)]
