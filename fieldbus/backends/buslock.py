@@ -43,8 +43,11 @@ _local_owners: set[str] = set()  # keys of in-process locks held now
 
 
 def _program() -> str:
-    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
-    return name or "python"
+    """This process's program: the script's name (``fieldbus``), else the interpreter's."""
+    script = Path(sys.argv[0]) if sys.argv and sys.argv[0] not in ("", "-c", "-m") else None
+    if script is not None:
+        return script.parent.name if script.name == "__main__.py" else script.name  # python -m pkg: pkg
+    return Path(sys.executable).name or "python"
 
 
 def lock_dir() -> Path:
