@@ -144,6 +144,7 @@ class CanopenBackend(CanFaults, Backend):
         self._limit_s = np.zeros((n, 1), dtype=np.int64)  # SYNCs: the transmission type
         self._min_t = np.zeros(n)
         self._min_s = np.zeros(n, dtype=np.int64)
+        self._timed = self._counted = False
         self._lock: InterfaceLock | None = None
         # heartbeat consumer
         self.heartbeat_lost = np.zeros(n, dtype=bool)
@@ -272,6 +273,8 @@ class CanopenBackend(CanFaults, Backend):
                 else:
                     self._tpdos[cob] = (i, row, -1, -1)
         self._seen = np.zeros(k, dtype=bool)
+        self._timed = bool((self._limit_t > 0).any())  # some TPDO has an event-timer deadline
+        self._counted = bool((self._limit_s > 0).any())  # some TPDO is due every n > 1 SYNCs
 
     def op(self) -> None:
         """NMT start; every node with a heartbeat must report OPERATIONAL within two periods."""
@@ -418,12 +421,14 @@ class CanopenBackend(CanFaults, Backend):
         np.equal(self._got, self._tpdo_count, out=arrived)
         np.logical_not(self.heartbeat_lost, out=ok)
         arrived &= ok
-        np.min(self._due_t, axis=1, out=self._min_t)
-        np.greater_equal(self._min_t, now, out=ok)
-        arrived &= ok
-        np.min(self._due_s, axis=1, out=self._min_s)
-        np.greater_equal(self._min_s, self._syncs, out=ok)
-        arrived &= ok
+        if self._timed:
+            np.min(self._due_t, axis=1, out=self._min_t)
+            np.greater_equal(self._min_t, now, out=ok)
+            arrived &= ok
+        if self._counted:
+            np.min(self._due_s, axis=1, out=self._min_s)
+            np.greater_equal(self._min_s, self._syncs, out=ok)
+            arrived &= ok
 
     @property
     def late_tpdos(self) -> int:
