@@ -107,7 +107,6 @@ class CanopenBackend(CanFaults, Backend):
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")
         self._own_bus = self._bus is None
-        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
@@ -180,6 +179,8 @@ class CanopenBackend(CanFaults, Backend):
         self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
         self._open = False
         self._operational = False
+        # last: a refused configuration above leaves no file open
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
     @property
     def expected_wkc(self) -> int:
@@ -442,10 +443,12 @@ class CanopenBackend(CanFaults, Backend):
 
     def _other(self, msg: Any) -> None:
         """Heartbeats, boot-ups, EMCYs and SDO answers (any frame that is not an awaited TPDO)."""
-        if msg is None or msg.is_extended_id or msg.is_remote_frame:
+        if msg is None:
             return
         if msg.is_error_frame:
             self._error_frame(msg)
+            return
+        if msg.is_extended_id or msg.is_remote_frame:
             return
         cob = msg.arbitration_id
         if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 127:

@@ -53,7 +53,6 @@ class RawCanBackend(CanFaults, Backend):
     def __init__(self, bus: Bus, **options: Any) -> None:
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")  # tests may hand in a bus instance
-        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._own_bus = self._bus is None
         self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
@@ -96,6 +95,8 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
+        # last: a refused configuration above leaves no file open
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
     @property
     def expected_wkc(self) -> int:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -213,10 +214,14 @@ def test_a_node_that_could_die_unnoticed_is_refused_with_the_fix(
 def test_switching_the_heartbeat_consumer_off_cannot_leave_a_node_unwatched(
     tmp_path: Path, channel: str
 ) -> None:
-    """heartbeat_consumer_ms=0 is refused where the heartbeat was a node's only deadline."""
+    """heartbeat_consumer_ms=0 is refused where the heartbeat was a node's only deadline; the refused
+    backend leaves no frame log (file or writer thread) behind."""
     drive = _map(tmp_path, heartbeat_ms=100, tpdo="transmission_type: 255")
+    log = tmp_path / "bus.log"
+    threads = threading.active_count()
     with pytest.raises(FieldbusError, match=r"node 1 \(j0, heartbeat consumer 0 ms\): a silent node"):
-        open_network(_net(tmp_path, channel, drive), heartbeat_consumer_ms=0)
+        open_network(_net(tmp_path, channel, drive), heartbeat_consumer_ms=0, can_log=str(log))
+    assert not log.exists() and threading.active_count() == threads
     open_network(_net(tmp_path, channel, DEMO_MAP), heartbeat_consumer_ms=0).close()  # SYNC TPDOs: fine
 
 
