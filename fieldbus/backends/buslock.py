@@ -105,6 +105,12 @@ class InterfaceLock:
         """Give the interface up (removes the lock file). Never raises."""
         self._finalizer()
 
+    def __enter__(self) -> InterfaceLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
 
 def _acquire_file(path: Path, label: str) -> int:
     for _ in range(_ATTEMPTS):

@@ -79,7 +79,9 @@ def test_a_second_process_is_refused_and_the_lock_dies_with_its_holder() -> None
         lock_network_card(card)  # a second open file in this process is refused too
     lock.release()
     assert not lock.path.exists()
-    lock_network_card(card).release()
+    with lock_network_card(card) as again:  # a scan or sdo command holds it this way for its run
+        assert again.held
+    assert not again.held
 
 
 def test_the_ethercat_backend_is_refused_a_card_another_master_holds(tmp_path: Path) -> None:
