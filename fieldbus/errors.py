@@ -178,3 +178,28 @@ class PhaseError(FieldbusError, RuntimeError):
 
 class RequestError(FieldbusError, ValueError):
     """A request (an SDO transfer asked for in OP) is malformed: refused at submit, nothing queued."""
+
+
+class BusIoError(FieldbusError):
+    """The bus driver failed to send or receive (a python-can ``CanError``, an ``OSError``).
+
+    ``cause`` is the driver's own exception (also chained as ``__cause__``).
+    """
+
+    def __init__(self, message: str, cause: BaseException | None = None) -> None:
+        self.cause = cause
+        super().__init__(message)
+
+
+class InterfaceInUseError(FieldbusError):
+    """Another master holds the interface (network card or CAN channel); ``pid`` is its process (None: unknown)."""
+
+    def __init__(self, interface: str, pid: int | None, program: str = "") -> None:
+        self.interface = interface
+        self.pid = pid
+        self.program = program
+        who = f"PID {pid}" if pid is not None else "another process"
+        super().__init__(f"interface '{interface}' is in use by {who}" + (f" ({program})" if program else ""))
+
+    def __reduce__(self) -> tuple[object, ...]:  # keep pickling (multiprocessing) working
+        return (type(self), (self.interface, self.pid, self.program))

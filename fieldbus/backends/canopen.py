@@ -10,16 +10,25 @@ the ``canopen`` package is not used, and no per-variable PDO object anywhere.
 
 Cycle (the hot path): ``send()`` copies each RPDO's bytes from the slave's
 output row into a preallocated frame and sends it, then SYNC. ``receive()``
-waits up to the receive timeout for every *expected* TPDO - those with
+waits up to the receive timeout for every *awaited* TPDO - those with
 transmission type 1, due at every SYNC - and copies each into the slave's
-input row. Its "working counter" is the number of expected TPDOs that came;
-``arrived()`` says which nodes delivered all of theirs (and whose heartbeat
-is not lost), so the shared policy gives per-node freshness. TPDOs of other
-transmission types (0, 2-240, 254/255) are copied into the input row whenever
-they come, but not counted: when they are due is the node's business.
+input row, then takes whatever else has come. Its "working counter" is the
+number of awaited TPDOs that came. TPDOs of other transmission types are
+copied into the input row whenever they come, without being waited for.
+
+Every input has a deadline (:mod:`fieldbus.core.liveness`): an awaited TPDO
+this cycle; a TPDO of type 2-240 within its n SYNCs; an event-driven TPDO
+(254/255) within its event timer (0x1800 + n sub 5) plus one cycle; the node
+itself within its heartbeat consumer time. ``arrived()`` is False for a node
+that missed any of them, so the shared policy never calls it fresh. A node
+that could die unnoticed (no heartbeat, no TPDO with a deadline) is refused.
+Counted (:class:`~fieldbus.backends.canfaults.CanFaults`): late and extra
+awaited TPDOs, driver errors on send and receive (raised as
+:class:`~fieldbus.errors.BusIoError`), error frames and bus-off.
 
 Directions from the master's side: outputs are RPDOs (master -> node), inputs
-TPDOs (node -> master).
+TPDOs (node -> master). ``open()`` takes the CAN channel's lock
+(:mod:`fieldbus.backends.buslock`): one master per channel.
 
 Heartbeat consumer: a node whose heartbeat is older than its consumer time
 (1.5 x the producer time ``heartbeat_ms`` of its map, or the backend option
@@ -45,14 +54,16 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
+from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
+from fieldbus.backends.canfaults import CanFaults
 from fieldbus.backends.canlog import open_log
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.candecode import NMT_STATES
 from fieldbus.core.emcy import Emergency
+from fieldbus.core.liveness import tpdo_deadline, unwatched_reason
 from fieldbus.core.network import Bus
-from fieldbus.core.pdo.model import Pdo
 from fieldbus.core.sdo import StepKind, canopen_plan
 from fieldbus.errors import (
     BackendUnavailableError,
@@ -78,10 +89,10 @@ SDO_TIMEOUT_S = 0.5  # per SDO request / response
 RETRY_AFTER_S = 1.0  # a node whose recovery failed is tried again after this
 MAX_EMERGENCIES = 1000
 MAX_BOOTS = 1000
-EVERY_SYNC = 1  # transmission type of the TPDOs a cycle waits for
+NEVER = np.iinfo(np.int64).max  # a SYNC count no cycle reaches
 
 
-class CanopenBackend(Backend):
+class CanopenBackend(CanFaults, Backend):
     """CANopen nodes on one CAN bus (``interface`` = python-can channel, ``can_interface`` its type).
 
     Options: ``can_bus`` (a python-can bus instance to use instead of opening
@@ -96,7 +107,6 @@ class CanopenBackend(Backend):
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")
         self._own_bus = self._bus is None
-        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
@@ -112,16 +122,29 @@ class CanopenBackend(Backend):
         self._index = {node: i for i, node in enumerate(self.node_ids)}
         # cycle tables (filled by safe_op)
         self._rpdos: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
-        # TPDO COB-ID -> (slave, its bytes in the input row, k: index among expected TPDOs, -1: extra)
-        self._tpdos: dict[int, tuple[int, npt.NDArray[np.uint8], int]] = {}
+        # TPDO COB-ID -> (slave, its bytes in the input row, k: index among awaited TPDOs or -1,
+        # j: its deadline slot in the slave's row or -1)
+        self._tpdos: dict[int, tuple[int, npt.NDArray[np.uint8], int, int]] = {}
         self._tpdo_count = np.zeros(n, dtype=np.int32)  # expected TPDOs per node per SYNC
         for i, a in enumerate(self.areas):
-            self._tpdo_count[i] = sum(1 for p in a.slave.map.tpdo if _expected(p))
+            self._tpdo_count[i] = sum(1 for p in a.slave.map.tpdo if tpdo_deadline(p).every_sync)
         self._got = np.zeros(n, dtype=np.int32)
         self._seen = np.zeros(0, dtype=bool)  # per expected TPDO, this cycle
         self._arrived = np.zeros(n, dtype=bool)
-        self.extra_tpdos = 0  # TPDOs of other transmission types received (copied, not counted)
-        self.late_tpdos = 0  # expected TPDOs that came after their cycle's receive timeout (discarded)
+        self._ok = np.zeros(n, dtype=bool)  # scratch of the judgement
+        self.other_tpdos = 0  # TPDOs of other transmission types received (copied, not awaited)
+        # deadlines of the TPDOs not awaited (types 2-240 in SYNCs, 254/255 by event timer): per node a
+        # row of slots, each the time (time.monotonic s) or SYNC count after which its data are stale
+        self._syncs = 0  # SYNCs sent since open
+        self._quiet_t = 0.0  # time.monotonic when the receive queue was last seen empty
+        self._due_t = np.full((n, 1), np.inf)
+        self._due_s = np.full((n, 1), NEVER, dtype=np.int64)
+        self._limit_t = np.zeros((n, 1))  # s: event timer + one cycle
+        self._limit_s = np.zeros((n, 1), dtype=np.int64)  # SYNCs: the transmission type
+        self._min_t = np.zeros(n)
+        self._min_s = np.zeros(n, dtype=np.int64)
+        self._timed = self._counted = False
+        self._lock: InterfaceLock | None = None
         # heartbeat consumer
         self.heartbeat_lost = np.zeros(n, dtype=bool)
         self.nmt_state = np.full(n, -1, dtype=np.int16)  # last heartbeat state byte per node
@@ -134,6 +157,13 @@ class CanopenBackend(Backend):
             ]
         )
         self._hb_watched = self._hb_limit > 0
+        for i, a in enumerate(self.areas):  # the network file refuses these; an option may still switch off
+            why = unwatched_reason(a.slave.map, float(self._hb_limit[i]))
+            if why is not None:
+                raise FieldbusError(
+                    f"bus '{bus.name}': node {self.node_ids[i]} ({a.slave.name}, heartbeat consumer "
+                    f"{self._hb_limit[i] * 1e3:g} ms): {why}"
+                )
         # EMCY, boot-ups
         self.emergencies: list[Emergency] = []
         self.last_emergency: dict[int, Emergency] = {}  # node id -> its last EMCY
@@ -149,6 +179,8 @@ class CanopenBackend(Backend):
         self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
         self._open = False
         self._operational = False
+        # last: a refused configuration above leaves no file open
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
     @property
     def expected_wkc(self) -> int:
@@ -163,7 +195,10 @@ class CanopenBackend(Backend):
 
     # -- bring-up ---------------------------------------------------------------------
     def open(self) -> None:
-        """Open the CAN bus, NMT pre-operational to all, identity 0x1018:1/2 of every node against its map."""
+        """Lock the channel (:class:`~fieldbus.errors.InterfaceInUseError` when another master has it),
+        open the CAN bus, NMT pre-operational to all, identity 0x1018:1/2 of every node against its map."""
+        if self._lock is None:
+            self._lock = lock_can_bus(self.bus)
         self._bus = attach_can_bus(self.bus, self._bus, self._log)
         self._open = True
         self._nmt(NMT_PRE_OP)
@@ -196,9 +231,17 @@ class CanopenBackend(Backend):
             apply_plan(canopen_plan(a.slave.map, self.node_ids[i]), write, read, slave=a.slave.name)
 
     def safe_op(self) -> None:
-        """Prepare the cycle's frames (the nodes stay PRE-OPERATIONAL: no PDOs yet)."""
+        """Prepare the cycle's frames and deadlines (the nodes stay PRE-OPERATIONAL: no PDOs yet)."""
         self._rpdos, self._tpdos = [], {}
         k = 0
+        n = self.n_slaves
+        slots = [[tpdo_deadline(p) for p in a.slave.map.tpdo] for a in self.areas]
+        width = max([sum(1 for d in row if d.any and not d.every_sync) for row in slots] + [1])
+        self._due_t = np.full((n, width), np.inf)
+        self._due_s = np.full((n, width), NEVER, dtype=np.int64)
+        self._limit_t = np.zeros((n, width))
+        self._limit_s = np.zeros((n, width), dtype=np.int64)
+        margin_s = self.bus.cycle_time_us / 1e6
         for i, a in enumerate(self.areas):
             node = self.node_ids[i]
             out, inp = self.out_row(i), self.in_row(i)
@@ -211,18 +254,28 @@ class CanopenBackend(Backend):
                 )
                 view = out[place.byte_offset : place.byte_offset + place.size]
                 self._rpdos.append((msg, view, np.frombuffer(msg.data, dtype=np.uint8)))
-            for pdo, place in zip(a.slave.map.tpdo, a.layout.inputs.pdos, strict=True):
+            j = 0
+            for pdo, place, due in zip(a.slave.map.tpdo, a.layout.inputs.pdos, slots[i], strict=True):
                 assert pdo.canopen is not None
                 cob = pdo.canopen.cob_id_for(node)
                 if cob in self._tpdos:
                     raise FieldbusError(f"bus '{self.bus.name}': two TPDOs use COB-ID 0x{cob:03X}")
                 row = inp[place.byte_offset : place.byte_offset + place.size]
-                if _expected(pdo):
-                    self._tpdos[cob] = (i, row, k)
+                if due.every_sync:
+                    self._tpdos[cob] = (i, row, k, -1)
                     k += 1
+                elif due.any:
+                    self._tpdos[cob] = (i, row, -1, j)
+                    if due.event_ms:
+                        self._limit_t[i, j] = due.event_ms / 1e3 + margin_s
+                    else:
+                        self._limit_s[i, j] = due.syncs
+                    j += 1
                 else:
-                    self._tpdos[cob] = (i, row, -1)
+                    self._tpdos[cob] = (i, row, -1, -1)
         self._seen = np.zeros(k, dtype=bool)
+        self._timed = bool((self._limit_t > 0).any())  # some TPDO has an event-timer deadline
+        self._counted = bool((self._limit_s > 0).any())  # some TPDO is due every n > 1 SYNCs
 
     def op(self) -> None:
         """NMT start; every node with a heartbeat must report OPERATIONAL within two periods."""
@@ -233,7 +286,7 @@ class CanopenBackend(Backend):
         wait = max(0.3, 2 * float(self._hb_limit.max(initial=0.0)) / HEARTBEAT_FACTOR)
         deadline = time.monotonic() + wait
         while time.monotonic() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
-            msg = self._bus.recv(timeout=0.01)
+            msg = self._recv(0.01)
             if msg is not None:
                 self._other(msg)
         late = [
@@ -247,70 +300,155 @@ class CanopenBackend(Backend):
                 f"bus '{self.bus.name}': no OPERATIONAL heartbeat within {wait * 1e3:.0f} ms of NMT start "
                 f"from {', '.join(late)}"
             )
-        self._last_hb[:] = time.monotonic()
+        now = self._quiet_t = time.monotonic()
+        self._last_hb[:] = now
+        # the first of each TPDO is due one deadline after the start (a type-n TPDO at the n-th SYNC)
+        timed = self._limit_t > 0
+        self._due_t[timed] = now + self._limit_t[timed]
+        counted = self._limit_s > 0
+        self._due_s[counted] = self._syncs + self._limit_s[counted]
         self._operational = True
 
     # -- cycle ------------------------------------------------------------------------------
     def send(self) -> None:
+        """RPDOs, then SYNC. Raises :class:`~fieldbus.errors.BusIoError` when the driver refuses a frame."""
         bus = self._bus
-        # What is still queued came after the last receive(): an expected TPDO there answers an
+        # What is still queued came after the last receive(): an awaited TPDO there answers an
         # earlier SYNC (late) and must not pass for this cycle's; other frames are handled.
-        while (msg := bus.recv(timeout=0)) is not None:
-            hit = self._tpdos.get(msg.arbitration_id)
-            if hit is None or msg.is_extended_id:
-                self._other(msg)
-            elif hit[2] < 0:
-                self._extra(hit[1], msg.data)
-            else:
-                self.late_tpdos += 1
-        for msg, row, data in self._rpdos:
-            np.copyto(data, row)
-            bus.send(msg)
-        bus.send(self._sync)
+        try:
+            while (msg := bus.recv(timeout=0)) is not None:
+                self._take(msg, on_time=False)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        self._quiet_t = time.monotonic()
+        try:
+            for msg, row, data in self._rpdos:
+                np.copyto(data, row)
+                bus.send(msg)
+            bus.send(self._sync)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
+        self._syncs += 1
 
     def receive(self) -> int | None:
+        """Awaited TPDOs until all came or the receive timeout, then whatever else is queued; judge.
+
+        Raises :class:`~fieldbus.errors.BusIoError` (every node not arrived) when the driver fails.
+        """
         self._seen.fill(False)
         self._got.fill(0)
         expected = self._seen.size
         count = 0
         deadline = time.perf_counter() + self._timeout_s
         bus = self._bus
-        while count < expected:
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                break
-            msg = bus.recv(timeout=remaining)
-            if msg is None:
-                break
-            hit = self._tpdos.get(msg.arbitration_id)
-            if hit is None or msg.is_extended_id:
-                self._other(msg)
-                continue
-            i, row, k = hit
-            if k < 0:
-                self._extra(row, msg.data)
-                continue
-            if self._seen[k] or len(msg.data) != row.size:
-                continue
-            row[:] = np.frombuffer(msg.data, dtype=np.uint8)
-            self._seen[k] = True
-            self._got[i] += 1
-            count += 1
-        self._check_heartbeats()
-        np.equal(self._got, self._tpdo_count, out=self._arrived)
-        self._arrived &= ~self.heartbeat_lost
+        take = self._take
+        try:
+            while count < expected:
+                remaining = deadline - time.perf_counter()
+                if remaining <= 0:
+                    break
+                msg = bus.recv(timeout=remaining)
+                if msg is None:
+                    break
+                count += take(msg, on_time=True)
+            # what else came (event-driven TPDOs, heartbeats): an awaited TPDO now is late
+            while (msg := bus.recv(timeout=0)) is not None:
+                take(msg, on_time=False)
+        except (can.CanError, OSError) as exc:
+            self._arrived.fill(False)
+            raise self._io_failed("receive", exc) from exc
+        self._quiet_t = time.monotonic()
+        self._judge(self._quiet_t)
         if expected == 0:
             return 0
         return count if count else None
 
-    def _extra(self, row: npt.NDArray[np.uint8], data: Any) -> None:
-        if len(data) == row.size:
-            row[:] = np.frombuffer(data, dtype=np.uint8)
-            self.extra_tpdos += 1
+    def _take(self, msg: Any, *, on_time: bool) -> int:
+        """One frame from the cycle's queue; returns 1 when it is an awaited TPDO taken for this cycle."""
+        if msg.is_error_frame:
+            self._error_frame(msg)
+            return 0
+        if msg.is_extended_id or msg.is_remote_frame:
+            return 0
+        hit = self._tpdos.get(msg.arbitration_id)
+        if hit is None:
+            self._other(msg)
+            return 0
+        i, row, k, j = hit
+        if k < 0:
+            self._unawaited(msg, i, row, j)
+            return 0
+        if self._seen[k]:  # (in send(): the one of the last cycle came already)
+            self.extra_frames += 1
+            return 0
+        if not on_time:
+            self.late_frames += 1
+            return 0
+        data = msg.data
+        if len(data) != row.size:
+            return 0
+        row[:] = np.frombuffer(data, dtype=np.uint8)
+        self._seen[k] = True
+        self._got[i] += 1
+        return 1
+
+    def _unawaited(self, msg: Any, i: int, row: npt.NDArray[np.uint8], j: int) -> None:
+        """A TPDO the cycle does not wait for: copied; its deadline, if it has one, starts again."""
+        data = msg.data
+        if len(data) != row.size:
+            return
+        row[:] = np.frombuffer(data, dtype=np.uint8)
+        self.other_tpdos += 1
+        if j >= 0:
+            limit = self._limit_t[i, j]
+            if limit > 0:
+                self._due_t[i, j] = self._frame_time(msg) + limit
+            else:
+                self._due_s[i, j] = self._syncs + self._limit_s[i, j]
+
+    def _frame_time(self, msg: Any) -> float:
+        """When ``msg`` came (time.monotonic s): its timestamp where that is plausible, else the last
+        moment the queue was seen empty (it came after that: never later than it really came)."""
+        now = time.monotonic()
+        age = time.time() - float(msg.timestamp)
+        if 0.0 <= age <= now - self._quiet_t:
+            return now - age
+        return self._quiet_t
+
+    def _judge(self, now: float) -> None:
+        """Per node: every awaited TPDO this cycle, every other deadline kept, heartbeat not lost."""
+        self._check_heartbeats(now)
+        arrived, ok = self._arrived, self._ok
+        np.equal(self._got, self._tpdo_count, out=arrived)
+        np.logical_not(self.heartbeat_lost, out=ok)
+        arrived &= ok
+        if self._timed:
+            np.min(self._due_t, axis=1, out=self._min_t)
+            np.greater_equal(self._min_t, now, out=ok)
+            arrived &= ok
+        if self._counted:
+            np.min(self._due_s, axis=1, out=self._min_s)
+            np.greater_equal(self._min_s, self._syncs, out=ok)
+            arrived &= ok
+
+    @property
+    def late_tpdos(self) -> int:
+        """Older name of :attr:`late_frames`."""
+        return self.late_frames
+
+    @property
+    def extra_tpdos(self) -> int:
+        """Older name of :attr:`other_tpdos`."""
+        return self.other_tpdos
 
     def _other(self, msg: Any) -> None:
         """Heartbeats, boot-ups, EMCYs and SDO answers (any frame that is not an awaited TPDO)."""
-        if msg is None or msg.is_extended_id:
+        if msg is None:
+            return
+        if msg.is_error_frame:
+            self._error_frame(msg)
+            return
+        if msg.is_extended_id or msg.is_remote_frame:
             return
         cob = msg.arbitration_id
         if COB_HEARTBEAT < cob <= COB_HEARTBEAT + 127:
@@ -327,7 +465,7 @@ class CanopenBackend(Backend):
             elif self.heartbeat_lost[i] and state != NMT_OPERATIONAL and self._operational:
                 self._needs_setup[i] = True  # back, but not as we left it
             self.nmt_state[i] = state
-            self._last_hb[i] = time.monotonic()
+            self._last_hb[i] = self._frame_time(msg)
         elif COB_EMCY < cob <= COB_EMCY + 127:
             node = cob - COB_EMCY
             if node in self._index:
@@ -340,9 +478,10 @@ class CanopenBackend(Backend):
         elif self._recovering is not None and cob == COB_TSDO + self._recovering:
             self._reply = bytes(msg.data)
 
-    def _check_heartbeats(self) -> None:
+    def _check_heartbeats(self, now: float) -> None:
         lost = self.heartbeat_lost
-        np.greater(time.monotonic() - self._last_hb, self._hb_limit, out=lost)
+        np.subtract(now, self._last_hb, out=self._min_t)
+        np.greater(self._min_t, self._hb_limit, out=lost)
         lost &= self._hb_watched
 
     def arrived(self) -> npt.NDArray[np.bool_]:
@@ -485,24 +624,56 @@ class CanopenBackend(Backend):
 
     # -- shut-down ------------------------------------------------------------------------------
     def stop(self) -> None:
-        """NMT pre-operational to every node (they stop their PDOs; drives react per CiA 402)."""
+        """NMT pre-operational to every node (they stop their PDOs; drives react per CiA 402).
+
+        Never raises: a failing bus is kept in :attr:`last_error`.
+        """
         self._recovery = None
         self._recovering = None
         if self._bus is not None and self._operational:
             self._operational = False
-            self._nmt(NMT_PRE_OP)
+            try:
+                self._nmt(NMT_PRE_OP)
+            except Exception as exc:
+                self._shut_failed("stop", exc)
 
     def close(self) -> None:
+        """Close the bus (if this backend opened it) and its log, release the channel's lock.
+
+        Idempotent; never raises: a failure is kept in :attr:`last_error`.
+        """
         port, self._bus = self._bus, None
-        release_can_bus(port, self._own_bus, self._log)
-        self._open = False
+        try:
+            release_can_bus(port, self._own_bus, self._log)
+        except Exception as exc:
+            self._shut_failed("close", exc)
+        finally:
+            self._open = False
+            if self._lock is not None:
+                self._lock.release()
+                self._lock = None
 
     # -- acyclic ------------------------------------------------------------------------------
+    def _send_frame(self, msg: Any) -> None:
+        """One frame outside the cycle; :class:`~fieldbus.errors.BusIoError` when the driver refuses it."""
+        try:
+            self._bus.send(msg)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
+
+    def _recv(self, timeout: float) -> Any:
+        try:
+            return self._bus.recv(timeout=timeout)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+
     def _nmt(self, command: int, node: int = 0) -> None:
-        self._bus.send(can.Message(arbitration_id=COB_NMT, data=bytes([command, node]), is_extended_id=False))
+        self._send_frame(
+            can.Message(arbitration_id=COB_NMT, data=bytes([command, node]), is_extended_id=False)
+        )
 
     def _send_sdo(self, node: int, payload: bytes) -> None:
-        self._bus.send(can.Message(arbitration_id=COB_RSDO + node, data=payload, is_extended_id=False))
+        self._send_frame(can.Message(arbitration_id=COB_RSDO + node, data=payload, is_extended_id=False))
         self.sdo_transfers += 1
 
     def _send_sdo_abort(self, node: int, req: bytes, code: int) -> None:
@@ -510,7 +681,7 @@ class CanopenBackend(Backend):
 
     def _drain(self) -> None:
         while True:
-            msg = self._bus.recv(timeout=0)
+            msg = self._recv(0)
             if msg is None:
                 return
             self._other(msg)
@@ -533,16 +704,19 @@ class CanopenBackend(Backend):
                         f"bus '{self.bus.name}': node {node}: no SDO answer within "
                         f"{self._sdo_timeout_s * 1e3:.0f} ms"
                     )
-                msg = self._bus.recv(timeout=remaining)
+                msg = self._recv(remaining)
                 if msg is None:
                     continue
-                if msg.arbitration_id == COB_TSDO + node and not msg.is_extended_id:
+                if msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame:
+                    self._other(msg)
+                    continue
+                if msg.arbitration_id == COB_TSDO + node:
                     break
                 hit = self._tpdos.get(msg.arbitration_id)
-                if hit is not None and hit[2] < 0:
-                    self._extra(hit[1], msg.data)
-                elif hit is None:
+                if hit is None:
                     self._other(msg)
+                elif hit[2] < 0:
+                    self._unawaited(msg, hit[0], hit[1], hit[3])
             resp = bytes(msg.data)
             try:
                 req = steps.send(resp)
@@ -576,11 +750,6 @@ class CanopenBackend(Backend):
             slave=self.areas[slave].slave.name,
             detail=detail,
         )
-
-
-def _expected(pdo: Pdo) -> bool:
-    """A TPDO the cycle waits for: transmission type 1 (sent after every SYNC)."""
-    return pdo.canopen is not None and pdo.canopen.transmission_type == EVERY_SYNC
 
 
 def _producer_ms(area: SlaveArea) -> int:

@@ -27,6 +27,7 @@ from typing import Any
 
 from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
+from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
 from fieldbus.backends.ecat_pcap import EthercatCapture
 from fieldbus.backends.sdo_exec import apply_plan, plan_transfers, retried
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
@@ -80,6 +81,7 @@ class EthercatBackend(Backend):
     """
 
     kind = "ethercat"
+    _locks: tuple[InterfaceLock, ...] = ()  # one per network card, held from open() to close()
 
     def __init__(self, bus: Bus, **options: object) -> None:
         super().__init__(bus, **options)
@@ -122,7 +124,18 @@ class EthercatBackend(Backend):
 
     # -- bring-up ----------------------------------------------------------------
     def open(self) -> None:
-        """Open the NIC (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
+        """Lock the NIC(s) (:class:`~fieldbus.errors.InterfaceInUseError` when another master has one),
+        open them (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
+        if not self._locks:
+            locks: list[InterfaceLock] = []
+            try:
+                for card in (self.bus.interface, self.bus.redundant_interface):
+                    if card:
+                        locks.append(lock_network_card(card))
+            except BaseException:
+                release_all(locks)
+                raise
+            self._locks = tuple(locks)
         if self.capture is not None:
             self.capture.start()
         before = soem_socket.open_sockets()
@@ -472,9 +485,13 @@ class EthercatBackend(Backend):
                 self._open = False
                 self.master.close()
         finally:
-            if self.capture is not None:
-                time.sleep(0.01)  # the last replies reach the capture socket
-                self.capture.close()
+            try:
+                if self.capture is not None:
+                    time.sleep(0.01)  # the last replies reach the capture socket
+                    self.capture.close()
+            finally:
+                locks, self._locks = self._locks, ()
+                release_all(locks)
 
     # -- acyclic ------------------------------------------------------------------------
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:

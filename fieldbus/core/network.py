@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.core.emulator_opts import EmulatorOptions, parse_emulator
+from fieldbus.core.liveness import unwatched_reason
 from fieldbus.core.pdo.load import parse_drive_map
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlread import Reader
@@ -193,6 +194,8 @@ def _bus(
                 raise r.err((*spath, "count"), f"node ids {first}..{first + count - 1} pass 127")
             if kind == "canopen" and drive.canopen is None:
                 raise r.err((*spath, "map"), f"map {drive.source} has no 'canopen' section")
+            if kind == "canopen":
+                _check_canopen_liveness(r, drive, (*spath, "map"))
             if kind == "rawcan" and drive.rawcan is None:
                 raise r.err((*spath, "map"), f"map {drive.source} has no 'rawcan' section")
         elif drive.rawcan is not None:
@@ -232,6 +235,15 @@ def _bus(
         bitrate=bitrate,
         data_bitrate=data_bitrate,
     )
+
+
+def _check_canopen_liveness(r: Reader, drive: DriveMap, path: PathT) -> None:
+    """Refuse a CANopen node that could die unnoticed (no heartbeat, no TPDO with a deadline; see
+    :mod:`fieldbus.core.liveness`), with the fix in the message."""
+    assert drive.canopen is not None
+    why = unwatched_reason(drive, drive.canopen.heartbeat_ms)
+    if why is not None:
+        raise r.err(path, f"map {drive.source}: {why}")
 
 
 def _can_options(r: Reader, raw: Any, path: PathT) -> tuple[tuple[str, str | int | float | bool], ...]:

@@ -102,18 +102,29 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
 
 
 def _safe_defaults(r: Any, fields: tuple[RawCanField, ...], path: PathT) -> tuple[RawCanField, ...]:
-    """Without any ``safe_value`` in the command, the MIT default: kp, kd and torque fields to 0."""
-    if any(f.safe_value is not None for f in fields):
-        return fields
-    if not any(f.name in MIT_SAFE_FIELDS for f in fields):
+    """The MIT default merged with the map's own safe values: kp, kd and torque fields go to 0 unless
+    they have a ``safe_value`` of their own; other fields' ``safe_value`` is added to that, never
+    instead of it. A default field whose min..max leaves out 0 needs a ``safe_value``."""
+    mit = [i for i, f in enumerate(fields) if f.name in MIT_SAFE_FIELDS]
+    if not mit and not any(f.safe_value is not None for f in fields):
         raise r.err(
             path,
             "no command field has a safe_value and none is named "
             f"{'/'.join(MIT_SAFE_FIELDS)}: say what the safe stop sends (safe_value on the fields)",
         )
-    return tuple(
-        replace(f, safe_value=0.0) if f.name in MIT_SAFE_FIELDS and _holds_zero(f) else f for f in fields
-    )
+    out = list(fields)
+    for i in mit:
+        f = fields[i]
+        if f.safe_value is not None:
+            continue
+        if not _holds_zero(f):
+            raise r.err(
+                (*path, i),
+                f"the safe stop sends {f.name} = 0 (MIT default), outside min..max ({f.min:g}..{f.max:g}): "
+                "give this field a safe_value",
+            )
+        out[i] = replace(f, safe_value=0.0)
+    return tuple(out)
 
 
 def _holds_zero(f: RawCanField) -> bool:
