@@ -97,6 +97,8 @@ COUNTERS = (
     "late_frames",
     "extra_frames",
     "tx_errors",
+    "rx_errors",
+    "error_frames",
     "bus_off",
     "emcy_count",
 )
@@ -464,6 +466,9 @@ class Operational(_Phase):
         self._writers = list(self.safe_stops.values())
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
         self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
+        self._bus_off: list[int | None] = [
+            int(getattr(b, "bus_off", 0)) if hasattr(b, "bus_off") else None for b in net.backends
+        ]
         # drive faults (CiA 402 statusword bit 3), watched on the rows each cycle accepted; per bus
         self._faults: list[list[tuple[DriveFaultWatch, npt.NDArray[np.bool_]]]] = []
         for b, p in zip(net.backends, net.policies, strict=True):
@@ -558,6 +563,12 @@ class Operational(_Phase):
                 arrived = b.arrived()
             except Exception as exc:
                 st.error = _reason(exc)
+        off_before = self._bus_off[k]
+        if off_before is not None:  # a CAN controller that reported bus-off: a bus error (S1)
+            off = int(getattr(b, "bus_off", 0))
+            if off > off_before and st.error is None:
+                st.error = f"bus-off reported by the CAN controller ({off} since bring-up)"
+            self._bus_off[k] = off
         verdict = policy.judge(wkc, arrived, st.error)
         st.verdict = verdict
         st.wkc = policy.last_wkc

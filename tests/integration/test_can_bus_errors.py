@@ -198,7 +198,10 @@ def test_rawcan_counts_bus_off_and_never_takes_an_error_frame_for_a_reply(
         injector.send(
             can.Message(arbitration_id=0x040, is_error_frame=True, is_extended_id=False, data=bytes(8))
         )
-        assert list(op.exchange().buses[0].fresh) == [True, False]
+        st = op.exchange().buses[0]
+        # a reported bus-off is a bus error (docs/safety.md S1): every motor stale, the safe stop latched
+        assert list(st.fresh) == [False, False] and st.error is not None and "bus-off" in st.error
+        assert st.safe_stop
         like_a_reply = bytes([2, 0x7F, 0xFF, 0x7F, 0xF7, 0xFF])
         frame = can.Message(
             arbitration_id=0x002, is_error_frame=True, is_extended_id=False, data=like_a_reply
