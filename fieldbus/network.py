@@ -134,6 +134,7 @@ class Network(_Phase):
                 f"option {per_instance[0]!r} is one bus's own (an interface instance) and this network has "
                 f"{len(names)} buses: pass it per bus, bus_options={{'{names[0]}': {{'{per_instance[0]}': ...}}}}"
             )
+        netfile.check_open_options(model, backend, backend_options, bus_options)
         self.backends: list[Backend] = []
         for bus in model.buses:
             cls = backend_class(backend or bus.type)
