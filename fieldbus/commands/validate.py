@@ -108,8 +108,8 @@ def check(path: str) -> dict[str, Any]:
     if not looks_like_drive_map(doc.data):
         raise doc.error(
             (),
-            f"neither a drive map nor a network file: its top level is {shape(doc.data)}, without "
-            "vendor_id, product_id, rpdo, tpdo, rawcan or buses (its content is not shown)",
+            f"neither a drive map nor a network file: its top level is {shape(doc.data)}, with none of "
+            "vendor_id, product_id, rpdo, tpdo, rawcan, buses (its content is not shown)",
         )
     return map_summary(parse_drive_map(doc, default_name=Path(path).stem))
 

@@ -18,7 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.core.emulator_opts import EmulatorOptions, parse_emulator
-from fieldbus.core.pdo.load import CLASSIC_CAN_PDO_BYTES, parse_drive_map, shape
+from fieldbus.core.pdo.load import (
+    CLASSIC_CAN_PDO_BYTES,
+    NOT_A_MAP,
+    looks_like_drive_map,
+    parse_drive_map,
+    shape,
+)
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlread import Reader
 from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located, token
@@ -433,9 +439,12 @@ def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, Drive
         if not target.exists():
             raise r.err(path, f"map file not found: {rel} (looked for {target})")
         try:
-            cache[target] = parse_drive_map(load_file(target), default_name=target.stem)
+            doc = load_file(target)
         except PdoMapError as exc:
-            if exc.file is None or exc.line is None:  # unreadable: say which entry of this file names it
-                raise r.err(path, f"map {token(rel)}: {exc.message}") from None
-            raise
+            if exc.line is not None:  # a YAML syntax error: where it is in the map
+                raise
+            raise r.err(path, f"map {token(rel)}: {exc.message}") from None  # unreadable, not text
+        if not looks_like_drive_map(doc.data):
+            raise r.err(path, f"map {token(rel)}: " + NOT_A_MAP.format(shape=shape(doc.data)))
+        cache[target] = parse_drive_map(doc, default_name=target.stem)
     return cache[target]

@@ -86,8 +86,19 @@ _QUOTED = re.compile(r"'([^']*)'|\"([^\"]*)\"")
 
 
 def _clip_quoted(message: str) -> str:
-    """``message`` with every quoted part shortened to a :func:`token` (PyYAML quotes tags, aliases)."""
-    return _QUOTED.sub(lambda m: f"'{token(m.group(1) if m.group(1) is not None else m.group(2))}'", message)
+    """A PyYAML message without the file's text: it quotes aliases, anchors and tags in full.
+
+    Kept: a quoted character (``'\\t'``) and PyYAML's token names (``'<stream end>'``); anything
+    else quoted becomes ``'...'`` (the file may be no YAML of ours; line and column say where).
+    """
+
+    def keep(m: re.Match[str]) -> str:
+        inner = m.group(1) if m.group(1) is not None else m.group(2)
+        if len(inner) <= 2 or (inner.startswith("<") and inner.endswith(">") and len(inner) <= 20):
+            return f"'{inner}'"
+        return "'...'"
+
+    return _QUOTED.sub(keep, message)
 
 
 def format_path(path: PathT) -> str:

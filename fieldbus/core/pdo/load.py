@@ -71,6 +71,12 @@ _MAP_MARKS = (
 _MAP_MARKS_EXACT = ("sdo", "sm")
 
 
+NOT_A_MAP = (
+    "not a drive map: its top level is {shape}, with none of vendor_id, product_id, rpdo, tpdo, rawcan "
+    "(its content is not shown)"
+)
+
+
 def looks_like_drive_map(data: Any) -> bool:
     """True when ``data`` (a loaded YAML document) is a mapping with a drive-map key or a near miss of one."""
     if not isinstance(data, Mapping):
@@ -111,11 +117,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     """Validate a loaded document into a :class:`DriveMap`."""
     r = Reader(doc)
     if not looks_like_drive_map(doc.data):
-        raise r.err(
-            (),
-            f"not a drive map: the file is {shape(doc.data)} without vendor_id, product_id, rpdo, tpdo or "
-            "rawcan at the top level (its content is not shown)",
-        )
+        raise r.err((), NOT_A_MAP.format(shape=shape(doc.data)))
     top = r.mapping(doc.data, (), _TOP_KEYS)
     rawcan = None
     if "rawcan" in top:
