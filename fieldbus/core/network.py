@@ -46,6 +46,7 @@ _BUS_KEYS = (
 _SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator")
 _NETWORK_MARKS = ("buses", "cycle_time_us", "receive_timeout_us", "safe_stop_after")
 MAP_SUFFIXES = (".yaml", ".yml")
+PATH_CHARS = 160  # most characters of a map path (from the network file) an error shows
 
 # Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
@@ -428,14 +429,16 @@ def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, Drive
     if not rel.strip():
         raise r.err(path, "empty: give the drive map's path, relative to this file")
     if Path(rel).suffix.lower() not in MAP_SUFFIXES:
-        raise r.err(path, f"'{token(rel)}' is not a drive map: a map's file name ends in .yaml or .yml")
+        raise r.err(
+            path, f"'{token(rel, PATH_CHARS)}' is not a drive map: a map's file name ends in .yaml or .yml"
+        )
     try:
         target = (base / rel).resolve()
     except (RuntimeError, OSError):  # Python < 3.13: RuntimeError on a symlink loop
-        raise r.err(path, f"map path {token(rel)}: a symbolic link loop") from None
+        raise r.err(path, f"map path {token(rel, PATH_CHARS)}: a symbolic link loop") from None
     if target not in cache:
         if target.is_dir():
-            raise r.err(path, f"map path {token(rel)} is a directory, not a drive map")
+            raise r.err(path, f"map path {token(rel, PATH_CHARS)} is a directory, not a drive map")
         if not target.exists():
             raise r.err(path, f"map file not found: {rel} (looked for {target})")
         try:
@@ -443,8 +446,10 @@ def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, Drive
         except PdoMapError as exc:
             if exc.line is not None:  # a YAML syntax error: where it is in the map
                 raise
-            raise r.err(path, f"map {token(rel)}: {exc.message}") from None  # unreadable, not text
+            raise r.err(
+                path, f"map {token(rel, PATH_CHARS)}: {exc.message}"
+            ) from None  # unreadable, not text
         if not looks_like_drive_map(doc.data):
-            raise r.err(path, f"map {token(rel)}: " + NOT_A_MAP.format(shape=shape(doc.data)))
+            raise r.err(path, f"map {token(rel, PATH_CHARS)}: " + NOT_A_MAP.format(shape=shape(doc.data)))
         cache[target] = parse_drive_map(doc, default_name=target.stem)
     return cache[target]

@@ -54,17 +54,11 @@ class _Loader(yaml.SafeLoader):
 _Loader.add_implicit_resolver(_FLOAT_TAG, _EXP_FLOAT, list("-+0123456789."))
 
 
-def token(value: object) -> str:
-    """``value`` as a short, printable token for a message (at most :data:`TOKEN_CHARS` characters)."""
-    text = (
-        value
-        if isinstance(value, str)
-        else repr(value)
-        if isinstance(value, (bytes, bytearray))
-        else str(value)
-    )
-    clean = "".join(ch if ch.isprintable() else "?" for ch in text[: TOKEN_CHARS + 1])
-    return clean if len(clean) <= TOKEN_CHARS else clean[: TOKEN_CHARS - 3] + "..."
+def token(value: object, limit: int = TOKEN_CHARS) -> str:
+    """``value`` as a short, printable token for a message (at most ``limit`` characters)."""
+    text = value if isinstance(value, str) else str(value)
+    clean = "".join(ch if ch.isprintable() else "?" for ch in text[: limit + 1])
+    return clean if len(clean) <= limit else clean[: limit - 3] + "..."
 
 
 _KEY_CHARS = re.compile(r"[A-Za-z0-9_.\-]{0,24}")
