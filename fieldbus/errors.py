@@ -145,6 +145,13 @@ class SdoMismatchError(FieldbusError):
         )
 
 
+class ChannelNameError(FieldbusError, KeyError, ValueError):
+    """A process image has no channel of that name (a ``KeyError`` and, as numpy's error was, a ``ValueError``)."""
+
+    def __str__(self) -> str:  # KeyError would show the message in quotes
+        return str(self.args[0]) if self.args else ""
+
+
 class WorkingCounterError(FieldbusError):
     """The working counter of a cycle did not match what the layout expects."""
 

@@ -247,10 +247,10 @@ class Network(_Phase):
                 f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
             )
         # ``clock``: a fieldbus.runtime.clock.Clock paces the close wind-down and is the emulators' time
-        # (its now_ns goes to every backend); a bare ``() -> ns`` callable goes to the backends only
+        # (its now_ns goes to every backend that reads a clock); a bare ``() -> ns`` callable is a backend option
         clock = backend_options.get("clock")
         if clock is not None and hasattr(clock, "now_ns") and hasattr(clock, "sleep"):
-            backend_options["clock"] = clock.now_ns
+            del backend_options["clock"]
         else:
             clock = None
         release_after = backend_options.pop("release_after", DEFAULT_RELEASE_AFTER)
@@ -279,13 +279,18 @@ class Network(_Phase):
                     f"{model.source}: bus '{bus.name}' cycle_time_us {bus.cycle_time_us} is not a whole multiple "
                     f"of the shortest bus cycle ({base} us): a bus runs every n-th cycle of the fastest"
                 )
+        netfile.check_open_options(model, backend, backend_options, bus_options)
         # atomic construction: every check above ran before anything exists; a backend that fails to
         # construct takes down the ones made before it (none has opened its interface yet)
         self.backends: list[Backend] = []
         try:
             for bus in model.buses:
-                cls = backend_class(backend or bus.type)
-                self.backends.append(cls(bus, **{**backend_options, **(bus_options or {}).get(bus.name, {})}))
+                kind = backend or bus.type
+                cls = backend_class(kind)
+                opts = {**backend_options, **(bus_options or {}).get(bus.name, {})}
+                if clock is not None and "clock" in (netfile.backend_options(kind) or ("clock",)):
+                    opts.setdefault("clock", clock.now_ns)
+                self.backends.append(cls(bus, **opts))
         except BaseException:
             for made in self.backends:
                 with contextlib.suppress(Exception):  # the construction error is the one to report

@@ -3,21 +3,31 @@
 Per bus: frames and bytes per cycle, wire time, bus load at the cycle rate and
 the highest cycle rate the bus sustains; then the bottleneck bus. Assumptions
 and sources: docs/bandwidth.md.
+
+Exit codes: 0 every bus fits its cycle; 1 file or argument error; 3 a bus
+needs more than 100 % of its bus time at the rate (the figures are printed all
+the same, ``overloaded`` in ``--json``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
-from fieldbus.core.bandwidth import BusResult, NetworkResult, network_bandwidth
+from fieldbus.core.bandwidth import BusResult, NetworkResult, network_bandwidth, overload
 from fieldbus.errors import BackendUnavailableError
+
+EXIT_OVERLOADED = 3  # a bus needs more than its bus time: the network cannot run at that rate
 
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
-        "bandwidth", help="wire time, bus load and max cycle rate of every bus of a network"
+        "bandwidth",
+        help="wire time, bus load and max cycle rate of every bus of a network",
+        epilog=f"exit codes: 0 every bus fits its cycle, 1 file or argument error, {EXIT_OVERLOADED} a bus over "
+        "100 % load at the rate",
     )
     p.add_argument("network", metavar="NETWORK.yaml", help="network file")
     p.add_argument(
@@ -175,4 +185,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result.to_json()))
     else:
         print(table(result))
+    over = result.overloaded
+    if over:
+        worst = max(over, key=lambda b: b.load_percent)
+        more = f" ({len(over) - 1} more bus(es) over 100 %)" if len(over) > 1 else ""
+        print(f"error: {args.network}: {overload(worst)}{more}", file=sys.stderr)
+        return EXIT_OVERLOADED
     return 0

@@ -1,7 +1,9 @@
 """``fieldbus validate FILE...``: check drive maps and network files, print a summary.
 
 Exit 0 when every file is valid; 1 with ``file:line:column field: message`` on
-the first error of each invalid file.
+the first error of each invalid file. A network whose bus needs more than 100 %
+of its bus time at its cycle rate is invalid; what may work but is likely a
+mistake (a receive timeout longer than the cycle) is a ``warning:`` line.
 """
 
 from __future__ import annotations
@@ -12,9 +14,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.bandwidth import network_bandwidth, overload
 from fieldbus.core.network import NetworkConfig, is_network_document, parse_network
 from fieldbus.core.pdo.layout import layout
-from fieldbus.core.pdo.load import parse_drive_map
+from fieldbus.core.pdo.load import looks_like_drive_map, parse_drive_map, shape
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.safestop import safe_stop_plan
 from fieldbus.core.yamlsrc import load_file
@@ -96,7 +99,18 @@ def check(path: str) -> dict[str, Any]:
     """Validate one file; raises :class:`PdoMapError`."""
     doc = load_file(path)
     if is_network_document(doc.data):
-        return network_summary(parse_network(doc, base=Path(path).parent, default_name=Path(path).stem))
+        net = parse_network(doc, base=Path(path).parent, default_name=Path(path).stem)
+        for i, bus in enumerate(network_bandwidth(net).buses):
+            why = overload(bus)
+            if why is not None:
+                raise doc.error(("buses", i), why)
+        return {**network_summary(net), "warnings": list(net.warnings)}
+    if not looks_like_drive_map(doc.data):
+        raise doc.error(
+            (),
+            f"neither a drive map nor a network file: its top level is {shape(doc.data)}, with none of "
+            "vendor_id, product_id, rpdo, tpdo, rawcan, buses (its content is not shown)",
+        )
     return map_summary(parse_drive_map(doc, default_name=Path(path).stem))
 
 
@@ -132,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
             summary = check(path)
             results.append({"file": path, "ok": True, **summary})
             if not args.json:
+                for warning in summary.get("warnings", ()):
+                    print(f"warning: {warning}", file=sys.stderr)
                 (_print_network if summary["kind"] == "network" else _print_map)(path, summary)
         except PdoMapError as exc:
             failed += 1

@@ -457,6 +457,18 @@ class BusResult:
         return d
 
 
+def overload(b: BusResult) -> str | None:
+    """Why bus ``b`` cannot run at its rate (more than 100 % of the bus time), or None when it can."""
+    if b.load_percent <= 100.0:
+        return None
+    top = f"; it runs at most {b.max_rate_hz:.0f} Hz" if b.max_rate_hz else ""
+    return (
+        f"bus '{b.name}' needs {b.load_percent:.1f} % of the {b.type} bus at {b.rate_hz:.0f} Hz "
+        f"({b.wire_time_us:.0f} us of frames in a {1e6 / b.rate_hz:.0f} us cycle){top}: "
+        "lengthen cycle_time_us, raise the bit rate or split the bus"
+    )
+
+
 @dataclass(frozen=True)
 class NetworkResult:
     """Every bus of a network, and the bottleneck: the bus with the lowest max cycle rate."""
@@ -471,11 +483,17 @@ class NetworkResult:
             return None
         return min(limited, key=lambda b: (b.max_rate_hz, -b.load_percent)).name
 
+    @property
+    def overloaded(self) -> tuple[BusResult, ...]:
+        """The buses over 100 % load at their rate (see :func:`overload`)."""
+        return tuple(b for b in self.buses if overload(b) is not None)
+
     def to_json(self) -> dict[str, object]:
         return {
             "rate_hz": _r(self.rate_hz),
             "buses": [b.to_json() for b in self.buses],
             "bottleneck": self.bottleneck,
+            "overloaded": [b.name for b in self.overloaded],
         }
 
 

@@ -1,22 +1,35 @@
 """Network files: which drive map sits where, on which bus, at what cycle time.
 
-Paths to maps are relative to the network file. A slave with ``count: N``
-expands to N slaves; ``{i}`` in its name becomes 0..N-1 and a CAN ``node_id``
-counts up from the one given. See docs/network-reference.md.
+Paths to maps are relative to the folder of the network file (absolute paths
+work too); a map must be a ``.yaml``/``.yml`` regular file whose top level is a
+drive map, and nothing of a file that is not one is quoted in an error. A slave
+with ``count: N`` expands to N slaves; ``{i}`` in its name becomes 0..N-1 and a
+CAN ``node_id`` counts up from the one given. What can never work is an error;
+what may work but is likely a mistake is a warning in
+:attr:`NetworkConfig.warnings`. See docs/network-reference.md.
 """
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from fieldbus.core.emulator_opts import EmulatorOptions, parse_emulator
 from fieldbus.core.liveness import unwatched_reason
-from fieldbus.core.pdo.load import parse_drive_map
+from fieldbus.core.pdo.load import (
+    CLASSIC_CAN_PDO_BYTES,
+    NOT_A_MAP,
+    looks_like_drive_map,
+    parse_drive_map,
+    shape,
+)
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlread import Reader
-from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located
+from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located, token
+from fieldbus.errors import FieldbusError, PdoMapError
 
 BUS_TYPES = ("ethercat", "canopen", "rawcan", "sim")
 CAN_TYPES = ("canopen", "rawcan")
@@ -32,6 +45,17 @@ _BUS_KEYS = (
     "data_bitrate", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
 )  # fmt: skip
 _SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator")
+_NETWORK_MARKS = ("buses", "cycle_time_us", "receive_timeout_us", "safe_stop_after")
+MAP_SUFFIXES = (".yaml", ".yml")
+PATH_CHARS = 160  # most characters of a map path (from the network file) an error shows
+
+# Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
+BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
+    "sim": ("chain_maps", "clock"),
+    "ethercat": ("exact_timeout", "pcap"),
+    "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms"),
+    "rawcan": ("can_bus", "can_log"),
+}
 
 
 @dataclass(frozen=True)
@@ -75,6 +99,9 @@ class NetworkConfig:
     cycle_time_us: int
     buses: tuple[Bus, ...]
     source: str = "<string>"
+    warnings: tuple[str, ...] = ()
+    """``file:line:column path: message`` of what may work but is likely a mistake (``fieldbus validate``
+    prints them); e.g. a receive timeout longer than the cycle."""
 
     def bus(self, name: str) -> Bus:
         for b in self.buses:
@@ -94,12 +121,30 @@ def network_from_text(text: str, file: str = "<string>", base: str | Path = ".")
 
 
 def is_network_document(data: Any) -> bool:
-    """True when a loaded YAML document looks like a network file (has ``buses``)."""
-    return isinstance(data, dict) and "buses" in data
+    """True when a loaded YAML document looks like a network file: ``buses``, or a near miss of a key
+    only a network file has (``busses``, ``cycle_time``)."""
+    if not isinstance(data, Mapping):
+        return False
+    for key in data:
+        near = (
+            isinstance(key, str)
+            and len(key) <= 40
+            and difflib.get_close_matches(key.lower(), _NETWORK_MARKS, n=1, cutoff=0.75)
+        )
+        if near:
+            return True
+    return False
 
 
 def parse_network(doc: Located, base: Path, default_name: str = "network") -> NetworkConfig:
     r = Reader(doc)
+    if not is_network_document(doc.data):
+        raise r.err(
+            (),
+            f"not a network file: its top level is {shape(doc.data)}, without 'buses' "
+            "(its content is not shown)",
+        )
+    warnings: list[str] = []
     top = r.mapping(doc.data, (), _TOP_KEYS, required=("buses",))
     cycle = r.integer(top.get("cycle_time_us", DEFAULT_CYCLE_US), ("cycle_time_us",), 50, 1_000_000)
     timeout = r.integer(
@@ -115,13 +160,15 @@ def parse_network(doc: Located, base: Path, default_name: str = "network") -> Ne
     if not raw_buses:
         raise r.err(("buses",), "a network needs at least one bus")
     for i, raw in enumerate(raw_buses):
-        bus = _bus(r, raw, ("buses", i), base, cache, cycle, timeout, stop_after)
+        bus = _bus(r, raw, ("buses", i), base, cache, cycle, timeout, stop_after, warnings)
         if bus.name in bus_names:
             raise r.err(("buses", i, "name"), f"duplicate bus name '{bus.name}'")
         bus_names.add(bus.name)
         buses.append(bus)
     name = r.name(top["name"], ("name",)) if "name" in top else default_name
-    return NetworkConfig(name=name, cycle_time_us=cycle, buses=tuple(buses), source=doc.file)
+    return NetworkConfig(
+        name=name, cycle_time_us=cycle, buses=tuple(buses), source=doc.file, warnings=tuple(warnings)
+    )
 
 
 def _bus(
@@ -133,6 +180,7 @@ def _bus(
     cycle: int,
     timeout: int,
     stop_after: int,
+    warnings: list[str],
 ) -> Bus:
     m = r.mapping(raw, path, _BUS_KEYS, required=("name", "type", "slaves"))
     name = r.name(m["name"], (*path, "name"))
@@ -151,6 +199,10 @@ def _bus(
     )
     if kind in ("ethercat",) and "interface" not in m:
         raise r.err(path, "an ethercat bus needs 'interface' (the network card, e.g. eth0)")
+    interface = _interface(r, m, (*path, "interface"), kind) if "interface" in m else None
+    can_interface = (
+        _can_interface(r, m.get("can_interface", "socketcan"), (*path, "can_interface")) if is_can else None
+    )
     redundant = None
     if "redundant_interface" in m:
         if kind != "ethercat":
@@ -159,7 +211,7 @@ def _bus(
                 f"'redundant_interface' is for ethercat buses, this bus is {kind}",
                 key=True,
             )
-        redundant = r.string(m["redundant_interface"], (*path, "redundant_interface"))
+        redundant = _interface(r, m, (*path, "redundant_interface"), kind)
         if redundant == m["interface"]:
             raise r.err(
                 (*path, "redundant_interface"), f"the redundant port must be another card than '{redundant}'"
@@ -198,6 +250,8 @@ def _bus(
                 _check_canopen_liveness(r, drive, (*spath, "map"))
             if kind == "rawcan" and drive.rawcan is None:
                 raise r.err((*spath, "map"), f"map {drive.source} has no 'rawcan' section")
+            if kind == "canopen" and data_bitrate is None and not _fd_option(m.get("can_options")):
+                _classic_frames_only(r, drive, (*spath, "map"))
         elif drive.rawcan is not None:
             raise r.err((*spath, "map"), f"map {drive.source} is a rawcan map; it needs a 'rawcan' bus")
         elif "node_id" in s:
@@ -215,23 +269,42 @@ def _bus(
                     raise r.err((*spath, "node_id"), f"node id {node} used twice on bus '{name}'")
                 node_ids[node] = spath
             slaves.append(Slave(name=sname, map=drive, position=len(slaves), node_id=node, emulator=emu))
+    bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+    bus_timeout = r.integer(
+        m.get("receive_timeout_us", timeout), (*path, "receive_timeout_us"), 10, 1_000_000
+    )
+    if bus_timeout > bus_cycle:
+        where: PathT = (
+            (*path, "receive_timeout_us")
+            if "receive_timeout_us" in m
+            else ("receive_timeout_us",)
+            if "receive_timeout_us" in r.doc.data
+            else path
+        )
+        default = "" if "receive_timeout_us" in m or "receive_timeout_us" in r.doc.data else " (the default)"
+        warnings.append(
+            str(
+                r.err(
+                    where,
+                    f"bus '{name}': receive_timeout_us {bus_timeout}{default} is longer than its cycle "
+                    f"({bus_cycle} us): a lost reply makes that cycle late by up to "
+                    f"{bus_timeout - bus_cycle} us",
+                )
+            )
+        )
     return Bus(
         name=name,
         type=kind,
         slaves=tuple(slaves),
-        cycle_time_us=r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000),
-        receive_timeout_us=r.integer(
-            m.get("receive_timeout_us", timeout), (*path, "receive_timeout_us"), 10, 1_000_000
-        ),
+        cycle_time_us=bus_cycle,
+        receive_timeout_us=bus_timeout,
         safe_stop_after=r.integer(
             m.get("safe_stop_after", stop_after), (*path, "safe_stop_after"), 1, 100_000
         ),
-        interface=r.string(m["interface"], (*path, "interface")) if "interface" in m else None,
+        interface=interface,
         redundant_interface=redundant,
         can_options=_can_options(r, m.get("can_options"), (*path, "can_options")),
-        can_interface=r.string(m.get("can_interface", "socketcan"), (*path, "can_interface"))
-        if is_can
-        else None,
+        can_interface=can_interface,
         bitrate=bitrate,
         data_bitrate=data_bitrate,
     )
@@ -244,6 +317,83 @@ def _check_canopen_liveness(r: Reader, drive: DriveMap, path: PathT) -> None:
     why = unwatched_reason(drive, drive.canopen.heartbeat_ms)
     if why is not None:
         raise r.err(path, f"map {drive.source}: {why}")
+
+
+def _interface(r: Reader, m: Mapping[Any, Any], path: PathT, kind: str) -> str:
+    """A network card or CAN channel name: not empty, no spaces at either end."""
+    text = r.string(m[path[-1]], path)
+    if not text.strip():
+        what = "network card (e.g. eth0)" if kind == "ethercat" else "CAN channel (e.g. can0)"
+        raise r.err(path, f"empty: name the {what}")
+    if text != text.strip() or not text.isprintable():
+        raise r.err(path, f"'{token(text)}' has spaces at an end or unprintable characters")
+    return text
+
+
+def known_can_interfaces() -> frozenset[str] | None:
+    """python-can's interface names (its own and plugins'), or None when python-can is not installed."""
+    try:
+        from can.interfaces import VALID_INTERFACES
+    except ImportError:
+        return None
+    return frozenset(VALID_INTERFACES)
+
+
+def _can_interface(r: Reader, raw: Any, path: PathT) -> str:
+    text = r.string(raw, path)
+    known = known_can_interfaces()
+    if known is not None and text not in known:
+        near = difflib.get_close_matches(token(text), sorted(known), n=1, cutoff=0.6)
+        hint = f" (did you mean {near[0]}?)" if near else f" (known: {', '.join(sorted(known))})"
+        raise r.err(path, f"python-can has no interface '{token(text)}'{hint}")
+    return text
+
+
+def _fd_option(raw: Any) -> bool:
+    return isinstance(raw, Mapping) and raw.get("fd") is True
+
+
+def _classic_frames_only(r: Reader, drive: DriveMap, path: PathT) -> None:
+    """A CANopen bus without ``data_bitrate`` (or ``can_options: {fd: true}``) is classic CAN: 8-byte frames."""
+    for key, pdos in (("rpdo", drive.rpdo), ("tpdo", drive.tpdo)):
+        for pdo in pdos:
+            if pdo.size > CLASSIC_CAN_PDO_BYTES:
+                raise r.err(
+                    path,
+                    f"{key} 0x{pdo.index:04X} of map {drive.name} is {pdo.size} bytes and this bus is classic "
+                    f"CAN ({CLASSIC_CAN_PDO_BYTES} bytes a frame): give the bus a data_bitrate for CAN FD",
+                )
+
+
+def backend_options(kind: str) -> tuple[str, ...] | None:
+    """The ``open_network(**options)`` names the built-in backend ``kind`` reads; None for another backend."""
+    return BACKEND_OPTIONS.get(kind)
+
+
+def check_backend_options(kinds: Iterable[str], options: Iterable[str]) -> None:
+    """Refuse an option that none of the backends ``kinds`` reads, with a did-you-mean.
+
+    ``kinds`` are the backends that receive ``options`` (a network's bus types, or the ``backend=``
+    override). A kind that is not built in (an entry-point backend) accepts anything.
+    """
+    accepted: set[str] = set()
+    for kind in kinds:
+        names = backend_options(kind)
+        if names is None:
+            return
+        accepted.update(names)
+    for option in options:
+        if option not in accepted:
+            every = sorted({n for names in BACKEND_OPTIONS.values() for n in names})
+            near = difflib.get_close_matches(option, sorted(accepted) or every, n=1, cutoff=0.6)
+            hint = f"; did you mean {near[0]}?" if near else ""
+            which = ", ".join(sorted(set(kinds)))
+            have = ", ".join(sorted(accepted)) or "none"
+            other = [k for k, names in BACKEND_OPTIONS.items() if option in names]
+            also = f"; {option!r} is for the {' / '.join(other)} backend" if other else ""
+            raise FieldbusError(
+                f"unknown option {option!r} for the {which} backend{hint} (it takes: {have}{also})"
+            )
 
 
 def _can_options(r: Reader, raw: Any, path: PathT) -> tuple[tuple[str, str | int | float | bool], ...]:
@@ -265,11 +415,53 @@ def _can_options(r: Reader, raw: Any, path: PathT) -> tuple[tuple[str, str | int
     return tuple(out)
 
 
+def check_open_options(
+    net: NetworkConfig,
+    backend: str | None,
+    backend_options: Mapping[str, object],
+    bus_options: Mapping[str, Mapping[str, object]] | None = None,
+) -> None:
+    """Refuse ``open_network`` options that no backend of ``net`` reads (``backend`` overrides the types).
+
+    Shared ``backend_options`` must be read by the backend of at least one bus; ``bus_options[name]``
+    by that bus's backend. Raises :class:`FieldbusError` with a did-you-mean.
+    """
+    check_backend_options({backend or b.type for b in net.buses}, backend_options)
+    for bus in net.buses:
+        check_backend_options((backend or bus.type,), (bus_options or {}).get(bus.name, {}))
+
+
 def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, DriveMap]) -> DriveMap:
+    """The drive map at ``raw``: relative to ``base`` (the network file's folder) or absolute.
+
+    Refused before it is read: a path that does not end in .yaml/.yml, a directory, a missing file,
+    a symbolic-link loop. Read, it must look like a drive map, else its content is not quoted.
+    """
     rel = r.string(raw, path)
-    target = (base / rel).resolve()
+    if not rel.strip():
+        raise r.err(path, "empty: give the drive map's path, relative to this file")
+    if Path(rel).suffix.lower() not in MAP_SUFFIXES:
+        raise r.err(
+            path, f"'{token(rel, PATH_CHARS)}' is not a drive map: a map's file name ends in .yaml or .yml"
+        )
+    try:
+        target = (base / rel).resolve()
+    except (RuntimeError, OSError):  # Python < 3.13: RuntimeError on a symlink loop
+        raise r.err(path, f"map path {token(rel, PATH_CHARS)}: a symbolic link loop") from None
     if target not in cache:
-        if not target.is_file():
+        if target.is_dir():
+            raise r.err(path, f"map path {token(rel, PATH_CHARS)} is a directory, not a drive map")
+        if not target.exists():
             raise r.err(path, f"map file not found: {rel} (looked for {target})")
-        cache[target] = parse_drive_map(load_file(target), default_name=target.stem)
+        try:
+            doc = load_file(target)
+        except PdoMapError as exc:
+            if exc.line is not None:  # a YAML syntax error: where it is in the map
+                raise
+            raise r.err(
+                path, f"map {token(rel, PATH_CHARS)}: {exc.message}"
+            ) from None  # unreadable, not text
+        if not looks_like_drive_map(doc.data):
+            raise r.err(path, f"map {token(rel, PATH_CHARS)}: " + NOT_A_MAP.format(shape=shape(doc.data)))
+        cache[target] = parse_drive_map(doc, default_name=target.stem)
     return cache[target]

@@ -14,7 +14,7 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from fieldbus.core.yamlsrc import Located, PathT
+from fieldbus.core.yamlsrc import Located, PathT, key_token, token
 from fieldbus.errors import PdoMapError
 
 
@@ -36,9 +36,10 @@ class Reader:
         allowed = tuple(allowed)
         for key in value:
             if key not in allowed:
-                near = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
+                shown = key_token(key)
+                near = difflib.get_close_matches(shown, allowed, n=1, cutoff=0.6)
                 hint = f" (did you mean {near[0]}?)" if near else f" (allowed: {', '.join(allowed)})"
-                raise self.err((*path, key), f"unknown key '{key}'{hint}", key=True)
+                raise self.err((*path, key), f"unknown key '{shown}'{hint}", key=True)
         for key in required:
             if key not in value:
                 raise self.err(path, f"missing required key '{key}'")
@@ -52,12 +53,14 @@ class Reader:
         return value
 
     def integer(self, value: Any, path: PathT, lo: int, hi: int) -> int:
-        """An int in ``[lo, hi]``; hex strings such as ``"0x6040"`` are accepted."""
+        """An int in ``[lo, hi]``; hex strings such as ``"0x6040"`` and whole floats (``1e3``) are accepted."""
+        if isinstance(value, float) and value.is_integer() and abs(value) <= 2**53:
+            value = int(value)  # 1e3, 2.5e+3: exponent notation of a whole number
         if isinstance(value, str):
             try:
                 value = int(value.strip(), 0)
             except ValueError:
-                raise self.err(path, f"expected an integer, got '{value}'") from None
+                raise self.err(path, f"expected an integer, got '{token(value)}'") from None
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.err(path, f"expected an integer, got {_kind(value)}")
         if not lo <= value <= hi:
@@ -87,7 +90,7 @@ class Reader:
     def name(self, value: Any, path: PathT) -> str:
         text = self.string(value, path)
         if not text or not text.isprintable() or any(ch in text for ch in " \t,:[]{}'\""):
-            raise self.err(path, f"'{text}' is not a usable name (no spaces, quotes or ,:[]{{}})")
+            raise self.err(path, f"'{token(text)}' is not a usable name (no spaces, quotes or ,:[]{{}})")
         return text
 
     def choice(self, value: Any, path: PathT, options: Iterable[str]) -> str:
@@ -100,9 +103,9 @@ class Reader:
         if not isinstance(value, str):  # never str() it: an aliased list can hold 10**9 leaves
             raise self.err(path, f"expected one of {', '.join(options)}, got {_kind(value)}")
         if value not in options:
-            near = difflib.get_close_matches(value[:80], options, n=1, cutoff=0.5)
+            near = difflib.get_close_matches(token(value), options, n=1, cutoff=0.5)
             hint = f" (did you mean {near[0]}?)" if near else ""
-            raise self.err(path, f"'{value[:80]}' is not one of {', '.join(options)}{hint}")
+            raise self.err(path, f"'{token(value)}' is not one of {', '.join(options)}{hint}")
         return value
 
 
@@ -116,8 +119,8 @@ def _kind(value: Any) -> str:
     if isinstance(value, list):
         return "a list"
     if isinstance(value, str):
-        return f"a string ('{value[:40]}')"
-    return f"{type(value).__name__} ({value!r})"
+        return f"a string ('{token(value)}')"
+    return f"{type(value).__name__} ({token(repr(value))})"
 
 
 def _num(v: int, hexa: bool) -> str:

@@ -9,10 +9,18 @@ an alias shares the built object (as ``yaml.safe_load`` does), so a document of
 nested aliases ("billion laughs") loads in time proportional to its text; the
 data is read-only by convention, nothing may mutate it. Work done for aliases and
 merges is still bounded by :data:`MAX_ALIAS_NODES`.
+
+Numbers in exponent form without a dot (``5e-6``, ``1E3``, ``1.5e3``) are floats,
+as in YAML 1.2 and JSON; PyYAML's YAML 1.1 rule alone would read them as strings.
+
+``load_file`` reads only a regular file of at most :data:`MAX_FILE_BYTES`,
+refuses binary and non-UTF-8 content without quoting it, and drops a UTF-8 BOM.
 """
 
 from __future__ import annotations
 
+import re
+import stat
 from collections.abc import Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,16 +36,73 @@ MAX_ALIAS_NODES = 100_000
 """Most alias uses plus keys copied by ``<<`` merges in one document (guards quadratic merge chains)."""
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _VALUE_TAG = "tag:yaml.org,2002:value"
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+MAX_FILE_BYTES = 8 * 1024 * 1024
+"""Largest YAML file read (the shipped maps are a few kB; an ESI-derived map some 100 kB)."""
+TOKEN_CHARS = 32
+"""Most characters of a file's text that a message quotes (a key, a value, a YAML token)."""
+
+# YAML 1.2 core schema floats that YAML 1.1 reads as strings: an exponent without a dot before it,
+# or without a sign (5e-6, 1E3, 1.5e3, .5e3). Dotted forms with a signed exponent are 1.1 floats already.
+_EXP_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$")
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader plus the exponent floats of :data:`_EXP_FLOAT`."""
+
+
+_Loader.add_implicit_resolver(_FLOAT_TAG, _EXP_FLOAT, list("-+0123456789."))
+
+
+def token(value: object, limit: int = TOKEN_CHARS) -> str:
+    """``value`` as a short, printable token for a message (at most ``limit`` characters)."""
+    text = value if isinstance(value, str) else str(value)
+    clean = "".join(ch if ch.isprintable() else "?" for ch in text[: limit + 1])
+    return clean if len(clean) <= limit else clean[: limit - 3] + "..."
+
+
+_KEY_CHARS = re.compile(r"[A-Za-z0-9_.\-]{0,24}")
+
+
+def key_token(key: object) -> str:
+    """A mapping key for a message: its leading name characters (at most 24), ``...`` if it has more.
+
+    Keys of drive maps and network files are short names; a key that is not (a line of some other
+    file read as YAML) is not quoted beyond its first name characters.
+    """
+    text = key if isinstance(key, str) else str(key)
+    head = _KEY_CHARS.match(text)
+    shown = head.group() if head else ""
+    return shown if shown == text else shown + "..."
+
+
+_QUOTED = re.compile(r"'([^']*)'|\"([^\"]*)\"")
+
+
+def _clip_quoted(message: str) -> str:
+    """A PyYAML message without the file's text: it quotes aliases, anchors and tags in full.
+
+    Kept: a quoted character (``'\\t'``) and PyYAML's token names (``'<stream end>'``); anything
+    else quoted becomes ``'...'`` (the file may be no YAML of ours; line and column say where).
+    """
+
+    def keep(m: re.Match[str]) -> str:
+        inner = m.group(1) if m.group(1) is not None else m.group(2)
+        if len(inner) <= 2 or (inner.startswith("<") and inner.endswith(">") and len(inner) <= 20):
+            return f"'{inner}'"
+        return "'...'"
+
+    return _QUOTED.sub(keep, message)
 
 
 def format_path(path: PathT) -> str:
-    """``("rpdo", 0, "type")`` -> ``"rpdo[0].type"``."""
+    """``("rpdo", 0, "type")`` -> ``"rpdo[0].type"``; keys shown as :func:`key_token`."""
     out = ""
     for part in path:
-        if isinstance(part, int):
+        if isinstance(part, int) and not isinstance(part, bool):
             out += f"[{part}]"
         else:
-            out += f".{part}" if out else str(part)
+            out += f".{key_token(part)}" if out else key_token(part)
     return out
 
 
@@ -98,7 +163,7 @@ def load_located(text: str, file: str = "<string>") -> Located:
     """Parse one YAML document; any syntax problem is a located :class:`PdoMapError`."""
     loader: yaml.SafeLoader | None = None
     try:
-        loader = yaml.SafeLoader(text)
+        loader = _Loader(text)
         node = loader.get_single_node()
         doc = Located(data=None, file=file)
         if node is not None:
@@ -108,7 +173,7 @@ def load_located(text: str, file: str = "<string>") -> Located:
         mark = exc.problem_mark or exc.context_mark
         msg = " ".join(p for p in (exc.context, exc.problem) if p) or "invalid YAML"
         raise PdoMapError(
-            f"YAML syntax: {msg}",
+            f"YAML syntax: {_clip_quoted(msg)}",
             file=file,
             line=mark.line + 1 if mark else None,
             column=mark.column + 1 if mark else None,
@@ -116,7 +181,7 @@ def load_located(text: str, file: str = "<string>") -> Located:
     except yaml.reader.ReaderError as exc:
         raise PdoMapError(f"YAML: {exc.reason} (character 0x{exc.character:02X})", file=file) from None
     except yaml.YAMLError as exc:
-        raise PdoMapError(f"YAML: {exc}", file=file) from None
+        raise PdoMapError(f"YAML: {_clip_quoted(str(exc))[:200]}", file=file) from None
     except RecursionError:
         raise PdoMapError("YAML nested too deeply", file=file) from None
     finally:
@@ -125,17 +190,55 @@ def load_located(text: str, file: str = "<string>") -> Located:
 
 
 def load_file(path: str | Path) -> Located:
-    """Read and parse ``path``; an unreadable file is a :class:`PdoMapError`."""
+    """Read and parse ``path``; a file that cannot be YAML text is a :class:`PdoMapError`.
+
+    Refused without quoting any of the content: a directory, a device, a FIFO or
+    anything else that is not a regular file; a file larger than
+    :data:`MAX_FILE_BYTES`; binary content (a NUL byte); UTF-16/32 or other
+    non-UTF-8 text. A UTF-8 byte-order mark is dropped.
+    """
     p = Path(path)
+    data = read_text_bytes(p)
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    elif data.startswith((b"\xff\xfe", b"\xfe\xff", b"\x00\x00\xfe\xff")):
+        raise PdoMapError("UTF-16/UTF-32 text; save it as UTF-8", file=str(p))
+    if b"\x00" in data:
+        raise PdoMapError("a binary file, not YAML text", file=str(p))
     try:
-        text = p.read_text(encoding="utf-8")
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise PdoMapError(
+            f"not UTF-8 text (byte 0x{data[exc.start]:02X} on line {line}); save it as UTF-8", file=str(p)
+        ) from None
+    return load_located(text, str(p))
+
+
+def read_text_bytes(p: Path, limit: int = MAX_FILE_BYTES) -> bytes:
+    """The bytes of the regular file ``p`` (at most ``limit``), or a :class:`PdoMapError` saying why not."""
+    try:
+        st = p.stat()
     except FileNotFoundError:
         raise PdoMapError("file not found", file=str(p)) from None
-    except UnicodeDecodeError as exc:
-        raise PdoMapError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=str(p)) from None
+    except RuntimeError:  # Python < 3.13 on a symlink loop in a parent
+        raise PdoMapError("cannot read: symbolic link loop", file=str(p)) from None
     except OSError as exc:
-        raise PdoMapError(f"cannot read: {exc.strerror}", file=str(p)) from None
-    return load_located(text, str(p))
+        raise PdoMapError(f"cannot read: {exc.strerror or exc}", file=str(p)) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise PdoMapError("is a directory, not a YAML file", file=str(p))
+    if not stat.S_ISREG(st.st_mode):
+        raise PdoMapError("not a regular file (a device, FIFO or socket)", file=str(p))
+    if st.st_size > limit:
+        raise PdoMapError(f"{st.st_size} bytes; a YAML file here is at most {limit}", file=str(p))
+    try:
+        with p.open("rb") as f:
+            data = f.read(limit + 1)
+    except OSError as exc:
+        raise PdoMapError(f"cannot read: {exc.strerror or exc}", file=str(p)) from None
+    if len(data) > limit:  # grew since stat, or a /proc-like file that reports size 0
+        raise PdoMapError(f"more than {limit} bytes; a YAML file here is at most {limit}", file=str(p))
+    return data
 
 
 def _mark(node: yaml.Node) -> tuple[int, int]:
@@ -257,7 +360,7 @@ class _Builder:
                 continue
             key = self._key(key_node, path)
             if key in explicit:
-                raise self._at(key_node, path, f"duplicate key '{key}'")
+                raise self._at(key_node, path, f"duplicate key '{key_token(key)}'")
             explicit.add(key)
             merged.pop(key, None)  # a key written here overrides a merged one
             child: PathT = (*path, key)

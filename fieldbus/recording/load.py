@@ -88,7 +88,7 @@ def load(path: str | Path) -> Recording:
             except (McapError, EOFError, ValueError) as exc:  # cut short: keep what came whole
                 if not meta:
                     raise FieldbusError(
-                        f"{p}: not a fieldbus recording ({type(exc).__name__}: {exc})"
+                        f"{p}: not a fieldbus recording ({type(exc).__name__})"  # its text quotes bytes
                     ) from None
     except OSError as exc:
         raise FieldbusError(f"cannot read recording {p}: {exc.strerror or exc}") from None

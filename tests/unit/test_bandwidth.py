@@ -461,12 +461,12 @@ def _write_network(tmp_path: Path) -> Path:
 
 def test_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     net = _write_network(tmp_path)
-    assert main(["bandwidth", str(net), "--json"]) == 0
+    assert main(["bandwidth", str(net), "--json"]) == 3  # the CAN arm needs 114 % of its bus at 1 kHz
     out = json.loads(capsys.readouterr().out)
-    assert out["rate_hz"] == 1000 and out["bottleneck"] == "arm"
+    assert out["rate_hz"] == 1000 and out["bottleneck"] == "arm" and out["overloaded"] == ["arm"]
     arm = next(b for b in out["buses"] if b["name"] == "arm")
     assert arm["frames_per_cycle"] == 9 and arm["wire_bits_per_cycle"] == 4 * 2 * 135 + 55
-    assert main(["bandwidth", str(net), "--json", "--rate", "2000"]) == 0
+    assert main(["bandwidth", str(net), "--json", "--rate", "2000"]) == 3
     out2 = json.loads(capsys.readouterr().out)
     assert out2["rate_hz"] == 2000
     arm2 = next(b for b in out2["buses"] if b["name"] == "arm")
@@ -476,7 +476,7 @@ def test_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
 def test_cli_table_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     net = _write_network(tmp_path)
     png = tmp_path / "cycle.png"
-    assert main(["bandwidth", str(net), "--plot", str(png)]) == 0
+    assert main(["bandwidth", str(net), "--plot", str(png)]) == 3  # drawn and printed all the same
     text = capsys.readouterr().out
     assert "legs" in text and "arm" in text and "bottleneck: arm" in text
     assert png.stat().st_size > 1000

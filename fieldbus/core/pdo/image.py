@@ -37,6 +37,7 @@ bit (``tests/unit/test_codec_differential.py``). ``engine=`` chooses: ``"auto"``
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,7 +47,7 @@ import numpy.typing as npt
 from fieldbus.core.datatypes import DataType
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout, MapLayout
 from fieldbus.core.pdo.model import Direction
-from fieldbus.errors import FieldbusError
+from fieldbus.errors import ChannelNameError, FieldbusError
 
 U8 = npt.NDArray[np.uint8]
 
@@ -440,11 +441,34 @@ class DirectionImage:
         return self.layout.names
 
     def __getitem__(self, name: str) -> npt.NDArray[Any]:
-        """``image["target_position"]``: the (N,) view of one channel in ``values``."""
-        return self.values[name]
+        """``image["target_position"]``: the (N,) view of one channel in ``values``.
+
+        An unknown name is a :class:`~fieldbus.errors.ChannelNameError` naming the channels.
+        """
+        try:
+            return self.values[name]
+        except (ValueError, KeyError):
+            if isinstance(name, str) and name not in (self.values.dtype.fields or {}):
+                raise self._no_channel(name) from None
+            raise
 
     def __setitem__(self, name: str, value: Any) -> None:
-        self.values[name] = value
+        try:
+            self.values[name] = value
+        except (ValueError, KeyError):
+            if isinstance(name, str) and name not in (self.values.dtype.fields or {}):
+                raise self._no_channel(name) from None
+            raise  # a value that does not fit the channel: numpy's own message
+
+    def _no_channel(self, name: object) -> ChannelNameError:
+        """The error for a name this image does not have: its channels, and the nearest one."""
+        text = str(name)
+        near = difflib.get_close_matches(text, self.names, n=1, cutoff=0.5)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        kind = "outputs (RxPDO)" if self.layout.direction is Direction.OUTPUTS else "inputs (TxPDO)"
+        return ChannelNameError(
+            f"no {kind} channel {text!r}{hint} (channels: {', '.join(self.names) or 'none'})"
+        )
 
     # -- encode ---------------------------------------------------------------
     def to_wire(self) -> None:

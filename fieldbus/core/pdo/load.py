@@ -7,6 +7,7 @@ ethercat_driver_ros2's slave configuration files; see docs/yaml-reference.md.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -61,6 +62,44 @@ _DC_MODE_KEYS = (
 _CANOPEN_KEYS = ("fd", "heartbeat_ms", "disable_unused_pdos", "pdo")
 _CANOPEN_PDO_KEYS = ("index", "cob_id", "cob_id_absolute", "transmission_type", "inhibit_time", "event_timer")
 _PROFILES = ("cia402",)
+# Top-level keys that only a drive map has: a file with none of them (or a near miss) is not one,
+# and nothing of its content is quoted. Words as common as 'name', 'profile' do not count.
+_MAP_MARKS = (
+    "vendor_id", "product_id", "rpdo", "tpdo", "rawcan", "canopen", "ethercat", "assign_activate",
+    "auto_fault_reset",
+)  # fmt: skip
+_MAP_MARKS_EXACT = ("sdo", "sm")
+
+
+NOT_A_MAP = (
+    "not a drive map: its top level is {shape}, with none of vendor_id, product_id, rpdo, tpdo, rawcan "
+    "(its content is not shown)"
+)
+
+
+def looks_like_drive_map(data: Any) -> bool:
+    """True when ``data`` (a loaded YAML document) is a mapping with a drive-map key or a near miss of one."""
+    if not isinstance(data, Mapping):
+        return False
+    for key in data:
+        if not isinstance(key, str) or len(key) > 40:
+            continue
+        if key in _MAP_MARKS_EXACT or difflib.get_close_matches(key.lower(), _MAP_MARKS, n=1, cutoff=0.75):
+            return True
+    return False
+
+
+def shape(data: Any) -> str:
+    """What a loaded document is, in words that quote none of it."""
+    if data is None:
+        return "empty"
+    if isinstance(data, Mapping):
+        return "a mapping"
+    if isinstance(data, list):
+        return "a list"
+    if isinstance(data, str):
+        return "a single string"
+    return "a single value"
 
 
 def load_drive_map(path: str | Path) -> DriveMap:
@@ -77,6 +116,8 @@ def drive_map_from_text(text: str, file: str = "<string>") -> DriveMap:
 def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     """Validate a loaded document into a :class:`DriveMap`."""
     r = Reader(doc)
+    if not looks_like_drive_map(doc.data):
+        raise r.err((), NOT_A_MAP.format(shape=shape(doc.data)))
     top = r.mapping(doc.data, (), _TOP_KEYS)
     rawcan = None
     if "rawcan" in top:
