@@ -132,9 +132,11 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
         fp = io.StringIO(text)
         fp.name = file
         od = canopen.objectdictionary.import_od(fp, node_id)
-    except Exception as exc:  # configparser / canopen errors: name them, not a traceback
+    except Exception as exc:  # configparser / canopen errors: name them, never quote the file (not a map yet)
         raise PdoMapError(
-            f"canopen could not read this EDS/DCF: {type(exc).__name__}: {exc}", file=file
+            f"canopen could not read this EDS/DCF ({type(exc).__name__}): not an EDS/DCF file, "
+            "or one with a syntax error",
+            file=file,
         ) from None
     if node_id is None:
         node_id = getattr(od, "node_id", None)
