@@ -591,8 +591,10 @@ class Operational(_Phase):
             events.append(BusEvent(cycle, st.name, "safe_stop", f"{policy.consecutive_misses} misses"))
         if policy.released_now:
             events.append(BusEvent(cycle, st.name, "released"))
-        if policy.fresh.any():
-            b.accept_inputs(policy.fresh)  # rows of stale slaves keep their last accepted bytes (S2)
+        if verdict is Verdict.OK or (arrived is not None and policy.fresh.any()):
+            b.accept_inputs(
+                policy.fresh, verdict is Verdict.OK
+            )  # stale rows keep their last accepted bytes (S2)
             for watch, rows in self._faults[k]:
                 for fault in watch.step(rows, cycle):
                     events.append(fault)

@@ -150,11 +150,12 @@ class Backend(abc.ABC):
         row: npt.NDArray[np.uint8] = self.rx[a.group][a.row]
         return row
 
-    def accept_inputs(self, fresh: npt.NDArray[np.bool_]) -> None:
+    def accept_inputs(self, fresh: npt.NDArray[np.bool_], every: bool = False) -> None:
         """Copy the rows of the slaves fresh this cycle (per slave, bus order) into the images and decode.
 
         Rows of stale slaves are not touched: their values stay bit-identical to
-        the last accepted ones. Allocation-free (the masks are views made once).
+        the last accepted ones. ``every``: the caller knows every slave is fresh
+        (a plain copy). Allocation-free (the masks are views made once).
         """
         if self._accept_plan is None or self._accept_src is not fresh:
             self._accept_src = fresh
@@ -163,9 +164,13 @@ class Backend(abc.ABC):
                 for k, g in enumerate(self.groups)
             ]
         for inputs, rx, rows in self._accept_plan:
-            if rows.any():
+            if every:
+                np.copyto(inputs.wire, rx)
+            elif rows.any():
                 np.copyto(inputs.wire, rx, where=rows)
-                inputs.from_wire()
+            else:
+                continue
+            inputs.from_wire()
 
     @property
     def n_slaves(self) -> int:

@@ -141,8 +141,12 @@ class SafetyPolicy:
                     verdict = Verdict.SHORT
             else:  # one datagram for all (EtherCAT): a miss makes every slave stale
                 self.fresh.fill(verdict is Verdict.OK)
-        self.stale_cycles += 1
-        self.stale_cycles[self.fresh] = 0
+        if verdict is Verdict.OK:
+            self.stale_cycles.fill(0)
+        else:
+            self.stale_cycles += 1
+            if slave_ok is not None:
+                np.copyto(self.stale_cycles, 0, where=self.fresh)
         self.last_verdict = verdict
         if verdict is Verdict.OK:
             if self.consecutive_misses:
