@@ -11,28 +11,32 @@ import argparse
 import json
 from typing import Any
 
+from fieldbus.commands.argtypes import positive
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.core.bandwidth import BusResult, NetworkResult, network_bandwidth
 from fieldbus.errors import BackendUnavailableError
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
-        "bandwidth", help="wire time, bus load and max cycle rate of every bus of a network"
+    p = add_command(
+        sub,
+        "bandwidth",
+        help="wire time, bus load and max cycle rate of every bus of a network",
+        doc=__doc__,
+        codes=[(0, "the table (or JSON) was printed"), (1, "the network file or a map in it is invalid")],
     )
     p.add_argument("network", metavar="NETWORK.yaml", help="network file")
     p.add_argument(
-        "--rate", type=_positive, default=None, metavar="HZ", help="cycle rate (default: the cycle times)"
+        "--rate",
+        type=positive("Hz"),
+        default=None,
+        metavar="HZ",
+        help="cycle rate (default: the cycle times)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE", default=None, help="draw one cycle per bus (needs matplotlib)")
     p.set_defaults(func=run)
-
-
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number of Hz, not {text!r}")
-    return value
 
 
 def _fmt(x: float | None, spec: str = ".1f") -> str:
@@ -102,6 +106,7 @@ def plot(result: NetworkResult, path: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from fieldbus.core.network import load_network
 
+    check_plot(args.plot, "--plot")
     net = load_network(args.network)
     result = network_bandwidth(net, args.rate)
     if args.plot:
