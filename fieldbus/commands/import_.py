@@ -46,7 +46,7 @@ def register(sub: Any) -> None:
     )
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
     esi = add_command(kinds, "esi", help="EtherCAT Slave Information XML", doc=ESI_DOC, codes=ESI_CODES)
-    esi.add_argument("file", metavar="FILE.xml")
+    esi.add_argument("file", metavar="FILE.xml", help="the vendor's ESI file")
     esi.add_argument("--device", metavar="PRODUCT[:REVISION]", help="type name or product code, and revision")
     esi.add_argument(
         "--alternative", action="append", default=[], metavar="PDO",
@@ -56,7 +56,7 @@ def register(sub: Any) -> None:
         "--dc-mode", metavar="NAME", help="DC operation mode for assign_activate ('none': free run)"
     )
     eds = add_command(kinds, "eds", help="CANopen EDS or DCF", doc=EDS_DOC, codes=CODES)
-    eds.add_argument("file", metavar="FILE.eds|FILE.dcf")
+    eds.add_argument("file", metavar="FILE.eds|FILE.dcf", help="the vendor's EDS, or a DCF")
     eds.add_argument(
         "--node-id", type=NODE_ID, metavar="N", help="node id for $NODEID, 1..127 (a DCF names its own)"
     )

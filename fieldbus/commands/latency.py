@@ -49,7 +49,7 @@ def register(sub: Any) -> None:
         ],
         live_bus=True,
     )
-    p.add_argument("network", metavar="NETWORK.yaml")
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file with CiA 402 axes")
     p.add_argument("--backend", choices=("sim", "ethercat"), help="run every bus on this backend instead")
     p.add_argument(
         "--step", type=positive("rad"), default=STEP_RAD, help=f"dither step in rad, > 0 (default {STEP_RAD})"

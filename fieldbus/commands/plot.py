@@ -36,7 +36,7 @@ def register(sub: Any) -> None:
         ],
         json=False,
     )
-    p.add_argument("file", metavar="FILE.mcap")
+    p.add_argument("file", metavar="FILE.mcap", help="a recording (demo, run or soak --record)")
     p.add_argument(
         "-o", "--output", required=True, metavar="OUT.png", help="the image (.png; .pdf, .svg, ... by suffix)"
     )

@@ -19,7 +19,7 @@ def register(sub: Any) -> None:
         doc=__doc__,
         codes=[(0, "the summary was printed"), (1, "the recording cannot be read")],
     )
-    p.add_argument("file", metavar="FILE.mcap")
+    p.add_argument("file", metavar="FILE.mcap", help="a recording (demo, run or soak --record)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout (every event listed)")
     p.set_defaults(func=run)
 

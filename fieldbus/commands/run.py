@@ -35,7 +35,7 @@ def register(sub: Any) -> None:
     cycleopts.add_arguments(p)
     buslogs.add_arguments(p)
     cycleopts.add_monitor_argument(p)
-    p.add_argument("network", metavar="NETWORK.yaml")
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file (buses, slaves and their maps)")
     p.add_argument("--cycles", type=integer(1), default=1000, help="number of cycles, >= 1 (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")

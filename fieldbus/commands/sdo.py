@@ -74,7 +74,9 @@ def register(sub: Any) -> None:
             )
             v.add_argument("sub_index", type=integer(0, 0xFF), metavar="SUB", help="sub-index, e.g. 0")
             if verb == "write":
-                v.add_argument("value", metavar="VALUE")
+                v.add_argument(
+                    "value", metavar="VALUE", help="the value: a number, text (string) or hex (bytes)"
+                )
             v.add_argument(
                 "--type", dest="type_name", help="int8..uint64, float, double, bool, string, bytes"
             )
