@@ -38,13 +38,13 @@ def number(
         try:
             v = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number (want {want})") from None
+            raise argparse.ArgumentTypeError(f"must be {want}, not {text!r}") from None
         if (
             not math.isfinite(v)
             or (low is not None and (v <= low if low_open else v < low))
             or (high is not None and v > high)
         ):
-            raise argparse.ArgumentTypeError(f"want {want}, not {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {want}, not {text!r}")
         return v
 
     parse.__name__ = "number"  # argparse names the type in its own messages
@@ -74,9 +74,9 @@ def integer(low: int | None = None, high: int | None = None) -> Callable[[str], 
         try:
             v = int(text) if text.strip().lstrip("+-").isdigit() else int(text, 0)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer (want {want})") from None
+            raise argparse.ArgumentTypeError(f"must be {want}, not {text!r}") from None
         if (low is not None and v < low) or (high is not None and v > high):
-            raise argparse.ArgumentTypeError(f"want {want}, not {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {want}, not {text!r}")
         return v
 
     parse.__name__ = "integer"

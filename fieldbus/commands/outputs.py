@@ -85,10 +85,15 @@ def check_folder(path: str | os.PathLike[str] | None, flag: str) -> None:
 
 
 def check_plot(path: str | os.PathLike[str] | None, flag: str) -> None:
-    """:func:`check_file`, and matplotlib is installed and writes the format the suffix names."""
+    """:func:`check_file`, and matplotlib is installed and writes the format the suffix names.
+
+    Without a suffix matplotlib writes ``path.png``: that file is checked (a folder is refused)."""
     if not path:
         return
-    check_file(path, flag)
+    p = Path(path)
+    if p.is_dir():
+        raise OutputError(f"{flag} {os.fspath(path)}: is a folder; give a file name in it")
+    check_file(p if p.suffix else p.with_name(p.name + ".png"), flag)
     try:
         from matplotlib.backend_bases import FigureCanvasBase
     except ImportError:
