@@ -20,7 +20,6 @@ import os
 import select
 import sys
 from collections.abc import Sequence
-from contextlib import suppress
 from typing import NoReturn
 
 from fieldbus import __version__
@@ -99,8 +98,13 @@ def _fail(prefix: str, message: str, code: int, as_json: bool) -> int:
     if as_json:
         lines.append((sys.stdout, json.dumps({"ok": False, "error": message, "exit": code})))
     for stream, line in lines:
-        with suppress(BrokenPipeError, ValueError):  # the reader went away, or the stream was closed
+        try:
             print(line, file=stream, flush=True)
+        except BrokenPipeError:  # its reader went away: nothing more for it, not even at exit
+            if stream is sys.stdout:
+                _drop_stdout()
+        except ValueError:  # the stream was closed
+            pass
     return code
 
 
@@ -130,7 +134,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     as_json = Parser.json_errors = "--json" in words
     try:
         parser = build_parser()
-        args = parser.parse_args(words)
+        try:
+            args = parser.parse_args(words)
+        except SystemExit:  # --help, --version, a refused command line: their text flushed here
+            sys.stdout.flush()
+            raise
         if not getattr(args, "func", None):
             parser.print_help(sys.stderr)
             return USAGE

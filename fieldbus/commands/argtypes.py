@@ -25,7 +25,7 @@ def _bounds(low: float | None, high: float | None, low_open: bool, unit: str) ->
         return f"a number {'>' if low_open else '>='} {low:g}{u}"
     if high is not None:
         return f"a number <= {high:g}{u}"
-    return f"a finite number{u}"
+    return f"a finite number of {unit}" if unit else "a finite number"
 
 
 def number(

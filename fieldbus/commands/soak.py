@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.commands import cycleopts
-from fieldbus.commands.argtypes import SEED, UsageError, integer, non_negative
+from fieldbus.commands.argtypes import SEED, UsageError, integer, non_negative, number
 from fieldbus.commands.demo import check_axes
 from fieldbus.commands.usage import add_command
 from fieldbus.network import Network, Operational, open_network
@@ -73,9 +73,10 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--margin-us",
-        type=non_negative("us"),
+        type=number(unit="us"),
         default=DEFAULT_MARGIN_US,
-        help=f"a cycle may take the receive timeout plus this, else it is a violation (default {DEFAULT_MARGIN_US:g})",
+        help="a cycle may take the receive timeout plus this (negative: less than the timeout), else it is a "
+        f"violation (default {DEFAULT_MARGIN_US:g})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     cycleopts.add_arguments(p, plot=False)
