@@ -16,6 +16,9 @@ import json
 import sys
 from typing import Any
 
+from fieldbus.commands.argtypes import positive
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.core.bandwidth import BusResult, NetworkResult, network_bandwidth, overload
 from fieldbus.errors import BackendUnavailableError
 
@@ -23,26 +26,28 @@ EXIT_OVERLOADED = 3  # a bus needs more than its bus time: the network cannot ru
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "bandwidth",
         help="wire time, bus load and max cycle rate of every bus of a network",
-        epilog=f"exit codes: 0 every bus fits its cycle, 1 file or argument error, {EXIT_OVERLOADED} a bus over "
-        "100 % load at the rate",
+        doc=__doc__,
+        codes=[
+            (0, "the table (or JSON) was printed: every bus fits its cycle"),
+            (1, "the network file or a map in it is invalid"),
+            (EXIT_OVERLOADED, "a bus is over 100 % load at the rate (the figures still print)"),
+        ],
     )
     p.add_argument("network", metavar="NETWORK.yaml", help="network file")
     p.add_argument(
-        "--rate", type=_positive, default=None, metavar="HZ", help="cycle rate (default: the cycle times)"
+        "--rate",
+        type=positive("Hz"),
+        default=None,
+        metavar="HZ",
+        help="cycle rate (default: the cycle times)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument("--plot", metavar="FILE", default=None, help="draw one cycle per bus (needs matplotlib)")
     p.set_defaults(func=run)
-
-
-def _positive(text: str) -> float:
-    value = float(text)
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number of Hz, not {text!r}")
-    return value
 
 
 def _fmt(x: float | None, spec: str = ".1f") -> str:
@@ -177,6 +182,7 @@ def _renderer(fig: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     from fieldbus.core.network import load_network
 
+    check_plot(args.plot, "--plot")
     net = load_network(args.network)
     result = network_bandwidth(net, args.rate)
     if args.plot:

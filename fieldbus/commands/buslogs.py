@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fieldbus.commands.outputs import check_file
 from fieldbus.core.network import CAN_TYPES, NetworkConfig
 from fieldbus.errors import FieldbusError
 
@@ -53,6 +54,15 @@ def bus_options(
                 per_bus(Path(path), name) if len(buses) > 1 else Path(path)
             )
     return out
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """``--can-log`` and ``--pcap`` can be written (:class:`~fieldbus.commands.outputs.OutputError` if not)."""
+    for flag, path in (
+        ("--can-log", getattr(args, "can_log", None)),
+        ("--pcap", getattr(args, "pcap", None)),
+    ):
+        check_file(path, flag)
 
 
 def per_bus(path: Path, bus: str) -> Path:

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
 
+from fieldbus.commands.argtypes import integer
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
 from fieldbus.runtime.loop import default_status_stream, run_cycles
@@ -31,9 +32,12 @@ def add_arguments(p: argparse.ArgumentParser, *, plot: bool = True) -> None:
     r.add_argument("--record-raw", action="store_true", help="with --record: also the wire bytes")
     g = p.add_argument_group("real time (the cycle thread)")
     g.add_argument(
-        "--rt-priority", type=int, metavar="N", help="run the cycle at SCHED_FIFO priority N (1-99)"
+        "--rt-priority",
+        type=integer(1, 99),
+        metavar="N",
+        help="run the cycle at SCHED_FIFO priority N (1-99)",
     )
-    g.add_argument("--cpu", type=int, metavar="N", help="pin the cycle thread to CPU N")
+    g.add_argument("--cpu", type=integer(0), metavar="N", help="pin the cycle thread to CPU N")
     g.add_argument(
         "--lock-memory", action="store_true", help="mlockall(MCL_CURRENT|MCL_FUTURE) and prefault the heap"
     )

@@ -12,34 +12,56 @@ import argparse
 import json
 from typing import Any
 
+from fieldbus.commands.argtypes import SEED, UsageError, integer, non_negative, number, positive
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.core.dc.sim import DcSimResult, convergence_bound_ms, simulate
 from fieldbus.errors import BackendUnavailableError
 
+# The simulation keeps per slave and cycle a SYNC0 edge and a noise draw (2 x float64): bound their
+# product so that a mistyped --seconds is refused instead of allocating terabytes.
+BYTES_PER_SAMPLE = 16
+MAX_SAMPLES = 10_000_000  # 160 MB: 1250 s of 1 kHz cycles with 8 slaves
+
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
-        "dc-sim", help="simulate distributed-clock drift compensation on a line of slaves"
+    p = add_command(
+        sub,
+        "dc-sim",
+        help="simulate distributed-clock drift compensation on a line of slaves",
+        doc=__doc__,
+        codes=[(0, "the simulation ran and its report was printed"), (1, "the plot could not be written")],
     )
-    p.add_argument("--slaves", type=_int_at_least(1), default=8, metavar="N", help="slaves (default 8)")
+    p.add_argument("--slaves", type=integer(1), default=8, metavar="N", help="slaves (default 8)")
     p.add_argument(
         "--drift-ppm",
-        type=_non_negative,
+        type=non_negative("ppm"),
         default=50.0,
         metavar="X",
         help="crystal drifts spread over ±X ppm (default 50)",
     )
-    p.add_argument("--seconds", type=_positive, default=2.0, metavar="S", help="simulated time (default 2)")
     p.add_argument(
-        "--cycle-us", type=_positive, default=1000.0, metavar="US", help="cycle time (default 1000)"
+        "--seconds",
+        type=positive("s"),
+        default=2.0,
+        metavar="S",
+        help=f"simulated time (default 2; at most {MAX_SAMPLES:.0e} slave-cycles, --slaves x cycles)",
     )
     p.add_argument(
-        "--cable-m", type=_non_negative, default=1.0, metavar="M", help="cable per hop (default 1)"
+        "--cycle-us",
+        type=number(0.001, unit="us"),
+        default=1000.0,
+        metavar="US",
+        help="cycle time (default 1000)",
+    )
+    p.add_argument(
+        "--cable-m", type=non_negative("m"), default=1.0, metavar="M", help="cable per hop (default 1)"
     )
     p.add_argument("--no-compensation", action="store_true", help="slaves ignore the distributed time")
     p.add_argument(
         "--soem-delays", action="store_true", help="compute delays exactly like SOEM (ignores t_Diff)"
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="random seed, >= 0 (default 0)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
         "--plot", metavar="FILE", default=None, help="write a PNG of the spreads (needs matplotlib)"
@@ -47,28 +69,21 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _positive(text: str) -> float:
-    v = float(text)
-    if not 0 < v < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number, not {text!r}")
-    return v
-
-
-def _non_negative(text: str) -> float:
-    v = float(text)
-    if not 0 <= v < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, not {text!r}")
-    return v
-
-
-def _int_at_least(low: int) -> Any:
-    def parse(text: str) -> int:
-        v = int(text)
-        if v < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, not {text!r}")
-        return v
-
-    return parse
+def check_size(args: argparse.Namespace) -> int:
+    """The number of simulated cycles; :class:`UsageError` when slaves x cycles passes :data:`MAX_SAMPLES`."""
+    cycle_ns: int = max(1, round(args.cycle_us * 1000))
+    cycles: int = max(1, round(args.seconds * 1e9 / cycle_ns))
+    if cycles * args.slaves > MAX_SAMPLES:
+        per_slave = MAX_SAMPLES // args.slaves
+        most = (
+            f"at most {per_slave * cycle_ns / 1e9:g} s here" if per_slave else f"at most {MAX_SAMPLES} slaves"
+        )
+        raise UsageError(
+            f"--seconds {args.seconds:g} at --cycle-us {args.cycle_us:g} with --slaves {args.slaves} is "
+            f"{cycles * args.slaves:.3g} slave-cycles; the limit is {MAX_SAMPLES:.0e} "
+            f"(about {MAX_SAMPLES * BYTES_PER_SAMPLE / 1e6:.0f} MB of samples): {most}"
+        )
+    return cycles
 
 
 def summary(r: DcSimResult, drift_ppm: float) -> dict[str, Any]:
@@ -158,6 +173,8 @@ def plot(r: DcSimResult, path: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_size(args)
+    check_plot(args.plot, "--plot")
     result = simulate(
         args.slaves,
         args.drift_ppm,

@@ -15,16 +15,27 @@ import json
 from pathlib import Path
 from typing import Any
 
+from fieldbus.commands.argtypes import NODE_ID
+from fieldbus.commands.usage import add_command
 from fieldbus.core.candecode import CanopenDecoder
 from fieldbus.core.network import load_network
 from fieldbus.errors import FieldbusError
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser("decode", help="decode a CAN log per node against a network")
+    p = add_command(
+        sub,
+        "decode",
+        help="decode a CAN log per node against a network",
+        doc=__doc__,
+        codes=[
+            (0, "every frame of the log was read and printed"),
+            (1, "the log is malformed (its line is named), missing, or the network file is invalid"),
+        ],
+    )
     p.add_argument("log", metavar="LOG", help="CAN log (.log candump, .asc, .blf, .csv, .trc)")
     p.add_argument("--network", required=True, metavar="NET.yaml", help="the network the log was taken on")
-    p.add_argument("--node", type=int, help="only this node's frames (and broadcasts to all)")
+    p.add_argument("--node", type=NODE_ID, help="only this node's frames, 1..127 (and broadcasts to all)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 

@@ -26,9 +26,12 @@ from typing import Any
 import numpy as np
 
 from fieldbus.commands import buslogs, cycleopts
+from fieldbus.commands.argtypes import UsageError, integer, non_negative, number
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.network import load_network
-from fieldbus.errors import FieldbusError
+from fieldbus.errors import FieldbusError, PdoMapError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.report import run_report
 from fieldbus.runtime.rt import RtState
@@ -45,37 +48,53 @@ ENABLE_TIMEOUT_S = 3.0
 RECEIVE_TIMEOUT_US = {"sim": 500, "ethercat": 2000, "canopen": 20000, "rawcan": 20000}
 
 
-EXIT_CODES = """exit codes:
-  0  every axis reached OPERATION ENABLED and no safe stop was triggered
-     (misses the policy absorbed - late or lost frames, inputs held - are counted
-     in the output, "missed", and do not fail the demo)
-  1  bring-up or argument error (the message names the drive, object or option)
-  3  an axis never reached OPERATION ENABLED, or a safe stop was triggered
-  130 interrupted (Ctrl-C); the drives were stopped and the buses closed"""
+EXIT_CODES = [
+    (
+        0,
+        "every axis reached OPERATION ENABLED and no safe stop was triggered\n"
+        "(misses the policy absorbed - late or lost frames, inputs held - are counted\n"
+        'in the output, "missed", and do not fail the demo)',
+    ),
+    (
+        1,
+        "bring-up error, or an output file that cannot be written (the message names the drive,\nobject or file)",
+    ),
+    (3, "an axis never reached OPERATION ENABLED, or a safe stop was triggered"),
+]
+GENERATED = "the demo's generated network"
+MAX_CAN_AXES = 127  # CANopen node ids and the MIT motors' ids: 1..127, one per axis
+RATE_HZ = (1.0, 20_000.0)  # the network file's cycle_time_us range, 50 us .. 1 s
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "demo",
         help="enable emulated CiA 402 joints and follow a sine (the main job)",
-        description="Bring up emulated drives, enable every axis through CiA 402, follow a 0.5 rad / 0.5 Hz "
+        doc="Bring up emulated drives, enable every axis through CiA 402, follow a 0.5 rad / 0.5 Hz "
         "sine and print tracking error and cycle statistics.",
-        epilog=EXIT_CODES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        codes=EXIT_CODES,
+        live_bus=True,
     )
     p.add_argument("--backend", choices=BACKENDS, default="sim", help="bus to run on (default sim)")
-    p.add_argument("--axes", type=int, default=12, help="number of joints (default 12)")
-    p.add_argument("--cycles", type=int, default=3000, help="cycles to run (default 3000)")
+    p.add_argument(
+        "--axes",
+        type=integer(1),
+        default=12,
+        help=f"number of joints (default 12; canopen, rawcan: at most {MAX_CAN_AXES})",
+    )
+    p.add_argument("--cycles", type=integer(1), default=3000, help="cycles to run (default 3000)")
     p.add_argument(
         "--rate",
-        type=float,
+        type=number(*RATE_HZ, unit="Hz"),
         default=None,
-        help="cycle rate in Hz (default 1000; canopen 100, rawcan 250: python-can's virtual bus is threads)",
+        help="cycle rate in Hz, 1 to 20000 (default 1000; canopen 100, rawcan 250: python-can's virtual "
+        "bus is threads)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
         "--delay-us",
-        type=float,
+        type=non_negative("us"),
         default=0.0,
         help="sim, ethercat: every emulated drive acts on its targets this late "
         "(emulator command_delay_us; default 0)",
@@ -97,14 +116,13 @@ DEFAULT_RATE_HZ = {"sim": 1000.0, "ethercat": 1000.0, "canopen": 100.0, "rawcan"
 def run(args: argparse.Namespace) -> int:
     if args.rate is None:
         args.rate = DEFAULT_RATE_HZ[args.backend]
-    if args.axes < 1 or args.cycles < 1 or args.rate <= 0:
-        raise FieldbusError("--axes and --cycles must be >= 1 and --rate > 0")
-    if args.delay_us < 0 or (args.delay_us and args.backend not in ("sim", "ethercat")):
-        raise FieldbusError(
-            "--delay-us must be >= 0 and needs --backend sim or ethercat (the EtherCAT emulators)"
-        )
+    check_axes(args.backend, args.axes)
+    if args.delay_us and args.backend not in ("sim", "ethercat"):
+        raise UsageError("--delay-us needs --backend sim or ethercat (the EtherCAT emulators)")
     if args.latency:
         return _latency(args)
+    check_plot(args.plot, "--plot")
+    buslogs.check_outputs(args)
     cycleopts.check_record(args)
     with cycleopts.rt_context(args) as rt:
         report = run_demo(
@@ -125,6 +143,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(describe(report))
     return 0 if report["enabled"] and report["safe_stops"] == 0 else 3
+
+
+def check_axes(backend: str, axes: int) -> None:
+    """CAN backends number their axes by node id: :class:`UsageError` past :data:`MAX_CAN_AXES`."""
+    if backend in ("canopen", "rawcan") and axes > MAX_CAN_AXES:
+        raise UsageError(
+            f"--backend {backend} takes at most {MAX_CAN_AXES} axes (node ids 1..127), not {axes}"
+        )
 
 
 def _latency(args: argparse.Namespace) -> int:
@@ -186,10 +212,34 @@ class DemoSetup:
 def demo_network(
     backend: str, axes: int, rate_hz: float, workdir: Path, *, delay_us: float = 0.0
 ) -> Iterator[DemoSetup]:
-    """Write the demo's network file and start its emulator (``delay_us``: the emulated drives' command delay)."""
+    """Write the demo's network file and start its emulator (``delay_us``: the emulated drives' command delay).
+
+    An error about the files written into ``workdir`` (a temporary folder the user never saw)
+    names :data:`GENERATED` instead, with the field path."""
+    try:
+        yield from _setups(backend, axes, rate_hz, workdir, delay_us)
+    except FieldbusError as exc:
+        raise _generated(exc, workdir) from None
+
+
+def _generated(exc: FieldbusError, workdir: Path) -> FieldbusError:
+    """``exc`` with the demo's generated files in ``workdir`` named as :data:`GENERATED`."""
+    files = [str(workdir / name) for name in ("demo.yaml", "emulated.yaml")]
+    if isinstance(exc, PdoMapError) and exc.file in files:
+        where = f"{GENERATED}, {exc.path}" if exc.path else GENERATED
+        return FieldbusError(f"{where}: {exc.message}")
+    text = str(exc)
+    if not any(f in text for f in files):
+        return exc
+    for f in files:
+        text = text.replace(f, GENERATED)
+    return FieldbusError(text)
+
+
+def _setups(backend: str, axes: int, rate_hz: float, workdir: Path, delay_us: float) -> Iterator[DemoSetup]:
     cycle_us = max(1, round(1e6 / rate_hz))
     head = f"name: demo\ncycle_time_us: {cycle_us}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US[backend]}\n"
-    options = f", emulator: {{command_delay_us: {delay_us:g}}}" if delay_us else ""
+    options = f", emulator: {{command_delay_us: {delay_us:.3f}}}" if delay_us else ""  # a dot: a YAML float
     slaves = f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: {axes}{options}}}]\n"
     net = workdir / "demo.yaml"
     if backend == "sim":

@@ -23,6 +23,8 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.commands import cycleopts
+from fieldbus.commands.argtypes import integer, positive
+from fieldbus.commands.usage import add_command
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Operational, open_network
@@ -35,26 +37,34 @@ MAX_DETECT_CYCLES = HOLD_CYCLES - 2  # a response later than this is "none"
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "latency",
         help="measure each axis's command-to-feedback delay in cycles (CiA 402, CSP)",
-        description=__doc__.splitlines()[0].strip("`"),
-        epilog="exit codes:\n  0  every axis answered every step\n  1  bring-up or file error\n"
-        "  3  an axis never enabled or did not answer a step within the hold time",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        doc=__doc__,
+        codes=[
+            (0, "every axis answered every step"),
+            (1, "bring-up or file error"),
+            (3, "an axis never enabled or did not answer a step within the hold time"),
+        ],
+        live_bus=True,
     )
-    p.add_argument("network", metavar="NETWORK.yaml")
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file with CiA 402 axes")
     p.add_argument("--backend", choices=("sim", "ethercat"), help="run every bus on this backend instead")
-    p.add_argument("--step", type=float, default=STEP_RAD, help=f"dither step in rad (default {STEP_RAD})")
-    p.add_argument("--steps", type=int, default=STEPS, help=f"dither steps per axis (default {STEPS})")
-    p.add_argument("--hold", type=int, default=HOLD_CYCLES, help=f"cycles per level (default {HOLD_CYCLES})")
+    p.add_argument(
+        "--step", type=positive("rad"), default=STEP_RAD, help=f"dither step in rad, > 0 (default {STEP_RAD})"
+    )
+    p.add_argument(
+        "--steps", type=integer(1), default=STEPS, help=f"dither steps per axis, >= 1 (default {STEPS})"
+    )
+    p.add_argument(
+        "--hold", type=integer(4), default=HOLD_CYCLES, help=f"cycles per level, >= 4 (default {HOLD_CYCLES})"
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.step <= 0 or args.steps < 1 or args.hold < 4:
-        raise FieldbusError("--step must be > 0, --steps >= 1 and --hold >= 4")
     report = measure_latency(args.network, args.backend, step_rad=args.step, steps=args.steps, hold=args.hold)
     if args.json:
         print(json.dumps(report))

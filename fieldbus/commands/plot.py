@@ -18,6 +18,8 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.commands.cycleopts import draw_histogram
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.recording import Recording, load
 from fieldbus.recording.summary import histogram
@@ -26,9 +28,21 @@ PREFERRED = ("position", "velocity", "torque")
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser("plot", help="plot a recording (--record) into a PNG")
-    p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    p = add_command(
+        sub,
+        "plot",
+        help="plot a recording (--record) into a PNG",
+        doc=__doc__,
+        codes=[
+            (0, "the plot was written"),
+            (1, "the recording cannot be read, the output cannot be written, or matplotlib is missing"),
+        ],
+        json=False,
+    )
+    p.add_argument("file", metavar="FILE.mcap", help="a recording (demo, run or soak --record)")
+    p.add_argument(
+        "-o", "--output", required=True, metavar="OUT.png", help="the image (.png; .pdf, .svg, ... by suffix)"
+    )
     p.set_defaults(func=run)
 
 
@@ -57,6 +71,7 @@ def _seconds(rec: Recording) -> npt.NDArray[np.float64]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_plot(args.output, "-o")
     try:
         import matplotlib
 

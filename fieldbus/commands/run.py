@@ -11,32 +11,40 @@ import json
 from typing import Any
 
 from fieldbus.commands import buslogs, cycleopts
+from fieldbus.commands.argtypes import integer
+from fieldbus.commands.outputs import check_plot
+from fieldbus.commands.usage import add_command
 from fieldbus.core.network import load_network
 from fieldbus.network import open_network
 from fieldbus.runtime.report import run_report
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "run",
         help="bring a network up and run N cycles",
-        description=__doc__.splitlines()[0].strip("`"),
-        epilog="exit codes:\n  0  every cycle fresh on every bus\n  1  bring-up or file error (the message names "
-        "file, drive, object)\n  3  at least one miss (late, lost or short frame; counted per bus in the output)"
-        "\n  130 interrupted (Ctrl-C); the drives were stopped and the buses closed",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        doc=__doc__,
+        codes=[
+            (0, "every cycle fresh on every bus"),
+            (1, "bring-up or file error (the message names file, drive, object)"),
+            (3, "at least one miss (late, lost or short frame; counted per bus in the output)"),
+        ],
+        live_bus=True,
     )
     cycleopts.add_arguments(p)
     buslogs.add_arguments(p)
     cycleopts.add_monitor_argument(p)
-    p.add_argument("network", metavar="NETWORK.yaml")
-    p.add_argument("--cycles", type=int, default=1000, help="number of cycles (default 1000)")
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file (buses, slaves and their maps)")
+    p.add_argument("--cycles", type=integer(1), default=1000, help="number of cycles, >= 1 (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_plot(args.plot, "--plot")
+    buslogs.check_outputs(args)
     logs = buslogs.bus_options(args, load_network(args.network), args.backend)
     cycleopts.check_record(args)
     with (

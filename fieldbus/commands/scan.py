@@ -15,6 +15,9 @@ import json
 import shlex
 from typing import TYPE_CHECKING, Any
 
+from fieldbus.commands.argtypes import integer, non_negative, positive
+from fieldbus.commands.outputs import check_folder
+from fieldbus.commands.usage import add_command
 from fieldbus.scan.model import Device, as_json
 
 if TYPE_CHECKING:
@@ -22,25 +25,54 @@ if TYPE_CHECKING:
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "scan",
         help="list the devices on a live bus (identity, state, PDO mapping); write maps for them",
-        description=__doc__.splitlines()[0].strip("`"),
+        doc=__doc__,
+        codes=CODES,
     )
     kinds = p.add_subparsers(dest="bus_type", metavar="BUS", required=True)
-    e = kinds.add_parser("ethercat", help="scan an EtherCAT segment with pysoem (root or CAP_NET_RAW)")
+    e = add_command(
+        kinds,
+        "ethercat",
+        help="scan an EtherCAT segment with pysoem (root or CAP_NET_RAW)",
+        doc="Scan an EtherCAT segment with pysoem (root or CAP_NET_RAW): every slave's identity, state, "
+        "mailbox,\nDC, topology, SyncManagers and PDO mapping.",
+        codes=CODES,
+    )
     e.add_argument("interface", metavar="IFACE", help="network card, e.g. eth0")
     e.add_argument("--no-sdo-info", action="store_true", help="do not ask for object names and types")
     _common(e, cycle_us=1000, timeout_us=500)
     e.set_defaults(func=run_ethercat)
-    c = kinds.add_parser("canopen", help="scan a CAN bus for CANopen nodes (python-can)")
+    c = add_command(
+        kinds,
+        "canopen",
+        help="scan a CAN bus for CANopen nodes (python-can)",
+        doc="Scan a CAN bus for CANopen nodes (python-can): the nodes that answer, their identity, device "
+        "type,\nname and PDO parameters.",
+        codes=CODES,
+    )
     c.add_argument("channel", metavar="CHANNEL", help="python-can channel, e.g. can0")
     c.add_argument("--interface", default="socketcan", help="python-can interface (default socketcan)")
-    c.add_argument("--bitrate", type=int, help="bit/s (default: the interface's)")
-    c.add_argument("--listen", type=float, default=0.3, help="seconds to listen for heartbeats first (0.3)")
-    c.add_argument("--probe-timeout", type=float, default=0.1, help="seconds a probed id may take (0.1)")
+    c.add_argument("--bitrate", type=integer(1), help="bit/s (default: the interface's)")
+    c.add_argument(
+        "--listen", type=non_negative("s"), default=0.3, help="seconds to listen for heartbeats first (0.3)"
+    )
+    c.add_argument(
+        "--probe-timeout", type=positive("s"), default=0.1, help="seconds a probed id may take (0.1)"
+    )
     _common(c, cycle_us=5000, timeout_us=2000)
     c.set_defaults(func=run_canopen)
+
+
+CODES = [
+    (0, "the bus was scanned (and, with --write-maps, the maps and network.yaml written)"),
+    (
+        1,
+        "the interface or channel cannot be opened, no EtherCAT slave answers, or the --write-maps folder\ncannot be written",
+    ),
+]
 
 
 def _common(p: argparse.ArgumentParser, *, cycle_us: int, timeout_us: int) -> None:
@@ -49,13 +81,16 @@ def _common(p: argparse.ArgumentParser, *, cycle_us: int, timeout_us: int) -> No
         "--write-maps", metavar="DIR", help="write a drive map per distinct device and network.yaml"
     )
     p.add_argument(
-        "--cycle-time-us", type=int, default=cycle_us, help=f"cycle time in the network file ({cycle_us})"
+        "--cycle-time-us",
+        type=integer(50, 1_000_000),
+        default=cycle_us,
+        help=f"cycle time in the network file, 50..1000000 ({cycle_us})",
     )
     p.add_argument(
         "--receive-timeout-us",
-        type=int,
+        type=integer(10, 1_000_000),
         default=timeout_us,
-        help=f"receive timeout in the network file ({timeout_us})",
+        help=f"receive timeout in the network file, 10..1000000 ({timeout_us})",
     )
 
 
@@ -68,6 +103,7 @@ def run_ethercat(args: argparse.Namespace) -> int:
     from fieldbus.scan import ethercat
     from fieldbus.scan.writemaps import BusSpec, Placed, write_maps
 
+    check_folder(args.write_maps, "--write-maps")
     result = ethercat.scan(args.interface, sdo_information=not args.no_sdo_info)
     written = None
     if args.write_maps:
@@ -112,6 +148,7 @@ def run_canopen(args: argparse.Namespace) -> int:
     from fieldbus.scan import canopen
     from fieldbus.scan.writemaps import BusSpec, Placed, write_maps
 
+    check_folder(args.write_maps, "--write-maps")
     result = canopen.scan(
         args.channel, args.interface, args.bitrate, listen_s=args.listen, probe_timeout_s=args.probe_timeout
     )

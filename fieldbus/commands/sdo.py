@@ -19,11 +19,18 @@ import argparse
 import json
 from typing import Any
 
+from fieldbus.commands.argtypes import NODE_ID, UsageError, integer, positive
+from fieldbus.commands.usage import add_command
 from fieldbus.core import datatypes
 from fieldbus.core.pdo.names import CIA402_TYPES
 from fieldbus.core.sdo import info as sdo_info
 from fieldbus.errors import FieldbusError, SdoAbortError
 
+EXAMPLES = __doc__.split("\n\n")[1].strip("\n")
+CODES = [
+    (0, "the SDO was read or written, or the objects listed"),
+    (1, "the bus cannot be opened, no such slave or node, an SDO abort (its code and name),\nor a timeout"),
+]
 EXTRA_TYPES = ("string", "bytes")
 # CiA 301 objects every device has, by (index, sub): what --type defaults to on CANopen
 CIA301_TYPES: dict[tuple[int, int], str] = {
@@ -38,45 +45,47 @@ CIA301_TYPES: dict[tuple[int, int], str] = {
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
+    p = add_command(
+        sub,
         "sdo",
         help="read or write one SDO on a live bus; list a slave's objects (SDO Information)",
-        description=__doc__.split("\n\n")[0].strip("`"),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n\n".join(__doc__.split("\n\n")[1:]),
+        doc=__doc__,
+        codes=CODES,
     )
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     for verb in ("read", "write", "list"):
-        v = verbs.add_parser(verb, help=f"{verb} {'the object dictionary' if verb == 'list' else 'one SDO'}")
+        what = "list a slave's objects (SDO Information)" if verb == "list" else f"{verb} one SDO"
+        v = add_command(
+            verbs, verb, help=what, doc=f"{what[0].upper()}{what[1:]}.\n\n{EXAMPLES}", codes=CODES
+        )
         v.add_argument("bus_type", choices=("ethercat", "canopen"), metavar="BUS", help="ethercat | canopen")
         v.add_argument("target", metavar="IFACE|CHANNEL", help="network card (EtherCAT) or CAN channel")
-        v.add_argument("--slave", type=int, default=0, help="EtherCAT: slave position, 0-based (default 0)")
-        v.add_argument("--node", type=int, help="CANopen: node id")
+        v.add_argument(
+            "--slave", type=integer(0), default=0, help="EtherCAT: slave position, 0-based (default 0)"
+        )
+        v.add_argument("--node", type=NODE_ID, help="CANopen: node id, 1..127")
         v.add_argument("--interface", default="socketcan", help="CANopen: python-can interface (socketcan)")
-        v.add_argument("--bitrate", type=int, help="CANopen: bit/s")
-        v.add_argument("--timeout", type=float, default=0.5, help="CANopen: SDO timeout in s (0.5)")
+        v.add_argument("--bitrate", type=integer(1), help="CANopen: bit/s")
+        v.add_argument("--timeout", type=positive("s"), default=0.5, help="CANopen: SDO timeout in s (0.5)")
         v.add_argument("--json", action="store_true", help="one JSON object on stdout")
         if verb != "list":
-            v.add_argument("index", type=_int, metavar="INDEX")
-            v.add_argument("sub_index", type=_int, metavar="SUB")
+            v.add_argument(
+                "index", type=integer(0, 0xFFFF), metavar="INDEX", help="object index, e.g. 0x6060"
+            )
+            v.add_argument("sub_index", type=integer(0, 0xFF), metavar="SUB", help="sub-index, e.g. 0")
             if verb == "write":
-                v.add_argument("value", metavar="VALUE")
+                v.add_argument(
+                    "value", metavar="VALUE", help="the value: a number, text (string) or hex (bytes)"
+                )
             v.add_argument(
                 "--type", dest="type_name", help="int8..uint64, float, double, bool, string, bytes"
             )
         v.set_defaults(func=run)
 
 
-def _int(text: str) -> int:
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r} (use 0x6060 or 24672)") from None
-
-
 def run(args: argparse.Namespace) -> int:
     if args.bus_type == "canopen" and args.node is None:
-        raise FieldbusError("CANopen: give the node id (--node N)")
+        raise UsageError("CANopen: give the node id (--node N)")
     if args.bus_type == "ethercat":
         return _ethercat(args)
     return _canopen(args)
@@ -272,8 +281,6 @@ def _canopen(args: argparse.Namespace) -> int:
 
     if args.verb == "list":
         raise FieldbusError("CANopen has no SDO Information service: the device's EDS file lists its objects")
-    if not 1 <= args.node <= 127:
-        raise FieldbusError(f"node id {args.node} is not 1..127")
     where = f"node {args.node}"
     known = CIA301_TYPES.get((args.index, args.sub_index)) or CIA402_TYPES.get((args.index, args.sub_index))
     type_name = check_type(args.type_name) if args.type_name else known

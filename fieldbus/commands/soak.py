@@ -4,8 +4,10 @@
     fieldbus soak NETWORK.yaml --cycles N --faults SPEC   (its single EtherCAT bus, emulated in-process)
 
 SPEC: ``loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1``
-(see :mod:`fieldbus.runtime.soak`). Exit status 0 only when every injected
-fault was detected and no invariant was violated.
+(rates per cycle and counts per run; docs/reliability.md). Exit status 0 only
+when every injected fault was detected and no invariant was violated. Ctrl-C
+stops the drives, closes the bus and says what the emulator reports after
+that (every drive down, every slave out of OP), exit 130.
 """
 
 from __future__ import annotations
@@ -13,12 +15,14 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
-from contextlib import ExitStack
+from contextlib import ExitStack, suppress
 from pathlib import Path
 from typing import Any
 
 from fieldbus.commands import cycleopts
-from fieldbus.errors import FieldbusError
+from fieldbus.commands.argtypes import SEED, UsageError, integer, non_negative, number
+from fieldbus.commands.demo import check_axes
+from fieldbus.commands.usage import add_command
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.loop import default_status_stream
 from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
@@ -27,8 +31,17 @@ DEFAULT_FAULTS = "loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1"
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
-        "soak", help="run the cycle under injected faults and check invariants"
+    p = add_command(
+        sub,
+        "soak",
+        help="run the cycle under injected faults and check invariants",
+        doc=__doc__,
+        codes=[
+            (0, "every injected fault was detected and no invariant was violated"),
+            (1, "bring-up, file or fault-spec error"),
+            (3, "a fault went undetected or an invariant was violated (listed in the output)"),
+        ],
+        live_bus=True,
     )
     p.add_argument(
         "network", nargs="?", metavar="NETWORK.yaml", help="a network with one EtherCAT bus (run on sim)"
@@ -37,21 +50,33 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--backend", choices=("sim", "ethercat", "canopen"), default="sim", help="with --demo (default sim)"
     )
-    p.add_argument("--axes", type=int, default=12, help="with --demo (default 12)")
-    p.add_argument("--cycles", type=int, default=10_000)
+    p.add_argument("--axes", type=integer(1), default=12, help="with --demo (default 12)")
+    p.add_argument(
+        "--cycles",
+        type=integer(1),
+        default=10_000,
+        help="cycles to run under the fault plan, after bring-up (default 10000)",
+    )
     p.add_argument("--faults", default=DEFAULT_FAULTS, help=f"fault spec (default {DEFAULT_FAULTS})")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed",
+        type=SEED,
+        default=0,
+        help="seed of the fault plan: which cycles and slaves get a fault; the same seed, the same plan "
+        "(default 0)",
+    )
     p.add_argument(
         "--rate",
-        type=float,
+        type=non_negative("Hz"),
         default=None,
         help="pace the cycle at this rate in Hz (default: the network's cycle time; 0: as fast as it goes)",
     )
     p.add_argument(
         "--margin-us",
-        type=float,
+        type=number(unit="us"),
         default=DEFAULT_MARGIN_US,
-        help=f"a cycle may take the receive timeout plus this, else it is a violation (default {DEFAULT_MARGIN_US:g})",
+        help="a cycle may take the receive timeout plus this (negative: less than the timeout), else it is a "
+        f"violation (default {DEFAULT_MARGIN_US:g})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     cycleopts.add_arguments(p, plot=False)
@@ -61,9 +86,9 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if bool(args.network) == bool(args.demo):
-        raise FieldbusError("give either NETWORK.yaml or --demo")
-    if args.cycles < 1 or args.axes < 1:
-        raise FieldbusError("--cycles and --axes must be >= 1")
+        raise UsageError("give either NETWORK.yaml or --demo")
+    if args.demo:
+        check_axes(args.backend, args.axes)
     cycleopts.check_record(args)
     spec = FaultSpec.parse(args.faults)
     report = soak(args, spec)
@@ -113,14 +138,38 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
                 rep = runner.run(
                     args.cycles, status=default_status_stream(not args.json and not args.monitor)
                 )
-        finally:
-            runner.close()
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(close_interrupted(runner)) from None
+        except BaseException:
+            with suppress(Exception):  # the error that stopped the run is the one to report
+                runner.close()
+            raise
+        runner.close()
         out = rep.to_json()
         out["faults"] = args.faults
         out["backend"] = args.backend if args.demo else "sim"
         out["cycle_time_us"] = runner.timer.summary().to_json()
         out["realtime"] = rt.to_json()
         return out
+
+
+def close_interrupted(runner: Soak) -> str:
+    """Close the soak's network after Ctrl-C; what the emulator says after it, in one line."""
+    seen = runner.report.violation_count
+    where = f"after {runner.report.cycles} cycles"
+    try:
+        runner.close()  # the drives down (quick stop, disable voltage), then the emulator asked
+    except KeyboardInterrupt:
+        return f"{where}, again while stopping the drives; the bus was closed"
+    except Exception as exc:
+        return f"{where}; stopping the drives: {type(exc).__name__}: {exc}"
+    if runner.report.violation_count > seen:
+        return f"{where}; {runner.report.violations[-1]}"
+    can = runner.net.backends[0].kind == "canopen"
+    return (
+        f"{where}; drives stopped: none in OPERATION ENABLED and every slave "
+        f"{'out of OPERATIONAL' if can else 'in INIT'} (the emulator's status), bus closed"
+    )
 
 
 class RecordingSoak(Soak):

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fieldbus.commands.usage import add_command
 from fieldbus.core.bandwidth import network_bandwidth, overload
 from fieldbus.core.network import NetworkConfig, is_network_document, parse_network
 from fieldbus.core.pdo.layout import layout
@@ -25,8 +26,15 @@ from fieldbus.errors import PdoMapError
 
 
 def register(sub: Any) -> None:
-    p: argparse.ArgumentParser = sub.add_parser(
-        "validate", help="check drive maps / network files and summarise their process data"
+    p = add_command(
+        sub,
+        "validate",
+        help="check drive maps / network files and summarise their process data",
+        doc=__doc__,
+        codes=[
+            (0, "every file is valid"),
+            (1, "a file is invalid: file:line:column field: message on stderr (with --json: in the object)"),
+        ],
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="drive map or network YAML")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")

@@ -300,7 +300,11 @@ def start_runner(
         cmd = list(command)
     err_path = stderr if stderr is not None else control.parent / f"runner-{iface}.err"
     with err_path.open("w") as err:
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+        # its own process group: a Ctrl-C at the terminal reaches the master only, which stops the
+        # emulated drives over the bus and then this runner (a runner stopped first leaves no one to answer)
+        proc = subprocess.Popen(
+            cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True, env=env, process_group=0
+        )
     try:
         _wait_ready(proc, READY_TIMEOUT_S, err_path)
     except BaseException:
