@@ -6,7 +6,8 @@ one JSON object on stdout; its key names are a stable surface.
 
 Exit codes every command shares (:mod:`fieldbus.commands.usage`): 1 a
 :class:`~fieldbus.errors.FieldbusError` (one line on stderr), 2 a refused command
-line, 130 Ctrl-C, 141 stdout closed by its reader (``| head``). No traceback
+line, 130 Ctrl-C, 143 SIGTERM (handled as Ctrl-C is: the drives are stopped and the
+buses closed first), 141 stdout closed by its reader (``| head``). No traceback
 reaches the user for any of them; with ``--json`` an error is also one JSON
 object on stdout, ``{"ok": false, "error": ..., "exit": N}``.
 """
@@ -18,13 +19,15 @@ import importlib
 import json
 import os
 import select
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from typing import NoReturn
 
 from fieldbus import __version__
 from fieldbus.commands.argtypes import UsageError
-from fieldbus.commands.usage import ERROR, INTERRUPTED, PIPE_CLOSED, USAGE, epilog
+from fieldbus.commands.usage import ERROR, INTERRUPTED, PIPE_CLOSED, TERMINATED, USAGE, epilog
 from fieldbus.errors import FieldbusError
 
 COMMANDS = (
@@ -129,7 +132,25 @@ def _pipe_gone(stream: object) -> bool:
         return False
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: it unwinds as Ctrl-C does, so every drive gets its controlled stop."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated("terminated (SIGTERM)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    if threading.current_thread() is not threading.main_thread():
+        return _main(argv)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _main(argv)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     as_json = Parser.json_errors = "--json" in words
     try:
@@ -150,6 +171,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _fail(f"fieldbus {args.command}: error: ", str(exc), USAGE, as_json)
         except FieldbusError as exc:
             return _fail("error: ", str(exc), ERROR, as_json)
+    except Terminated:
+        return _fail("", "terminated (SIGTERM): drives stopped, buses closed", TERMINATED, as_json)
     except KeyboardInterrupt as exc:
         return _fail("", f"interrupted: {exc}" if str(exc) else "interrupted", INTERRUPTED, as_json)
     except BrokenPipeError as exc:

@@ -1,7 +1,7 @@
 """What every command's ``--help`` says: a plain-text description and its exit codes.
 
 Exit codes common to every command (see :data:`COMMON_EXITS`): 2 a refused command line,
-130 interrupted, 141 stdout closed early (``| head``). A command adds its own 0, 1 and 3.
+130 interrupted, 141 stdout closed early (``| head``), 143 terminated (SIGTERM). A command adds its own 0, 1 and 3.
 """
 
 from __future__ import annotations
@@ -16,10 +16,12 @@ USAGE = 2  # the command line was refused (argparse, or a combination the comman
 FAILED = 3  # the command ran but its check failed (a miss, an axis not enabled, ...)
 INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 PIPE_CLOSED = 141  # stdout closed by the reader (128 + SIGPIPE), as a shell reports `yes | head`
+TERMINATED = 143  # SIGTERM (128 + 15): unwound as Ctrl-C is (drives stopped, buses closed)
 
 COMMON_EXITS = (
     (USAGE, "the command line was refused (an unknown option, a value out of range); one line on stderr"),
     (PIPE_CLOSED, "stdout was closed early (e.g. piped into head): the rest of the output was dropped"),
+    (TERMINATED, "terminated by SIGTERM; like Ctrl-C, a live bus's drives were stopped and its buses closed"),
 )
 JSON_ERRORS = (
     'with --json an error is also one JSON object on stdout: {"ok": false, "error": "...", "exit": N}'

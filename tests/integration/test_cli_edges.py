@@ -409,3 +409,19 @@ def test_scripts_test_says_it_installs_with_apt_and_can_be_told_not_to(tmp_path:
         said = res.stderr.splitlines()
         assert "installing tshark and iproute2 with apt-get" in said[0] and "FIELDBUS_NO_APT=1" in said[0]
         assert said.index("APT-GET-RAN") > 0  # said before apt-get ran
+
+
+def test_sigterm_stops_the_drives_like_ctrl_c_and_exits_143(tmp_path: Path) -> None:
+    """SIGTERM (systemd, docker stop, kill) unwinds as Ctrl-C does: controlled stop, buses closed, exit 143."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fieldbus.cli", "demo", "--backend", "sim", "--cycles", "1000000"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    time.sleep(3.0)  # bring-up and some cycles (a SIGTERM during bring-up must end the same way)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, (out, err)
+    assert "terminated (SIGTERM): drives stopped, buses closed" in err and "Traceback" not in err
