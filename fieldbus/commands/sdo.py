@@ -146,6 +146,13 @@ def _print_value(args: argparse.Namespace, raw: bytes, type_name: str | None, wh
 
 # -- EtherCAT ----------------------------------------------------------------------------------
 def _ethercat(args: argparse.Namespace) -> int:
+    from fieldbus.backends.buslock import lock_network_card
+
+    with lock_network_card(args.target):  # refused while a master runs on the card (its slaves would leave OP)
+        return _ethercat_locked(args)
+
+
+def _ethercat_locked(args: argparse.Namespace) -> int:
     from fieldbus.scan.ethercat import c_string, open_master, sdo_call
 
     pysoem, master = open_master(args.target)

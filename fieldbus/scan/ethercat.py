@@ -119,12 +119,15 @@ def sdo_call(pysoem: Any, slave: Any, position: int, index: int, sub: int, call:
 
 
 def scan(interface: str, *, sdo_information: bool = True) -> EthercatScan:
-    """Scan the segment on ``interface`` (see the module docstring)."""
-    pysoem, master = open_master(interface)
-    try:
-        slaves = [_slave(pysoem, s, i, sdo_information) for i, s in enumerate(master.slaves)]
-    finally:
-        master.close()
+    """Scan the segment on ``interface`` (see the module docstring); refused while a master runs on it."""
+    from fieldbus.backends.buslock import lock_network_card
+
+    with lock_network_card(interface):  # a scan knocks a running master's slaves out of OP
+        pysoem, master = open_master(interface)
+        try:
+            slaves = [_slave(pysoem, s, i, sdo_information) for i, s in enumerate(master.slaves)]
+        finally:
+            master.close()
     _topology(slaves)
     return EthercatScan(interface, slaves)
 

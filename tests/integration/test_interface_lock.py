@@ -153,3 +153,15 @@ def test_lock_files_fall_back_to_the_temp_dir(monkeypatch: pytest.MonkeyPatch, t
         assert lock.path is not None and lock.path.parent == Path(tempfile.gettempdir()) / "fieldbus-lock"
     finally:
         lock.release()
+
+
+def test_scan_and_sdo_are_refused_a_card_a_master_holds(capsys: pytest.CaptureFixture[str]) -> None:
+    """A scan (or an SDO access) reconfigures the segment: on a card a master runs on, it is refused first."""
+    from fieldbus.cli import main
+
+    card = _card()
+    with _holder(card) as child:
+        for argv in (["scan", "ethercat", card], ["sdo", "read", "ethercat", card, "0x1000", "0"]):
+            assert main(argv) == 1, argv
+            err = capsys.readouterr().err
+            assert f"interface '{card}' is in use by PID {child.pid}" in err, err
