@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 from fieldbus.commands import buslogs, cycleopts
@@ -45,10 +46,13 @@ def register(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     check_plot(args.plot, "--plot")
     buslogs.check_outputs(args)
-    logs = buslogs.bus_options(args, load_network(args.network), args.backend)
+    model = load_network(args.network)
+    for text in model.warnings:  # what validate prints too (e.g. a receive timeout longer than the cycle)
+        print(f"warning: {text}", file=sys.stderr)
+    logs = buslogs.bus_options(args, model, args.backend)
     cycleopts.check_record(args)
     with (
-        open_network(args.network, backend=args.backend, bus_options=logs) as net,
+        open_network(model, backend=args.backend, bus_options=logs) as net,
         cycleopts.rt_context(args) as rt,
     ):
         op = net.bring_up()

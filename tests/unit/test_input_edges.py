@@ -214,6 +214,9 @@ def test_a_receive_timeout_longer_than_the_cycle_is_a_warning(
     assert json.loads(_json_validate(capsys, net))["files"][0]["warnings"] == list(load_network(net).warnings)
     fine = _net(tmp_path, _one_bus(", interface: eth0", top="receive_timeout_us: 1000\n"), "fine.yaml")
     assert load_network(fine).warnings == ()
+    # run says it too, before it runs (here on the emulator, for one cycle)
+    main(["run", str(net), "--backend", "sim", "--cycles", "1"])
+    assert "warning: " in capsys.readouterr().err
 
 
 def _json_validate(capsys: pytest.CaptureFixture[str], path: Path) -> str:
