@@ -62,6 +62,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
+from fieldbus.runtime.clock import monotonic_s
 
 try:
     import can
@@ -98,6 +99,8 @@ class CanopenBackend(Backend):
         self._own_bus = self._bus is None
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
         self._timeout_s = bus.receive_timeout_us / 1e6
+        # seconds; in tests a virtual clock's (fieldbus.testing)
+        self._now = monotonic_s(options.get("clock"))
         self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
         self.node_ids: list[int] = []
@@ -231,8 +234,8 @@ class CanopenBackend(Backend):
         self._nmt(NMT_START)
         watched = self._hb_watched
         wait = max(0.3, 2 * float(self._hb_limit.max(initial=0.0)) / HEARTBEAT_FACTOR)
-        deadline = time.monotonic() + wait
-        while time.monotonic() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
+        deadline = self._now() + wait
+        while self._now() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
             msg = self._bus.recv(timeout=0.01)
             if msg is not None:
                 self._other(msg)
@@ -247,7 +250,7 @@ class CanopenBackend(Backend):
                 f"bus '{self.bus.name}': no OPERATIONAL heartbeat within {wait * 1e3:.0f} ms of NMT start "
                 f"from {', '.join(late)}"
             )
-        self._last_hb[:] = time.monotonic()
+        self._last_hb[:] = self._now()
         self._operational = True
 
     # -- cycle ------------------------------------------------------------------------------
@@ -273,10 +276,10 @@ class CanopenBackend(Backend):
         self._got.fill(0)
         expected = self._seen.size
         count = 0
-        deadline = time.perf_counter() + self._timeout_s
+        deadline = self._now() + self._timeout_s
         bus = self._bus
         while count < expected:
-            remaining = deadline - time.perf_counter()
+            remaining = deadline - self._now()
             if remaining <= 0:
                 break
             msg = bus.recv(timeout=remaining)
@@ -327,13 +330,13 @@ class CanopenBackend(Backend):
             elif self.heartbeat_lost[i] and state != NMT_OPERATIONAL and self._operational:
                 self._needs_setup[i] = True  # back, but not as we left it
             self.nmt_state[i] = state
-            self._last_hb[i] = time.monotonic()
+            self._last_hb[i] = self._now()
         elif COB_EMCY < cob <= COB_EMCY + 127:
             node = cob - COB_EMCY
             if node in self._index:
                 if len(self.emergencies) >= MAX_EMERGENCIES:
                     del self.emergencies[: MAX_EMERGENCIES // 2]
-                emcy = Emergency.decode(node, bytes(msg.data), time.monotonic())
+                emcy = Emergency.decode(node, bytes(msg.data), self._now())
                 self.emergencies.append(emcy)
                 self.emcy_count += 1
                 self.last_emergency[node] = emcy
@@ -342,7 +345,7 @@ class CanopenBackend(Backend):
 
     def _check_heartbeats(self) -> None:
         lost = self.heartbeat_lost
-        np.greater(time.monotonic() - self._last_hb, self._hb_limit, out=lost)
+        np.greater(self._now() - self._last_hb, self._hb_limit, out=lost)
         lost &= self._hb_watched
 
     def arrived(self) -> npt.NDArray[np.bool_]:
@@ -373,7 +376,7 @@ class CanopenBackend(Backend):
 
     def _recover(self) -> Generator[None, None, bool]:
         while True:
-            now = time.monotonic()
+            now = self._now()
             todo = [
                 i
                 for i in range(self.n_slaves)
@@ -463,9 +466,9 @@ class CanopenBackend(Backend):
             self._reply = None
             self._recovering = node
             self._send_sdo(node, req)
-            deadline = time.monotonic() + self._sdo_timeout_s
+            deadline = self._now() + self._sdo_timeout_s
             while self._reply is None:
-                if time.monotonic() > deadline:
+                if self._now() > deadline:
                     self._recovering = None
                     self._send_sdo_abort(node, req, ABORT_TIMEOUT)
                     raise BusTimeoutError(
@@ -524,9 +527,9 @@ class CanopenBackend(Backend):
         req = next(steps)
         while True:
             self._send_sdo(node, req)
-            deadline = time.monotonic() + self._sdo_timeout_s
+            deadline = self._now() + self._sdo_timeout_s
             while True:
-                remaining = deadline - time.monotonic()
+                remaining = deadline - self._now()
                 if remaining <= 0:
                     self._send_sdo_abort(node, req, ABORT_TIMEOUT)
                     raise BusTimeoutError(

@@ -15,7 +15,6 @@ and counted in ``late_replies``: it never passes for the next cycle's.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -26,6 +25,7 @@ from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canlog import open_log
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
+from fieldbus.runtime.clock import monotonic_s
 
 try:
     import can
@@ -55,6 +55,8 @@ class RawCanBackend(Backend):
         # each motor's reply bytes as the frame has them: its input row, reversed (a view)
         self._reply_rows = [self.in_row(i)[::-1] for i in range(self.n_slaves)]
         self._timeout_s = bus.receive_timeout_us / 1e6
+        # seconds; in tests a virtual clock's (fieldbus.testing)
+        self._now = monotonic_s(options.get("clock"))
         self.late_replies = 0  # replies that came after their cycle's receive timeout (dropped, never used)
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
@@ -123,9 +125,9 @@ class RawCanBackend(Backend):
                 can.Message(arbitration_id=msg.arbitration_id, data=getattr(cfg, which), is_extended_id=False)
             )
         self._arrived.fill(False)
-        deadline = time.monotonic() + ENTER_TIMEOUT_S
-        while not self._arrived.all() and time.monotonic() < deadline:
-            self._accept(self._bus.recv(timeout=max(0.0, deadline - time.monotonic())), copy=False)
+        deadline = self._now() + ENTER_TIMEOUT_S
+        while not self._arrived.all() and self._now() < deadline:
+            self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
         return [i for i in range(self.n_slaves) if not self._arrived[i]]
 
     def send(self) -> None:
@@ -139,7 +141,7 @@ class RawCanBackend(Backend):
     def receive(self) -> int | None:
         self._arrived.fill(False)
         recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
-        clock = time.perf_counter
+        clock = self._now
         deadline = clock() + self._timeout_s
         count = 0
         while count < n:
