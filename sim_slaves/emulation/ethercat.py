@@ -8,6 +8,7 @@ from fieldbus.core.network import Bus
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
 
 CAN_ONLY = "a CAN fault (an EtherCAT slave has no controller of its own to go bus-off or send error frames)"
+RET_TIMEOUT_US = 20_000
 NOT_ALONE = "an EtherCAT slave on the line cannot go quiet alone: use power_cycle or lose_cycles"
 
 
@@ -89,7 +90,7 @@ class VethBus(BusEmulator):
                 f"bus '{bus.name}': over veth the emulator reads the network file: give its path"
             )
         try:
-            import pysoem  # noqa: F401
+            import pysoem
         except ImportError:
             raise EmulationUnavailable(
                 "EtherCAT over veth needs pysoem: pip install 'fieldbus[ethercat]'"
@@ -102,6 +103,12 @@ class VethBus(BusEmulator):
             )
         except VethUnavailable as exc:
             raise EmulationUnavailable(str(exc)) from None
+        # SOEM's frame round trip may take 20 ms instead of 2 (a user-space emulator on a shared
+        # machine); process-wide, so put back when the emulation ends
+        timeouts = pysoem.settings.timeouts
+        old = timeouts.ret
+        timeouts.ret = max(old, RET_TIMEOUT_US)
+        context.cleanup.callback(setattr, timeouts, "ret", old)
 
     def bus_changes(self) -> dict[str, Any]:
         return {"interface": self.emu.iface, "redundant_interface": None}
