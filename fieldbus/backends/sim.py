@@ -97,6 +97,7 @@ class SimBackend(Backend):
         else:
             self.clock = clock if callable(clock) else time.monotonic_ns
         self._corrupt: dict[int, int] = {}  # slave -> cycles its inputs still arrive inverted
+        self._delay_s, self._delay_cycles = 0.0, 0  # process-data replies held back (delay_cycles)
         self.master = FrameMaster(self._transport)
         self.infos: list[SlaveInfo] = []
         self.mappings: list[Mapping] = []
@@ -127,9 +128,15 @@ class SimBackend(Backend):
         process-data cycles, with a good working counter: fresh, wrong data."""
         self._corrupt[slave] = self._corrupt.get(slave, 0) + cycles
 
+    def delay_cycles(self, seconds: float, cycles: int = 1) -> None:
+        """The process-data replies of the next ``cycles`` cycles come back ``seconds`` late (recovery
+        and SDO frames in between are not held back, as ``chain.delay_frames`` would hold them)."""
+        self._delay_s, self._delay_cycles = seconds, cycles
+
     def clear_injections(self) -> None:
-        """Undo :meth:`corrupt_inputs` (the chain's own faults: ``chain.clear_faults()``)."""
+        """Undo :meth:`corrupt_inputs` and :meth:`delay_cycles` (the chain's own: ``chain.clear_faults()``)."""
         self._corrupt.clear()
+        self._delay_s, self._delay_cycles = 0.0, 0
 
     # -- bring-up -------------------------------------------------------------------------
     def open(self) -> None:
@@ -229,12 +236,17 @@ class SimBackend(Backend):
             np.copyto(frame_np, row)
         now = self.clock()
         wkc, lost = 0, False
+        held = 0.0
+        if self._delay_cycles:
+            self._delay_cycles -= 1
+            held = self._delay_s
         for seg in self._segments:
             np.copyto(seg.view[: seg.data_off], seg.template[: seg.data_off])
             seg.buf[seg.wkc_off] = seg.buf[seg.wkc_off + 1] = 0
             n = self.chain.process_into(seg.buf, seg.size, now)
-            if not self._waited(n == 0, self.chain.take_delay()):
+            if not self._waited(n == 0, max(held, self.chain.take_delay())):
                 lost = True
+            held = 0.0  # one wait per cycle
             wkc += seg.buf[seg.wkc_off] | seg.buf[seg.wkc_off + 1] << 8
         self._wkc, self._lost = wkc, lost
 

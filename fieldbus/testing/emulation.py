@@ -165,6 +165,7 @@ class Emulation:
 
         Master: a reply later than the bus's receive timeout is a miss (TIMEOUT, inputs held);
         a shorter delay only makes ``exchange()`` that much longer (on a virtual clock: exactly).
+        Over veth the runner holds back the next frames, recovery frames included.
         """
         self._check_count(cycles)
         if seconds < 0:

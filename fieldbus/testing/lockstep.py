@@ -11,6 +11,7 @@ frames in the same order on every run.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -63,7 +64,8 @@ class LockstepCanBus:
             return self.queue.popleft()
         if not timeout or timeout <= 0:
             return None
-        deadline = self.clock.now_ns() + round(timeout * 1e9)
+        # at least 1 ns: a caller's float remainder (1e-17 s) must still move time, or it waits forever
+        deadline = self.clock.now_ns() + max(1, math.ceil(timeout * 1e9))
         while self.clock.now_ns() < deadline:
             self.clock.advance_to(min(deadline, self.clock.now_ns() + RECV_STEP_NS))
             if self.queue:

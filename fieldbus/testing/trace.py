@@ -24,6 +24,16 @@ if TYPE_CHECKING:
 CHUNK = 4096  # cycles added to the arrays at a time
 
 
+def _zeros(shape: tuple[int, ...], dtype: Any) -> npt.NDArray[Any]:
+    """Zeros, padding bytes of a structured dtype included (``np.zeros`` may leave those as they were),
+    so that two equal traces are equal byte for byte."""
+    dt = np.dtype(dtype)
+    out: npt.NDArray[Any] = (
+        np.zeros(int(np.prod(shape)) * dt.itemsize, dtype=np.uint8).view(dt).reshape(shape)
+    )
+    return out
+
+
 class Trace:
     """Per-cycle record of an :class:`~fieldbus.network.Operational` (see the module)."""
 
@@ -55,7 +65,7 @@ class Trace:
         cap = self._cap + CHUNK
 
         def grown(a: npt.NDArray[Any]) -> npt.NDArray[Any]:
-            out = np.zeros((cap, *a.shape[1:]), dtype=a.dtype)
+            out = _zeros((cap, *a.shape[1:]), a.dtype)
             out[: self.n] = a[: self.n]
             return out
 
@@ -78,8 +88,13 @@ class Trace:
             self._wkc[k, j] = st.wkc
             self._slave_fresh[j][k] = st.fresh
         for name, g in self._op.groups.items():
-            self._inputs[name][k] = g.image.inputs.values
-            self._outputs[name][k] = g.image.outputs.values
+            # field by field: a whole-record copy may carry bytes between the fields along
+            for dst, src in (
+                (self._inputs[name][k], g.image.inputs.values),
+                (self._outputs[name][k], g.image.outputs.values),
+            ):
+                for field in src.dtype.names or ():
+                    dst[field] = src[field]
         self.n = k + 1
 
     # -- reading -----------------------------------------------------------------------------
@@ -146,14 +161,18 @@ class Trace:
     def arrays(self) -> dict[str, npt.NDArray[Any]]:
         """Everything kept, by name (``fresh``, ``safe_stop``, ``<bus>.verdict``, ``<group>.inputs``, ...).
 
-        Two runs of a scenario on a virtual clock give equal arrays, bit for bit.
+        Two runs of a scenario on a virtual clock give equal arrays, bit for bit: inputs and
+        outputs come as packed copies (no padding bytes between fields, whose contents numpy
+        leaves undefined), so ``a.tobytes() == b.tobytes()`` compares the values themselves.
         """
+        from numpy.lib.recfunctions import repack_fields
+
         out: dict[str, npt.NDArray[Any]] = {"fresh": self.fresh, "safe_stop": self.safe_stop}
         for b in self.bus_names:
             out[f"{b}.verdict"] = self.verdict(b)
             out[f"{b}.wkc"] = self.wkc(b)
             out[f"{b}.slave_fresh"] = self.slave_fresh(b)
         for g in self.group_names:
-            out[f"{g}.inputs"] = self.inputs(g)
-            out[f"{g}.outputs"] = self.outputs(g)
+            out[f"{g}.inputs"] = repack_fields(self.inputs(g))
+            out[f"{g}.outputs"] = repack_fields(self.outputs(g))
         return out

@@ -45,7 +45,7 @@ class SimChainBus(BusEmulator):
         self.chain.drop_frames(cycles, process_data=True)
 
     def delay(self, seconds: float, cycles: int) -> None:
-        self.chain.delay_frames(seconds, cycles)
+        self.backend.delay_cycles(seconds, cycles)
 
     def short_wkc(self, cycles: int, slave: int) -> None:
         self.chain.corrupt_wkc(-1, cycles)

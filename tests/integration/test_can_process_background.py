@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-can = pytest.importorskip("can")
-
 from fieldbus.commands.demo import DEMO_MAP
 from sim_slaves.can_process import udp_bus
+
+can = pytest.importorskip("can")
 
 REPO = Path(__file__).resolve().parents[2]
 IDENTITY_REQUEST = bytes([0x40, 0x18, 0x10, 0x01, 0, 0, 0, 0])  # SDO upload 0x1018:1 (vendor id)
