@@ -246,8 +246,8 @@ class Network(_Phase):
             raise FieldbusError(
                 f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
             )
-        # ``clock``: a fieldbus.runtime.clock.Clock paces the close wind-down and is the emulators' time
-        # (its now_ns goes to every backend that reads a clock); a bare ``() -> ns`` callable is a backend option
+        # ``clock``: a fieldbus.runtime.clock.Clock paces the close wind-down and is the time of every
+        # backend that reads a clock (sim, CAN); a bare ``() -> ns`` callable is the sim backend's option
         clock = backend_options.get("clock")
         if clock is not None and hasattr(clock, "now_ns") and hasattr(clock, "sleep"):
             del backend_options["clock"]
@@ -289,7 +289,7 @@ class Network(_Phase):
                 cls = backend_class(kind)
                 opts = {**backend_options, **(bus_options or {}).get(bus.name, {})}
                 if clock is not None and "clock" in (netfile.backend_options(kind) or ("clock",)):
-                    opts.setdefault("clock", clock.now_ns)
+                    opts.setdefault("clock", clock)
                 self.backends.append(cls(bus, **opts))
         except BaseException:
             for made in self.backends:
@@ -432,9 +432,12 @@ class SafeOp(_Phase):
     """SAFE-OP: process image mapped; drives ignore outputs."""
 
     def op(self) -> Operational:
+        """Every bus to OP: CAN buses first (their op() waits for the nodes' NMT state), EtherCAT last,
+        so that no EtherCAT slave sits in OP without process data while another bus waits (its
+        SyncManager watchdog would trip before the first cycle)."""
         self._check()
         try:
-            for b in self._net.backends:
+            for b in sorted(self._net.backends, key=lambda b: b.pdo_align == 1):
                 b.op()
         except BaseException:
             self._net.close()

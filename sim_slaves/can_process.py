@@ -18,7 +18,10 @@ one thread (:func:`sim_slaves.busthread.serve_together`: one ``select`` over the
 buses), so the emulators of a robot's buses take one CPU between them instead
 of one process each. An ``--option`` belongs to the ``--channel`` before it (to
 every bus when it comes first). Prints ``ready`` once the nodes listen and runs
-until SIGTERM, SIGINT or its stdin closes. :func:`can_emulator_process` starts
+until SIGTERM or SIGINT, also in the background with its stdin closed; with
+``--exit-with-stdin`` (what :func:`can_emulator_process` passes, so a parent
+killed without cleaning up takes its child along) it also stops when its stdin
+closes, and says so on stderr. :func:`can_emulator_process` starts
 one from Python and stops it; :func:`udp_bus` picks a group and port nobody
 else on this host uses, for either UDP interface.
 """
@@ -99,8 +102,9 @@ def _option(text: str) -> tuple[str, str | int | float | bool]:
 
 
 def _stop_when_stdin_closes(stop: threading.Event) -> None:
-    """The parent went away when stdin closes (it never writes to it)."""
+    """``--exit-with-stdin``: the parent went away when stdin closes (it never writes to it)."""
     sys.stdin.readline()
+    print("can_process: stdin closed (--exit-with-stdin): stopping", file=sys.stderr, flush=True)
     stop.set()
 
 
@@ -144,6 +148,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="more Bus arguments, KEY=VALUE, for the --channel before it (every bus when first)",
     )
     p.add_argument("--dt-s", type=float, help="the drives' time step per SYNC / command (s)")
+    p.add_argument(
+        "--exit-with-stdin",
+        action="store_true",
+        help="also stop when stdin closes (a parent holding a pipe to it went away); "
+        "default: only SIGTERM/SIGINT stop it",
+    )
     return p.parse_args(argv)
 
 
@@ -167,7 +177,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    threading.Thread(target=_stop_when_stdin_closes, args=(stop,), daemon=True).start()
+    if args.exit_with_stdin:
+        threading.Thread(target=_stop_when_stdin_closes, args=(stop,), daemon=True).start()
     emulator: Any
     if args.kind == "canopen":
         from sim_slaves.canopen import CanopenSimulator as emulator
@@ -223,6 +234,7 @@ def can_emulator_process(
         ",".join(str(n) for n in node_ids),
         "--interface",
         channels[0].interface,
+        "--exit-with-stdin",
     ]
     for c in channels:
         cmd += ["--channel", c.channel]

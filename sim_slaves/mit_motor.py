@@ -7,13 +7,16 @@ Physics per motor: a rotor of inertia ``J`` (kg·m²) with viscous friction
 ``b`` (N·m·s/rad) driven by the MIT impedance law
 ``tau = kp*(p_des - p) + kd*(v_des - v) + tau_ff``, saturated to the torque
 field's range, integrated over the time between commands (``dt_s`` if given).
-Fault hooks: ``drop_replies(node, n)`` and ``silence(node)``.
+Fault hooks: ``drop_replies(node, n)``, ``corrupt_replies(node, n)``,
+``silence(node)`` and ``power_cycle(node)``. ``clock``: the time the motors
+read when a frame has no timestamp (a :class:`~fieldbus.runtime.clock.Clock`;
+default the machine's); without a thread, :meth:`MitMotorSimulator.deliver`
+takes each frame (virtual time, :mod:`fieldbus.testing`).
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +25,7 @@ import can
 
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.runtime.clock import Clock, monotonic_s
 from sim_slaves.busthread import BusThread
 
 
@@ -80,6 +84,7 @@ class MotorState:
     friction: float = 0.01
     commands: int = 0
     drop: int = 0
+    corrupt: int = 0  # replies still to send with every data bit inverted
     silent: bool = False
     last_t: float | None = None
     torque_limit: float = 1e9  # N·m, the command's torque field range
@@ -100,7 +105,9 @@ class MitMotorSimulator(BusThread):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
+        clock: Clock | None = None,
     ) -> None:
+        self._now = monotonic_s(clock)  # seconds
         self.log = open_log(log)  # every frame the motors see and send, python-can format by suffix
         self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
@@ -128,21 +135,43 @@ class MitMotorSimulator(BusThread):
         with self._lock:
             self.motor(node_id).drop += n
 
+    def corrupt_replies(self, node_id: int, n: int) -> None:
+        """The motor's next ``n`` replies go out with every data bit inverted (length and id intact)."""
+        with self._lock:
+            self.motor(node_id).corrupt += n
+
     def silence(self, node_id: int, silent: bool = True) -> None:
+        """The motor stops (or resumes) answering; it still applies commands."""
         with self._lock:
             self.motor(node_id).silent = silent
+
+    def power_cycle(self, node_id: int) -> None:
+        """Power lost and back: out of motor mode, at rest, zero offset and faults gone (position kept)."""
+        with self._lock:
+            st = self.motor(node_id)
+            st.enabled = False
+            st.velocity = st.torque = 0.0
+            st.position += st.zero
+            st.zero = 0.0
+            st.drop = st.corrupt = 0
+            st.last_t = None
+            st.command = None
 
     def serve(self, timeout: float) -> bool:
         msg = self.bus.recv(timeout=timeout)
         if msg is None:
             return False
+        self.deliver(msg)
+        return True
+
+    def deliver(self, msg: can.Message) -> None:
+        """One frame from the bus (the thread's :meth:`serve`, or a caller without the thread)."""
         if not msg.is_extended_id and msg.arbitration_id in self._by_id:
             try:
                 with self._lock:
                     self.handle(msg)
             except Exception as exc:  # keep serving; a test reads .errors
                 self.errors.append(f"{type(exc).__name__}: {exc}")
-        return True
 
     def handle(self, msg: can.Message) -> can.Message | None:
         """Process one command frame; returns (and sends) the reply, if any.
@@ -153,7 +182,7 @@ class MitMotorSimulator(BusThread):
         """
         st, (command, reply_frame), cfg = self._by_id[msg.arbitration_id]
         data = bytes(msg.data)
-        now = msg.timestamp or time.monotonic()
+        now = msg.timestamp or self._now()
         new: tuple[float, float, float, float, float] | None = None  # a command to act from now on
         if data == cfg.enter:
             st.enabled = True
@@ -182,9 +211,11 @@ class MitMotorSimulator(BusThread):
             if cfg.node_field:
                 values[cfg.node_field] = st.node_id
             reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
-            reply = can.Message(
-                arbitration_id=reply_id, data=reply_frame.encode(values), is_extended_id=False
-            )
+            data = reply_frame.encode(values)
+            if st.corrupt:
+                st.corrupt -= 1
+                data = bytes(b ^ 0xFF for b in data)
+            reply = can.Message(arbitration_id=reply_id, data=data, is_extended_id=False)
             self.bus.send(reply)
         if new is not None:
             self._step(st, *new, dt)

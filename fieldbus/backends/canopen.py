@@ -73,6 +73,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
+from fieldbus.runtime.clock import monotonic_s
 
 try:
     import can
@@ -108,6 +109,8 @@ class CanopenBackend(CanFaults, Backend):
         self._bus: Any = options.get("can_bus")
         self._own_bus = self._bus is None
         self._timeout_s = bus.receive_timeout_us / 1e6
+        # seconds; in tests a virtual clock's (fieldbus.testing)
+        self._now = monotonic_s(options.get("clock"))
         self._sdo_timeout_s = float(options.get("sdo_timeout_s", SDO_TIMEOUT_S))
         n = self.n_slaves
         self.node_ids: list[int] = []
@@ -284,8 +287,8 @@ class CanopenBackend(CanFaults, Backend):
         self._nmt(NMT_START)
         watched = self._hb_watched
         wait = max(0.3, 2 * float(self._hb_limit.max(initial=0.0)) / HEARTBEAT_FACTOR)
-        deadline = time.monotonic() + wait
-        while time.monotonic() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
+        deadline = self._now() + wait
+        while self._now() < deadline and not np.all(self.nmt_state[watched] == NMT_OPERATIONAL):
             msg = self._recv(0.01)
             if msg is not None:
                 self._other(msg)
@@ -300,7 +303,7 @@ class CanopenBackend(CanFaults, Backend):
                 f"bus '{self.bus.name}': no OPERATIONAL heartbeat within {wait * 1e3:.0f} ms of NMT start "
                 f"from {', '.join(late)}"
             )
-        now = self._quiet_t = time.monotonic()
+        now = self._quiet_t = self._now()
         self._last_hb[:] = now
         # the first of each TPDO is due one deadline after the start (a type-n TPDO at the n-th SYNC)
         timed = self._limit_t > 0
@@ -320,7 +323,7 @@ class CanopenBackend(CanFaults, Backend):
                 self._take(msg, on_time=False)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
-        self._quiet_t = time.monotonic()
+        self._quiet_t = self._now()
         try:
             for msg, row, data in self._rpdos:
                 np.copyto(data, row)
@@ -339,12 +342,12 @@ class CanopenBackend(CanFaults, Backend):
         self._got.fill(0)
         expected = self._seen.size
         count = 0
-        deadline = time.perf_counter() + self._timeout_s
+        deadline = self._now() + self._timeout_s
         bus = self._bus
         take = self._take
         try:
             while count < expected:
-                remaining = deadline - time.perf_counter()
+                remaining = deadline - self._now()
                 if remaining <= 0:
                     break
                 msg = bus.recv(timeout=remaining)
@@ -357,7 +360,7 @@ class CanopenBackend(CanFaults, Backend):
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
             raise self._io_failed("receive", exc) from exc
-        self._quiet_t = time.monotonic()
+        self._quiet_t = self._now()
         self._judge(self._quiet_t)
         if expected == 0:
             return 0
@@ -409,7 +412,7 @@ class CanopenBackend(CanFaults, Backend):
     def _frame_time(self, msg: Any) -> float:
         """When ``msg`` came (time.monotonic s): its timestamp where that is plausible, else the last
         moment the queue was seen empty (it came after that: never later than it really came)."""
-        now = time.monotonic()
+        now = self._now()
         age = time.time() - float(msg.timestamp)
         if 0.0 <= age <= now - self._quiet_t:
             return now - age
@@ -471,7 +474,7 @@ class CanopenBackend(CanFaults, Backend):
             if node in self._index:
                 if len(self.emergencies) >= MAX_EMERGENCIES:
                     del self.emergencies[: MAX_EMERGENCIES // 2]
-                emcy = Emergency.decode(node, bytes(msg.data), time.monotonic())
+                emcy = Emergency.decode(node, bytes(msg.data), self._now())
                 self.emergencies.append(emcy)
                 self.emcy_count += 1
                 self.last_emergency[node] = emcy
@@ -512,7 +515,7 @@ class CanopenBackend(CanFaults, Backend):
 
     def _recover(self) -> Generator[None, None, bool]:
         while True:
-            now = time.monotonic()
+            now = self._now()
             todo = [
                 i
                 for i in range(self.n_slaves)
@@ -602,9 +605,9 @@ class CanopenBackend(CanFaults, Backend):
             self._reply = None
             self._recovering = node
             self._send_sdo(node, req)
-            deadline = time.monotonic() + self._sdo_timeout_s
+            deadline = self._now() + self._sdo_timeout_s
             while self._reply is None:
-                if time.monotonic() > deadline:
+                if self._now() > deadline:
                     self._recovering = None
                     self._send_sdo_abort(node, req, ABORT_TIMEOUT)
                     raise BusTimeoutError(
@@ -695,9 +698,9 @@ class CanopenBackend(CanFaults, Backend):
         req = next(steps)
         while True:
             self._send_sdo(node, req)
-            deadline = time.monotonic() + self._sdo_timeout_s
+            deadline = self._now() + self._sdo_timeout_s
             while True:
-                remaining = deadline - time.monotonic()
+                remaining = deadline - self._now()
                 if remaining <= 0:
                     self._send_sdo_abort(node, req, ABORT_TIMEOUT)
                     raise BusTimeoutError(

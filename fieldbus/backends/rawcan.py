@@ -20,7 +20,6 @@ and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -33,6 +32,7 @@ from fieldbus.backends.canfaults import CanFaults
 from fieldbus.backends.canlog import open_log
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
+from fieldbus.runtime.clock import monotonic_s
 
 try:
     import can
@@ -62,6 +62,9 @@ class RawCanBackend(CanFaults, Backend):
         self._reply_rows = [self.in_row(i)[::-1] for i in range(self.n_slaves)]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
+        self._now = monotonic_s(
+            options.get("clock")
+        )  # seconds; in tests a virtual clock's (fieldbus.testing)
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -147,10 +150,10 @@ class RawCanBackend(CanFaults, Backend):
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
-        deadline = time.monotonic() + ENTER_TIMEOUT_S
+        deadline = self._now() + ENTER_TIMEOUT_S
         try:
-            while not self._arrived.all() and time.monotonic() < deadline:
-                self._accept(self._bus.recv(timeout=max(0.0, deadline - time.monotonic())), copy=False)
+            while not self._arrived.all() and self._now() < deadline:
+                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
         return [i for i in range(self.n_slaves) if not self._arrived[i]]
@@ -174,7 +177,7 @@ class RawCanBackend(CanFaults, Backend):
         """
         self._arrived.fill(False)
         recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
-        clock = time.perf_counter
+        clock = self._now
         deadline = clock() + self._timeout_s
         count = 0
         try:

@@ -11,13 +11,19 @@ Options (``open_network(path, backend="sim", **options)``):
 - ``chain_maps``: drive maps the emulated slaves are built from, in wire
   order (default: the network's maps) - a different list makes an identity
   mismatch;
-- ``clock``: ``() -> ns`` for the emulator's time (default
-  ``time.monotonic_ns``); a stepped clock makes runs deterministic.
+- ``clock``: the emulator's time, a :class:`~fieldbus.runtime.clock.Clock`
+  or a ``() -> ns`` function (default ``time.monotonic_ns``). On a virtual
+  clock (:class:`~fieldbus.runtime.clock.VirtualClock`) runs are
+  deterministic, and the master's waits pass on that clock: a lost frame
+  costs the receive timeout, a delayed reply its delay.
 
 Fault hooks: :attr:`SimBackend.chain` is the :class:`EscChain`
 (``drop_frames``, ``delay_frames``, ``corrupt_wkc``, ``power_cycle``,
-``refuse_state``, ``abort_sdo``, ``emergency``). A delayed reply longer than
-the receive timeout counts as lost, as it would on the wire.
+``refuse_state``, ``abort_sdo``, ``emergency``), and :meth:`SimBackend.corrupt_inputs`
+here. A delayed reply longer than the receive timeout counts as lost, as it
+would on the wire. The public face of these is :mod:`fieldbus.testing`.
+
+Bus type ``ethercat`` run with ``backend="sim"``, or a bus of type ``sim``.
 
 Recovery (after a miss) is a generator advanced by one frame exchange per
 :meth:`recover_step` call, so the cycle never waits for a whole re-bring-up.
@@ -44,6 +50,7 @@ from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.sdo import coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import FieldbusError, StateTransitionError
+from fieldbus.runtime.clock import Clock, is_virtual
 
 MAX_FRAME_DATA = 1486  # datagram data per frame (SOEM's EC_MAXLRWDATA)
 STATE_POLLS = 100
@@ -68,7 +75,7 @@ class SimBackend(Backend):
     kind = "sim"
 
     def __init__(self, bus: Bus, **options: object) -> None:
-        if bus.type != "ethercat":
+        if bus.type not in ("ethercat", "sim"):
             raise FieldbusError(
                 f"bus '{bus.name}' is {bus.type}: the sim backend emulates EtherCAT segments "
                 "(CAN buses run on python-can's virtual interface: fieldbus demo --backend canopen|rawcan)"
@@ -83,7 +90,14 @@ class SimBackend(Backend):
             list(chain_maps), drive_params=emulated if len(emulated) == len(chain_maps) else None
         )
         clock = options.get("clock")
-        self.clock: Callable[[], int] = clock if callable(clock) else time.monotonic_ns
+        # a virtual clock: the master's waits (receive timeout, delayed replies) pass on it
+        self._waits: Clock | None = clock if isinstance(clock, Clock) and is_virtual(clock) else None
+        if isinstance(clock, Clock):
+            self.clock: Callable[[], int] = clock.now_ns
+        else:
+            self.clock = clock if callable(clock) else time.monotonic_ns
+        self._corrupt: dict[int, int] = {}  # slave -> cycles its inputs still arrive inverted
+        self._delay_s, self._delay_cycles = 0.0, 0  # process-data replies held back (delay_cycles)
         self.master = FrameMaster(self._transport)
         self.infos: list[SlaveInfo] = []
         self.mappings: list[Mapping] = []
@@ -98,9 +112,31 @@ class SimBackend(Backend):
     # -- transport ----------------------------------------------------------------------
     def _transport(self, frame: bytes) -> bytes | None:
         reply = self.chain.process(frame, self.clock())
-        if self.chain.take_delay() > self._timeout_s:
+        if not self._waited(reply is None, self.chain.take_delay()):
             return None
         return reply
+
+    def _waited(self, lost: bool, delay_s: float) -> bool:
+        """The master's wait for a reply (on a virtual clock it passes there); False: it counts as lost."""
+        late = lost or delay_s > self._timeout_s
+        if self._waits is not None:
+            self._waits.sleep(self._timeout_s if late else delay_s)
+        return not late
+
+    def corrupt_inputs(self, slave: int, cycles: int = 1) -> None:
+        """Slave ``slave``'s inputs (0-based on this bus) arrive with every bit inverted for ``cycles``
+        process-data cycles, with a good working counter: fresh, wrong data."""
+        self._corrupt[slave] = self._corrupt.get(slave, 0) + cycles
+
+    def delay_cycles(self, seconds: float, cycles: int = 1) -> None:
+        """The process-data replies of the next ``cycles`` cycles come back ``seconds`` late (recovery
+        and SDO frames in between are not held back, as ``chain.delay_frames`` would hold them)."""
+        self._delay_s, self._delay_cycles = seconds, cycles
+
+    def clear_injections(self) -> None:
+        """Undo :meth:`corrupt_inputs` and :meth:`delay_cycles` (the chain's own: ``chain.clear_faults()``)."""
+        self._corrupt.clear()
+        self._delay_s, self._delay_cycles = 0.0, 0
 
     # -- bring-up -------------------------------------------------------------------------
     def open(self) -> None:
@@ -200,12 +236,17 @@ class SimBackend(Backend):
             np.copyto(frame_np, row)
         now = self.clock()
         wkc, lost = 0, False
+        held = 0.0
+        if self._delay_cycles:
+            self._delay_cycles -= 1
+            held = self._delay_s
         for seg in self._segments:
             np.copyto(seg.view[: seg.data_off], seg.template[: seg.data_off])
             seg.buf[seg.wkc_off] = seg.buf[seg.wkc_off + 1] = 0
             n = self.chain.process_into(seg.buf, seg.size, now)
-            if n == 0 or self.chain.take_delay() > self._timeout_s:
+            if not self._waited(n == 0, max(held, self.chain.take_delay())):
                 lost = True
+            held = 0.0  # one wait per cycle
             wkc += seg.buf[seg.wkc_off] | seg.buf[seg.wkc_off + 1] << 8
         self._wkc, self._lost = wkc, lost
 
@@ -214,6 +255,14 @@ class SimBackend(Backend):
             return None
         for frame_np, row in self._in_copies:
             np.copyto(row, frame_np)
+        if self._corrupt:
+            for slave, left in list(self._corrupt.items()):
+                row = self.in_row(slave)
+                np.bitwise_xor(row, 0xFF, out=row)
+                if left <= 1:
+                    del self._corrupt[slave]
+                else:
+                    self._corrupt[slave] = left - 1
         return self._wkc
 
     def _recover(self) -> Generator[None, None, bool]:

@@ -148,7 +148,9 @@ def _print_value(args: argparse.Namespace, raw: bytes, type_name: str | None, wh
 def _ethercat(args: argparse.Namespace) -> int:
     from fieldbus.backends.buslock import lock_network_card
 
-    with lock_network_card(args.target):  # refused while a master runs on the card (its slaves would leave OP)
+    with lock_network_card(
+        args.target
+    ):  # refused while a master runs on the card (its slaves would leave OP)
         return _ethercat_locked(args)
 
 

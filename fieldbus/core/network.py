@@ -53,8 +53,8 @@ PATH_CHARS = 160  # most characters of a map path (from the network file) an err
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
     "sim": ("chain_maps", "clock"),
     "ethercat": ("exact_timeout", "pcap"),
-    "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms"),
-    "rawcan": ("can_bus", "can_log"),
+    "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms", "clock"),
+    "rawcan": ("can_bus", "can_log", "clock"),
 }
 
 

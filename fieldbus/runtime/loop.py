@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
+from fieldbus.runtime.clock import Clock, is_virtual, sleep_until
 from fieldbus.runtime.timing import CycleLatency, CycleTimer
 
 # Sleep until this close to the deadline, then spin: OS sleeps overshoot by ~50-100 µs.
@@ -68,7 +69,7 @@ def run_cycles(
     describe: Callable[[], str] | None = None,
     adjust: Callable[[], int] | None = None,
     latency: CycleLatency | None = None,
-    clock: Callable[[], int] = time.perf_counter_ns,
+    clock: Clock | Callable[[], int] = time.perf_counter_ns,
     sleep: Callable[[float], None] = time.sleep,
 ) -> CycleTimer:
     """Run ``step(k)`` for k = 0..cycles-1 at ``cycle_time_us``; ``step`` returning True stops early.
@@ -77,22 +78,29 @@ def run_cycles(
     ``sys.stderr``) a one-line status is rewritten about once per
     ``status_every_s`` using ``describe()``. ``adjust()`` (ns) is added to each
     next deadline: the DC host sync (``Operational.dc_correction_ns``). ``clock``
-    (ns) and ``sleep`` (s) are injectable for tests. With ``latency`` each cycle's
+    is a :class:`~fieldbus.runtime.clock.Clock` (its ``now_ns`` and ``sleep``; a
+    :class:`~fieldbus.runtime.clock.VirtualClock` jumps to each deadline, so the
+    loop runs as fast as the CPU allows with the same cycles), or a ``() -> ns``
+    function used with ``sleep`` (s). With ``latency`` each cycle's
     wake-up latency (start minus its deadline, ns) goes into ``latency.wakeup``;
     the caller's step adds its exchange time to ``latency.exchange``.
     """
     timer = timer or CycleTimer(capacity=max(1, min(cycles, 1_000_000)))
+    source: Clock | None = clock if isinstance(clock, Clock) else None
+    if source is not None:
+        clock = source.now_ns
+    now: Callable[[], int] = clock  # type: ignore[assignment]
     period = int(cycle_time_us * 1000)
     next_status = 0
     with gc_held():
-        start = clock()
+        start = now()
         deadline = start
         for k in range(cycles):
-            t0 = clock()
+            t0 = now()
             if latency is not None:
                 latency.wakeup.add(t0 - deadline)
             stop = step(k)
-            t1 = clock()
+            t1 = now()
             deadline += period + (adjust() if adjust is not None else 0)
             overrun = t1 > deadline
             timer.add(t1 - t0, overrun=overrun)
@@ -111,7 +119,10 @@ def run_cycles(
                 behind = (t1 - deadline) // period
                 deadline += behind * period  # skip deadlines we can no longer meet
                 continue
-            wait_until(deadline, clock, sleep)
+            if source is not None:
+                sleep_until(source, deadline, 0 if is_virtual(source) else SPIN_NS)
+            else:
+                wait_until(deadline, now, sleep)
     if status is not None:
         status.write("\n")
         status.flush()

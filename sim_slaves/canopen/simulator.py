@@ -8,7 +8,10 @@ rebuilt after any NMT or SDO frame, the only ones that can change it), NMT
 produced from the same thread (checked every millisecond at most).
 
 ``dt_s``: the time step of the drive models per SYNC (default: measured
-between SYNCs, clamped to 0.1 ms..10 ms).
+between SYNCs, clamped to 0.1 ms..10 ms). ``clock``: the time the nodes read
+(a :class:`~fieldbus.runtime.clock.Clock`; default the machine's). Without a
+thread (virtual time, :mod:`fieldbus.testing`): :meth:`boot` once, then
+:meth:`deliver` each frame and :meth:`idle` as time passes.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 
 from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.runtime.clock import Clock, monotonic_s
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
 from sim_slaves.drive402 import DriveParams
@@ -51,7 +55,9 @@ class CanopenSimulator(BusThread):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
+        clock: Clock | None = None,
     ) -> None:
+        self._now = monotonic_s(clock)  # seconds
         self.log = open_log(log)  # every frame the nodes see and send, python-can format by suffix
         self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
@@ -76,9 +82,18 @@ class CanopenSimulator(BusThread):
         self._next_hb: dict[int, float] = {}
         self._next_tick = 0.0
         self._routes: dict[int, list[CanopenNode]] | None = None  # RPDO COB-ID -> consumers
+        self._corrupt: dict[int, int] = {}  # node id -> TPDOs still to send inverted
 
     def node(self, node_id: int) -> CanopenNode:
         return self.nodes[node_id]
+
+    def boot(self) -> None:
+        """Boot every node (boot-up messages), as :meth:`start` does, without a thread."""
+        self._on_start()
+
+    def deliver(self, msg: can.Message | None) -> None:
+        """One frame from the bus (None: none), then the timers that are due (without the thread)."""
+        self._serve_locked(msg)
 
     # -- life cycle ---------------------------------------------------------------------
     def _on_start(self) -> None:
@@ -118,9 +133,15 @@ class CanopenSimulator(BusThread):
                 self._send(n.nmt(0x81))
             self._routes = None
 
-    def clear_faults(self) -> None:
-        """Undo every injection: dropped TPDOs, silent heartbeats, SDO aborts."""
+    def corrupt_tpdos(self, node_id: int, count: int = 1) -> None:
+        """The node's next ``count`` TPDOs go out with every data bit inverted (length and COB-ID intact)."""
         with self._lock:
+            self._corrupt[node_id] = self._corrupt.get(node_id, 0) + count
+
+    def clear_faults(self) -> None:
+        """Undo every injection: dropped and corrupted TPDOs, silent heartbeats, SDO aborts."""
+        with self._lock:
+            self._corrupt.clear()
             for node in self.nodes.values():
                 node.drop_tpdos = 0
                 node.heartbeat_silent = False
@@ -151,7 +172,7 @@ class CanopenSimulator(BusThread):
             try:
                 if msg is not None and not msg.is_extended_id and not msg.is_remote_frame:
                     self.handle(msg.arbitration_id, bytes(msg.data))
-                now = time.monotonic()
+                now = self._now()
                 if now >= self._next_tick:
                     self._next_tick = now + TIMER_TICK_S
                     self.tick(now)
@@ -162,7 +183,7 @@ class CanopenSimulator(BusThread):
         """One frame from the bus (without the thread: tests and fuzzing call this directly)."""
         if cob == COB_SYNC:
             t0 = time.thread_time()
-            now = time.monotonic()
+            now = self._now()
             dt = self.dt_s
             if dt is None:
                 dt = 0.001 if self._last_sync is None else min(0.01, max(1e-4, now - self._last_sync))
@@ -220,8 +241,19 @@ class CanopenSimulator(BusThread):
             if k is not None:
                 bank.store_outputs(k, n.od)
             frames = n.sync_outputs(now)
+            if frames and self._corrupt.get(n.node_id):
+                frames = self._corrupted(n.node_id, frames)
             if frames:
                 self._send(frames)
+
+    def _corrupted(self, node_id: int, frames: list[Frame]) -> list[Frame]:
+        out = []
+        for cob, data in frames:
+            if self._corrupt.get(node_id, 0) > 0 and 0x180 <= cob < 0x580:  # a TPDO
+                self._corrupt[node_id] -= 1
+                data = bytes(b ^ 0xFF for b in data)
+            out.append((cob, data))
+        return out
 
     def _build_routes(self) -> dict[int, list[CanopenNode]]:
         routes: dict[int, list[CanopenNode]] = {}

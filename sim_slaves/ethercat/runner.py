@@ -41,6 +41,7 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "refuse_state", "slave": 0, "state": "SAFE_OP", "code": 29}
     {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
     {"cmd": "emergency", "slave": 0, "code": 33297}
+    {"cmd": "drive_fault", "slave": 0, "code": 29440}    the drive faults (0x603F = code), EMCY sent
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "dc"}                                       every slave's DC registers and clock at one instant
@@ -220,6 +221,12 @@ def handle_control(chain: EscChain, msg: dict[str, Any], now_ns: int | None = No
         chain.abort_sdo(slave, int(msg["index"]), None if sub is None else int(sub), int(msg["code"]))
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
+    elif cmd == "drive_fault":
+        inject = getattr(chain.slaves[slave].app, "inject_fault", None)
+        if inject is None:
+            return {"ok": False, "error": f"slave {slave} has no CiA 402 drive"}
+        inject(int(msg["code"]))
+        chain.emergency(slave, int(msg["code"]), 0x01)
     elif cmd == "clear":
         chain.clear_faults()
     elif cmd == "status":

@@ -275,17 +275,21 @@ def start_runner(
     stderr: Path | None = None,
     command: Sequence[str] | None = None,
     network: Path | None = None,
+    bus: str | None = None,
 ) -> subprocess.Popen[str]:
     """Start ``python -m sim_slaves.ethercat`` on ``iface`` and wait until it is ready.
 
     Its stderr goes to the file ``stderr`` (default: ``runner-<iface>.err`` beside ``control``).
     ``command`` replaces the runner's command line (tests of this function). With ``network``
-    the slaves are that file's EtherCAT bus, with their ``emulator:`` options (``maps`` unused).
+    the slaves are that file's EtherCAT bus (``bus``: which one), with their ``emulator:`` options
+    (``maps`` unused).
     """
     cmd = [sys.executable, "-m", "sim_slaves.ethercat", "--iface", iface]
     cmd += ["--control", str(control), "--app", app]
     if network is not None:
         cmd += ["--network", str(network)]
+        if bus is not None:
+            cmd += ["--bus", bus]
     else:
         cmd += ["--count", str(count)]
         for m in maps:
@@ -323,11 +327,13 @@ def emulated_segment(
     app: str = "auto",
     workdir: Path | None = None,
     network: Path | None = None,
+    bus: str | None = None,
 ) -> Iterator[Emulator]:
     """A veth pair with the emulator on one end; yields the :class:`Emulator` (``iface`` = master end).
 
     ``network``: build the slaves from that network file's EtherCAT bus instead of ``maps``
-    (with the slaves' ``emulator:`` options; the file's interface name is not used).
+    (with the slaves' ``emulator:`` options; the file's interface name is not used); ``bus``
+    names that bus when the file has several.
     """
     master, slave = make_veth_pair()
     try:
@@ -335,7 +341,15 @@ def emulated_segment(
             control = Path(workdir or tmp) / f"ctl-{slave}.sock"
             err = control.parent / f"runner-{slave}.err"
             proc = start_runner(
-                slave, maps, count=count, control=control, pcap=pcap, app=app, stderr=err, network=network
+                slave,
+                maps,
+                count=count,
+                control=control,
+                pcap=pcap,
+                app=app,
+                stderr=err,
+                network=network,
+                bus=bus,
             )
             emu = Emulator(master, slave, proc, control, pcap, err)
             try:

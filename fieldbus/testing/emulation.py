@@ -1,0 +1,355 @@
+"""Bring up emulators for a network file as it is, open the master on them, tear all down.
+
+    with fieldbus.testing.emulate("robot.yaml") as emu:
+        op = emu.op                          # brought up: SDO plans written and read back, OP
+        emu.run(controller.step, cycles=2000)      # paced on emu.clock (virtual: as fast as it goes)
+        emu.lose_cycles("legs", 12)          # faults by bus and slave name
+        ...
+
+EtherCAT buses run on the in-process ``sim`` backend (``ethercat="sim"``) or
+on the real pysoem master over a veth pair with the emulator in a child
+process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN MIT motors) on an
+in-process bus (``can="virtual"``) or on ``fieldbus_udp`` with the emulator in
+a child process (``can="udp"``). Interfaces and channels are substituted;
+the file is not touched. With every emulator in process the clock is a
+:class:`~fieldbus.runtime.clock.VirtualClock` unless told otherwise: the
+master and the emulators run in lockstep, time passes only in the master's
+waits, and a run gives the same cycles bit for bit on any machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+from fieldbus.core.cia402 import State402
+from fieldbus.core.network import Bus, NetworkConfig, load_network
+from fieldbus.errors import FieldbusError
+from fieldbus.network import Network, Operational, open_network
+from fieldbus.runtime.clock import WALL, Clock, VirtualClock, is_virtual
+from fieldbus.runtime.loop import run_cycles
+from fieldbus.runtime.timing import CycleTimer
+from fieldbus.testing.provider import (
+    CAN_MODES,
+    ETHERCAT_MODES,
+    BusEmulator,
+    EmulationContext,
+    EmulationError,
+    find_emulator,
+)
+from fieldbus.testing.trace import Trace
+
+SAFE_STOP_NOTE = "the policy's safe_stop_after consecutive misses latch the safe stop"
+
+
+class Emulation:
+    """A network on emulated slaves: the opened :class:`Network`, its :class:`Operational`, faults, a trace.
+
+    Faults name a bus and a slave as the network file does. Each says in its
+    docstring what the master should see; ``docs/testing.md`` has the table.
+    A fault that has no meaning on a bus raises
+    :class:`~fieldbus.testing.FaultNotSupported` naming the bus and why.
+    """
+
+    def __init__(
+        self, network: Network, model: NetworkConfig, emulators: Mapping[str, BusEmulator], clock: Clock
+    ):
+        self.network = network
+        self.model = model
+        self.emulators = dict(emulators)
+        self.clock = clock
+        self._op: Operational | None = None
+        self._trace: Trace | None = None
+
+    # -- phases -------------------------------------------------------------------------------
+    def bring_up(self) -> Operational:
+        """``network.bring_up()`` (``emulate`` does it unless ``bring_up=False``); starts the trace."""
+        op = self.network.bring_up()
+        self._attach(op)
+        return op
+
+    def _attach(self, op: Operational) -> None:
+        trace = Trace(op, self.network)
+        op.add_observer(trace)  # called at the end of every exchange()
+        self._op, self._trace = op, trace
+
+    @property
+    def op(self) -> Operational:
+        """The network in OP (after bring-up)."""
+        if self._op is None:
+            raise FieldbusError("the emulated network is not brought up yet: call emu.bring_up()")
+        return self._op
+
+    @property
+    def trace(self) -> Trace:
+        """Every cycle since bring-up (see :class:`~fieldbus.testing.Trace`)."""
+        if self._trace is None:
+            raise FieldbusError("the emulated network is not brought up yet: call emu.bring_up()")
+        return self._trace
+
+    @property
+    def cycle_time_us(self) -> int:
+        """The network's shortest bus cycle, µs (the rate ``exchange()`` is called at)."""
+        return min(b.cycle_time_us for b in self.model.buses)
+
+    @property
+    def virtual(self) -> bool:
+        """True when time is virtual (passes only when the loop or the master waits)."""
+        return is_virtual(self.clock)
+
+    def run(self, step: Callable[[int], bool | None], cycles: int, **options: Any) -> CycleTimer:
+        """:func:`fieldbus.run_cycles` at the network's cycle time on :attr:`clock`; ``step(k)`` calls
+        ``op.exchange()`` itself, as a controller does. ``options`` go to ``run_cycles``."""
+        return run_cycles(step, self.cycle_time_us, cycles, clock=self.clock, **options)
+
+    def cycles(self, n: int) -> None:
+        """``n`` cycles of ``op.exchange()`` alone (outputs as they are), paced on :attr:`clock`."""
+        op = self.op
+
+        def step(_k: int) -> None:
+            op.exchange()
+
+        self.run(step, n)
+
+    # -- looking up names ------------------------------------------------------------------------
+    def _bus(self, bus: str) -> tuple[Bus, BusEmulator]:
+        emu = self.emulators.get(bus)
+        if emu is None:
+            raise FieldbusError(f"no bus '{bus}' (have: {', '.join(self.emulators)})")
+        return self.model.bus(bus), emu
+
+    def _slave(self, bus: str, slave: str | None) -> tuple[BusEmulator, int]:
+        model, emu = self._bus(bus)
+        if slave is None:
+            return emu, 0
+        for i, s in enumerate(model.slaves):
+            if s.name == slave:
+                return emu, i
+        raise FieldbusError(
+            f"bus '{bus}' has no slave '{slave}' (have: {', '.join(s.name for s in model.slaves)})"
+        )
+
+    def drive_states(self, bus: str) -> list[State402 | None]:
+        """Each slave's CiA 402 state as the emulated drive itself has it (None: not a drive).
+
+        The emulator's side, not the master's: for checks that the drives really stopped.
+        """
+        return [State402(s) if s >= 0 else None for s in self._bus(bus)[1].drive_states()]
+
+    # -- faults ------------------------------------------------------------------------------------
+    def lose_cycles(self, bus: str, cycles: int) -> None:
+        """Lose the process data of the next ``cycles`` cycles of bus ``bus`` (only those: the
+        frames of recovery and SDO transfers in between still pass).
+
+        Master: each of those cycles has verdict TIMEOUT (EtherCAT, raw CAN) or SHORT/TIMEOUT
+        (CANopen: no TPDO came), is not fresh and keeps the last inputs; at ``safe_stop_after``
+        consecutive misses the safe stop latches. EtherCAT: the frames are dropped; CANopen:
+        every node sends no TPDO for that many SYNCs; raw CAN: no motor answers that many commands.
+        """
+        self._check_count(cycles)
+        self._bus(bus)[1].lose_cycles(cycles)
+
+    def delay(self, bus: str, seconds: float, cycles: int = 1) -> None:
+        """EtherCAT: the replies of the next ``cycles`` frames come back ``seconds`` late.
+
+        Master: a reply later than the bus's receive timeout is a miss (TIMEOUT, inputs held);
+        a shorter delay only makes ``exchange()`` that much longer (on a virtual clock: exactly).
+        Over veth the runner holds back the next frames, recovery frames included.
+        """
+        self._check_count(cycles)
+        if seconds < 0:
+            raise FieldbusError(f"delay: seconds must be >= 0, got {seconds}")
+        self._bus(bus)[1].delay(seconds, cycles)
+
+    def short_wkc(self, bus: str, cycles: int = 1, *, slave: str | None = None) -> None:
+        """The working counter of the next ``cycles`` cycles comes back short.
+
+        Master: verdict SHORT, the cycle not fresh, inputs held, counted towards the safe stop.
+        EtherCAT: one less than expected in the process-data datagram (``slave`` unused);
+        CANopen / raw CAN: slave ``slave`` (default the first) sends nothing for that many cycles,
+        so only its inputs are stale and the other slaves' stay fresh.
+        """
+        self._check_count(cycles)
+        emu, i = self._slave(bus, slave)
+        emu.short_wkc(cycles, i)
+
+    def corrupt_inputs(self, bus: str, slave: str, cycles: int = 1) -> None:
+        """Slave ``slave``'s inputs arrive with every bit inverted for ``cycles`` cycles, framing intact.
+
+        Master: nothing the bus can tell (the working counter, COB-ID and length are right): the
+        cycle is fresh and the values are wrong. Only a controller's own plausibility checks
+        (a position jump, a statusword that matches no state) catch it. Not over veth.
+        """
+        self._check_count(cycles)
+        emu, i = self._slave(bus, slave)
+        emu.corrupt_inputs(i, cycles)
+
+    def power_cycle(self, bus: str, slave: str) -> None:
+        """Slave ``slave`` loses power and comes back with its defaults (mapping and SDO values lost).
+
+        Master: EtherCAT: SHORT cycles while it is gone (its WKC share missing), then the
+        backend's recovery brings it back to OP by itself (``BusStatus.recovering``, then
+        ``recoveries`` + 1); its drive restarts in SWITCH ON DISABLED, so a controller must
+        enable it again. CANopen: a boot-up message, then the node is configured again and
+        started (``recoveries`` + 1). Raw CAN: the motor leaves motor mode (its replies go on).
+        """
+        emu, i = self._slave(bus, slave)
+        emu.power_cycle(i)
+
+    def drive_fault(self, bus: str, slave: str, code: int) -> None:
+        """The drive of slave ``slave`` faults with error code ``code`` (0x603F, e.g. 0x7300 sensor).
+
+        Master: the statusword shows FAULT from the next cycle or two (the bus stays fresh), the
+        error code is in 0x603F (in the inputs when the map has it, else by SDO), and an emergency
+        (EMCY) with that code is sent (``backend.emergencies``). A fault reset (controlword bit 7)
+        clears it. Not on raw CAN (MIT motors have no error codes).
+        """
+        if not 0 < code <= 0xFFFF:
+            raise FieldbusError(f"drive_fault: error code must be 0x0001..0xFFFF, got {code:#x}")
+        emu, i = self._slave(bus, slave)
+        emu.drive_fault(i, code)
+
+    def silence(self, bus: str, slave: str, silent: bool = True) -> None:
+        """CAN: slave ``slave`` stops (``silent=False``: resumes) sending; it still listens.
+
+        Master: its inputs stale and held every cycle (SHORT), the others fresh; CANopen also
+        reports its heartbeat lost after the consumer time. When it resumes it is fresh again
+        (a CANopen node that was never reset needs no reconfiguration).
+        """
+        emu, i = self._slave(bus, slave)
+        emu.silence(i, silent)
+
+    def error_frames(self, bus: str, count: int = 1) -> None:
+        """CAN: ``count`` error frames on the bus.
+
+        Master: nothing: error frames carry no data and are not counted as frames of any node;
+        the cycle stays fresh (a real controller retransmits the corrupted frame).
+        """
+        self._check_count(count)
+        self._bus(bus)[1].error_frames(count)
+
+    def bus_off(self, bus: str, slave: str, off: bool = True) -> None:
+        """CAN: slave ``slave``'s controller goes bus-off (neither sends nor receives); ``off=False``:
+        it recovers and, as CiA 301 says, boots again.
+
+        Master: its inputs stale (SHORT) while off, heartbeat lost; on return a boot-up, then it
+        is configured again and started (CANopen), or answers again (raw CAN).
+        """
+        emu, i = self._slave(bus, slave)
+        emu.bus_off(i, off)
+
+    def sdo_abort(
+        self, bus: str, slave: str, index: int, sub_index: int | None = None, *, code: int = 0x06090030
+    ) -> None:
+        """Every SDO access to ``index:sub_index`` (None: any sub-index) of slave ``slave`` aborts with
+        ``code`` (default 0x06090030, value range exceeded) until :meth:`clear_faults`.
+
+        Master: bring-up fails with :class:`fieldbus.SdoAbortError` naming the slave, object and code
+        (no drive enabled); in OP the transfer's future fails with it; a recovery after a power
+        cycle fails and is retried (``BusStatus.recovery_error``). Not on raw CAN.
+        """
+        emu, i = self._slave(bus, slave)
+        emu.sdo_abort(i, index, sub_index, code)
+
+    def clear_faults(self, bus: str) -> None:
+        """Undo every pending or lasting injection on bus ``bus`` (not a power cycle already done)."""
+        self._bus(bus)[1].clear_faults()
+
+    @staticmethod
+    def _check_count(n: int) -> None:
+        if n < 1:
+            raise FieldbusError(f"a fault needs a count >= 1, got {n}")
+
+
+def _load(network: str | Path | NetworkConfig) -> tuple[NetworkConfig, Path | None]:
+    if isinstance(network, NetworkConfig):
+        src = Path(network.source)
+        return network, src if src.is_file() else None
+    return load_network(network), Path(network)
+
+
+@contextmanager
+def emulate(
+    network: str | Path | NetworkConfig,
+    *,
+    ethercat: str = "sim",
+    can: str = "virtual",
+    clock: Clock | None = None,
+    receive_timeout_us: int | None = None,
+    bring_up: bool = True,
+    workdir: str | Path | None = None,
+    bus_options: Mapping[str, Mapping[str, object]] | None = None,
+) -> Iterator[Emulation]:
+    """Emulators for every bus of ``network`` (a file, or a loaded one), the master opened on them.
+
+    ``ethercat``: ``"sim"`` (in process, no root) or ``"veth"`` (pysoem over a veth pair,
+    the emulator in a child process; needs root). ``can``: ``"virtual"`` (in process) or
+    ``"udp"`` (``fieldbus_udp``, the emulator in a child process; no fault injection).
+    ``clock``: default a :class:`~fieldbus.runtime.clock.VirtualClock` when every emulator
+    is in process, else the wall clock; a virtual clock with a child process is refused.
+    ``receive_timeout_us`` replaces every bus's (a veth or UDP segment on a loaded machine
+    needs a few ms). ``bus_options``: more backend options per bus name. Everything started
+    is stopped on exit, also when the body or the bring-up raises; a machine that refuses
+    (no root, no veth) raises :class:`~fieldbus.testing.EmulationUnavailable`.
+    """
+    if ethercat not in ETHERCAT_MODES:
+        raise EmulationError(f"ethercat must be one of {', '.join(ETHERCAT_MODES)}, got {ethercat!r}")
+    if can not in CAN_MODES:
+        raise EmulationError(f"can must be one of {', '.join(CAN_MODES)}, got {can!r}")
+    model, source = _load(network)
+    types = {("ethercat" if b.type == "sim" else b.type) for b in model.buses}
+    in_process = not ("ethercat" in types and ethercat == "veth") and not (
+        types & {"canopen", "rawcan"} and can == "udp"
+    )
+    if clock is None:
+        clock = VirtualClock() if in_process else WALL
+    elif is_virtual(clock) and not in_process:
+        raise EmulationError(
+            "a virtual clock needs every emulator in this process: veth and udp emulators run in "
+            "real time in a child process (use ethercat='sim', can='virtual', or no clock)"
+        )
+    unknown = sorted(set(bus_options or {}) - {b.name for b in model.buses})
+    if unknown:
+        raise EmulationError(f"bus_options name no bus of the network: {', '.join(unknown)}")
+    with ExitStack() as cleanup:
+        if workdir is None:
+            workdir = cleanup.enter_context(tempfile.TemporaryDirectory(prefix="fieldbus-testing-"))
+        context = EmulationContext(
+            clock=clock,
+            ethercat=ethercat,
+            can=can,
+            workdir=Path(workdir),
+            source=source,
+            cleanup=cleanup,
+            virtual=is_virtual(clock),
+        )
+        emulators: dict[str, BusEmulator] = {}
+        buses = []
+        options: dict[str, dict[str, object]] = {}
+        for bus in model.buses:
+            start = find_emulator("ethercat" if bus.type == "sim" else bus.type)
+            emu = start(context, bus)
+            cleanup.callback(emu.close)
+            emulators[bus.name] = emu
+            changes = emu.bus_changes()
+            if receive_timeout_us is not None:
+                changes["receive_timeout_us"] = int(receive_timeout_us)
+            buses.append(dataclasses.replace(bus, **changes))
+            options[bus.name] = {
+                **emu.backend_options(),
+                **dict((bus_options or {}).get(bus.name, {})),
+            }
+        emulated = dataclasses.replace(model, buses=tuple(buses))
+        # the clock paces the close wind-down and goes to every backend that reads one (sim, CAN)
+        net = open_network(emulated, bus_options=options, clock=clock)
+        cleanup.callback(net.close)
+        for bus in model.buses:
+            emulators[bus.name].attach(net.backend(bus.name))
+        emulation = Emulation(net, emulated, emulators, clock)
+        if bring_up:
+            emulation.bring_up()
+        yield emulation
