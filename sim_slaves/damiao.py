@@ -90,7 +90,8 @@ class DamiaoSimulator(MitMotorSimulator):
             values: dict[int, float] = {
                 0: 10.0, 1: 0.1, 2: 120.0, 3: 0.98, 4: 30.0, 5: -30.0, 6: 30.0,
                 regs.master_id: cfg.reply_can_id(node), 8: node, regs.timeout: 0, regs.ctrl_mode: 1,
-                13: 1, 14: 5013, 16: 14, 20: 10.0, 35: 4,
+                13: 1, 14: 5013, 16: 14, 20: 10.0, 35: 4, 24: 1000.0, 25: 0.001, 26: 0.002, 27: 30.0,
+                28: 0.0, 29: 30.0, 30: 0.9, 31: 5.0, 32: 100.0, 33: 1000.0, 34: 1000.0,
             }  # fmt: skip
             values.update({reg: limit for _, reg, limit in proto.limits})
             values.update((registers or {}).get(node, {}))
