@@ -101,6 +101,7 @@ COUNTERS = (
     "error_frames",
     "bus_off",
     "emcy_count",
+    "motor_faults",
 )
 
 

@@ -16,10 +16,21 @@ raise :class:`~fieldbus.errors.BusIoError` and are counted with error frames
 and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
 ``close()`` never raise. ``open()`` takes the CAN channel's lock
 (:mod:`fieldbus.backends.buslock`): one master per channel.
+
+Family ``damiao`` (:mod:`fieldbus.core.damiao`): ``configure()`` checks MST_ID,
+writes CTRL_MODE and TIMEOUT and reads them back, and refuses PMAX/VMAX/TMAX
+that differ from the map, naming both values; :meth:`RawCanBackend.set_mode`
+switches a motor's mode between cycles; the reply's error code is watched
+(a rising code outside ``ok_codes`` is one counted, named fault in
+:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`); ``stop()``
+sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
+the disable frame.
 """
 
 from __future__ import annotations
 
+from collections import deque
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,8 +41,10 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.backends.canlog import open_log
+from fieldbus.core import damiao
 from fieldbus.core.network import Bus
-from fieldbus.errors import BackendUnavailableError, FieldbusError, StateTransitionError
+from fieldbus.core.rawcan import encode_frame
+from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.runtime.clock import monotonic_s
 
 try:
@@ -42,6 +55,21 @@ except ImportError as exc:  # pragma: no cover - depends on the install
     ) from None
 
 ENTER_TIMEOUT_S = 0.5
+REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
+FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
+
+
+@dataclass(frozen=True)
+class MotorFault:
+    """A motor reported an error code outside the family's ``ok_codes``: which, when (cycle count) and its name."""
+
+    cycle: int
+    slave: str
+    code: int
+    name: str
+
+    def __str__(self) -> str:
+        return f"{self.slave}: motor error 0x{self.code:X} {self.name}"
 
 
 class RawCanBackend(CanFaults, Backend):
@@ -65,6 +93,17 @@ class RawCanBackend(CanFaults, Backend):
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
+        # family damiao: the mode of each motor, its mode frames, the error nibble's place in the reply
+        self._mode: list[damiao.Mode | None] = [None] * self.n_slaves
+        self._mode_msgs: list[dict[str, Any]] = [{} for _ in range(self.n_slaves)]
+        self._error_at: list[tuple[int, int, int] | None] = [None] * self.n_slaves  # (byte, shift, mask)
+        self._max: list[dict[str, float]] = [
+            {} for _ in range(self.n_slaves)
+        ]  # per-unit bases of mode fields
+        self._codes = np.zeros(self.n_slaves, dtype=np.int16)  # last error code per motor
+        self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
+        self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
+        self._cycles = 0
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -78,7 +117,9 @@ class RawCanBackend(CanFaults, Backend):
             )
             # the frame's data bytearray seen as a numpy array: encoding writes straight into it
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
-            reply_id = cfg.reply_id if cfg.reply_id is not None else cfg.command_id + node
+            reply_id = cfg.reply_can_id(node)
+            if cfg.damiao is not None:
+                self._family_init(i, cfg, node)
             byte = -1
             if cfg.node_field:
                 bit = 0
@@ -98,6 +139,7 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
+        self._families = any(m is not None for m in self._mode)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -117,8 +159,168 @@ class RawCanBackend(CanFaults, Backend):
             self._lock = lock_can_bus(self.bus)
         self._bus = attach_can_bus(self.bus, self._bus, self._log)
 
+    # -- family damiao ------------------------------------------------------------------
+    def _family_init(self, i: int, cfg: Any, node: int) -> None:
+        proto: damiao.DamiaoProtocol = cfg.damiao
+        self._mode[i] = proto.mode_named(proto.mode)
+        for m in proto.modes:
+            self._mode_msgs[i][m.name] = can.Message(
+                arbitration_id=node + m.id_offset, data=bytearray(8), is_extended_id=False
+            )
+        self._max[i] = {f.name: f.max for f in cfg.command if f.max is not None}
+        bit = 0
+        for f in cfg.reply:
+            if f.name == proto.error_field:
+                break
+            bit += f.bits
+        width = next(f.bits for f in cfg.reply if f.name == proto.error_field)
+        if bit // 8 != (bit + width - 1) // 8:
+            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
+        self._error_at[i] = (bit // 8, 8 - (bit % 8) - width, (1 << width) - 1)
+
+    def _proto(self, i: int) -> damiao.DamiaoProtocol:
+        cfg = self.areas[i].slave.map.rawcan
+        if cfg is None or cfg.damiao is None:
+            raise FieldbusError(
+                f"{self.areas[i].slave.name}: its map has no register protocol (family damiao)"
+            )
+        return cfg.damiao
+
+    def register(
+        self, slave: int | str, register: int, value: float | None = None, *, is_float: bool = False
+    ) -> float:
+        """Read (``value`` None) or write-and-confirm a register of a Damiao motor; the value the motor answers.
+
+        Blocking (outside the cycle, or between cycles). Raises :class:`~fieldbus.errors.BusTimeoutError`
+        when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
+        """
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
+        regs = proto.registers
+        if value is None:
+            op, data = regs.read, bytes(4)
+        else:
+            op, data = regs.write, damiao.pack_register(value, is_float)
+        self._drain()
+        try:
+            self._bus.send(
+                can.Message(
+                    arbitration_id=regs.can_id,
+                    data=damiao.register_frame(node, op, register, data),
+                    is_extended_id=False,
+                )
+            )
+            cfg = self.areas[i].slave.map.rawcan
+            assert cfg is not None
+            reply_id = cfg.reply_can_id(node)
+            deadline = self._now() + REGISTER_TIMEOUT_S
+            while (left := deadline - self._now()) > 0:
+                msg = self._bus.recv(timeout=left)
+                if msg is None or msg.is_error_frame or msg.arbitration_id != reply_id:
+                    continue
+                got = damiao.register_reply(node, bytes(msg.data), (op,))
+                if got is not None and got[1] == register:
+                    return damiao.unpack_register(got[2], is_float)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("register access", exc) from exc
+        what = "read" if value is None else "write"
+        raise BusTimeoutError(
+            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} of "
+            f"register {register} within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
+        )
+
+    def _write_checked(self, i: int, name: str, register: int, value: float, is_float: bool = False) -> None:
+        self.register(i, register, value, is_float=is_float)
+        back = self.register(i, register, is_float=is_float)
+        if back != value:
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': {self.areas[i].slave.name} register {name} ({register}) reads back "
+                f"{back:g} after writing {value:g}",
+                slave=self.areas[i].slave.name,
+            )
+
+    def _configure_damiao(self, i: int) -> None:
+        """MST_ID checked; PMAX/VMAX/TMAX compared with the map; CTRL_MODE and TIMEOUT written, read back."""
+        proto, slave = self._proto(i), self.areas[i].slave
+        cfg = slave.map.rawcan
+        assert cfg is not None
+        node, regs = slave.node_id or 0, proto.registers
+        mst = self.register(i, regs.master_id)
+        if int(mst) != cfg.reply_can_id(node):
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': {slave.name} (node {node}) answers with MST_ID (register "
+                f"{regs.master_id}) = 0x{int(mst):X}; the map {slave.map.name} expects 0x{cfg.reply_can_id(node):X}",
+                slave=slave.name,
+            )
+        for reg_name, reg, want in proto.limits:
+            have = self.register(i, reg, is_float=True)
+            if have != damiao.float32(want):
+                raise StateTransitionError(
+                    f"bus '{self.bus.name}': {slave.name} (node {node}) has {reg_name} (register {reg}) = "
+                    f"{have:g}, the map {slave.map.name} says {want:g}: the MIT frame would be scaled wrongly; "
+                    "set the motor's register (Damiao tool) or use the map of this motor",
+                    slave=slave.name,
+                )
+        mode = self._mode[i]
+        assert mode is not None
+        self._write_checked(i, "CTRL_MODE", regs.ctrl_mode, mode.ctrl_mode)
+        self._write_checked(i, "TIMEOUT", regs.timeout, proto.timeout_units)
+
+    def set_mode(self, slave: int | str, mode: str) -> None:
+        """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
+        then its commands go out as that mode's frames. Blocking: call it between cycles."""
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        proto = self._proto(i)
+        try:
+            new = proto.mode_named(mode)
+        except KeyError:
+            raise FieldbusError(
+                f"{self.areas[i].slave.name}: no mode '{mode}' (have: {', '.join(m.name for m in proto.modes)})"
+            ) from None
+        self._write_checked(i, "CTRL_MODE", proto.registers.ctrl_mode, new.ctrl_mode)
+        self._mode[i] = new
+
+    def mode(self, slave: int | str) -> str | None:
+        """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
+        m = self._mode[slave if isinstance(slave, int) else self.slave_index(slave)]
+        return m.name if m is not None else None
+
+    def error_code(self, slave: int | str) -> int:
+        """The error code of the motor's last accepted reply (family damiao)."""
+        return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
+
+    def clear_errors(self) -> list[str]:
+        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer."""
+        return [self.areas[i].slave.name for i in self._special("clear")]
+
+    def _mode_values(self, i: int) -> dict[str, float]:
+        a = self.areas[i]
+        row = self.groups[a.group].image.outputs.values[a.row]
+        names = row.dtype.names or ()
+        return {n: float(row[n]) for n in names}
+
+    def _watch_errors(self) -> None:
+        """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
+        for i, at in enumerate(self._error_at):
+            if at is None or not self._arrived[i]:
+                continue
+            byte, shift, mask = at
+            code = (int(self._reply_rows[i][byte]) >> shift) & mask
+            if code != self._codes[i]:
+                proto = self._proto(i)
+                if code not in proto.ok_codes:
+                    self.motor_faults += 1
+                    self.faults.append(
+                        MotorFault(self._cycles, self.areas[i].slave.name, code, proto.error_name(code))
+                    )
+                self._codes[i] = code
+
     def configure(self) -> None:
-        """MIT-mode motors have no object dictionary: nothing to configure."""
+        """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); MIT motors
+        of family ``mit`` have no registers: nothing to configure."""
+        for i in range(self.n_slaves):
+            if self._mode[i] is not None:
+                self._configure_damiao(i)
 
     def safe_op(self) -> None:
         """Nothing: motors stay out of motor mode until :meth:`op`."""
@@ -142,14 +344,21 @@ class RawCanBackend(CanFaults, Backend):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
                 msg, _, _ = self._cmd[i]
+                if which == "clear":
+                    if cfg.damiao is None:
+                        continue  # nothing to clear on this motor
+                    frame = cfg.damiao.clear
+                else:
+                    frame = getattr(cfg, which)
                 self._bus.send(
-                    can.Message(
-                        arbitration_id=msg.arbitration_id, data=getattr(cfg, which), is_extended_id=False
-                    )
+                    can.Message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
                 )
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
+        if which == "clear":
+            for i, area in enumerate(self.areas):
+                self._arrived[i] = area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
         deadline = self._now() + ENTER_TIMEOUT_S
         try:
             while not self._arrived.all() and self._now() < deadline:
@@ -164,9 +373,15 @@ class RawCanBackend(CanFaults, Backend):
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
         try:
-            for msg, rev, data in self._cmd:
-                np.copyto(data, rev)
-                self._bus.send(msg)
+            for i, (msg, rev, data) in enumerate(self._cmd):
+                mode = self._mode[i]
+                if mode is None or mode.mit:
+                    np.copyto(data, rev)
+                    self._bus.send(msg)
+                else:  # a Damiao mode frame, from the image's engineering values (allocates: a dict per motor)
+                    m = self._mode_msgs[i][mode.name]
+                    m.data[:] = damiao.encode_mode(mode, self._mode_values(i), self._max[i])
+                    self._bus.send(m)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
 
@@ -190,6 +405,9 @@ class RawCanBackend(CanFaults, Backend):
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
             raise self._io_failed("receive", exc) from exc
+        self._cycles += 1
+        if self._families:
+            self._watch_errors()
         return count if count else None
 
     def _motor(self, msg: Any) -> int:
@@ -244,10 +462,33 @@ class RawCanBackend(CanFaults, Backend):
         """Set the current position of every motor as zero; returns the motors that did not answer."""
         return [self.areas[i].slave.name for i in self._special("zero")]
 
+    def _zero_commands(self) -> None:
+        """Family damiao: each motor's zero command in its mode (MIT kp = kd = torque = 0; velocity 0; position
+        modes hold the last position read with no speed and no current)."""
+        for i, mode in enumerate(self._mode):
+            if mode is None:
+                continue
+            cfg = self.areas[i].slave.map.rawcan
+            assert cfg is not None
+            a = self.areas[i]
+            inputs = self.groups[a.group].image.inputs.values[a.row]
+            here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
+            values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
+            if mode.mit:
+                msg = self._cmd[i][0]
+                data = encode_frame(cfg.command, cfg.span, values)
+            else:
+                msg = self._mode_msgs[i][mode.name]
+                data = damiao.encode_mode(mode, values, self._max[i])
+            self._bus.send(can.Message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
+
     def stop(self) -> None:
-        """Exit motor mode on every motor. Never raises: a failing bus is kept in :attr:`last_error`."""
+        """Exit motor mode on every motor (Damiao: a zero command in its mode first, then disable).
+        Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:
+                if self._families:
+                    self._zero_commands()
                 self._special("exit")
             except Exception as exc:
                 self._shut_failed("stop", exc)

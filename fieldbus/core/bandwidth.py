@@ -769,7 +769,7 @@ def _motor_frames(
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
     (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them."""
     command_id = cfg.command_id + node
-    reply_id = cfg.reply_id if cfg.reply_id is not None else command_id
+    reply_id = cfg.reply_can_id(node)
     command = CanFrame(command_id, sum(p.size for p in rpdo), f"{name} command", frame_bits=frame_bits)
     reply = CanFrame(
         reply_id, sum(p.size for p in tpdo), f"{name} reply", frame_bits=frame_bits, after=command.label

@@ -19,13 +19,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fieldbus.core import datatypes
 from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
-RAWCAN_KEYS = ("command_id", "reply_id", "node_field", "span", "enter", "exit", "zero", "command", "reply")
+if TYPE_CHECKING:
+    from fieldbus.core.damiao import DamiaoProtocol
+
+RAWCAN_KEYS = (
+    "family", "command_id", "reply_id", "reply_id_offset", "node_field", "span", "enter", "exit", "zero",
+    "command", "reply", "damiao",
+)  # fmt: skip
+FAMILIES = (
+    "mit",
+    "damiao",
+)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao)
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value")
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
 MIT_SAFE_FIELDS = ("kp", "kd", "torque", "t_ff", "tau", "tau_ff")
@@ -55,8 +65,9 @@ class RawCanField:
 @dataclass(frozen=True)
 class RawCanConfig:
     """Frame ids and special frames. CAN ids: command ``command_id + node_id``;
-    replies ``reply_id`` (None: any id), routed by the ``node_field`` reply field
-    (the motor id byte) or, without it, by ``reply_id + node_id``."""
+    replies ``reply_id`` (one id for every motor), or ``node_id + reply_id_offset``
+    (Damiao's MST_ID), or else the command's id; routed by the ``node_field`` reply
+    field (the motor id byte) when there is one, else by their CAN id."""
 
     command: tuple[RawCanField, ...]
     reply: tuple[RawCanField, ...]
@@ -67,6 +78,17 @@ class RawCanConfig:
     enter: bytes = MIT_ENTER
     exit: bytes = MIT_EXIT
     zero: bytes = MIT_ZERO
+    family: str = "mit"
+    reply_id_offset: int | None = None
+    damiao: DamiaoProtocol | None = None  # family "damiao": modes, registers, errors
+
+    def reply_can_id(self, node: int) -> int:
+        """The CAN id motor ``node`` answers on."""
+        if self.reply_id is not None:
+            return self.reply_id
+        if self.reply_id_offset is not None:
+            return node + self.reply_id_offset
+        return self.command_id + node
 
 
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
@@ -85,6 +107,18 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         if node_field not in {f.name for f in reply} or any(f.scaled for f in reply if f.name == node_field):
             raise r.err((*path, "node_field"), f"'{node_field}' is not an unscaled reply field")
     command = _safe_defaults(r, command, (*path, "command"))
+    family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
+    damiao = None
+    if family == "damiao":
+        from fieldbus.core.damiao import parse_damiao
+
+        if "damiao" not in m:
+            raise r.err(path, "family damiao needs its 'damiao' section (modes, registers, errors)")
+        damiao = parse_damiao(r, m["damiao"], (*path, "damiao"), command, reply)
+    elif "damiao" in m:
+        raise r.err((*path, "damiao"), "a 'damiao' section needs family: damiao", key=True)
+    if "reply_id" in m and "reply_id_offset" in m:
+        raise r.err((*path, "reply_id_offset"), "give reply_id or reply_id_offset, not both", key=True)
     cfg = RawCanConfig(
         command=command,
         reply=reply,
@@ -95,6 +129,13 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         enter=_frame(r, m.get("enter"), (*path, "enter"), MIT_ENTER),
         exit=_frame(r, m.get("exit"), (*path, "exit"), MIT_EXIT),
         zero=_frame(r, m.get("zero"), (*path, "zero"), MIT_ZERO),
+        family=family,
+        reply_id_offset=(
+            r.integer(m["reply_id_offset"], (*path, "reply_id_offset"), 0, 0x7FF)
+            if "reply_id_offset" in m
+            else None
+        ),
+        damiao=damiao,
     )
     rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True)),)
     tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False)),)
@@ -199,3 +240,19 @@ def _channels(fields: tuple[RawCanField, ...], obj: int, span: str, *, outputs: 
         )
         bit += f.bits
     return tuple(chans)
+
+
+def encode_frame(fields: tuple[RawCanField, ...], span: str, values: Mapping[str, float]) -> bytes:
+    """One frame from engineering values with Python integers (outside the cycle: safe stops, tests);
+    a missing field is 0, out-of-range values saturate. The cycle uses the process image instead."""
+    x = 0
+    for f in fields:
+        v = float(values.get(f.name, 0.0))
+        mask = (1 << f.bits) - 1
+        if f.min is not None and f.max is not None:
+            steps = mask + (1 if span == "power_of_two" else 0)
+            raw = round((v - f.min) * steps / (f.max - f.min))
+        else:
+            raw = int(v)
+        x = (x << f.bits) | min(mask, max(0, raw))
+    return x.to_bytes(sum(f.bits for f in fields) // 8, "big")

@@ -1,0 +1,256 @@
+"""Emulated Damiao DM-J motors on a python-can bus: registers, modes, ids, CAN timeout and error codes.
+
+The rotor physics are :class:`sim_slaves.mit_motor.MitMotorSimulator`'s (inherited, not copied); what
+is Damiao's comes from the drive map's ``rawcan.damiao`` section (:mod:`fieldbus.core.damiao`):
+
+- commands on ESC_ID (the node id) + the mode's offset; a frame of a mode other than CTRL_MODE's is
+  ignored (no reply), as the firmware does; each command is answered on MST_ID (register 7) with
+  byte 0 = error << 4 | id, position, velocity, torque, MOS and rotor temperature (°C);
+- enable / disable / set zero / clear error: seven 0xFF then FC / FD / FE / FB on ESC_ID;
+- registers on 0x7FF ``[id lo, id hi, op, register, value LE]``: read (0x33) and write (0x55) are
+  answered with the same layout on MST_ID, save (0xAA) only while disabled, refresh (0xCC) answers a
+  status frame; an unknown register is not answered;
+- modes: MIT (impedance law), position-velocity and position-force (a position loop of
+  ``POSITION_GAIN`` 1/s under the speed limit; position-force also limits the torque to its per-unit
+  current of TMAX), velocity (a velocity loop of ``VELOCITY_GAIN`` N·m·s/rad);
+- TIMEOUT (register 9, units of 50 us, 0: off): an enabled motor with no command for that long
+  reports 0xD (communication lost) and lets go; errors stay until the clear-error frame;
+- ``inject_error(node, code)`` puts a motor in any error (it lets go, as the firmware does).
+
+Time: ``clock`` (seconds, default :func:`time.monotonic`) decides the CAN timeout, so a test can run
+it in virtual time; the physics step is ``dt_s`` per command as in the MIT emulator.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from fieldbus.core import damiao
+from fieldbus.core.pdo.model import DriveMap
+from sim_slaves.mit_motor import MitFrame, MitMotorSimulator
+
+POSITION_GAIN = 20.0  # 1/s: speed command per rad of position error (position modes)
+VELOCITY_GAIN = 0.5  # N·m·s/rad: torque per rad/s of speed error (velocity loop of the non-MIT modes)
+COMM_LOST = 0xD
+ENABLED, DISABLED = 0x1, 0x0
+# registers held as floats (the others are uint32): UV, KT, OT, OC, ACC, DEC, MAX_SPD, limits, loop gains...
+FLOAT_REGISTERS = frozenset({0, 1, 2, 3, 4, 5, 6, 11, 12, 17, 18, 19, 20, *range(21, 35)})
+READ_ONLY = frozenset({11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 36})
+
+
+@dataclass
+class DamiaoState:
+    """What a Damiao motor has beyond the rotor: registers (4 raw bytes each), error code, mode command."""
+
+    registers: dict[int, bytes]
+    error: int = DISABLED  # reply code: 0 disabled, 1 enabled, 8.. faults
+    last_command_t: float | None = None
+    mode_command: tuple[str, dict[str, float]] | None = None  # the last non-MIT command, by mode name
+    t_mos: float = 30.0  # °C
+    t_rotor: float = 32.0
+    saves: int = 0
+    frames: list[tuple[int, bytes]] = field(default_factory=list)  # (CAN id, data) of every frame received
+
+    def reg(self, number: int) -> float:
+        return damiao.unpack_register(self.registers[number], number in FLOAT_REGISTERS)
+
+
+class DamiaoSimulator(MitMotorSimulator):
+    """Damiao motors ``motors = [(drive_map, node_id), ...]`` on ``bus``; ``registers`` overrides
+    a motor's register values at power-up: ``{node_id: {register: value}}``."""
+
+    thread_name = "damiao-motors"
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        motors: list[tuple[DriveMap, int]],
+        *,
+        dt_s: float | None = None,
+        log: str | Path | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        registers: dict[int, dict[int, float]] | None = None,
+    ) -> None:
+        super().__init__(bus, motors, dt_s=dt_s, log=log)
+        self.clock = clock
+        self.state: dict[int, DamiaoState] = {}
+        self._esc: dict[int, int] = {}  # ESC_ID -> node
+        self._proto: dict[int, tuple[damiao.DamiaoProtocol, Any]] = {}
+        for drive, node in motors:
+            cfg = drive.rawcan
+            if cfg is None or cfg.damiao is None:
+                raise ValueError(f"{drive.name} is not a Damiao map (rawcan family damiao)")
+            proto, regs = cfg.damiao, cfg.damiao.registers
+            values: dict[int, float] = {
+                0: 10.0, 1: 0.1, 2: 120.0, 3: 0.98, 4: 30.0, 5: -30.0, 6: 30.0,
+                regs.master_id: cfg.reply_can_id(node), 8: node, regs.timeout: 0, regs.ctrl_mode: 1,
+                13: 1, 14: 5013, 16: 14, 20: 10.0, 35: 4, 24: 1000.0, 25: 0.001, 26: 0.002, 27: 30.0,
+                28: 0.0, 29: 30.0, 30: 0.9, 31: 5.0, 32: 100.0, 33: 1000.0, 34: 1000.0,
+            }  # fmt: skip
+            values.update({reg: limit for _, reg, limit in proto.limits})
+            values.update((registers or {}).get(node, {}))
+            self.state[node] = DamiaoState(
+                {k: damiao.pack_register(v, k in FLOAT_REGISTERS) for k, v in values.items()}
+            )
+            self._esc[node] = node
+            self._proto[node] = (proto, cfg)
+
+    # -- fault hooks -------------------------------------------------------------------------------
+    def inject_error(self, node_id: int, code: int) -> None:
+        """Motor ``node_id`` reports ``code`` (e.g. 0x8 over-voltage) and lets go until cleared."""
+        with self._lock:
+            self.state[node_id].error = code
+            self.motor(node_id).enabled = False
+
+    def set_temperatures(self, node_id: int, mos: float, rotor: float) -> None:
+        with self._lock:
+            st = self.state[node_id]
+            st.t_mos, st.t_rotor = mos, rotor
+
+    def idle(self) -> None:
+        with self._lock:
+            self.check_timeouts()
+
+    def check_timeouts(self) -> None:
+        """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off."""
+        now = self.clock()
+        for node, ds in self.state.items():
+            units = int(ds.reg(self._proto[node][0].registers.timeout))
+            last = ds.last_command_t
+            if units and ds.error == ENABLED and last is not None and now - last > units * 50e-6:
+                ds.error = COMM_LOST
+                self.motor(node).enabled = False
+
+    # -- serving -----------------------------------------------------------------------------------
+    def serve(self, timeout: float) -> bool:
+        msg = self.bus.recv(timeout=timeout)
+        with self._lock:
+            self.check_timeouts()
+            if msg is None:
+                return False
+            if not msg.is_extended_id and not msg.is_error_frame:
+                try:
+                    self.handle(msg)
+                except Exception as exc:  # keep serving; a test reads .errors
+                    self.errors.append(f"{type(exc).__name__}: {exc}")
+        return True
+
+    def handle(self, msg: can.Message) -> can.Message | None:
+        """One frame: a register request, a special frame or a command of some mode; returns the reply sent."""
+        can_id, data = msg.arbitration_id, bytes(msg.data)
+        any_proto = next(iter(self._proto.values()))[0]
+        if can_id == any_proto.registers.can_id:
+            return self._register(data)
+        for node, (proto, cfg) in self._proto.items():
+            for mode in proto.modes:
+                if can_id == node + mode.id_offset:
+                    self.state[node].frames.append((can_id, data))
+                    return self._command(node, proto, cfg, mode, data)
+        return None
+
+    def _reply(self, node: int, data: bytes) -> can.Message:
+        ds = self.state[node]
+        reply = can.Message(arbitration_id=int(ds.reg(7)), data=data, is_extended_id=False)
+        self.bus.send(reply)
+        return reply
+
+    def _status(self, node: int) -> can.Message | None:
+        st, ds = self.motor(node), self.state[node]
+        if st.drop:
+            st.drop -= 1
+            return None
+        if st.silent:
+            return None
+        _, cfg = self._proto[node]
+        frame = self._by_id[node + cfg.command_id][1][1]
+        values = {
+            "position": st.position,
+            "velocity": st.velocity,
+            "torque": st.torque,
+            "t_mos": ds.t_mos,
+            "t_rotor": ds.t_rotor,
+            "motor_id": node & 0xF,
+            self._proto[node][0].error_field: ds.error,
+        }
+        return self._reply(node, frame.encode(values))
+
+    def _register(self, data: bytes) -> can.Message | None:
+        if len(data) != 8:
+            return None
+        node = self._esc.get(data[0] | data[1] << 8)
+        if node is None:
+            return None
+        proto, _ = self._proto[node]
+        regs, ds, op, number = proto.registers, self.state[node], data[2], data[3]
+        if op == regs.refresh:
+            return self._status(node)
+        if op == regs.save:
+            if ds.error == ENABLED:
+                return None  # the firmware saves only while the motor is disabled
+            ds.saves += 1
+            return self._reply(node, data[:4] + bytes([1, 0, 0, 0]))
+        if number not in ds.registers:
+            return None
+        if op == regs.write and number not in READ_ONLY:
+            ds.registers[number] = data[4:8]
+            return self._reply(node, data[:4] + ds.registers[number])
+        if op == regs.read:
+            return self._reply(node, data[:4] + ds.registers[number])
+        return None
+
+    def _command(
+        self, node: int, proto: damiao.DamiaoProtocol, cfg: Any, mode: damiao.Mode, data: bytes
+    ) -> can.Message | None:
+        st, ds = self.motor(node), self.state[node]
+        now = self.clock()
+        if mode.mit and len(data) == 8 and data[:7] == b"\xff" * 7:
+            if data == cfg.enter:
+                if ds.error in (ENABLED, DISABLED):
+                    ds.error, st.enabled = ENABLED, True
+                    ds.last_command_t = now
+            elif data == cfg.exit:
+                if ds.error == ENABLED:
+                    ds.error = DISABLED
+                st.enabled = False
+            elif data == cfg.zero:
+                st.zero += st.position
+                st.position = 0.0
+            elif data == proto.clear and ds.error not in (ENABLED, DISABLED):
+                ds.error = DISABLED
+            return self._status(node)
+        if int(ds.reg(proto.registers.ctrl_mode)) != mode.ctrl_mode:
+            return None  # not the mode the motor is in: ignored
+        dt = self.dt_s if self.dt_s is not None else 0.001
+        ds.last_command_t = now
+        st.commands += 1
+        tmax = next(f.max for f in cfg.command if f.name == "torque")
+        if mode.mit:
+            frame: MitFrame = self._by_id[node + cfg.command_id][1][0]
+            v = frame.decode(data)
+            st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
+            reply = self._status(node)
+            self._step(st, *st.command, dt)
+            return reply
+        maxima = {f.name: f.max for f in cfg.command if f.max is not None}
+        v = damiao.decode_mode(mode, data, maxima)
+        ds.mode_command = (mode.name, v)
+        reply = self._status(node)
+        limit = st.torque_limit
+        if "position" in v:  # position loop under the speed limit
+            vmax = abs(v.get("velocity", 0.0))
+            v_des = max(-vmax, min(vmax, POSITION_GAIN * (v["position"] - st.position)))
+        else:
+            v_des = v.get("velocity", 0.0)
+        if mode.fields[-1].per_unit:  # position-force: the torque limited to its share of TMAX
+            st.torque_limit = min(limit, v.get("torque", tmax))
+        try:
+            self._step(st, 0.0, v_des, 0.0, VELOCITY_GAIN, 0.0, dt)
+        finally:
+            st.torque_limit = limit
+        return reply
