@@ -79,6 +79,7 @@ class RemoteGroup:
         self.inputs = RemoteDirection(desc["inputs"], self.n_axes)
         self.outputs = RemoteDirection(desc["outputs"], self.n_axes)
         self.command_channels: dict[str, str] = dict(desc["command"])  # command field -> output channel
+        self.joint_state: dict[str, str] = dict(desc["joint_state"])  # JointState field <- input channel
         self.cia402 = bool(desc["cia402"])
         self.topics: dict[str, str] = dict(desc["topics"])
         self.state = m.AxisState()  # the newest state received
@@ -221,9 +222,16 @@ class Remote:
         return detail
 
     def claim(self, group: str) -> None:
-        """Become the one client that commands ``group`` (:class:`ClaimError` if another owns it)."""
-        self[group]
+        """Become the one client that commands ``group`` (:class:`ClaimError` if another owns it).
+
+        The position command starts at the measured position: the first exchange holds the joints.
+        """
+        g = self[group]
         self.request("claim", group)
+        # the first command holds the joints where they are (the server's target followed them until now)
+        out, inp = g.command_channels.get("position"), g.joint_state.get("position")
+        if out is not None and inp is not None:
+            g.outputs.values[out] = g.inputs.values[inp]
         self.claimed.add(group)
 
     def release(self, group: str) -> None:
@@ -280,7 +288,10 @@ class Remote:
                     g = self.groups[name]
                     if st.cycle > g.state.cycle or st.cycle < last_cycle[name]:  # newer (or a restarted server)
                         g.accept(st)
-                    done = st.command_sequence >= seq if name in self.claimed else st.cycle != last_cycle[name]
+                    if name in self.claimed:  # a latched group applies no command: its state is the answer
+                        done = st.command_sequence >= seq or st.gate == GateState.SAFE_STOP
+                    else:
+                        done = st.cycle != last_cycle[name]
                     waiting[name] = waiting[name] or done
         res.round_trip_ns = time.perf_counter_ns() - t0
         res.late = not all(waiting.values())
