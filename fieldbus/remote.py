@@ -15,6 +15,7 @@ channels (controlword, modes) belong to the server. See ``docs/dds.md``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import uuid
@@ -39,7 +40,7 @@ from cyclonedds.sub import DataReader  # noqa: E402
 from cyclonedds.topic import Topic  # noqa: E402
 
 from fieldbus.dds import messages as m  # noqa: E402
-from fieldbus.dds.participant import RELIABLE, REALTIME, Participant, check_namespace, service_names  # noqa: E402
+from fieldbus.dds.participant import REALTIME, RELIABLE, Participant, check_namespace, service_names  # noqa: E402
 
 __all__ = ["ClaimError", "GateState", "Remote", "RemoteError", "RemoteGroup", "RemoteResult", "connect"]
 
@@ -60,7 +61,7 @@ class RemoteDirection:
 
     def __getitem__(self, name: str) -> npt.NDArray[Any]:
         try:
-            return self.values[name]  # type: ignore[no-any-return]
+            return self.values[name]
         except (ValueError, KeyError):
             raise FieldbusError(f"no channel '{name}' (have: {', '.join(self.names)})") from None
 
@@ -180,10 +181,8 @@ class Remote:
     def close(self) -> None:
         """Give up every claimed group (its last command stays applied, no deadline) and leave the domain."""
         for g in sorted(self.claimed):
-            try:
+            with contextlib.suppress(FieldbusError):  # the server is gone, or the claim was taken over
                 self.request("release", g, timeout_s=1.0)
-            except FieldbusError:
-                pass  # the server is gone or took the claim back: nothing to release
         self.claimed.clear()
 
     # -- requests --
@@ -250,6 +249,11 @@ class Remote:
     def clear_safe_stop(self, group: str) -> None:
         """Open the group's latched safe stop (and the bus's, when it is latched and the bus is back)."""
         self.request("clear_safe_stop", group)
+        for st in self._links[group].reader.take(
+            N=8
+        ):  # states from before the clear: not the answer to later
+            if isinstance(st, m.AxisState):
+                self.groups[group].accept(st)
 
     def command_channels(self, group: str) -> dict[str, str]:
         """Which output channel each command field carries (the rest belong to the server)."""
@@ -286,7 +290,9 @@ class Remote:
                     if not isinstance(st, m.AxisState):
                         continue
                     g = self.groups[name]
-                    if st.cycle > g.state.cycle or st.cycle < last_cycle[name]:  # newer (or a restarted server)
+                    if (
+                        st.cycle > g.state.cycle or st.cycle < last_cycle[name]
+                    ):  # newer (or a restarted server)
                         g.accept(st)
                     if name in self.claimed:  # a latched group applies no command: its state is the answer
                         done = st.command_sequence >= seq or st.gate == GateState.SAFE_STOP
@@ -322,7 +328,11 @@ class Remote:
         end = time.monotonic() + wait_s
         while time.monotonic() < end:
             self.exchange(deadline_s=0.05)
-            if ((g.drive_state <= state) & (g.drive_state >= 0)).all() if at_most else (g.drive_state == state).all():
+            if (
+                ((g.drive_state <= state) & (g.drive_state >= 0)).all()
+                if at_most
+                else (g.drive_state == state).all()
+            ):
                 return
         raise BusTimeoutError(
             f"group '{group}' did not reach drive state {state} within {wait_s:g} s "

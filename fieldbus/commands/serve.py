@@ -54,9 +54,13 @@ def register(sub: Any) -> None:
     p.add_argument("--peer", action="append", default=[], metavar="ADDR", help="unicast discovery peer")
     p.add_argument("--cycles", type=int, default=0, help="stop after N cycles (default 0: until SIGTERM)")
     p.add_argument("--publish-every", type=int, default=1, metavar="N", help="publish state every N-th cycle")
-    p.add_argument("--diagnostics-every", type=int, default=1000, metavar="N", help="diagnostics every N cycles")
+    p.add_argument(
+        "--diagnostics-every", type=int, default=1000, metavar="N", help="diagnostics every N cycles"
+    )
     p.add_argument("--hold-after", type=int, default=20, metavar="N", help="cycles without a command: hold")
-    p.add_argument("--stop-after", type=int, default=200, metavar="M", help="cycles without a command: safe stop")
+    p.add_argument(
+        "--stop-after", type=int, default=200, metavar="M", help="cycles without a command: safe stop"
+    )
     p.add_argument("--json", action="store_true", help="ready line and final report as JSON objects")
     cycleopts.add_arguments(p, plot=False)
     p.set_defaults(func=run)
@@ -104,8 +108,13 @@ def run(args: argparse.Namespace) -> int:
                 "domain": participant.domain_id,
                 "groups": {n: g.topics for n, g in server.groups.items()},
             }
-            print(json.dumps(ready) if args.json else f"serving '{options.namespace}' on DDS domain "
-                  f"{participant.domain_id}: {', '.join(server.groups)} (ready)", flush=True)
+            print(
+                json.dumps(ready)
+                if args.json
+                else f"serving '{options.namespace}' on DDS domain "
+                f"{participant.domain_id}: {', '.join(server.groups)} (ready)",
+                flush=True,
+            )
 
             def step(k: int) -> bool:
                 server.step(k)
@@ -117,12 +126,19 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     report["groups"] = {
-        n: {"owner": g.gate.owner, "gate": g.gate.state.name, "dropped": g.gate.dropped, "refused": g.gate.refused}
+        n: {
+            "owner": g.gate.owner,
+            "gate": g.gate.state.name,
+            "dropped": g.gate.dropped,
+            "refused": g.gate.refused,
+        }
         for n, g in server.groups.items()
     }
     report["requests"] = server.requests
     if args.json:
         print(json.dumps(report))
     else:
-        print(f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}")
+        print(
+            f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
+        )
     return 0

@@ -50,7 +50,9 @@ class Deadline:
     def __post_init__(self) -> None:
         for what, v in (("hold_after", self.hold_after), ("stop_after", self.stop_after)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise FieldbusError(f"command deadline {what} must be a whole number of cycles >= 1, not {v!r}")
+                raise FieldbusError(
+                    f"command deadline {what} must be a whole number of cycles >= 1, not {v!r}"
+                )
         if self.stop_after <= self.hold_after:
             raise FieldbusError(
                 f"command deadline stop_after ({self.stop_after}) must be more cycles than hold_after "

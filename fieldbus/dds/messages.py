@@ -15,10 +15,16 @@ as the drive map scales them; times in ns since the Unix epoch.
 
 # no ``from __future__ import annotations``: cyclonedds resolves the annotations at run time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.annotations import key
 from cyclonedds.idl import types as t
+from cyclonedds.idl.annotations import key
+
+if TYPE_CHECKING:
+    Seq = list  # what a reader sees: a list
+else:
+    Seq = t.sequence  # what cyclonedds reads: an unbounded IDL sequence
 
 
 @dataclass
@@ -42,10 +48,10 @@ class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
     """sensor_msgs/JointState: one entry per joint, positions/velocities/efforts in SI units."""
 
     header: Header = field(default_factory=Header)
-    name: t.sequence[str] = field(default_factory=list)
-    position: t.sequence[t.float64] = field(default_factory=list)
-    velocity: t.sequence[t.float64] = field(default_factory=list)
-    effort: t.sequence[t.float64] = field(default_factory=list)
+    name: Seq[str] = field(default_factory=list)
+    position: Seq[t.float64] = field(default_factory=list)
+    velocity: Seq[t.float64] = field(default_factory=list)
+    effort: Seq[t.float64] = field(default_factory=list)
 
 
 @dataclass
@@ -64,7 +70,7 @@ class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::Diagnost
     name: str = ""
     message: str = ""
     hardware_id: str = ""
-    values: t.sequence[KeyValue] = field(default_factory=list)
+    values: Seq[KeyValue] = field(default_factory=list)
 
 
 @dataclass
@@ -72,7 +78,7 @@ class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::Diagnosti
     """diagnostic_msgs/DiagnosticArray: one status per bus and per axis group."""
 
     header: Header = field(default_factory=Header)
-    status: t.sequence[DiagnosticStatus] = field(default_factory=list)
+    status: Seq[DiagnosticStatus] = field(default_factory=list)
 
 
 @dataclass
@@ -91,9 +97,9 @@ class AxisState(IdlStruct, typename="fieldbus_msgs::msg::dds_::AxisState_"):
 
     header: Header = field(default_factory=Header)
     cycle: t.uint64 = 0
-    fresh: t.sequence[bool] = field(default_factory=list)
-    drive_state: t.sequence[t.int8] = field(default_factory=list)
-    inputs: t.sequence[t.float64] = field(default_factory=list)
+    fresh: Seq[bool] = field(default_factory=list)
+    drive_state: Seq[t.int8] = field(default_factory=list)
+    inputs: Seq[t.float64] = field(default_factory=list)
     all_fresh: bool = False
     safe_stop: bool = False
     gate: t.uint8 = 0
@@ -118,11 +124,11 @@ class JointCommand(IdlStruct, typename="fieldbus_msgs::msg::dds_::JointCommand_"
     client_id: str = ""
     key("client_id")  # one instance per client: a refused client cannot push the owner's sample out
     sequence: t.uint64 = 0
-    position: t.sequence[t.float64] = field(default_factory=list)
-    velocity: t.sequence[t.float64] = field(default_factory=list)
-    torque: t.sequence[t.float64] = field(default_factory=list)
-    kp: t.sequence[t.float64] = field(default_factory=list)
-    kd: t.sequence[t.float64] = field(default_factory=list)
+    position: Seq[t.float64] = field(default_factory=list)
+    velocity: Seq[t.float64] = field(default_factory=list)
+    torque: Seq[t.float64] = field(default_factory=list)
+    kp: Seq[t.float64] = field(default_factory=list)
+    kd: Seq[t.float64] = field(default_factory=list)
 
 
 @dataclass

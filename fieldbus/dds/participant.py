@@ -104,8 +104,10 @@ def service_names(namespace: str) -> dict[str, str]:
 def check_namespace(namespace: str) -> str:
     """A namespace is ROS-name-like: letters, digits, ``_`` and ``/`` inside."""
     ns = namespace.strip("/")
-    if not ns or not all(part and (part[0].isalpha() or part[0] == "_") for part in ns.split("/")) or not all(
-        c.isalnum() or c in "_/" for c in ns
+    if (
+        not ns
+        or not all(part and (part[0].isalpha() or part[0] == "_") for part in ns.split("/"))
+        or not all(c.isalnum() or c in "_/" for c in ns)
     ):
         raise FieldbusError(
             f"namespace {namespace!r}: use letters, digits, '_' and '/' (a ROS 2 name, e.g. 'robot/legs')"

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,14 +26,18 @@ from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
-from fieldbus.dds.participant import RELIABLE, REALTIME, Participant, service_names, topic_names
+from fieldbus.dds.participant import REALTIME, RELIABLE, Participant, service_names, topic_names
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
 
 # command fields -> the output channel they drive: a CiA 402 object, else a channel of that name (MIT maps)
 OUTPUT_ROLES = {"position": 0x607A, "velocity": 0x60FF, "torque": 0x6071, "kp": None, "kd": None}
 # JointState fields <- the input channel they come from
-INPUT_ROLES = {"position": (0x6064, "position"), "velocity": (0x606C, "velocity"), "effort": (0x6077, "torque")}
+INPUT_ROLES = {
+    "position": (0x6064, "position"),
+    "velocity": (0x606C, "velocity"),
+    "effort": (0x6077, "torque"),
+}
 MODES_OUT, MODES_DISPLAY = 0x6060, 0x6061
 ENABLE_TIMEOUT_CYCLES = 3000
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
@@ -44,7 +48,7 @@ class ServeOptions:
     """How a bus is served: names, deadline (cycles), publishing rates (every n-th cycle)."""
 
     namespace: str
-    deadline: Deadline = Deadline()
+    deadline: Deadline = field(default_factory=Deadline)
     publish_every: int = 1
     diagnostics_every: int = 1000
 
@@ -75,7 +79,7 @@ def _unscaled(image: ProcessImage, direction: str, index: int) -> str | None:
 
 
 def _dtype_fields(values: npt.NDArray[Any]) -> list[list[str]]:
-    fields = values.dtype.fields or {}
+    fields: dict[str, Any] = dict(values.dtype.fields or {})
     return [[name, fields[name][0].str] for name in values.dtype.names or ()]
 
 
@@ -204,7 +208,8 @@ class BusServer:
         self.participant = participant
         self.options = options
         self.groups: dict[str, ServedGroup] = {
-            name: ServedGroup(self, name, g.image, tuple(s.name for s in g.slaves)) for name, g in net.groups.items()
+            name: ServedGroup(self, name, g.image, tuple(s.name for s in g.slaves))
+            for name, g in net.groups.items()
         }
         dp = participant.dp
         names = service_names(options.namespace)
@@ -333,10 +338,17 @@ class BusServer:
                 m.KeyValue("dropped_sequences", str(gate.dropped)),
                 m.KeyValue("refused_commands", str(gate.refused)),
             ]
-            values += [m.KeyValue(f"{axis}/drive_state", _state_name(s)) for axis, s in zip(g.axes, states)]
+            values += [
+                m.KeyValue(f"{axis}/drive_state", _state_name(s))
+                for axis, s in zip(g.axes, states, strict=False)
+            ]
             status.append(
                 m.DiagnosticStatus(
-                    level=level, name=f"fieldbus/{g.name}", message=gate.state.name, hardware_id=g.name, values=values
+                    level=level,
+                    name=f"fieldbus/{g.name}",
+                    message=gate.state.name,
+                    hardware_id=g.name,
+                    values=values,
                 )
             )
         return m.DiagnosticArray(header=m.Header(stamp=_stamp(time.time_ns())), status=status)

@@ -79,8 +79,24 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
         "count: 3}]\n"
     )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "fieldbus", "serve", str(net), "--backend", "sim", "--domain", str(domain)]
-        + ["--interface", "lo", "--hold-after", str(HOLD_AFTER), "--stop-after", str(STOP_AFTER), "--json"],
+        [
+            sys.executable,
+            "-m",
+            "fieldbus",
+            "serve",
+            str(net),
+            "--backend",
+            "sim",
+            "--domain",
+            str(domain),
+            "--interface",
+            "lo",
+            "--hold-after",
+            str(HOLD_AFTER),
+            "--stop-after",
+            str(STOP_AFTER),
+            "--json",
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -110,7 +126,9 @@ def test_trajectory_from_another_process_and_a_second_controller_is_refused(
     proc = _client(served, "controller-a", 1500, env)
     try:
         assert _read_line(proc, 60) == {"commanding": True}
-        with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="controller-b") as other:
+        with fieldbus.remote.connect(
+            "robot", domain=served, interface="lo", client_id="controller-b"
+        ) as other:
             with pytest.raises(ClaimError, match="controller-a"):
                 other.claim("joints")
             with pytest.raises(ClaimError):
@@ -185,7 +203,9 @@ def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
             proc.wait()
 
 
-def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(served: int, env: dict[str, str]) -> None:
+def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
+    served: int, env: dict[str, str]
+) -> None:
     peer = subprocess.run(
         [sys.executable, str(HERE / "ros2_peer.py"), "robot", "joints", str(served), "0.2"],
         capture_output=True,
