@@ -44,6 +44,7 @@ COMMANDS = (
     "plot",
     "report",
     "import_",
+    "serve",
 )
 
 DESCRIPTION = """\

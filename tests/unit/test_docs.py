@@ -28,7 +28,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 DOCS = REPO / "docs"
 PAGES = [*sorted(DOCS.glob("*.md")), REPO / "README.md"]
-PUBLIC_MODULES = ("fieldbus", "fieldbus.testing", "fieldbus.recording")
+PUBLIC_MODULES = ("fieldbus", "fieldbus.testing", "fieldbus.recording", "fieldbus.remote")
 MARKER = re.compile(r"<!--\s*doc-test:\s*(?P<key>[a-z ]+?)\s*(?::\s*(?P<value>.*?))?\s*-->")
 FILE_COMMENT = re.compile(r"#\s*([\w.-]+\.ya?ml)\s*$")
 

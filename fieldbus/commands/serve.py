@@ -1,0 +1,144 @@
+"""``fieldbus serve NETWORK.yaml``: run a network's cycle and serve it over Cyclone DDS (ROS 2 names).
+
+Per axis group, every cycle (or every n-th): ``sensor_msgs/JointState`` on
+``rt/<namespace>/<group>/joint_states`` and ``fieldbus_msgs/AxisState`` on
+``.../axis_state``; commands (``fieldbus_msgs/JointCommand``) from ``.../command``.
+Requests (claim, release, enable, disable, clear_safe_stop, describe) on
+``rt/<namespace>/request``, answers on ``rt/<namespace>/reply``; diagnostics
+(``diagnostic_msgs/DiagnosticArray``) on ``rt/<namespace>/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from types import FrameType
+from typing import Any
+
+from fieldbus.commands import cycleopts
+
+HELP_EPILOG = """DDS domain and network interface:
+  --domain N      the DDS domain id; default $ROS_DOMAIN_ID (as ROS 2 does), else 0
+  --interface IF  the one network interface DDS uses (e.g. eth0); 'lo' also turns multicast off and
+                  discovers peers by unicast on 127.0.0.1 (loopback has no multicast). Without it,
+                  Cyclone DDS chooses, and $CYCLONEDDS_URI (XML text or file) configures it as usual.
+  --peer ADDR     a unicast discovery peer (repeat it); for networks without multicast
+
+command safety (cycles of this bus):
+  no new command for --hold-after cycles: HOLD (the last command stays applied);
+  for --stop-after cycles: SAFE STOP (the group's safe outputs), latched until the owner sends
+  clear_safe_stop. One client owns a group (claim); others are refused. A sequence number that does
+  not increase is dropped and counted.
+
+exit codes:
+  0  stopped by SIGTERM or after --cycles
+  1  bring-up, file or argument error (the message names file, drive, object)
+  130 interrupted (Ctrl-C); the drives were stopped and the buses closed"""
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "serve",
+        help="run a network's cycle and serve it over DDS (ROS 2 compatible)",
+        description="Run a network's cycle and serve it over Cyclone DDS, with ROS 2 type and topic names.",
+        epilog=HELP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("network", metavar="NETWORK.yaml")
+    p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
+    p.add_argument("--namespace", help="topic namespace (default: the network's name)")
+    p.add_argument("--domain", type=int, metavar="N", help="DDS domain id (see below)")
+    p.add_argument("--interface", metavar="IF", help="network interface for DDS (see below)")
+    p.add_argument("--peer", action="append", default=[], metavar="ADDR", help="unicast discovery peer")
+    p.add_argument("--cycles", type=int, default=0, help="stop after N cycles (default 0: until SIGTERM)")
+    p.add_argument("--publish-every", type=int, default=1, metavar="N", help="publish state every N-th cycle")
+    p.add_argument(
+        "--diagnostics-every", type=int, default=1000, metavar="N", help="diagnostics every N cycles"
+    )
+    p.add_argument("--hold-after", type=int, default=20, metavar="N", help="cycles without a command: hold")
+    p.add_argument(
+        "--stop-after", type=int, default=200, metavar="M", help="cycles without a command: safe stop"
+    )
+    p.add_argument("--json", action="store_true", help="ready line and final report as JSON objects")
+    cycleopts.add_arguments(p, plot=False)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fieldbus import dds
+
+    dds.require()
+    from fieldbus.core.network import load_network
+    from fieldbus.dds.gate import Deadline
+    from fieldbus.dds.participant import Participant, check_namespace
+    from fieldbus.dds.server import BusServer, ServeOptions
+    from fieldbus.errors import FieldbusError
+    from fieldbus.network import open_network
+    from fieldbus.runtime.report import run_report
+
+    if args.cycles < 0:
+        raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")
+    model = load_network(args.network)
+    options = ServeOptions(
+        namespace=check_namespace(args.namespace or model.name),
+        deadline=Deadline(args.hold_after, args.stop_after),
+        publish_every=args.publish_every,
+        diagnostics_every=args.diagnostics_every,
+    )
+    participant = Participant(args.domain, args.interface, args.peer)
+    cycleopts.check_record(args)
+    stopping = False
+
+    def on_term(_sig: int, _frame: FrameType | None) -> None:
+        nonlocal stopping
+        stopping = True
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with open_network(model, backend=args.backend) as net, cycleopts.rt_context(args):
+            server = BusServer(net, participant, options)
+            op = net.bring_up()
+            server.attach(op)
+            cycleopts.start_recording(op, args)
+            ready = {
+                "ready": True,
+                "namespace": options.namespace,
+                "domain": participant.domain_id,
+                "groups": {n: g.topics for n, g in server.groups.items()},
+            }
+            print(
+                json.dumps(ready)
+                if args.json
+                else f"serving '{options.namespace}' on DDS domain "
+                f"{participant.domain_id}: {', '.join(server.groups)} (ready)",
+                flush=True,
+            )
+
+            def step(k: int) -> bool:
+                server.step(k)
+                return stopping
+
+            period = float(op.cycle_time_us)
+            timer, _ = cycleopts.run_timed(op, step, period, args.cycles or sys.maxsize, status=False)
+            report = run_report(op, timer, period)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    report["groups"] = {
+        n: {
+            "owner": g.gate.owner,
+            "gate": g.gate.state.name,
+            "dropped": g.gate.dropped,
+            "refused": g.gate.refused,
+        }
+        for n, g in server.groups.items()
+    }
+    report["requests"] = server.requests
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(
+            f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
+        )
+    return 0

@@ -1,0 +1,144 @@
+"""The door for commands that come from another process: one owner, ordered sequences, a deadline.
+
+Pure and counted in cycles (no clock, no DDS): :class:`CommandGate` decides,
+once per bus cycle, whether a group's newest command is applied, held or
+replaced by the safe stop. The rules (``docs/dds.md``):
+
+- **one owner**: a client commands a group only after ``claim``; a second
+  client's claim is refused (:class:`ClaimError`) while the owner is alive,
+  i.e. until the owner's deadline has latched the safe stop; commands from
+  anyone but the owner are refused and counted.
+- **ordered**: a sequence number not above the owner's last one is dropped and
+  counted (a late or duplicated sample; a new claim starts a new sequence).
+- **deadline**: after the first command, ``hold_after`` cycles with no new one
+  put the group in HOLD (the last command stays applied); ``stop_after``
+  cycles latch SAFE_STOP (the group's safe outputs every cycle), which only an
+  explicit :meth:`CommandGate.clear` by the owner opens.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+from fieldbus.errors import FieldbusError
+
+VERBS = ("describe", "claim", "release", "enable", "disable", "clear_safe_stop")
+"""What a :class:`~fieldbus.dds.messages.Request` may ask."""
+
+
+class ClaimError(FieldbusError):
+    """A client may not command this group: another client owns it, or this one has not claimed it."""
+
+
+class GateState(IntEnum):
+    """A group's command state as published in ``AxisState.gate``."""
+
+    IDLE = 0  # no command since the claim (or since the last clear)
+    COMMANDED = 1  # the newest command is younger than hold_after cycles
+    HOLD = 2  # no new command for hold_after cycles: the last one stays applied
+    SAFE_STOP = 3  # no new command for stop_after cycles: safe outputs, latched until clear
+
+
+@dataclass(frozen=True)
+class Deadline:
+    """Cycles without a new command before HOLD and before SAFE_STOP (``1 <= hold_after < stop_after``)."""
+
+    hold_after: int = 20
+    stop_after: int = 200
+
+    def __post_init__(self) -> None:
+        for what, v in (("hold_after", self.hold_after), ("stop_after", self.stop_after)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise FieldbusError(
+                    f"command deadline {what} must be a whole number of cycles >= 1, not {v!r}"
+                )
+        if self.stop_after <= self.hold_after:
+            raise FieldbusError(
+                f"command deadline stop_after ({self.stop_after}) must be more cycles than hold_after "
+                f"({self.hold_after})"
+            )
+
+
+class CommandGate:
+    """One axis group's command door; call :meth:`offer` for each command received, then :meth:`tick` once."""
+
+    def __init__(self, deadline: Deadline) -> None:
+        self.deadline = deadline
+        self.owner: str | None = None
+        self.state = GateState.IDLE
+        self.last_sequence = 0  # the owner's newest accepted sequence number
+        self.applied_sequence = 0  # the newest command applied to the outputs (0: none)
+        self.age = 0  # cycles since the newest accepted command
+        self.dropped = 0  # commands dropped because their sequence number did not increase
+        self.refused = 0  # commands from a client that does not own the group
+        self._fresh = False  # a command was accepted since the last tick
+
+    @property
+    def latched(self) -> bool:
+        return self.state is GateState.SAFE_STOP
+
+    def claim(self, client: str) -> None:
+        """Make ``client`` the owner; :class:`ClaimError` while another live client owns the group."""
+        if self.owner == client:
+            return
+        if self.owner is not None and not self.latched:
+            raise ClaimError(f"the group is commanded by client '{self.owner}': claim refused")
+        self.owner = client
+        self.last_sequence = 0
+        self._fresh = False
+
+    def release(self, client: str) -> None:
+        """``client`` gives the group up; the last command stays applied, with no deadline (IDLE)."""
+        self._check_owner(client)
+        self.owner = None
+        if not self.latched:
+            self.state = GateState.IDLE
+        self._fresh = False
+
+    def check_owner(self, client: str) -> None:
+        """:class:`ClaimError` unless ``client`` owns the group."""
+        self._check_owner(client)
+
+    def _check_owner(self, client: str) -> None:
+        if self.owner != client:
+            held = f"owned by client '{self.owner}'" if self.owner is not None else "not claimed"
+            raise ClaimError(f"client '{client}' has not claimed the group ({held})")
+
+    def offer(self, client: str, sequence: int) -> bool:
+        """A command arrived; True when it is to be applied now (owner, newer, not latched)."""
+        if client != self.owner:
+            self.refused += 1
+            return False
+        if sequence <= self.last_sequence:
+            self.dropped += 1
+            return False
+        self.last_sequence = sequence
+        if self.latched:
+            return False
+        self.applied_sequence = sequence
+        self._fresh = True
+        return True
+
+    def tick(self) -> GateState:
+        """End of this cycle's offers: advance the deadline; returns the state for this cycle."""
+        if self.latched:
+            return self.state
+        if self._fresh:
+            self._fresh = False
+            self.age = 0
+            self.state = GateState.COMMANDED
+        elif self.state is not GateState.IDLE:
+            self.age += 1
+            if self.age >= self.deadline.stop_after:
+                self.state = GateState.SAFE_STOP
+            elif self.age >= self.deadline.hold_after:
+                self.state = GateState.HOLD
+        return self.state
+
+    def clear(self, client: str) -> None:
+        """The owner opens the latch; the group is IDLE until its next command."""
+        self._check_owner(client)
+        self.state = GateState.IDLE
+        self.age = 0
+        self._fresh = False

@@ -1,0 +1,361 @@
+"""The served bus: one axis-group state out and one command in per cycle, over DDS, in the cycle's thread.
+
+:class:`BusServer` wraps a running :class:`fieldbus.Operational`. Its
+:meth:`BusServer.step` is the cycle: answer requests, take the newest
+commands, pass them through each group's :class:`~fieldbus.dds.gate.CommandGate`,
+step the CiA 402 state machine, ``exchange()``, publish. Every DDS entity is
+created and used in the thread that runs the cycle.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+
+from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
+from fieldbus.core.safestop import SafeStopWriter
+from fieldbus.dds import messages as m
+from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
+from fieldbus.dds.participant import REALTIME, RELIABLE, Participant, service_names, topic_names
+from fieldbus.errors import FieldbusError
+from fieldbus.network import CycleResult, Network, Operational
+
+# command fields -> the output channel they drive: a CiA 402 object, else a channel of that name (MIT maps)
+OUTPUT_ROLES = {"position": 0x607A, "velocity": 0x60FF, "torque": 0x6071, "kp": None, "kd": None}
+# JointState fields <- the input channel they come from
+INPUT_ROLES = {
+    "position": (0x6064, "position"),
+    "velocity": (0x606C, "velocity"),
+    "effort": (0x6077, "torque"),
+}
+MODES_OUT, MODES_DISPLAY = 0x6060, 0x6061
+ENABLE_TIMEOUT_CYCLES = 3000
+LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    """How a bus is served: names, deadline (cycles), publishing rates (every n-th cycle)."""
+
+    namespace: str
+    deadline: Deadline = field(default_factory=Deadline)
+    publish_every: int = 1
+    diagnostics_every: int = 1000
+
+    def __post_init__(self) -> None:
+        for what, v in (("publish_every", self.publish_every), ("diagnostics_every", self.diagnostics_every)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise FieldbusError(f"{what} must be a whole number of cycles >= 1, not {v!r}")
+
+
+def _stamp(ns: int) -> m.Time:
+    return m.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def _channel(image: ProcessImage, direction: str, index: int | None, name: str) -> str | None:
+    """The scaled channel mapping ``index`` (CiA 402), else the channel called ``name``, else None."""
+    lay = image.layout.outputs if direction == "out" else image.layout.inputs
+    if index is not None:
+        e = lay.find(index)
+        if e is not None:
+            return e.name
+    return name if name in lay.names else None
+
+
+def _unscaled(image: ProcessImage, direction: str, index: int) -> str | None:
+    lay = image.layout.outputs if direction == "out" else image.layout.inputs
+    e = lay.find(index)
+    return e.name if e is not None and not e.channel.scaled else None
+
+
+def _dtype_fields(values: npt.NDArray[Any]) -> list[list[str]]:
+    fields: dict[str, Any] = dict(values.dtype.fields or {})
+    return [[name, fields[name][0].str] for name in values.dtype.names or ()]
+
+
+class ServedGroup:
+    """One axis group as served: its gate, its CiA 402 controller, its messages and topics."""
+
+    def __init__(
+        self,
+        server: BusServer,
+        name: str,
+        image: ProcessImage,
+        axes: tuple[str, ...],
+    ) -> None:
+        self.name = name
+        self.image = image
+        self.axes = axes
+        self.n = len(axes)
+        self.fresh = np.zeros(self.n, dtype=bool)  # the bus's per-slave freshness rows, from attach()
+        self.writer: SafeStopWriter | None = None  # the group's safe outputs, from attach()
+        self.gate = CommandGate(server.options.deadline)
+        out, inp = image.outputs, image.inputs
+        self.out_roles = {r: c for r, i in OUTPUT_ROLES.items() if (c := _channel(image, "out", i, r))}
+        self.in_roles = {r: c for r, (i, n) in INPUT_ROLES.items() if (c := _channel(image, "in", i, n))}
+        self.input_names = list(inp.values.dtype.names or ())
+        self._inputs = np.zeros((self.n, len(self.input_names)))
+        cw, sw = _unscaled(image, "out", CONTROLWORD), _unscaled(image, "in", STATUSWORD)
+        self.ctrl: Cia402Controller | None = None
+        self._cia: tuple[Any, ...] = ()
+        if cw is not None and sw is not None:
+            mo, md = _unscaled(image, "out", MODES_OUT), _unscaled(image, "in", MODES_DISPLAY)
+            mode = Mode(int(out.values[mo][0])) if mo is not None and int(out.values[mo][0]) else Mode.CSP
+            self.ctrl = Cia402Controller(self.n, mode=mode, timeout_cycles=ENABLE_TIMEOUT_CYCLES)
+            self._cia = (
+                inp.values[sw],
+                out.values[cw],
+                inp.values[md] if md is not None else None,
+                out.values[mo] if mo is not None else None,
+            )
+        self.no_state = np.full(self.n, -1, dtype=np.int8)
+        topics = topic_names(server.options.namespace, name)
+        dp = server.participant.dp
+        self.js_writer = DataWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
+        self.st_writer = DataWriter(dp, Topic(dp, topics["axis_state"], m.AxisState), qos=REALTIME)
+        self.cmd_reader = DataReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=REALTIME)
+        self.topics = topics
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "axes": list(self.axes),
+            "inputs": _dtype_fields(self.image.inputs.values),
+            "outputs": _dtype_fields(self.image.outputs.values),
+            "command": self.out_roles,
+            "joint_state": self.in_roles,
+            "cia402": self.ctrl is not None,
+            "topics": self.topics,
+        }
+
+    # -- the cycle, before exchange() --
+    def take_commands(self) -> None:
+        """Offer every command received since the last cycle to the gate; apply the newest accepted one."""
+        newest: m.JointCommand | None = None
+        for cmd in self.cmd_reader.take(N=64):
+            if not isinstance(cmd, m.JointCommand):
+                continue  # an instance disposed by a departed writer
+            if any(len(getattr(cmd, r)) not in (0, self.n) for r in OUTPUT_ROLES):
+                self.gate.refused += 1
+                continue
+            if self.gate.offer(cmd.client_id, cmd.sequence):
+                newest = cmd
+        if newest is not None:
+            out = self.image.outputs.values
+            for role, chan in self.out_roles.items():
+                seq = getattr(newest, role)
+                if seq:
+                    out[chan] = seq
+
+    def before_exchange(self) -> None:
+        was = self.gate.state
+        state = self.gate.tick()
+        if state is GateState.SAFE_STOP and was is not GateState.SAFE_STOP and self.ctrl is not None:
+            self.ctrl.set_goal(Goal.DISABLE)  # after a clear the drives stay off until asked to enable
+        if self.ctrl is not None:
+            self.ctrl.step(*self._cia)
+        pos_out, pos_in = self.out_roles.get("position"), self.in_roles.get("position")
+        if state is GateState.IDLE and pos_out is not None and pos_in is not None:
+            # no command yet: the target follows the joint, so an enable or a first command starts from here
+            self.image.outputs.values[pos_out] = self.image.inputs.values[pos_in]
+        if state is GateState.SAFE_STOP and self.writer is not None:
+            self.writer.apply()
+
+    # -- after exchange() --
+    def publish(self, res: CycleResult, stamp_ns: int) -> None:
+        inp = self.image.inputs.values
+        header = m.Header(stamp=_stamp(stamp_ns), frame_id="")
+        js = m.JointState(header=header, name=list(self.axes))
+        for field_name, chan in self.in_roles.items():
+            setattr(js, field_name, inp[chan].astype(np.float64).tolist())
+        self.js_writer.write(js)
+        for j, name in enumerate(self.input_names):
+            self._inputs[:, j] = inp[name]
+        g = self.gate
+        st = m.AxisState(
+            header=header,
+            cycle=res.cycle,
+            fresh=self.fresh.tolist(),
+            drive_state=(self.ctrl.state if self.ctrl is not None else self.no_state).tolist(),
+            inputs=self._inputs.ravel().tolist(),
+            all_fresh=bool(self.fresh.all()),
+            safe_stop=res.safe_stop or g.latched,
+            gate=int(g.state),
+            command_sequence=g.applied_sequence,
+            command_age=g.age,
+            owner=g.owner or "",
+            dropped_sequences=g.dropped,
+            refused_commands=g.refused,
+        )
+        self.st_writer.write(st)
+
+
+class BusServer:
+    """Serve a network over DDS: create it before bring-up (topics take a while to create: the slaves'
+    watchdogs would expire), :meth:`attach` the running phase, then call :meth:`step` once per cycle."""
+
+    def __init__(self, net: Network, participant: Participant, options: ServeOptions) -> None:
+        self._op: Operational | None = None
+        self.participant = participant
+        self.options = options
+        self.groups: dict[str, ServedGroup] = {
+            name: ServedGroup(self, name, g.image, tuple(s.name for s in g.slaves))
+            for name, g in net.groups.items()
+        }
+        dp = participant.dp
+        names = service_names(options.namespace)
+        self.req_reader = DataReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
+        self.reply_writer = DataWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
+        self.diag_writer = DataWriter(dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=RELIABLE)
+        self.requests = 0
+
+    def attach(self, op: Operational) -> None:
+        """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
+        for bv in op.buses:
+            for g in bv.backend.groups:
+                served = self.groups[g.name]
+                served.fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
+                served.writer = op.safe_stops[g.name]
+        self._op = op
+
+    @property
+    def op(self) -> Operational:
+        if self._op is None:
+            raise FieldbusError("BusServer.attach(op) first: the network is not up")
+        return self._op
+
+    def describe(self) -> dict[str, Any]:
+        o = self.options
+        return {
+            "namespace": o.namespace,
+            "cycle_time_us": self.op.cycle_time_us,
+            "publish_every": o.publish_every,
+            "hold_after": o.deadline.hold_after,
+            "stop_after": o.deadline.stop_after,
+            "groups": {name: g.describe() for name, g in self.groups.items()},
+        }
+
+    def step(self, k: int) -> bool:
+        """One cycle: requests, commands, gates, ``exchange()``, publish (every n-th cycle). Never stops early."""
+        for req in self.req_reader.take(N=16):
+            if isinstance(req, m.Request):
+                self._answer(req)
+        for g in self.groups.values():
+            g.take_commands()
+            g.before_exchange()
+        res = self.op.exchange()
+        o = self.options
+        if k % o.publish_every == 0:
+            now = time.time_ns()
+            for g in self.groups.values():
+                g.publish(res, now)
+        if k % o.diagnostics_every == 0:
+            self.diag_writer.write(self.diagnostics())
+        return False
+
+    def _answer(self, req: m.Request) -> None:
+        self.requests += 1
+        reply = m.Reply(client_id=req.client_id, request_id=req.request_id, ok=True)
+        try:
+            detail = self._do(req)
+            reply.detail = json.dumps(detail) if detail is not None else ""
+        except FieldbusError as exc:
+            reply.ok = False
+            reply.error = f"{type(exc).__name__}: {exc}"
+        self.reply_writer.write(reply)
+
+    def _do(self, req: m.Request) -> dict[str, Any] | None:
+        verb = req.verb
+        if verb not in VERBS:
+            raise FieldbusError(f"unknown request '{verb}' (have: {', '.join(VERBS)})")
+        if verb == "describe":
+            return self.describe()
+        g = self.groups.get(req.group)
+        if g is None:
+            raise FieldbusError(f"no axis group '{req.group}' (have: {', '.join(self.groups)})")
+        client = req.client_id
+        if not client:
+            raise ClaimError("a request needs a client_id")
+        gate = g.gate
+        if verb == "claim":
+            gate.claim(client)
+        elif verb == "release":
+            gate.release(client)
+        elif verb == "disable":  # anyone may stop the drives
+            self._cia402(g).set_goal(Goal.DISABLE)
+        elif verb == "enable":
+            gate.check_owner(client)
+            if gate.latched or self.op.result.safe_stop:
+                raise FieldbusError("safe stop latched: send clear_safe_stop first")
+            self._cia402(g).set_goal(Goal.ENABLE)
+        elif verb == "clear_safe_stop":
+            gate.check_owner(client)
+            if self.op.result.safe_stop:
+                self.op.clear_safe_stop()  # SafeStopClearError while a bus is still missing
+            gate.clear(client)
+        return None
+
+    @staticmethod
+    def _cia402(g: ServedGroup) -> Cia402Controller:
+        if g.ctrl is None:
+            raise FieldbusError(f"group '{g.name}' has no CiA 402 drives (no controlword/statusword)")
+        return g.ctrl
+
+    def diagnostics(self) -> m.DiagnosticArray:
+        """Per bus its verdict and counters, per group its gate, owner and drive states."""
+        status = []
+        for bv in self.op.buses:
+            st = bv.status
+            level = LEVEL_ERROR if st.safe_stop else LEVEL_OK if st.verdict.name == "OK" else LEVEL_WARN
+            values = [m.KeyValue(k, str(v)) for k, v in bv.counters().items()]
+            if st.last_error:
+                values.append(m.KeyValue("last_error", st.last_error))
+            status.append(
+                m.DiagnosticStatus(
+                    level=level,
+                    name=f"fieldbus/{bv.name}",
+                    message=f"{st.verdict.name}{' safe stop' if st.safe_stop else ''}",
+                    hardware_id=bv.kind,
+                    values=values,
+                )
+            )
+        for g in self.groups.values():
+            gate = g.gate
+            states = g.ctrl.state.tolist() if g.ctrl is not None else []
+            level = LEVEL_ERROR if gate.latched else LEVEL_WARN if gate.state is GateState.HOLD else LEVEL_OK
+            values = [
+                m.KeyValue("owner", gate.owner or ""),
+                m.KeyValue("command_sequence", str(gate.applied_sequence)),
+                m.KeyValue("dropped_sequences", str(gate.dropped)),
+                m.KeyValue("refused_commands", str(gate.refused)),
+            ]
+            values += [
+                m.KeyValue(f"{axis}/drive_state", _state_name(s))
+                for axis, s in zip(g.axes, states, strict=False)
+            ]
+            status.append(
+                m.DiagnosticStatus(
+                    level=level,
+                    name=f"fieldbus/{g.name}",
+                    message=gate.state.name,
+                    hardware_id=g.name,
+                    values=values,
+                )
+            )
+        return m.DiagnosticArray(header=m.Header(stamp=_stamp(time.time_ns())), status=status)
+
+
+def _state_name(code: int) -> str:
+    try:
+        return State402(code).name
+    except ValueError:
+        return "UNKNOWN"

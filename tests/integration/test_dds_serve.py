@@ -1,0 +1,223 @@
+"""``fieldbus serve`` on the sim emulator and its clients, each in its own process, over DDS on loopback.
+
+Every assertion about the command deadline is in the served bus's cycles (the
+cycle numbers and command ages in its published states), never in wall time.
+The ROS 2 peer test is judged with a peer that imports cyclonedds and the
+message definitions only, not fieldbus.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fieldbus.remote
+from fieldbus.dds.gate import ClaimError, GateState
+from fieldbus.dds.participant import interface_config
+
+HERE = Path(__file__).resolve().parent / "dds"
+DEMO_JOINT = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"
+HOLD_AFTER, STOP_AFTER = 50, 400
+LOOPBACK = interface_config("lo")
+assert LOOPBACK is not None
+
+
+def _domain(salt: int) -> int:
+    """A DDS domain of this test run's own: other runs on the machine use others."""
+    return 1 + (os.getpid() * 7 + salt) % 200
+
+
+def _read_line(proc: subprocess.Popen[str], timeout_s: float) -> dict[str, object]:
+    """The next JSON line of ``proc``'s stdout; fails with its stderr when none comes."""
+    assert proc.stdout is not None
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        ready, _, _ = select.select([proc.stdout], [], [], 0.2)
+        if ready:
+            line = proc.stdout.readline()
+            if line.strip().startswith("{"):
+                return dict(json.loads(line))
+            if not line and proc.poll() is not None:
+                break
+    err = proc.stderr.read() if proc.stderr is not None and proc.poll() is not None else "(still running)"
+    pytest.fail(f"no JSON line from {proc.args!r} within {timeout_s} s; stderr: {err}")
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.fixture
+def env() -> dict[str, str]:
+    return {**os.environ, "CYCLONEDDS_URI": LOOPBACK}
+
+
+@pytest.fixture
+def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) -> Iterator[int]:
+    """``fieldbus serve`` on 3 emulated CiA 402 joints at 1 kHz; yields its DDS domain."""
+    domain = _domain(len(request.node.name))
+    net = tmp_path / "robot.yaml"
+    net.write_text(
+        "name: robot\ncycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n  - name: joints\n"
+        f"    type: ethercat\n    interface: sim\n    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, "
+        "count: 3}]\n"
+    )
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fieldbus",
+            "serve",
+            str(net),
+            "--backend",
+            "sim",
+            "--domain",
+            str(domain),
+            "--interface",
+            "lo",
+            "--hold-after",
+            str(HOLD_AFTER),
+            "--stop-after",
+            str(STOP_AFTER),
+            "--json",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        ready = _read_line(proc, 60)
+        assert ready["ready"] is True and ready["domain"] == domain
+        yield domain
+    finally:
+        _stop(proc)
+
+
+def _client(domain: int, client: str, cycles: int, env: dict[str, str]) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, str(HERE / "remote_client.py"), "robot", str(domain), client, str(cycles)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+
+def test_trajectory_from_another_process_and_a_second_controller_is_refused(
+    served: int, env: dict[str, str]
+) -> None:
+    proc = _client(served, "controller-a", 1500, env)
+    try:
+        assert _read_line(proc, 60) == {"commanding": True}
+        with fieldbus.remote.connect(
+            "robot", domain=served, interface="lo", client_id="controller-b"
+        ) as other:
+            with pytest.raises(ClaimError, match="controller-a"):
+                other.claim("joints")
+            with pytest.raises(ClaimError):
+                other.request("enable", "joints")
+            # what B sees: the same dtypes as in-process, and A's commands being applied
+            assert other["joints"].inputs.values.dtype["position_actual_value"] == np.float64
+            res = other.exchange(deadline_s=2.0)
+            assert res.gate["joints"] in (GateState.COMMANDED, GateState.HOLD)
+            assert other["joints"].state.owner == "controller-a"
+        summary = _read_line(proc, 120)
+    finally:
+        _stop(proc)
+    assert summary["cycles"] == 1500
+    assert summary["drive_state"] == [4, 4, 4]  # OPERATION ENABLED throughout
+    assert "SAFE_STOP" not in summary["gates"]
+    # the joints followed the sine (1 - cos) of 0.5 rad: up to ~1 rad in 1.5 s, one cycle behind
+    assert float(summary["span_rad"]) > 0.9
+    assert float(summary["max_error_rad"]) < 0.05
+
+
+def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
+    served: int, env: dict[str, str]
+) -> None:
+    proc = _client(served, "controller-a", 0, env)
+    try:
+        assert _read_line(proc, 60) == {"commanding": True}
+        with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="watcher") as op:
+            for _ in range(50):
+                op.exchange(deadline_s=1.0)
+            proc.kill()  # no goodbye: the controller is gone
+            proc.wait()
+            seen: list[tuple[int, GateState, int, list[int]]] = []
+            for _ in range(20 * STOP_AFTER):
+                op.exchange(deadline_s=1.0)
+                st = op["joints"].state
+                seen.append((int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)))
+                if seen[-1][1] is GateState.SAFE_STOP and st.cycle > seen[0][0] + STOP_AFTER + 200:
+                    break
+            # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
+            after = [s for s in seen if s[1] is not GateState.COMMANDED]
+            assert after, "the gate never left COMMANDED"
+            last = {c - a for c, g, a, _ in after if g is not GateState.SAFE_STOP}
+            assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
+            (last_cmd,) = last
+            for cycle, gate, age, _ in after:
+                if cycle - last_cmd < HOLD_AFTER:
+                    assert gate is GateState.COMMANDED
+                elif cycle - last_cmd < STOP_AFTER:
+                    assert gate is GateState.HOLD, (cycle, gate, age)
+                else:
+                    assert gate is GateState.SAFE_STOP, (cycle, gate, age)
+                    assert age == STOP_AFTER  # latched: the age stops where the deadline fired
+            assert any(g is GateState.HOLD for _, g, _, _ in after)
+            assert seen[-1][1] is GateState.SAFE_STOP
+            assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
+            # a restarted controller: may claim (the owner's deadline fired), must clear before enabling
+            op.claim("joints")
+            with pytest.raises(fieldbus.remote.RemoteError, match="clear_safe_stop"):
+                op.request("enable", "joints")
+            for _ in range(STOP_AFTER // 4):
+                assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.SAFE_STOP  # still latched
+            op.clear_safe_stop("joints")
+            held = op["joints"].inputs["position_actual_value"].copy()
+            assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED  # commands count again
+            op.enable("joints")
+            assert op["joints"].drive_state.tolist() == [4, 4, 4]
+            # the claim's first command was the measured position: enabling did not move the joints
+            assert np.allclose(op["joints"].inputs["position_actual_value"], held, atol=1e-3)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
+    served: int, env: dict[str, str]
+) -> None:
+    peer = subprocess.run(
+        [sys.executable, str(HERE / "ros2_peer.py"), "robot", "joints", str(served), "0.2"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert peer.returncode == 0, peer.stderr
+    out = json.loads(peer.stdout.strip().splitlines()[-1])
+    assert out["fieldbus_imported"] == []
+    assert out["names"] == ["j0", "j1", "j2"]
+    assert out["answers"] == {"claim": [True, ""], "enable": [True, ""]}
+    # the joints went to position + 0.2 rad (within the encoder's resolution)
+    assert np.allclose(out["after"], out["goal"], atol=1e-3), out
+    assert not np.allclose(out["before"], out["goal"], atol=0.1)
