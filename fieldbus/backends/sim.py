@@ -81,7 +81,9 @@ class SimBackend(Backend):
                 "(CAN buses run on python-can's virtual interface: fieldbus demo --backend canopen|rawcan)"
             )
         super().__init__(bus, **options)
-        from sim_slaves.ethercat.chain import EscChain
+        from fieldbus.emulators import emulator_part
+
+        EscChain = emulator_part("ethercat_chain")
 
         maps = options.get("chain_maps")
         chain_maps: Sequence[DriveMap] = maps if isinstance(maps, Sequence) else [s.map for s in bus.slaves]
@@ -111,7 +113,7 @@ class SimBackend(Backend):
 
     # -- transport ----------------------------------------------------------------------
     def _transport(self, frame: bytes) -> bytes | None:
-        reply = self.chain.process(frame, self.clock())
+        reply: bytes | None = self.chain.process(frame, self.clock())
         if not self._waited(reply is None, self.chain.take_delay()):
             return None
         return reply
