@@ -303,7 +303,13 @@ def handle_control(
     if cmd == "timing":
         if times is None:
             return {"ok": False, "error": "no reply times here"}
-        answer = {"ok": True, "frames": chain.frames, "reply_us": times.to_json()}
+        answer = {
+            "ok": True,
+            "frames": chain.frames,
+            "reply_us": times.to_json(),
+            **times.settings,
+            "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
+        }
         if msg.get("reset"):
             times.reset()
         return answer
@@ -404,13 +410,16 @@ class ReplyTimes:
     on the control socket reads both (``"reset": true`` starts afresh).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, settings: dict[str, Any] | None = None) -> None:
         self.reply = LatencyHistogram(max_us=20_000)
         self.pickup = LatencyHistogram(max_us=20_000)
         self.over_1ms = 0
+        self.settings = settings or {}  # what the runner applied (scheduling, memory, collector)
 
     def reset(self) -> None:
-        self.__init__()  # type: ignore[misc]
+        self.reply = LatencyHistogram(max_us=20_000)
+        self.pickup = LatencyHistogram(max_us=20_000)
+        self.over_1ms = 0
 
     def add(self, received_ns: int, picked_ns: int, sent_ns: int) -> None:
         """One frame: kernel receipt, runner has it, reply sent (CLOCK_REALTIME ns)."""
@@ -474,6 +483,7 @@ def serve(
                 control=control,
                 collector=collector,
                 spin_ns=(RT_SPIN_NS if fifo else SPIN_NS) if spin_ns is None else spin_ns,
+                times=ReplyTimes({"realtime": applied.to_json(), "sched_fifo": fifo}),
             )
         finally:
             collector.stop()
@@ -491,9 +501,9 @@ def _serve(
     control: str | None,
     collector: IdleCollector,
     spin_ns: int,
+    times: ReplyTimes,
 ) -> None:
     sock = open_port0(iface)
-    times = ReplyTimes()
     ctl: socket.socket | None = None
     if control:
         if os.path.exists(control):
