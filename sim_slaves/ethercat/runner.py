@@ -3,6 +3,7 @@
     python -m sim_slaves.ethercat --iface IFACE (--map MAP.yaml [--map ...] [--count N] | --network NET [--bus NAME])
         [--pcap FILE] [--control PATH] [--app auto|loopback|none]
         [--drift-ppm X [--drift-seed N]] [--esc-delays-ns TP TF] [--cable-m M] [--dc-min-sample-us US]
+        [--rt-priority N|auto|off] [--cpu N] [--lock-memory auto|on|off] [--spin-us US]
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
 times; or, with ``--network``, the slaves of one EtherCAT bus of a network
@@ -55,14 +56,19 @@ A sender with a bound address gets ``{"ok": true, ...}`` or ``{"ok": false, "err
 Reply time (docs/emulator.md, "Reply time"): a master waits for each reply,
 so the runner keeps everything it can off the path from a frame's arrival to
 its reply. It sends the reply first and only then steps the drives (their
-inputs travel in the next frame either way). Python's garbage collector is
+inputs travel in the next frame either way); at SCHED_FIFO it first waits up
+to 50 µs so that a master sharing its CPU takes the reply (:class:`AfterReply`). Python's garbage collector is
 frozen after start-up and switched off; the runner collects in the gaps
 between frames instead (:class:`IdleCollector`). Where the process has
 CAP_SYS_NICE it runs at SCHED_FIFO (``--rt-priority``, default
 :data:`DEFAULT_RT_PRIORITY`; ``off`` to leave the scheduler alone), so a busy
-machine's other processes cannot keep it from waking up; ``--cpu N`` pins it,
-``--lock-memory`` locks its memory (mlockall, needs CAP_IPC_LOCK). What was
-applied and what refused is printed on stderr.
+machine's other processes cannot keep it from waking up; there it polls the
+socket only 50 µs after a reply before it sleeps (300 µs otherwise), so its
+spin does not keep a plain master off the CPU. ``--lock-memory`` (default
+``auto``: where CAP_IPC_LOCK) locks its memory and prefaults a heap (mlockall),
+``--cpu N`` pins it. What was applied and what refused is printed on stderr
+and returned by the ``timing`` control command, with the runner's own reply
+times (:class:`ReplyTimes`).
 """
 
 from __future__ import annotations
@@ -116,6 +122,7 @@ _VLAN_TAG = struct.Struct(">HH")  # TPID, TCI as on the wire
 _ECAT_ONLY = ((LDH_ABS, 0, 0, 12), (JEQ_K, 0, 1, ETHERTYPE_ECAT), (RET_K, 0, 0, 0x40000), (RET_K, 0, 0, DROP))
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
 RT_SPIN_NS = 50_000  # the same at SCHED_FIFO: shorter, the spin would keep a plain master off its CPU
+YIELD_NS = 50_000  # at SCHED_FIFO, sleep this long after a reply before the work after it (AfterReply)
 DEFAULT_RT_PRIORITY = 40  # SCHED_FIFO priority where CAP_SYS_NICE allows it
 CAP_SYS_NICE = 23  # capability numbers (linux/capability.h)
 CAP_IPC_LOCK = 14
@@ -179,6 +186,35 @@ class IdleCollector:
         gc.unfreeze()
         if self.was_enabled:
             gc.enable()
+
+
+class AfterReply:
+    """What the runner does between a reply's send and the work after it (drive step, idle work, spin).
+
+    At SCHED_FIFO that work keeps every plain process off the runner's CPU,
+    and the master woken by the reply is often placed there (the kernel puts
+    a wakee near its waker): it would wait until the work is done, 100-200 µs
+    with a few drives. ``yield`` (the default) waits up to :data:`YIELD_NS`
+    first, so the master takes its reply (a frame arriving meanwhile ends the
+    wait: the frames of one cycle follow each other); ``hold`` goes straight
+    on. (Dropping to the plain policy for the work instead was measured: on a
+    busy machine the work, and with it the next frame, then waits for
+    milliseconds.) Without SCHED_FIFO both go straight on.
+    """
+
+    def __init__(self, mode: str, sock: socket.socket | None = None) -> None:
+        if mode not in ("yield", "hold"):
+            raise ValueError(f"after a reply: 'yield' or 'hold', not {mode!r}")
+        self.mode = mode if os.sched_getscheduler(0) == os.SCHED_FIFO else "hold"
+        self.sock = sock  # the port: a frame arriving ends the wait
+
+    def replied(self) -> None:
+        """The reply is sent: let a master that shares the CPU take it (``yield``)."""
+        if self.mode == "yield":
+            if self.sock is not None:
+                select.select([self.sock], [], [], YIELD_NS / 1e9)
+            else:
+                time.sleep(YIELD_NS / 1e9)
 
 
 def reply_timing(priority: str, cpu: int | None, lock_memory: str) -> RtConfig:
@@ -466,6 +502,7 @@ def serve(
     control: str | None = None,
     timing: RtConfig | None = None,
     spin_ns: int | None = None,
+    after_reply: str = "yield",
 ) -> None:
     """Answer frames on ``iface`` until SIGTERM/SIGINT; ``timing``: real-time settings (None: none);
     ``spin_ns``: how long to poll the socket after a reply before sleeping (default :data:`SPIN_NS`)."""
@@ -484,6 +521,7 @@ def serve(
                 collector=collector,
                 spin_ns=(RT_SPIN_NS if fifo else SPIN_NS) if spin_ns is None else spin_ns,
                 times=ReplyTimes({"realtime": applied.to_json(), "sched_fifo": fifo}),
+                after=AfterReply(after_reply),
             )
         finally:
             collector.stop()
@@ -502,8 +540,10 @@ def _serve(
     collector: IdleCollector,
     spin_ns: int,
     times: ReplyTimes,
+    after: AfterReply,
 ) -> None:
     sock = open_port0(iface)
+    after.sock = sock
     ctl: socket.socket | None = None
     if control:
         if os.path.exists(control):
@@ -588,6 +628,7 @@ def _serve(
                 send(view[:m])
                 if arrived and not delay:
                     times.add(arrived, picked, wall())
+                after.replied()
                 if writer is not None:
                     writer.write(bytes(view[:m]), time.time())
                 chain.run_cycles(now)
@@ -647,7 +688,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--cpu", type=int, help="pin the runner to this CPU")
     p.add_argument(
-        "--spin-us", type=float, help="after a reply, poll the socket this long before sleeping (default 300)"
+        "--after-reply",
+        choices=("yield", "hold"),
+        default="yield",
+        help="at SCHED_FIFO, after a reply: wait up to 50 us first (default) or go straight on",
+    )
+    p.add_argument(
+        "--spin-us",
+        type=float,
+        help="after a reply, poll the socket this long before sleeping (default 300, 50 at SCHED_FIFO)",
     )
     p.add_argument(
         "--lock-memory",
@@ -702,5 +751,6 @@ def main(argv: list[str] | None = None) -> int:
         control=args.control,
         timing=reply_timing(args.rt_priority, args.cpu, args.lock_memory),
         spin_ns=None if args.spin_us is None else round(args.spin_us * 1000),
+        after_reply=args.after_reply,
     )
     return 0

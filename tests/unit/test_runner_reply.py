@@ -17,6 +17,7 @@ from sim_slaves.ethercat.runner import (
     CAP_SYS_NICE,
     DEFAULT_RT_PRIORITY,
     GC_GEN0,
+    AfterReply,
     IdleCollector,
     ReplyTimes,
     has_capability,
@@ -90,6 +91,21 @@ def test_auto_asks_for_sched_fifo_and_locked_memory_where_the_capabilities_allow
     off = reply_timing("off", 1, "off")
     assert (off.priority, off.cpu, off.lock_memory) == (None, 1, False)
     assert reply_timing("70", None, "on").priority == 70
+
+
+def test_after_a_reply_the_runner_yields_only_at_sched_fifo() -> None:
+    """A plain runner goes straight on (a master preempts it anyway); at SCHED_FIFO it waits."""
+    assert AfterReply("yield").mode == "hold" or os.sched_getscheduler(0) == os.SCHED_FIFO
+    if not has_capability(CAP_SYS_NICE):
+        return
+    old = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    try:
+        assert AfterReply("yield").mode == "yield" and AfterReply("hold").mode == "hold"
+    finally:
+        os.sched_setscheduler(0, *old)
+    with pytest.raises(ValueError, match="'yield' or 'hold'"):
+        AfterReply("plain")
 
 
 def test_reply_times_count_the_emulator_s_own_part() -> None:
