@@ -4,6 +4,7 @@
         [--pcap FILE] [--control PATH] [--app auto|loopback|none]
         [--drift-ppm X [--drift-seed N]] [--esc-delays-ns TP TF] [--cable-m M] [--dc-min-sample-us US]
         [--rt-priority N|auto|off] [--cpu N] [--lock-memory auto|on|off] [--spin-us US]
+        [--after-reply yield|hold]
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
 times; or, with ``--network``, the slaves of one EtherCAT bus of a network
@@ -57,9 +58,10 @@ Reply time (docs/emulator.md, "Reply time"): a master waits for each reply,
 so the runner keeps everything it can off the path from a frame's arrival to
 its reply. It sends the reply first and only then steps the drives (their
 inputs travel in the next frame either way); at SCHED_FIFO it first waits up
-to 50 µs so that a master sharing its CPU takes the reply (:class:`AfterReply`). Python's garbage collector is
-frozen after start-up and switched off; the runner collects in the gaps
-between frames instead (:class:`IdleCollector`). Where the process has
+to 50 µs so that a master sharing its CPU takes the reply (:class:`AfterReply`,
+``--after-reply``). Python's garbage collector is frozen after start-up and
+switched off; the runner collects in the gaps between frames instead
+(:class:`IdleCollector`). Where the process has
 CAP_SYS_NICE it runs at SCHED_FIFO (``--rt-priority``, default
 :data:`DEFAULT_RT_PRIORITY`; ``off`` to leave the scheduler alone), so a busy
 machine's other processes cannot keep it from waking up; there it polls the
@@ -123,6 +125,7 @@ _ECAT_ONLY = ((LDH_ABS, 0, 0, 12), (JEQ_K, 0, 1, ETHERTYPE_ECAT), (RET_K, 0, 0, 
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
 RT_SPIN_NS = 50_000  # the same at SCHED_FIFO: shorter, the spin would keep a plain master off its CPU
 YIELD_NS = 50_000  # at SCHED_FIFO, sleep this long after a reply before the work after it (AfterReply)
+YIELD_GAP_NS = 300_000  # ... when at least this long passed since the frame before (a paced master)
 DEFAULT_RT_PRIORITY = 40  # SCHED_FIFO priority where CAP_SYS_NICE allows it
 CAP_SYS_NICE = 23  # capability numbers (linux/capability.h)
 CAP_IPC_LOCK = 14
@@ -196,8 +199,11 @@ class AfterReply:
     a wakee near its waker): it would wait until the work is done, 100-200 µs
     with a few drives. ``yield`` (the default) waits up to :data:`YIELD_NS`
     first, so the master takes its reply (a frame arriving meanwhile ends the
-    wait: the frames of one cycle follow each other); ``hold`` goes straight
-    on. (Dropping to the plain policy for the work instead was measured: on a
+    wait: the frames of one cycle follow each other), when the frame came at
+    least :data:`YIELD_GAP_NS` after the one before: a master that paces its
+    cycle has that time to spare, one that sends flat out would only find
+    the work in front of its next frame; ``hold`` goes straight on.
+    (Dropping to the plain policy for the work instead was measured: on a
     busy machine the work, and with it the next frame, then waits for
     milliseconds.) Without SCHED_FIFO both go straight on.
     """
@@ -207,10 +213,13 @@ class AfterReply:
             raise ValueError(f"after a reply: 'yield' or 'hold', not {mode!r}")
         self.mode = mode if os.sched_getscheduler(0) == os.SCHED_FIFO else "hold"
         self.sock = sock  # the port: a frame arriving ends the wait
+        self.last_ns = 0  # when the frame before arrived (monotonic)
 
-    def replied(self) -> None:
-        """The reply is sent: let a master that shares the CPU take it (``yield``)."""
-        if self.mode == "yield":
+    def replied(self, arrived_ns: int) -> None:
+        """The reply to the frame that arrived at ``arrived_ns`` (monotonic) is sent: let a master that
+        shares the CPU take it (``yield``, a paced master)."""
+        gap, self.last_ns = arrived_ns - self.last_ns, arrived_ns
+        if self.mode == "yield" and gap >= YIELD_GAP_NS:
             if self.sock is not None:
                 select.select([self.sock], [], [], YIELD_NS / 1e9)
             else:
@@ -628,7 +637,7 @@ def _serve(
                 send(view[:m])
                 if arrived and not delay:
                     times.add(arrived, picked, wall())
-                after.replied()
+                after.replied(now)
                 if writer is not None:
                     writer.write(bytes(view[:m]), time.time())
                 chain.run_cycles(now)
