@@ -1,8 +1,9 @@
 """Per-slave emulator options of a network file: the units, limits, delays and imperfections of a real drive.
 
-A slave may carry an ``emulator:`` mapping; the built-in emulators (the
-``sim`` backend, ``python -m sim_slaves.ethercat``, the CANopen simulator
-for its part) give that drive these properties. Real hardware ignores it.
+A slave may carry an ``emulator:`` mapping; the built-in EtherCAT emulators
+(the ``sim`` backend, ``python -m sim_slaves.ethercat --network``) give that
+drive these properties (the CANopen simulator follows the map's scaling but
+takes no options yet). Real hardware ignores it.
 
 Without the mapping the emulated drive already follows its map: a map that
 scales position, velocity and torque to rad, rad/s and N·m gives it its
