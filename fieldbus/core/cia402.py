@@ -22,10 +22,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
+
+from fieldbus.errors import ChannelNameError
 
 # --------------------------------------------------------------------------- states
 
@@ -465,6 +467,58 @@ _REACHED_FLAT = CONTROLLER_REACHED.reshape(-1)
 _PULSE_FLAT = CONTROLLER_PULSE.reshape(-1)
 
 
+class DirectionLike(Protocol):
+    """One direction of a process image: named (N,) channel views."""
+
+    @property
+    def names(self) -> tuple[str, ...]: ...
+
+    def __getitem__(self, name: str) -> npt.NDArray[Any]: ...
+
+
+class ProcessImageLike(Protocol):
+    """What :meth:`Cia402Controller.step_image` needs of a group's image (a :class:`ProcessImage`)."""
+
+    @property
+    def outputs(self) -> DirectionLike: ...
+
+    @property
+    def inputs(self) -> DirectionLike: ...
+
+
+_SEEDED: tuple[tuple[Mode, str, str | None], ...] = (
+    (Mode.CSP, "target_position", "position_actual_value"),
+    (Mode.CSV, "target_velocity", "velocity_actual_value"),
+    (Mode.CST, "target_torque", None),  # torque 0: no jump whatever the load
+)
+"""Per cyclic mode: its target (master output) and the actual value it is seeded from (master input)."""
+
+
+class _ImageBinding:
+    """The channel views of one image :meth:`Cia402Controller.step_image` uses, looked up once."""
+
+    def __init__(self, img: ProcessImageLike, n_axes: int) -> None:
+        out, inp = img.outputs, img.inputs
+        self.img = img
+        for d, name in ((inp, "statusword"), (out, "controlword")):
+            if name not in d.names:
+                raise ChannelNameError(f"step_image needs a {name} channel (channels: {', '.join(d.names)})")
+        self.statusword = inp["statusword"]
+        self.controlword = out["controlword"]
+        if self.statusword.shape != (n_axes,):
+            raise ValueError(f"the image has {self.statusword.shape[0]} axes, the controller {n_axes}")
+        has_modes = "modes_of_operation" in out.names
+        self.modes_out = out["modes_of_operation"] if has_modes else None
+        has_display = "modes_of_operation_display" in inp.names
+        self.modes_display = inp["modes_of_operation_display"] if has_display else None
+        self.zero = np.zeros((), dtype=np.float64)
+        self.seeds: list[tuple[np.int8, npt.NDArray[Any], npt.NDArray[Any] | None]] = []
+        for mode, target, actual in _SEEDED:
+            if target not in out.names or (actual is not None and actual not in inp.names):
+                continue
+            self.seeds.append((np.int8(mode), out[target], None if actual is None else inp[actual]))
+
+
 class Cia402Controller:
     """Non-blocking CiA 402 master logic for ``n_axes`` drives, one table step per cycle.
 
@@ -551,6 +605,11 @@ class Cia402Controller:
         self._bit7 = np.uint16(FAULT_RESET_BIT)
         self._switch_on = np.uint16(CONTROLWORD[Trigger.SWITCH_ON])
         self._zero_i32 = np.int32(0)
+        # bumpless targets (step_image)
+        self._binding: _ImageBinding | None = None
+        self._seed = np.zeros(n, dtype=bool)
+        self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
+        self._enabled_code = np.int8(State402.OPERATION_ENABLED)
 
     # -- goals (not in the cycle's hot path, but allocation-free too) --
 
@@ -561,6 +620,11 @@ class Cia402Controller:
 
     def request_mode(self, mode: Mode | int, axes: Any = slice(None)) -> None:
         """Ask ``axes`` to switch to ``mode`` (written to modes_of_operation each :meth:`step`)."""
+        np.not_equal(self.mode_request, np.int8(int(mode)), out=self._b1)
+        self._b2.fill(False)
+        self._b2[axes] = True
+        np.logical_and(self._b1, self._b2, out=self._b1)
+        np.logical_or(self._switching, self._b1, out=self._switching)
         self.mode_request[axes] = int(mode)
         self._restart(axes)
 
@@ -678,6 +742,49 @@ class Cia402Controller:
         self._restart(slice(None))
         write_command_word(controlword_out, self.safe_stop_word)
         self._last_sm.fill(self.safe_stop_word)
+
+    # -- the whole image: bumpless targets --
+
+    def step_image(self, img: ProcessImageLike) -> None:
+        """One cycle on a group's process image: :meth:`step` plus bumpless targets.
+
+        Reads the statusword and, where the map has them, modes_of_operation_display
+        and the actual values (master inputs); writes the controlword and
+        modes_of_operation (master outputs) as :meth:`step` does. Then, per axis,
+        the target of the requested mode is **seeded from the actual value**
+        (target_position <- position_actual_value in CSP, target_velocity <-
+        velocity_actual_value in CSV, target_torque <- 0 in CST) while the axis
+        is not OPERATION ENABLED, on the cycle it is first seen enabled, and on
+        every cycle of a mode switch (from :meth:`request_mode` until the display
+        shows the new mode). A user who writes nothing yet holds the axis where
+        it is; a target the user writes after this call takes over from then on.
+        Channels are found by their CiA 402 names; a mode whose target (or, for
+        CSP/CSV, actual value) is not in the image is left alone. Values are
+        copied in the image's units: the target and the actual value must share
+        a unit (both counts, or both rad...), as the map loader checks for the
+        shipped maps. Allocation-free after the first call on an image.
+        """
+        b = self._binding
+        if b is None or b.img is not img:
+            b = self._binding = _ImageBinding(img, self.n_axes)
+        self.step(b.statusword, b.controlword, b.modes_display, b.modes_out)
+        seed = self._seed
+        np.not_equal(self.state, self._enabled_code, out=seed)
+        np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
+        np.logical_or(seed, self._switching, out=seed)
+        if b.modes_display is not None:
+            np.logical_and(self._switching, self._goal_not_enable, out=self._b1)  # nothing to wait for
+            np.logical_or(self._b1, self.mode_ok, out=self._b1)
+        else:
+            self._b1.fill(True)
+        np.greater(self._switching, self._b1, out=self._switching)  # done once the display follows
+        for mode, target, actual in b.seeds:
+            np.equal(self.mode_request, mode, out=self._b2)
+            np.logical_and(self._b2, seed, out=self._b2)
+            if actual is None:
+                np.copyto(target, b.zero, where=self._b2)
+            else:
+                np.copyto(target, actual, where=self._b2, casting="unsafe")
 
     @property
     def all_reached(self) -> bool:
