@@ -795,3 +795,124 @@ class Cia402Controller:
     def any_stuck(self) -> bool:
         """Some axis made no progress for more than ``timeout_cycles`` cycles."""
         return bool(self.stuck.any())
+
+
+# --------------------------------------------------------------------------- homing
+
+
+class HomingPhase(IntEnum):
+    """Where each axis is in :class:`Homing` (per-axis codes in :attr:`Homing.phase`)."""
+
+    IDLE = 0  # not asked to home (or never)
+    WAIT = 1  # HOMING requested; waiting for OPERATION ENABLED in mode 6
+    ARMED = 2  # bit 4 low for one cycle, so the next cycle is a rising edge
+    RUNNING = 3  # bit 4 high; watching statusword bits 10/12/13
+    DONE = 4  # homing attained (bits 12 and 10); back in the previous mode
+    FAILED = 5  # homing error (bit 13); back in the previous mode
+    TIMED_OUT = 6  # no result within timeout_cycles; bit 4 dropped (interrupts it), previous mode
+
+
+HOMING_START_BIT = 0x0010  # controlword bit 4 in homing mode (master output): rising edge starts
+HOMING_ATTAINED = 0x1000  # statusword bit 12 in homing mode (master input)
+HOMING_ERROR = 0x2000  # statusword bit 13 in homing mode (master input)
+
+
+class Homing:
+    """Non-blocking, per-axis homing on top of a :class:`Cia402Controller`, one step per cycle.
+
+    :meth:`start` switches the axes to HOMING (mode 6); each :meth:`step`, called
+    right after the controller's step with the same arrays, gives each axis's
+    controlword bit 4 a rising edge once the axis is OPERATION ENABLED in mode 6,
+    then follows statusword bits 12 (attained, with 10) and 13 (error). When an
+    axis is done, failed or took more than ``timeout_cycles`` cycles, bit 4 drops
+    and the axis goes back to the mode it had before :meth:`start`. The homing
+    parameters (0x6098 method, 0x607C offset, 0x6099 speeds, 0x609A acceleration)
+    are configuration, written at bring-up from the drive map's ``homing:``
+    section. Axes home together or, with ``order``, in declared stages.
+    """
+
+    def __init__(self, ctrl: Cia402Controller, *, timeout_cycles: int = 30_000) -> None:
+        if timeout_cycles < 1:
+            raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
+        n = ctrl.n_axes
+        self.ctrl = ctrl
+        self.timeout_cycles = timeout_cycles
+        self.phase: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)
+        self.cycles: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)  # cycles since start
+        self._prev_mode = np.full(n, int(Mode.CSP), dtype=np.int8)
+        self._stages: list[npt.NDArray[np.bool_]] = []
+        self._m = np.zeros(n, dtype=bool)
+        self._m2 = np.zeros(n, dtype=bool)
+        self._sw = np.zeros(n, dtype=np.uint16)
+        self._bit4 = np.uint16(HOMING_START_BIT)
+        self._not_bit4 = np.uint16(0xFFFF & ~HOMING_START_BIT)
+
+    def start(self, axes: Any = slice(None), *, order: list[Any] | None = None) -> None:
+        """Home ``axes`` (index, slice or mask), all at once; or the stages of ``order`` one after another
+        (a list of axis selections: a leg's hips before its knees). Allocates: call it outside the cycle."""
+        stages = [axes] if order is None else list(order)
+        self._stages = []
+        for st in stages:
+            m = np.zeros(self.ctrl.n_axes, dtype=bool)
+            m[st] = True
+            self._stages.append(m)
+        self._begin(self._stages.pop(0))
+
+    def _begin(self, m: npt.NDArray[np.bool_]) -> None:
+        self._prev_mode[m] = self.ctrl.mode_request[m]
+        self.phase[m] = HomingPhase.WAIT
+        self.cycles[m] = 0
+        self.ctrl.request_mode(Mode.HOMING, m)
+
+    def step(self, statusword: npt.NDArray[Any], controlword_out: npt.NDArray[Any]) -> None:
+        """One cycle, after :meth:`Cia402Controller.step`: bit 4 of the controlwords (master outputs)
+        from the statuswords (master inputs)."""
+        ph, m, m2 = self.phase, self._m, self._m2
+        np.copyto(self._sw, statusword, casting="unsafe")
+        # ARMED -> RUNNING (bit 4 goes high now, after a cycle low: a rising edge)
+        np.equal(ph, HomingPhase.ARMED, out=m2)
+        np.copyto(ph, np.int8(HomingPhase.RUNNING), where=m2)
+        # WAIT -> ARMED once enabled in mode 6 (the controller's goal reached)
+        np.equal(ph, HomingPhase.WAIT, out=m)
+        np.logical_and(m, self.ctrl.reached, out=m)
+        np.copyto(ph, np.int8(HomingPhase.ARMED), where=m)
+        active = (ph >= HomingPhase.WAIT) & (ph <= HomingPhase.RUNNING)
+        np.add(self.cycles, active, out=self.cycles)
+        running = ph == HomingPhase.RUNNING
+        np.bitwise_and(controlword_out, self._not_bit4, out=controlword_out)
+        np.bitwise_or(controlword_out, self._bit4, out=controlword_out, where=running)
+        attained = running & ((self._sw & (HOMING_ATTAINED | StatusBit.TARGET_REACHED)) == 0x1400)
+        failed = running & ((self._sw & HOMING_ERROR) != 0)
+        late = active & (self.cycles > self.timeout_cycles)
+        if attained.any() or failed.any() or late.any():  # rare path: an axis finishes
+            self._finish(attained, failed & ~attained, late & ~attained & ~failed, controlword_out)
+
+    def _finish(
+        self,
+        attained: npt.NDArray[np.bool_],
+        failed: npt.NDArray[np.bool_],
+        late: npt.NDArray[np.bool_],
+        controlword_out: npt.NDArray[Any],
+    ) -> None:
+        for mask, phase in (
+            (attained, HomingPhase.DONE),
+            (failed, HomingPhase.FAILED),
+            (late, HomingPhase.TIMED_OUT),
+        ):
+            if not mask.any():
+                continue
+            self.phase[mask] = phase
+            controlword_out[mask] &= self._not_bit4
+            for i in np.flatnonzero(mask):
+                self.ctrl.request_mode(int(self._prev_mode[i]), int(i))
+        busy = (self.phase >= HomingPhase.WAIT) & (self.phase <= HomingPhase.RUNNING)
+        if self._stages and not busy.any():
+            self._begin(self._stages.pop(0))
+
+    @property
+    def done(self) -> bool:
+        """No axis is homing any more (each is IDLE, DONE, FAILED or TIMED_OUT)."""
+        return (
+            not bool(((self.phase >= HomingPhase.WAIT) & (self.phase <= HomingPhase.RUNNING)).any())
+            and not self._stages
+        )
