@@ -125,6 +125,16 @@ STICTION_RAD_S = 1e-6  # below this speed dry friction holds the rotor [rad/s]
 ERROR_FOLLOWING = 0x8611  # CiA 402: following error
 ERROR_OVERTEMPERATURE = 0x4310  # CiA 402: excess temperature, drive
 
+# homing mode (CiA 402-2 "Homing mode", modes of operation 6)
+_HM = 6
+HOMING_METHODS = (17, 18, 33, 34, 35, 37)
+"""Methods the emulated drive implements: 17/18 limit (home) switch negative/positive, 33/34 index pulse
+negative/positive, 35/37 the current position."""
+HOMING_METHOD, HOME_OFFSET, HOMING_SPEEDS, HOMING_ACCELERATION = 0x6098, 0x607C, 0x6099, 0x609A
+_SW_HOMING_ATTAINED = 1 << 12  # statusword bit 12 in homing mode
+_SW_HOMING_ERROR = 1 << 13  # statusword bit 13 in homing mode
+_CW_HOMING_START = 1 << 4  # controlword bit 4 in homing mode: rising edge starts, 0 interrupts
+
 
 class MissingObjectError(FieldbusError, LookupError):
     """The object dictionary lacks an object the drive needs."""
@@ -184,7 +194,11 @@ class DriveParams:
     fault_reaction_cycles: int = 1  # minimum steps in FAULT_REACTION_ACTIVE (transition 14)
     mode_switch_cycles: int = 1  # steps before 0x6061 follows a new 0x6060
     initial_mode: int = Mode.CSP
-    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.CSP, Mode.CSV, Mode.CST)
+    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.HOMING, Mode.CSP, Mode.CSV, Mode.CST)
+    # homing: where the switches are on the motor shaft [rad from the power-on position] (17/18); the
+    # index pulse is at every whole motor revolution from there (33/34)
+    negative_switch_rad: float = -1.0
+    positive_switch_rad: float = 1.0
     # thermal model
     thermal: bool = False
     ambient_c: float = 25.0
@@ -347,6 +361,14 @@ class Cia402Drive:
         self._fault_persistent = False
         self._fe_time_s = 0.0
         self._standstill = False
+        # homing: frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
+        self._frame_rad = 0.0
+        self._home_v = 0.0
+        self.home_bits = 0
+        self._home_phase = 0  # 0 idle, 1 searching, 2 found (stopping)
+        self._home_method = 0
+        self._home_prev_cw = 0
+        self._home_found_from = 0.0  # physical position where the search began [rad]
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
@@ -486,6 +508,8 @@ class Cia402Drive:
 
         self._state_machine(cw)
         self._modes(mode_req)
+        if self.mode_display == _HM or self._home_phase:
+            self._homing(cw)
 
         mode = self.mode_display
         state = self.state
@@ -516,6 +540,8 @@ class Cia402Drive:
                 target_v = self._limit_speed(float(get(_X_TARGET_VELOCITY, 0)) * self.rad_s_per_velocity)
             elif mode == _CST and has[_X_TARGET_TORQUE]:
                 target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.rated_torque_nm / 1000.0
+        if state is _OE and mode == _HM:
+            target_v = self._home_v
         if not self._ideal_encoder and self.params.encoder_noise_counts:
             self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
         self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
@@ -623,6 +649,82 @@ class Cia402Drive:
             self._prev_target_rad = self.position_rad
             self._prev_vff = self.velocity_rad_s
 
+    # -- homing (mode 6) --
+
+    def _home_param(self, index: int, sub: int, default: int) -> int:
+        od = self._od
+        try:
+            return int(od.get_value(index, sub)) if od is not None else default
+        except LookupError:
+            return default
+
+    def _homing(self, cw: int) -> None:
+        """One cycle of the homing procedure: bit-4 edge starts it, bit 4 low interrupts it.
+
+        Statusword bits (in HM, OPERATION ENABLED): 10 target reached, 12 homing attained,
+        13 homing error. After homing, the position actual at the home point is the home offset (0x607C).
+        """
+        prev, self._home_prev_cw = self._home_prev_cw, cw
+        if self.mode_display != _HM or self.state is not _OE:
+            if self._home_phase == 1:  # left homing mode or enabled state while searching: error
+                self.home_bits = _SW_HOMING_ERROR
+            self._home_phase = 0
+            self._home_v = 0.0
+            return
+        start = cw & _CW_HOMING_START and not prev & _CW_HOMING_START
+        if start:
+            method = self._home_param(HOMING_METHOD, 0, 0)
+            self._home_method = method
+            if method not in HOMING_METHODS:
+                self.home_bits = _SW_HOMING_ERROR
+                self._home_phase = 0
+                return
+            if method in (35, 37):
+                self._home_at(self.position_rad - self._frame_rad)
+                return
+            fast = method in (17, 18)
+            speed = self._home_param(HOMING_SPEEDS, 1 if fast else 2, 0) * self.rad_s_per_velocity
+            self._home_v = -speed if method in (17, 33) else speed
+            self.home_bits = 0
+            self._home_phase = 1
+            self._home_found_from = self.position_rad - self._frame_rad
+            return
+        if not cw & _CW_HOMING_START and self._home_phase == 1:  # interrupted
+            self._home_phase = 0
+            self._home_v = 0.0
+            self.home_bits = _SW_TARGET_REACHED
+            return
+        phys = self.position_rad - self._frame_rad
+        if self._home_phase == 1:
+            m = self._home_method
+            p = self.params
+            if m == 17 and phys <= p.negative_switch_rad:
+                self._home_at(p.negative_switch_rad)
+            elif m == 18 and phys >= p.positive_switch_rad:
+                self._home_at(p.positive_switch_rad)
+            elif m in (33, 34):
+                rev_from = math.floor((self._home_found_from - p.negative_switch_rad) / TWO_PI)
+                rev_now = math.floor((phys - p.negative_switch_rad) / TWO_PI)
+                if rev_now != rev_from:
+                    self._home_at(p.negative_switch_rad + TWO_PI * max(rev_now, rev_from))
+        elif (
+            self._home_phase == 2
+            and abs(self.velocity_rad_s) * self.velocity_per_rad_s <= self.velocity_window
+        ):
+            self.home_bits = _SW_HOMING_ATTAINED | _SW_TARGET_REACHED
+            self._home_phase = 0
+
+    def _home_at(self, home_phys_rad: float) -> None:
+        """The home point (physical position) is found: shift the reported frame so it reads the home offset."""
+        offset_rad = self._home_param(HOME_OFFSET, 0, 0) * self.rad_per_count
+        shift = offset_rad - home_phys_rad - self._frame_rad
+        self._frame_rad += shift
+        self.position_rad += shift
+        self._prev_target_rad += shift
+        self._home_v = 0.0
+        self.home_bits = _SW_HOMING_ATTAINED
+        self._home_phase = 2
+
     # -- physics --
 
     def _coefficients(self, h: float) -> None:
@@ -698,7 +800,7 @@ class Cia402Drive:
                     elif v_ref < -vmax:
                         v_ref = -vmax
                     ff = aff
-                elif mode == _CSV:
+                elif mode in (_CSV, _HM):
                     v_ref = target_v
                     ff = 0.0
                 else:
@@ -706,7 +808,7 @@ class Cia402Drive:
                     ff = 0.0
                 if mode == _CST and not ramp:
                     tau = target_tau
-                elif mode in (_CSP, _CSV) or ramp:
+                elif mode in (_CSP, _CSV, _HM) or ramp:
                     ev = v_ref - vel
                     integ += ki * ev * h
                     if integ > tmax:
@@ -801,6 +903,8 @@ class Cia402Drive:
                     sw |= _SW_TARGET_REACHED
             elif mode == _CST:
                 sw |= _SW_TARGET_REACHED
+            elif mode == _HM:
+                sw |= self.home_bits
         elif state is _QSA and self._standstill:
             sw |= _SW_TARGET_REACHED
         if self.limit_active:

@@ -61,7 +61,7 @@ B = npt.NDArray[np.bool_]
 
 _STATES = tuple(State402)
 _NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
-_CSP, _CSV, _CST = 8, 9, 10
+_HM, _CSP, _CSV, _CST = 6, 8, 9, 10
 _SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
 #: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
@@ -90,6 +90,8 @@ _FLOAT_SLOTS = {
     "max_speed_rad_s": "vmax",
     "position_limit_min": "pmin",
     "position_limit_max": "pmax",
+    "_frame_rad": "frame",
+    "_home_v": "home_v",
 }
 _INT_SLOTS = {
     "error_code": "error_code",
@@ -103,6 +105,8 @@ _INT_SLOTS = {
     "qs_option": "qs_option",
     "fr_option": "fr_option",
     "_noise": "noise",
+    "home_bits": "home_bits",
+    "_home_phase": "home_phase",
 }
 _BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
 
@@ -216,6 +220,10 @@ class DriveBank:
         self.vmax: F64 = z(n)  # max motor speed [rad/s] (0x6080; inf: none)
         self.pmin: F64 = z(n)  # software position limits [counts] (0x607D; ±inf: none)
         self.pmax: F64 = z(n)
+        self.frame: F64 = z(n)  # homing: reported - physical position [rad]
+        self.home_v: F64 = z(n)  # homing: speed demand [rad/s]
+        self.home_bits: I64 = z(n, dtype=np.int64)  # homing: statusword bits 10, 12, 13
+        self.home_phase: I64 = z(n, dtype=np.int64)  # homing: 0 idle, 1 searching, 2 found
         self.error_code: I64 = z(n, dtype=np.int64)
         self.mode_display: I64 = z(n, dtype=np.int64)
         self.following_error: I64 = z(n, dtype=np.int64)
@@ -392,9 +400,18 @@ class DriveBank:
         mode_req = self.mode_request[sl]
         new_cw = cw != self.prev_cw[sl]
         new_mode = mode_req != self.mode_display[sl]
-        if (a, b) in self._calm and not new_cw.any() and not new_mode.any():
+        homing = (self.mode_display[sl] == _HM) | (self.home_phase[sl] != 0)
+        if homing.any():  # the homing procedure runs per drive, through the scalar drive's code
+            self.changed()
+            for i in (np.flatnonzero(homing) + a).tolist():
+                d = self.drives[i]
+                d._state_machine(int(cw[i - a]))
+                d._modes(int(mode_req[i - a]))
+                d._homing(int(cw[i - a]))
+                self.quiet[i] = False
+        elif (a, b) in self._calm and not new_cw.any() and not new_mode.any():
             return
-        need = new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)
+        need = (new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)) & ~homing
         if need.any():
             self.changed()
             for i in (np.flatnonzero(need) + a).tolist():
@@ -402,8 +419,13 @@ class DriveBank:
                 taken = d.transitions_taken
                 d._state_machine(int(cw[i - a]))
                 d._modes(int(mode_req[i - a]))
+                if d.mode_display == _HM or d._home_phase:  # switched into homing mode this cycle
+                    d._homing(int(cw[i - a]))
                 self.quiet[i] = (
-                    bool(_STEADY[self.state[i]]) and d._pending is None and d.transitions_taken == taken
+                    bool(_STEADY[self.state[i]])
+                    and d._pending is None
+                    and d.transitions_taken == taken
+                    and d.mode_display != _HM
                 )
         self.prev_cw[sl] = cw
         if self.quiet[sl].all() and not self.fault_pending[sl].any():
@@ -439,11 +461,16 @@ class DriveBank:
             vmax = self.vmax[sl]
             target_v = np.clip(target_v, -vmax, vmax)
         target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
+        hm = oe & (mode == _HM)
+        if hm.any():
+            target_v = np.where(hm, self.home_v[sl], target_v)
         if not self.ideal_encoder:
             sd = self.noise_sd[sl]
             self.noise[sl] = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0)
-        self._physics(sl, dt, n, state, oe, csp, csv, cst, target, target_v, target_tau, speed_limited)
+        self._physics(sl, dt, n, state, oe, csp, csv | hm, cst, target, target_v, target_tau, speed_limited)
         self._outputs(sl, dt, state, oe, csp, csv, cst, target, target_v)
+        if hm.any():
+            self.statusword[sl] |= np.where(hm, self.home_bits[sl], 0)
 
     def _limits(self, a: int, b: int) -> tuple[bool, bool]:
         """Whether any drive of the run has a max motor speed, and software position limits (cached)."""
