@@ -18,7 +18,7 @@ drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
 
 from pathlib import Path
 
-from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, Mode, State402
 from fieldbus.core.network import load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
@@ -55,6 +55,7 @@ __all__ = [
     "DriveMap",
     "FieldbusError",
     "Goal",
+    "Homing",
     "Mode",
     "Operational",
     "PdoMapError",
