@@ -18,7 +18,7 @@ outlives the call: every array is preallocated and ufuncs write with ``out=``.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from types import MappingProxyType
@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import ChannelNameError
 
 # --------------------------------------------------------------------------- states
@@ -829,14 +830,17 @@ class Homing:
     parameters (0x6098 method, 0x607C offset, 0x6099 speeds, 0x609A acceleration)
     are configuration, written at bring-up from the drive map's ``homing:``
     section. Axes home together or, with ``order``, in declared stages.
+    ``timeout_cycles`` is one number for every axis or one per axis; :meth:`from_maps`
+    takes each axis's from its map's ``homing.timeout_ms``.
     """
 
-    def __init__(self, ctrl: Cia402Controller, *, timeout_cycles: int = 30_000) -> None:
-        if timeout_cycles < 1:
-            raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
+    def __init__(self, ctrl: Cia402Controller, *, timeout_cycles: int | Sequence[int] = 30_000) -> None:
         n = ctrl.n_axes
+        limit = np.broadcast_to(np.asarray(timeout_cycles, dtype=np.int64), (n,)).astype(np.int32)
+        if (limit < 1).any():
+            raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
         self.ctrl = ctrl
-        self.timeout_cycles = timeout_cycles
+        self.timeout_cycles = limit  # per axis [cycles]
         self.phase: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)
         self.cycles: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)  # cycles since start
         self._prev_mode = np.full(n, int(Mode.CSP), dtype=np.int8)
@@ -846,6 +850,17 @@ class Homing:
         self._sw = np.zeros(n, dtype=np.uint16)
         self._bit4 = np.uint16(HOMING_START_BIT)
         self._not_bit4 = np.uint16(0xFFFF & ~HOMING_START_BIT)
+
+    @classmethod
+    def from_maps(cls, ctrl: Cia402Controller, maps: Sequence[DriveMap], cycle_time_us: int) -> Homing:
+        """Homing for axes described by ``maps`` (one per axis, e.g. ``[s.map for s in op.groups[g].slaves]``),
+        each timed out after its ``homing.timeout_ms`` (30 s without a section) at ``cycle_time_us``."""
+        if len(maps) != ctrl.n_axes:
+            raise ValueError(f"{len(maps)} drive maps for {ctrl.n_axes} axes")
+        if cycle_time_us < 1:
+            raise ValueError(f"cycle_time_us must be >= 1, got {cycle_time_us}")
+        ms = [m.homing.timeout_ms if m.homing is not None else 30_000 for m in maps]
+        return cls(ctrl, timeout_cycles=[max(1, -(-t * 1000 // cycle_time_us)) for t in ms])
 
     def start(self, axes: Any = slice(None), *, order: list[Any] | None = None) -> None:
         """Home ``axes`` (index, slice or mask), all at once; or the stages of ``order`` one after another
