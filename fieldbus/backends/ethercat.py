@@ -28,7 +28,6 @@ from typing import Any
 from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
-from fieldbus.backends.ecat_pcap import EthercatCapture
 from fieldbus.backends.sdo_exec import apply_plan, plan_transfers, retried
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
@@ -42,6 +41,7 @@ from fieldbus.errors import (
     SdoAbortError,
     StateTransitionError,
 )
+from fieldbus.wire.pcap import EthercatCapture
 
 try:
     import pysoem

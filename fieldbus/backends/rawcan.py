@@ -40,12 +40,12 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.backends.canlog import open_log
 from fieldbus.core import damiao
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.runtime.clock import monotonic_s
+from fieldbus.wire.canlog import open_log
 
 try:
     import can

@@ -25,9 +25,9 @@ from typing import Any
 import can
 import numpy as np
 
-from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
 from sim_slaves.drive_bank import DriveBank, runs

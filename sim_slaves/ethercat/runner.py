@@ -91,8 +91,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fieldbus.backends.ecat_pcap import PcapWriter
-from fieldbus.backends.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
@@ -101,6 +99,8 @@ from fieldbus.errors import FieldbusError
 from fieldbus.interop.device import load_device
 from fieldbus.runtime.rt import RtConfig, realtime
 from fieldbus.runtime.timing import LatencyHistogram
+from fieldbus.wire.pcap import PcapWriter
+from fieldbus.wire.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
 from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
