@@ -41,6 +41,8 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "refuse_state", "slave": 0, "state": "SAFE_OP", "code": 29}
     {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
     {"cmd": "emergency", "slave": 0, "code": 33297}
+    {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
+    {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "dc"}                                       every slave's DC registers and clock at one instant
@@ -218,6 +220,10 @@ def handle_control(chain: EscChain, msg: dict[str, Any], now_ns: int | None = No
     elif cmd == "abort_sdo":
         sub = msg.get("sub")
         chain.abort_sdo(slave, int(msg["index"]), None if sub is None else int(sub), int(msg["code"]))
+    elif cmd == "mute_mailbox":
+        chain.mute_mailbox(slave, stuck=bool(msg.get("stuck")))
+    elif cmd == "stick_eeprom":
+        chain.stick_eeprom(slave)
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "clear":
