@@ -83,6 +83,7 @@ RECOVERY_SDO_TRIES = 4  # ... tried this many times when it does not complete in
 EEPROM_POLLS = 100  # cycles a found-again slave's EEPROM may stay busy for one read
 STATE_POLL_STEPS = 200  # cycles a reconfigured slave may take to reach a state
 SNAPSHOT_TIMEOUT_US = 20_000
+SNAPSHOT_TRIES = 3
 SM_SNAPSHOT, FMMU_SNAPSHOT = 8, 4  # SyncManagers and FMMUs kept per slave (SOEM: EC_MAXSM, EC_MAXFMMU)
 REG_FMMU0, REG_SM0 = 0x0600, 0x0800
 REG_AL_CONTROL, REG_AL_STATUS, REG_EEPROM_CONFIG = 0x0120, 0x0130, 0x0500
@@ -245,9 +246,9 @@ class EthercatBackend(Backend):
         self._sm_regs, self._fmmu_regs = [], []
         self._mailboxes, self._stations = [], []
         for i, s in enumerate(self._slaves):
-            sm = s._fprd(REG_SM0, SM_SNAPSHOT * 8, SNAPSHOT_TIMEOUT_US)
-            fmmu = s._fprd(REG_FMMU0, FMMU_SNAPSHOT * 16, SNAPSHOT_TIMEOUT_US)
-            station = s._fprd(REG_STATION, 4, SNAPSHOT_TIMEOUT_US)
+            sm = self._snapshot_read(i, REG_SM0, SM_SNAPSHOT * 8)
+            fmmu = self._snapshot_read(i, REG_FMMU0, FMMU_SNAPSHOT * 16)
+            station = self._snapshot_read(i, REG_STATION, 4)  # station address, alias
             self._stations.append(struct.unpack("<HH", station))
             layout = MailboxLayout.from_sm_registers(sm[:16])
             self._mailboxes.append(
@@ -269,6 +270,19 @@ class EthercatBackend(Backend):
                     if fmmu[16 * k + 12] & 1
                 ]
             )
+
+    def _snapshot_read(self, i: int, ado: int, size: int) -> bytes:
+        """``size`` bytes of slave ``i``'s registers at ``ado`` (bring-up: SOEM's waits, tried 3 times)."""
+        for _ in range(SNAPSHOT_TRIES):
+            try:
+                data: bytes = self._slaves[i]._fprd(ado, size, SNAPSHOT_TIMEOUT_US)
+            except (pysoem.WkcError, pysoem.PacketError):
+                continue
+            return data
+        raise StateTransitionError(
+            f"bus '{self.bus.name}': position {i} ({self.areas[i].slave.name}) did not answer a read of "
+            f"register 0x{ado:04X} in {SNAPSHOT_TRIES} tries of {SNAPSHOT_TIMEOUT_US / 1000:g} ms"
+        )
 
     def _configure_dc(self) -> None:
         """DC for maps with ``assign_activate``: ``config_dc``, then SYNC0 (and SYNC1) per slave.

@@ -68,7 +68,9 @@ class Spy:
 
 
 @pytest.fixture
-def bus(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[..., tuple[Network, Any, CallLog]]]:
+def bus(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[Callable[..., tuple[Network, Any, CallLog]]]:
     """``bus(**options)``: three emulated drives over veth, the network opened with ``options``, spied on."""
     pytest.importorskip("pysoem")
     from fieldbus.backends import ethercat
