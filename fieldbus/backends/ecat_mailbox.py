@@ -90,7 +90,8 @@ class SlaveMailbox:
     ``counter``: the last counter used. None at first: SOEM, which served
     the slave during bring-up, counts 1..7 and does not say where it
     stopped, so the first request here carries 0 (the start value, which SOEM
-    never sends) and cannot be taken for a repeat of SOEM's last.
+    never sends) and cannot be taken for a repeat of SOEM's last; the backend
+    makes that first request a harmless read at bring-up.
     """
 
     def __init__(

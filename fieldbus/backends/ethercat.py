@@ -81,6 +81,7 @@ RECOVERY_FRAME_TRIES = 4  # a register write whose reply is lost or late is sent
 RECOVERY_SDO_TIMEOUT_US = 100_000  # one of the plan's SDOs during recovery, in cycles as above
 RECOVERY_SDO_TRIES = 4  # ... tried this many times when it does not complete in time
 EEPROM_POLLS = 100  # cycles a found-again slave's EEPROM may stay busy for one read
+PRIME_STEPS = 50  # datagrams of the upload that takes over a slave's mailbox counter (bring-up)
 STATE_POLL_STEPS = 200  # cycles a reconfigured slave may take to reach a state
 SNAPSHOT_TIMEOUT_US = 20_000
 SNAPSHOT_TRIES = 3
@@ -234,6 +235,27 @@ class EthercatBackend(Backend):
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
         self._snapshot_registers()
+        self._prime_mailboxes()
+
+    def _prime_mailboxes(self) -> None:
+        """Take over each slave's mailbox counter from SOEM with a harmless upload (0x1000:0, device type).
+
+        SOEM counted 1..7 during bring-up and does not say where it stopped;
+        this first request carries 0, which SOEM never sends, and every later
+        one 1..7 in turn, so none can be taken for a repeat of SOEM's last. Were
+        this upload's write reply lost and sent again, a slave that takes every
+        0 as new would answer it twice: a read, harmless. Its outcome (an abort,
+        no answer) does not matter; the counter has moved on either way.
+        """
+        for i, mbx in enumerate(self._mailboxes):
+            if mbx is None:
+                continue
+            steps = self._sdo_steps(i, 0x1000, 0, None, PRIME_STEPS)
+            try:
+                while True:
+                    next(steps)
+            except (StopIteration, FieldbusError):
+                pass
 
     def _snapshot_registers(self) -> None:
         """Keep each slave's SyncManager and FMMU registers as SOEM programmed them (SAFE-OP).
