@@ -559,16 +559,22 @@ class EthercatBackend(Backend):
         return c
 
     def _recover(self) -> Generator[None, None, bool]:
-        """SOEM's ecatcheck as steps of one frame (or one pysoem call); passes repeat until all are in OP.
+        """SOEM's ecatcheck as steps of one datagram; passes repeat until all are in OP.
 
-        Each slave's AL status is read on its own (one FPRD per step) rather
-        than with SOEM's ``read_state``, which reads every slave one by one
-        when they differ - up to 5 ms for 12 slaves in one call. Runs in the
-        cycle's thread on purpose: pysoem holds the GIL in its calls, so a
-        monitor thread would stall the cycle at moments nobody chose.
+        A pass starts with one broadcast read of every slave's AL status (as
+        SOEM's ``read_state`` does): all answered and all in OP ends it there,
+        one datagram after a miss that left every slave in OP. Otherwise each
+        slave's AL status is read on its own (one FPRD per step) rather than
+        with ``read_state``, which then reads every slave one by one in one
+        call - up to 5 ms for 12 slaves. Runs in the cycle's thread on purpose:
+        pysoem holds the GIL in its calls, so a monitor thread would stall the
+        cycle at moments nobody chose.
         """
         worked = False
         while True:
+            if not any(s.is_lost for s in self._slaves) and (yield from self._all_in_op()):
+                self.recoveries += worked
+                return True
             all_ok = True
             for i, s in enumerate(self._slaves):
                 state = None if s.is_lost else self._al_status(i)
@@ -599,6 +605,26 @@ class EthercatBackend(Backend):
         raw = _SoemPort(self, self._slaves[i]).read(REG_AL_STATUS, 2)
         return None if raw is None else int.from_bytes(raw, "little")
 
+    def _raw_channel(self) -> RawDatagrams | None:
+        """Our own datagrams on SOEM's socket(s), opened at first use; None without a socket."""
+        if self._raw is None and self.sockets:
+            self._raw = RawDatagrams(self.sockets)
+        return self._raw
+
+    def _all_in_op(self) -> Generator[None, None, bool]:
+        """One BRD of AL status (0x0130): True when every slave answered and the OR of their states is OP."""
+        raw = self._raw_channel()
+        if raw is None:  # pragma: no cover - SOEM always opens a packet socket on Linux
+            return False
+        self._frame_sent = True
+        d = raw.txrx(Datagram.physical(Command.BRD, 0, REG_AL_STATUS, bytes(2)), self.frame_timeout_us)
+        yield
+        return (
+            d is not None
+            and d.wkc == len(self._slaves)
+            and int.from_bytes(d.data, "little") & (0x0F | AL_ERROR) == AL_OP
+        )
+
     def _find_again(self, i: int) -> Generator[None, None, bool]:
         """SOEM's ``ecx_recover_slave`` for slave ``i`` as single datagrams (one per step); True: found.
 
@@ -606,15 +632,12 @@ class EthercatBackend(Backend):
         alias; a slave that lost its address (0: power-cycled) and shows the
         same alias and, in its SII, the same vendor, product and revision as
         at bring-up gets its station address back. Position addressing
-        throughout, so no temporary address is needed (SOEM uses one). The
-        step that returns has sent no datagram when ``False`` comes from a
-        missing reply; the caller yields after it.
+        throughout, so no temporary address is needed (SOEM uses one). Each
+        datagram ends its step (:meth:`_ap`).
         """
         s = self._slaves[i]
-        if self._raw is None:
-            if not self.sockets:  # pragma: no cover - SOEM always opens a packet socket on Linux
-                return bool(s.recover(timeout=RECONFIG_TIMEOUT_US) > 0)  # unbounded (documented)
-            self._raw = RawDatagrams(self.sockets)
+        if self._raw_channel() is None:  # pragma: no cover - SOEM always opens a packet socket on Linux
+            return bool(s.recover(timeout=RECONFIG_TIMEOUT_US) > 0)  # unbounded (documented)
         station, alias = self._stations[i]
         got = yield from self._ap(i, Command.APRD, REG_STATION, bytes(4))
         if got is None:
