@@ -214,6 +214,7 @@ def test_a_power_cycled_slave_is_found_and_configured_again_one_datagram_per_cyc
     frames = emu.command(cmd="status")["frames"] - frames0
     assert frames <= 2 * cycles, f"{frames} frames reached the slaves in {cycles} exchanges"
     assert emu.command(cmd="status")["states"] == [AL_OP] * 3
+    assert tally.get("BRD", 0) >= 1, tally  # a recovery pass starts with every slave's AL status at once
     assert tally.get("APRD", 0) >= 4, tally  # found by position: station address and EEPROM polls
     assert tally.get("APWR", 0) >= 4, tally  # EEPROM owner, three read commands, station address
     assert tally.get("_fpwr", 0) >= 10, tally  # AL control, SyncManagers, the SDO plan, FMMUs
