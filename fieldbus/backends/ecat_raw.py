@@ -5,8 +5,11 @@ pysoem reaches a slave's registers only at its configured station address
 finds it again by position in ``ecx_recover_slave``, one call of many frames
 with 20 ms EEPROM timeouts. Recovery here sends those datagrams itself, one
 per cycle: each frame is built with :mod:`fieldbus.core.ecat`, written to
-SOEM's primary socket, and its reply waited for with ``select`` for at most
-the timeout given.
+SOEM's primary socket, and its reply polled for (``select`` with a zero
+timeout, which releases the GIL each time) for at most the timeout given: a
+spin, as SOEM's own wait on its non-blocking socket, because a thread that
+sleeps in ``select`` wakes up later than a spinner notices on a loaded
+machine (docs/reliability.md, "A redundant port").
 
 Frames carry indexes from 0x80 up: SOEM uses 0..15 (``EC_MAXBUF``) and drops
 a frame with another index, so neither takes the other's reply. Other frames
@@ -50,15 +53,13 @@ class RawDatagrams:
         deadline = time.perf_counter_ns() + timeout_us * 1000
         self._socks[0].send(frame)
         self.sent += 1
-        while True:
-            left = deadline - time.perf_counter_ns()
-            if left <= 0:
-                return None
-            ready, _, _ = select.select(self._socks, [], [], left / 1e9)
+        while time.perf_counter_ns() < deadline:
+            ready, _, _ = select.select(self._socks, [], [], 0)
             for s in ready:
                 got = self._read(s, d)
                 if got is not None:
                     return got
+        return None
 
     def _read(self, s: socket.socket, sent: Datagram) -> Datagram | None:
         """Every frame queued on ``s``; the reply to ``sent`` if among them (the rest dropped)."""
