@@ -62,7 +62,7 @@ def run(scenario: str, cycles: int, receive_timeout_us: int, rt_priority: int | 
             f"buses:\n  - {{name: bus, type: ethercat, interface: {emu.iface}, "
             f"slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: 3}}]}}\n"
         )
-        with open_network(net_file, sdo_timeout_us=100_000) as net:
+        with open_network(net_file) as net:
             op = net.bring_up()
             backend: Any = net.backends[0]
             # before the bounded steps the budget was SOEM's mailbox timeout, cut to 3 ms for an SDO in OP

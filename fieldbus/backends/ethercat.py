@@ -100,7 +100,7 @@ class EthercatBackend(Backend):
     so a lost frame costs the receive timeout, not a scheduler tick; False
     keeps SOEM's blocking wait); ``frame_timeout_us`` (the acyclic budget: how
     long the one datagram beside the LRW waits, default the receive timeout,
-    at most SOEM's ``EC_TIMEOUTRET``); ``sdo_timeout_us`` (an SDO in OP fails
+    at most SOEM's ``EC_TIMEOUTRET``); ``sdo_timeout_s`` (as on canopen: an SDO in OP fails
     when not complete in this many µs of cycles in which it ran - one datagram
     each - default ``ACYCLIC_SDO_TIMEOUT_US``).
     """
@@ -142,8 +142,8 @@ class EthercatBackend(Backend):
         self._sdo_tries = SDO_RETRIES + 1  # tries per blocking SDO (bring-up)
         cap = int(pysoem.settings.timeouts.ret)
         self.frame_timeout_us = int(options.get("frame_timeout_us", min(bus.receive_timeout_us, cap)))  # type: ignore[call-overload]
-        sdo_timeout_us = int(options.get("sdo_timeout_us", ACYCLIC_SDO_TIMEOUT_US))  # type: ignore[call-overload]
-        self._sdo_steps_max = max(1, sdo_timeout_us // bus.cycle_time_us)  # datagrams (= cycles) per SDO
+        sdo_timeout_us = 1e6 * float(options.get("sdo_timeout_s", ACYCLIC_SDO_TIMEOUT_US / 1e6))  # type: ignore[arg-type]
+        self._sdo_steps_max = max(1, int(sdo_timeout_us) // bus.cycle_time_us)  # datagrams (= cycles) per SDO
         if not 0 < self.frame_timeout_us <= cap:
             raise FieldbusError(
                 f"bus '{bus.name}': frame_timeout_us {self.frame_timeout_us} out of 1..{cap} (SOEM's EC_TIMEOUTRET)"
@@ -736,7 +736,7 @@ class EthercatBackend(Backend):
         No SOEM mailbox call: the request goes into the slave's SM0, SM1 is
         polled and read, one datagram per cycle, each waiting at most
         :attr:`frame_timeout_us`. In a cycle whose datagram went to recovery it
-        waits for the next. Not complete after ``sdo_timeout_us`` worth of
+        waits for the next. Not complete after ``sdo_timeout_s`` worth of
         cycles (datagrams): :class:`BusTimeoutError` (ask again). Never raises.
         """
         if self._frame_sent:
