@@ -20,7 +20,8 @@ the one datagram beside the LRW waits at most this; docs/reliability.md,
 - ``power-cycle-eeprom-busy``: the same, with its EEPROM busy for the first
   300 cycles after each power cycle (SOEM's recover waits 20 ms per read).
 
-Cycles over the bound are counted and the worst is printed beside the
+Cycles over the bound, and over the bound plus ``ALLOWANCE_US``, are
+counted, and the worst is printed beside the
 machine's load: on a shared machine a descheduled process makes a cycle long
 whatever the code does, so compare with the baseline scenario of the same run.
 ``--rt-priority N`` runs the measuring thread at SCHED_FIFO priority N (the
@@ -45,6 +46,9 @@ from fieldbus.network import open_network
 
 SCENARIOS = ("baseline", "mute-mailbox", "stuck-mailbox", "power-cycle", "power-cycle-eeprom-busy")
 POWER_CYCLE_EVERY = 1000
+ALLOWANCE_US = (
+    500  # an exchange's own work besides its two waits, and the waits' overshoot (docs/reliability.md)
+)
 EEPROM_BUSY_CYCLES = 300
 
 
@@ -87,6 +91,7 @@ def run(scenario: str, cycles: int, receive_timeout_us: int, rt_priority: int | 
         "p999_us": ordered[int(0.999 * (len(ordered) - 1))] / 1000,
         "median_us": statistics.median(ordered) / 1000,
         "over_bound": sum(t > bound_ns for t in times),
+        "over_bound_and_allowance": sum(t > bound_ns + ALLOWANCE_US * 1000 for t in times),
         "max_over_bound": ordered[-1] / bound_ns,
         "sdo": sdo,
         "recoveries": net.policies[0].stats.recoveries,
@@ -147,12 +152,14 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(results, indent=1))
         return 0
     print(
-        f"{'scenario':26} {'bound us':>8} {'max us':>8} {'p99.9 us':>8} {'median':>7} {'over':>5}  load  sdo"
+        f"{'scenario':26} {'bound us':>8} {'max us':>8} {'p99.9 us':>8} {'median':>7} {'over':>5} "
+        f"{'+allow':>6}  load  sdo"
     )
     for r in results:
         print(
             f"{r['scenario']:26} {r['bound_us']:8.0f} {r['max_us']:8.0f} {r['p999_us']:8.0f} "
-            f"{r['median_us']:7.0f} {r['over_bound']:5d} {r['load_avg_1min']:5.1f}  {r['sdo']}"
+            f"{r['median_us']:7.0f} {r['over_bound']:5d} {r['over_bound_and_allowance']:6d} "
+            f"{r['load_avg_1min']:5.1f}  {r['sdo']}"
         )
     return 0
 
