@@ -19,9 +19,9 @@ sequence, split), see docs/backends.md.
 Bounded steps: in OP no pysoem call that waits longer than one reply is made.
 Each cycle sends its LRW and at most one other datagram (a recovery step or a
 step of an SDO transfer, :mod:`.ecat_mailbox`), which waits at most
-``frame_timeout_us`` (the bus's receive timeout, capped at
-SOEM's ``EC_TIMEOUTRET``, 2 ms, so SOEM sends it once); so one ``exchange()`` waits at most the receive
-timeout plus that. docs/reliability.md, "Bounded steps".
+``frame_timeout_us`` (the bus's receive timeout, at most 1 ms by default,
+below SOEM's ``EC_TIMEOUTRET``, 2 ms, so SOEM sends it once); so one ``exchange()``
+waits at most the receive timeout plus that. docs/reliability.md, "Bounded steps".
 """
 
 from __future__ import annotations
@@ -74,8 +74,10 @@ REDUNDANT_SLACK_US = 200  # a reply handed over this long past the timeout is st
 # timeout is 700 ms. No cycle waits for it: see the frame timeout.
 ACYCLIC_SDO_TIMEOUT_US = 500_000
 # One datagram beside the LRW (acyclic or recovery) waits at most the bus's receive timeout, and at most
-# SOEM's EC_TIMEOUTRET (pysoem.settings.timeouts.ret, 2 ms): the acyclic budget of one exchange(). SOEM
-# sends a frame again when no reply came within EC_TIMEOUTRET: below it, a call is one frame.
+# this by default: the acyclic budget of one exchange() (as recovery's frames before). Option
+# frame_timeout_us up to SOEM's EC_TIMEOUTRET (pysoem.settings.timeouts.ret, 2 ms): SOEM sends a frame
+# again when no reply came within EC_TIMEOUTRET, so below it a call is one frame.
+FRAME_TIMEOUT_US = 1000
 PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
 RECOVERY_FRAME_TRIES = 4  # a register write whose reply is lost or late is sent again, one try per cycle
 RECOVERY_SDO_TIMEOUT_US = 100_000  # one of the plan's SDOs during recovery, in cycles as above
@@ -99,10 +101,11 @@ class EthercatBackend(Backend):
     Options: ``exact_timeout`` (default True: SOEM's packet socket non-blocking,
     so a lost frame costs the receive timeout, not a scheduler tick; False
     keeps SOEM's blocking wait); ``frame_timeout_us`` (the acyclic budget: how
-    long the one datagram beside the LRW waits, default the receive timeout,
-    at most SOEM's ``EC_TIMEOUTRET``); ``sdo_timeout_s`` (as on canopen: an SDO in OP fails
-    when not complete in this many µs of cycles in which it ran - one datagram
-    each - default ``ACYCLIC_SDO_TIMEOUT_US``).
+    long the one datagram beside the LRW waits; default the receive timeout,
+    at most ``FRAME_TIMEOUT_US``; up to SOEM's ``EC_TIMEOUTRET``);
+    ``sdo_timeout_s`` (as on canopen: an SDO in OP fails when not complete
+    after this many seconds of cycles in which it ran - one datagram each -
+    default ``ACYCLIC_SDO_TIMEOUT_US``).
     """
 
     kind = "ethercat"
@@ -141,7 +144,8 @@ class EthercatBackend(Backend):
         self._drain_buf = [bytearray(soem_socket.MAX_FRAME)]
         self._sdo_tries = SDO_RETRIES + 1  # tries per blocking SDO (bring-up)
         cap = int(pysoem.settings.timeouts.ret)
-        self.frame_timeout_us = int(options.get("frame_timeout_us", min(bus.receive_timeout_us, cap)))  # type: ignore[call-overload]
+        default = min(bus.receive_timeout_us, FRAME_TIMEOUT_US, cap)
+        self.frame_timeout_us = int(options.get("frame_timeout_us", default))  # type: ignore[call-overload]
         sdo_timeout_us = 1e6 * float(options.get("sdo_timeout_s", ACYCLIC_SDO_TIMEOUT_US / 1e6))  # type: ignore[arg-type]
         self._sdo_steps_max = max(1, int(sdo_timeout_us) // bus.cycle_time_us)  # datagrams (= cycles) per SDO
         if not 0 < self.frame_timeout_us <= cap:
