@@ -728,6 +728,15 @@ class EscChain:
         """SDO accesses to ``index:sub`` on slave ``slave`` abort with ``code`` (until cleared)."""
         self.slaves[slave].od.inject_abort(index, sub, code)
 
+    def mute_mailbox(self, slave: int, *, stuck: bool = False) -> None:
+        """Slave ``slave``'s mailbox never answers (until cleared): its application drops every request,
+        or, ``stuck``, never takes one, so SM0 stays full and the master's later writes are refused."""
+        self.slaves[slave].mailbox_fault = "stuck" if stuck else "silent"
+
+    def stick_eeprom(self, slave: int) -> None:
+        """Slave ``slave``'s EEPROM interface stays busy after the next command (until cleared)."""
+        self.slaves[slave].eeprom_stuck = True
+
     def emergency(self, slave: int, error_code: int, error_register: int = 0) -> None:
         """Slave ``slave`` sends a CoE emergency message."""
         self.slaves[slave].send_emergency(error_code, error_register)
@@ -737,7 +746,7 @@ class EscChain:
         self.faults = Faults()
         self.pending_delay = 0.0
         for s in self.slaves:
-            s.refuse.clear()
+            s.clear_faults()
             s.od.clear_aborts()
 
 

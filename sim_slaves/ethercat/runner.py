@@ -44,6 +44,8 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
     {"cmd": "emergency", "slave": 0, "code": 33297}
     {"cmd": "drive_fault", "slave": 0, "code": 29440}    the drive faults (0x603F = code), EMCY sent
+    {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
+    {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "timing", "reset": false}                   the runner's reply times (see ReplyTimes)
@@ -377,6 +379,10 @@ def handle_control(
     elif cmd == "abort_sdo":
         sub = msg.get("sub")
         chain.abort_sdo(slave, int(msg["index"]), None if sub is None else int(sub), int(msg["code"]))
+    elif cmd == "mute_mailbox":
+        chain.mute_mailbox(slave, stuck=bool(msg.get("stuck")))
+    elif cmd == "stick_eeprom":
+        chain.stick_eeprom(slave)
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "drive_fault":
