@@ -216,8 +216,8 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
 
 # -- codec -----------------------------------------------------------------------------------------------
 def axis_state_frame(state: int) -> bytes:
-    """Set_Axis_State data: the requested state, uint32."""
-    return struct.pack("<I", state)
+    """Set_Axis_State data: the requested state, uint32, in an 8-byte frame (the DBC's length)."""
+    return struct.pack("<I4x", state)
 
 
 def controller_mode_frame(mode: OdriveMode) -> bytes:
