@@ -8,6 +8,7 @@ message definitions only, not fieldbus.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -17,6 +18,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -68,16 +70,19 @@ def env() -> dict[str, str]:
     return {**os.environ, "CYCLONEDDS_URI": LOOPBACK}
 
 
-@pytest.fixture
-def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) -> Iterator[int]:
-    """``fieldbus serve`` on 3 emulated CiA 402 joints at 1 kHz; yields its DDS domain."""
-    domain = _domain(len(request.node.name))
-    net = tmp_path / "robot.yaml"
-    net.write_text(
-        "name: robot\ncycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n  - name: joints\n"
-        f"    type: ethercat\n    interface: sim\n    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, "
-        "count: 3}]\n"
+def _network(path: Path, interface: str, receive_timeout_us: int) -> Path:
+    """3 CiA 402 joints of the demo's map at 1 kHz on one EtherCAT bus at ``interface``."""
+    path.write_text(
+        f"name: robot\ncycle_time_us: 1000\nreceive_timeout_us: {receive_timeout_us}\nbuses:\n"
+        f"  - name: joints\n    type: ethercat\n    interface: {interface}\n"
+        f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, count: 3}}]\n"
     )
+    return path
+
+
+@contextlib.contextmanager
+def _serve(net: Path, domain: int, env: dict[str, str], *extra: str) -> Iterator[subprocess.Popen[str]]:
+    """``fieldbus serve NET`` in its own process until the block ends; yields it once it is ready."""
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -85,8 +90,6 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
             "fieldbus",
             "serve",
             str(net),
-            "--backend",
-            "sim",
             "--domain",
             str(domain),
             "--interface",
@@ -96,6 +99,7 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
             "--stop-after",
             str(STOP_AFTER),
             "--json",
+            *extra,
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -105,14 +109,22 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
     try:
         ready = _read_line(proc, 60)
         assert ready["ready"] is True and ready["domain"] == domain
-        yield domain
+        yield proc
     finally:
         _stop(proc)
 
 
-def _client(domain: int, client: str, cycles: int, env: dict[str, str]) -> subprocess.Popen[str]:
+@pytest.fixture
+def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) -> Iterator[int]:
+    """``fieldbus serve`` on 3 emulated CiA 402 joints (sim backend) at 1 kHz; yields its DDS domain."""
+    domain = _domain(len(request.node.name))
+    with _serve(_network(tmp_path / "robot.yaml", "sim", 500), domain, env, "--backend", "sim"):
+        yield domain
+
+
+def _client(domain: int, client: str, cycles: int, env: dict[str, str], *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, str(HERE / "remote_client.py"), "robot", str(domain), client, str(cycles)],
+        [sys.executable, str(HERE / "remote_client.py"), "robot", str(domain), client, str(cycles), *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -149,6 +161,40 @@ def test_trajectory_from_another_process_and_a_second_controller_is_refused(
     assert float(summary["max_error_rad"]) < 0.05
 
 
+def _kill_and_see_hold_then_safe_stop(op: fieldbus.remote.Remote, proc: subprocess.Popen[str]) -> None:
+    """Kill the commanding client ``proc``; from ``op``'s states (a watcher), in the bus's cycles: the
+    gate stays COMMANDED until ``HOLD_AFTER`` cycles after the last command, HOLD until ``STOP_AFTER``,
+    then SAFE_STOP (latched, the drives leave OPERATION ENABLED)."""
+    for _ in range(50):
+        op.exchange(deadline_s=1.0)
+    proc.kill()  # no goodbye: the controller is gone
+    proc.wait()
+    seen: list[tuple[int, GateState, int, list[int]]] = []
+    for _ in range(20 * STOP_AFTER):
+        op.exchange(deadline_s=1.0)
+        st = op["joints"].state
+        seen.append((int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)))
+        if seen[-1][1] is GateState.SAFE_STOP and st.cycle > seen[0][0] + STOP_AFTER + 200:
+            break
+    # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
+    after = [s for s in seen if s[1] is not GateState.COMMANDED]
+    assert after, "the gate never left COMMANDED"
+    last = {c - a for c, g, a, _ in after if g is not GateState.SAFE_STOP}
+    assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
+    (last_cmd,) = last
+    for cycle, gate, age, _ in after:
+        if cycle - last_cmd < HOLD_AFTER:
+            assert gate is GateState.COMMANDED
+        elif cycle - last_cmd < STOP_AFTER:
+            assert gate is GateState.HOLD, (cycle, gate, age)
+        else:
+            assert gate is GateState.SAFE_STOP, (cycle, gate, age)
+            assert age == STOP_AFTER  # latched: the age stops where the deadline fired
+    assert any(g is GateState.HOLD for _, g, _, _ in after)
+    assert seen[-1][1] is GateState.SAFE_STOP
+    assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
+
+
 def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
     served: int, env: dict[str, str]
 ) -> None:
@@ -156,34 +202,7 @@ def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
     try:
         assert _read_line(proc, 60) == {"commanding": True}
         with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="watcher") as op:
-            for _ in range(50):
-                op.exchange(deadline_s=1.0)
-            proc.kill()  # no goodbye: the controller is gone
-            proc.wait()
-            seen: list[tuple[int, GateState, int, list[int]]] = []
-            for _ in range(20 * STOP_AFTER):
-                op.exchange(deadline_s=1.0)
-                st = op["joints"].state
-                seen.append((int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)))
-                if seen[-1][1] is GateState.SAFE_STOP and st.cycle > seen[0][0] + STOP_AFTER + 200:
-                    break
-            # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
-            after = [s for s in seen if s[1] is not GateState.COMMANDED]
-            assert after, "the gate never left COMMANDED"
-            last = {c - a for c, g, a, _ in after if g is not GateState.SAFE_STOP}
-            assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
-            (last_cmd,) = last
-            for cycle, gate, age, _ in after:
-                if cycle - last_cmd < HOLD_AFTER:
-                    assert gate is GateState.COMMANDED
-                elif cycle - last_cmd < STOP_AFTER:
-                    assert gate is GateState.HOLD, (cycle, gate, age)
-                else:
-                    assert gate is GateState.SAFE_STOP, (cycle, gate, age)
-                    assert age == STOP_AFTER  # latched: the age stops where the deadline fired
-            assert any(g is GateState.HOLD for _, g, _, _ in after)
-            assert seen[-1][1] is GateState.SAFE_STOP
-            assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
+            _kill_and_see_hold_then_safe_stop(op, proc)
             # a restarted controller: may claim (the owner's deadline fired), must clear before enabling
             op.claim("joints")
             with pytest.raises(fieldbus.remote.RemoteError, match="clear_safe_stop"):
@@ -201,6 +220,36 @@ def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.veth
+def test_over_veth_a_client_process_runs_the_trajectory_then_killed_hold_then_safe_stop(
+    ethercat_emulator: Any, tmp_path: Path, env: dict[str, str]
+) -> None:
+    """The same service on EtherCAT: real pysoem frames over a veth pair to the emulated slaves."""
+    emu = ethercat_emulator([DEMO_JOINT], count=3)
+    domain = _domain(101)
+    # a 15 ms receive time-out: the emulator shares a loaded machine (timing is not the point here)
+    with _serve(_network(tmp_path / "robot.yaml", emu.iface, 15_000), domain, env) as server:
+        proc = _client(domain, "controller-a", 1500, env, "--keep-going")
+        try:
+            assert _read_line(proc, 60) == {"commanding": True}
+            summary = _read_line(proc, 180)
+            assert summary["cycles"] == 1500 and summary["drive_state"] == [4, 4, 4], summary
+            assert "SAFE_STOP" not in summary["gates"], summary
+            assert float(summary["span_rad"]) > 0.9, summary
+            assert float(summary["max_error_rad"]) < 0.05, summary
+            with fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="watcher") as op:
+                assert op["joints"].state.owner == "controller-a"
+                _kill_and_see_hold_then_safe_stop(op, proc)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        _stop(server)
+        report = _read_line(server, 30)
+    assert report["groups"]["joints"]["gate"] == "SAFE_STOP", report
+    assert report["buses"][0]["type"] == "ethercat", report  # pysoem's frames, not the sim backend
 
 
 def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
