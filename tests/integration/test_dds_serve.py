@@ -81,7 +81,14 @@ def _network(path: Path, interface: str, receive_timeout_us: int) -> Path:
 
 
 @contextlib.contextmanager
-def _serve(net: Path, domain: int, env: dict[str, str], *extra: str) -> Iterator[subprocess.Popen[str]]:
+def _serve(
+    net: Path,
+    domain: int,
+    env: dict[str, str],
+    *extra: str,
+    hold_after: int = HOLD_AFTER,
+    stop_after: int = STOP_AFTER,
+) -> Iterator[subprocess.Popen[str]]:
     """``fieldbus serve NET`` in its own process until the block ends; yields it once it is ready."""
     proc = subprocess.Popen(
         [
@@ -95,9 +102,9 @@ def _serve(net: Path, domain: int, env: dict[str, str], *extra: str) -> Iterator
             "--interface",
             "lo",
             "--hold-after",
-            str(HOLD_AFTER),
+            str(hold_after),
             "--stop-after",
-            str(STOP_AFTER),
+            str(stop_after),
             "--json",
             *extra,
         ],
@@ -172,10 +179,24 @@ def _kill_and_see_hold_then_safe_stop(op: fieldbus.remote.Remote, proc: subproce
     seen: list[tuple[int, GateState, int, list[int]]] = []
     for _ in range(20 * STOP_AFTER):
         op.exchange(deadline_s=1.0)
-        st = op["joints"].state
-        seen.append((int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)))
-        if seen[-1][1] is GateState.SAFE_STOP and st.cycle > seen[0][0] + STOP_AFTER + 200:
+        seen.append(_gate_of(op))
+        if seen[-1][1] is GateState.SAFE_STOP and seen[-1][0] > seen[0][0] + STOP_AFTER + 200:
             break
+    _assert_hold_then_safe_stop(seen, HOLD_AFTER, STOP_AFTER)
+
+
+def _gate_of(op: fieldbus.remote.Remote) -> tuple[int, GateState, int, list[int]]:
+    """The newest state's (cycle, gate, command age, drive states)."""
+    st = op["joints"].state
+    return int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)
+
+
+def _assert_hold_then_safe_stop(
+    seen: list[tuple[int, GateState, int, list[int]]], hold_after: int, stop_after: int
+) -> None:
+    """From states seen after the owner's last command (cycle, gate, age, drive states), in bus cycles:
+    COMMANDED until ``hold_after`` cycles after it, HOLD until ``stop_after``, then SAFE_STOP, latched
+    with the drives out of OPERATION ENABLED."""
     # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
     after = [s for s in seen if s[1] is not GateState.COMMANDED]
     assert after, "the gate never left COMMANDED"
@@ -183,13 +204,13 @@ def _kill_and_see_hold_then_safe_stop(op: fieldbus.remote.Remote, proc: subproce
     assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
     (last_cmd,) = last
     for cycle, gate, age, _ in after:
-        if cycle - last_cmd < HOLD_AFTER:
+        if cycle - last_cmd < hold_after:
             assert gate is GateState.COMMANDED
-        elif cycle - last_cmd < STOP_AFTER:
+        elif cycle - last_cmd < stop_after:
             assert gate is GateState.HOLD, (cycle, gate, age)
         else:
             assert gate is GateState.SAFE_STOP, (cycle, gate, age)
-            assert age == STOP_AFTER  # latched: the age stops where the deadline fired
+            assert age == stop_after  # latched: the age stops where the deadline fired
     assert any(g is GateState.HOLD for _, g, _, _ in after)
     assert seen[-1][1] is GateState.SAFE_STOP
     assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
@@ -250,6 +271,46 @@ def test_over_veth_a_client_process_runs_the_trajectory_then_killed_hold_then_sa
         report = _read_line(server, 30)
     assert report["groups"]["joints"]["gate"] == "SAFE_STOP", report
     assert report["buses"][0]["type"] == "ethercat", report  # pysoem's frames, not the sim backend
+
+
+def test_a_stalled_controller_hold_then_safe_stop_on_the_deadline_and_no_command_after_it(
+    tmp_path: Path, env: dict[str, str]
+) -> None:
+    """A controller process frozen for >= 200 ms (SIGSTOP: a stall of the whole process, as a long gc
+    pause or a slow policy step) while a watcher reads the states: in the bus's cycles the gate holds at
+    hold_after and safe-stops at stop_after, the bus keeps counting cycles throughout, and the commands
+    the controller sends once it wakes are not applied (the latch stays until an explicit clear)."""
+    hold_after, stop_after = 20, 100
+    domain = _domain(202)
+    net = _network(tmp_path / "robot.yaml", "sim", 500)
+    with _serve(net, domain, env, "--backend", "sim", hold_after=hold_after, stop_after=stop_after):
+        proc = _client(domain, "controller-a", 0, env)
+        try:
+            assert _read_line(proc, 60) == {"commanding": True}
+            with fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="watcher") as op:
+                for _ in range(50):
+                    assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+                os.kill(proc.pid, signal.SIGSTOP)
+                stalled_at = time.monotonic()
+                seen = [_gate_of(op)]
+                # frozen for at least 200 ms and until the bus has counted past the deadline (cycles)
+                while time.monotonic() - stalled_at < 0.2 or seen[-1][0] < seen[0][0] + stop_after + 50:
+                    op.exchange(deadline_s=1.0)
+                    seen.append(_gate_of(op))
+                os.kill(proc.pid, signal.SIGCONT)
+                _assert_hold_then_safe_stop(seen, hold_after, stop_after)
+                applied = int(op["joints"].state.command_sequence)
+                woke = [op.exchange(deadline_s=1.0) for _ in range(200)]
+                st = op["joints"].state
+                # the controller runs again (its sequence numbers reach the gate), but nothing is applied
+                assert st.owner == "controller-a" and st.gate == GateState.SAFE_STOP
+                assert int(st.command_sequence) == applied
+                assert all(r.gate["joints"] is GateState.SAFE_STOP for r in woke)
+                assert int(st.cycle) > seen[-1][0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
