@@ -70,12 +70,12 @@ def env() -> dict[str, str]:
     return {**os.environ, "CYCLONEDDS_URI": LOOPBACK}
 
 
-def _network(path: Path, interface: str, receive_timeout_us: int) -> Path:
-    """3 CiA 402 joints of the demo's map at 1 kHz on one EtherCAT bus at ``interface``."""
+def _network(path: Path, interface: str, receive_timeout_us: int, drive_map: Path = DEMO_JOINT) -> Path:
+    """3 CiA 402 joints of ``drive_map`` (the demo's) at 1 kHz on one EtherCAT bus at ``interface``."""
     path.write_text(
         f"name: robot\ncycle_time_us: 1000\nreceive_timeout_us: {receive_timeout_us}\nbuses:\n"
         f"  - name: joints\n    type: ethercat\n    interface: {interface}\n"
-        f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, count: 3}}]\n"
+        f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(drive_map))}, count: 3}}]\n"
     )
     return path
 
@@ -331,3 +331,69 @@ def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
     # the joints went to position + 0.2 rad (within the encoder's resolution)
     assert np.allclose(out["after"], out["goal"], atol=1e-3), out
     assert not np.allclose(out["before"], out["goal"], atol=0.1)
+
+
+@contextlib.contextmanager
+def _served_with_homing(tmp_path: Path, env: dict[str, str], method: int) -> Iterator[fieldbus.remote.Remote]:
+    """A served bus whose drives' map sets homing method ``method`` (0x6098); a claimed, enabled client."""
+    drive_map = tmp_path / "joint_homing.yaml"
+    drive_map.write_text(DEMO_JOINT.read_text() + f"\nhoming:\n  method: {method}\n  timeout_ms: 2000\n")
+    domain = _domain(300 + method)
+    with (
+        _serve(_network(tmp_path / "robot.yaml", "sim", 500, drive_map), domain, env, "--backend", "sim"),
+        fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="homer") as op,
+    ):
+        op.claim("joints")
+        op.enable("joints")
+        yield op
+
+
+@pytest.mark.parametrize("method", [37, 1])
+def test_home_request_answered_when_homing_ends_with_success_or_the_failed_axes(
+    tmp_path: Path, env: dict[str, str], method: int
+) -> None:
+    """37 (home on the current position) the emulated drives implement; 1 they refuse (bit 13)."""
+    with _served_with_homing(tmp_path, env, method) as op:
+        legs = op["joints"]
+        if method == 37:
+            done = op.home("joints")
+            assert done["phases"] == ["DONE"] * 3 and min(done["cycles"]) >= 2
+        else:
+            with pytest.raises(fieldbus.remote.RemoteError, match=r"did not end: j0: FAILED, j1: FAILED"):
+                op.home("joints")
+        # back in CSP, still enabled, and commands count again (the deadline was paused while homing)
+        assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+        assert legs.inputs["modes_of_operation_display"].tolist() == [8, 8, 8]
+        assert legs.drive_state.tolist() == [4, 4, 4]
+        with (
+            fieldbus.remote.connect("robot", domain=op.participant.domain_id, interface="lo") as other,
+            pytest.raises(ClaimError, match="homer"),
+        ):
+            other.home("joints")
+
+
+def test_mode_and_sdo_requests_answered_with_success_or_the_error(
+    tmp_path: Path, env: dict[str, str]
+) -> None:
+    with _served_with_homing(tmp_path, env, 37) as op:
+        legs = op["joints"]
+        assert [op.sdo_read("joints", a, 0x6098, 0) for a in legs.axes] == [bytes([37])] * 3  # from bring-up
+        op.sdo_write("joints", "j1", 0x6098, 0, bytes([35]))
+        assert [op.sdo_read("joints", a, 0x6098, 0) for a in legs.axes] == [bytes([n]) for n in (37, 35, 37)]
+        with pytest.raises(fieldbus.remote.RemoteError, match="0x06020000"):  # no such object: the abort
+            op.sdo_read("joints", "j1", 0x2FFF, 0)
+        with pytest.raises(fieldbus.remote.RemoteError, match="no axis 'j9'"):
+            op.sdo_read("joints", "j9", 0x6098, 0)
+        op.set_mode("joints", "CSV")
+        assert legs.inputs["modes_of_operation_display"].tolist() == [9, 9, 9]
+        op.set_mode("joints", 8)
+        assert legs.inputs["modes_of_operation_display"].tolist() == [8, 8, 8]
+        assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+        with pytest.raises(fieldbus.remote.RemoteError, match="unknown mode 'bogus'"):
+            op.set_mode("joints", "bogus")
+        with fieldbus.remote.connect("robot", domain=op.participant.domain_id, interface="lo") as other:
+            assert other.sdo_read("joints", "j2", 0x6098, 0) == bytes([37])  # reading needs no claim
+            with pytest.raises(ClaimError, match="homer"):
+                other.sdo_write("joints", "j2", 0x6098, 0, bytes([35]))
+            with pytest.raises(ClaimError, match="homer"):
+                other.set_mode("joints", "CSV")
