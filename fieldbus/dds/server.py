@@ -372,7 +372,9 @@ class BusServer:
         homing.start()
 
         def check() -> dict[str, Any] | None:
-            if not homing.done:
+            display = g._cia[2]
+            back = display is None or bool((display == ctrl.mode_request).all())
+            if not homing.done or not back:  # answered once every drive shows its previous mode again
                 return None
             g.homing = None
             phases = [HomingPhase(int(p)).name for p in homing.phase]
