@@ -818,6 +818,9 @@ HOMING_ATTAINED = 0x1000  # statusword bit 12 in homing mode (master input)
 HOMING_ERROR = 0x2000  # statusword bit 13 in homing mode (master input)
 
 
+SETTLE_CYCLES = 2  # cycles after the bit-4 edge before a homing's statusword bits are believed
+
+
 class Homing:
     """Non-blocking, per-axis homing on top of a :class:`Cia402Controller`, one step per cycle.
 
@@ -843,6 +846,7 @@ class Homing:
         self.timeout_cycles = limit  # per axis [cycles]
         self.phase: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)
         self.cycles: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)  # cycles since start
+        self._running = np.zeros(n, dtype=np.int32)  # cycles since the bit-4 edge went out
         self._prev_mode = np.full(n, int(Mode.CSP), dtype=np.int8)
         self._stages: list[npt.NDArray[np.bool_]] = []
         self._m = np.zeros(n, dtype=bool)
@@ -877,6 +881,7 @@ class Homing:
         self._prev_mode[m] = self.ctrl.mode_request[m]
         self.phase[m] = HomingPhase.WAIT
         self.cycles[m] = 0
+        self._running[m] = 0
         self.ctrl.request_mode(Mode.HOMING, m)
 
     def step(self, statusword: npt.NDArray[Any], controlword_out: npt.NDArray[Any]) -> None:
@@ -894,10 +899,14 @@ class Homing:
         active = (ph >= HomingPhase.WAIT) & (ph <= HomingPhase.RUNNING)
         np.add(self.cycles, active, out=self.cycles)
         running = ph == HomingPhase.RUNNING
+        np.add(self._running, running, out=self._running)
         np.bitwise_and(controlword_out, self._not_bit4, out=controlword_out)
         np.bitwise_or(controlword_out, self._bit4, out=controlword_out, where=running)
-        attained = running & ((self._sw & (HOMING_ATTAINED | StatusBit.TARGET_REACHED)) == 0x1400)
-        failed = running & ((self._sw & HOMING_ERROR) != 0)
+        # the statusword is judged only once it can answer the edge: the edge goes out this cycle, the
+        # drive sees it, its answer comes back (bits 10/12/13 of an earlier homing are stale until then)
+        judged = running & (self._running > SETTLE_CYCLES)
+        attained = judged & ((self._sw & (HOMING_ATTAINED | StatusBit.TARGET_REACHED)) == 0x1400)
+        failed = judged & ((self._sw & HOMING_ERROR) != 0)
         late = active & (self.cycles > self.timeout_cycles)
         if attained.any() or failed.any() or late.any():  # rare path: an axis finishes
             self._finish(attained, failed & ~attained, late & ~attained & ~failed, controlword_out)

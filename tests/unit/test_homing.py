@@ -53,3 +53,28 @@ def test_axes_home_in_order_then_return_to_their_mode_with_errors_and_timeouts_p
     assert started_second is not None and started_second > 50  # the switch search took time
     assert abs(drives[1][0].position_rad) < 0.05  # home offset 0 at the switch; it stopped just past it
     assert homing.cycles[3] == 501
+
+
+def test_a_second_homing_does_not_believe_the_bits_left_from_the_first() -> None:
+    """Bits 10/12 of a finished homing are still set when the next edge goes out: not a new 'attained'."""
+    from fieldbus.core.cia402 import SETTLE_CYCLES, Cia402Controller, Goal, Homing, HomingPhase
+
+    ctrl = Cia402Controller(1)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl)
+    homing.start()
+    stale = np.array([0x0237 | 0x1400], dtype=np.uint16)  # OPERATION ENABLED, attained + target reached
+    cw = np.zeros(1, dtype=np.uint16)
+    phases = []
+    for _ in range(2 + SETTLE_CYCLES):
+        ctrl.step(stale, cw)
+        homing.step(stale, cw)
+        phases.append(int(homing.phase[0]))
+    assert phases[-1] == HomingPhase.RUNNING, phases  # the edge is out; the old bits are not believed
+    busy = np.array([0x0237], dtype=np.uint16)  # the drive answered the edge: homing in progress
+    ctrl.step(busy, cw)
+    homing.step(busy, cw)
+    assert homing.phase[0] == HomingPhase.RUNNING
+    ctrl.step(stale, cw)
+    homing.step(stale, cw)
+    assert homing.phase[0] == HomingPhase.DONE
