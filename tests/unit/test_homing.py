@@ -66,7 +66,7 @@ def test_a_second_homing_does_not_believe_the_bits_left_from_the_first() -> None
     stale = np.array([0x0237 | 0x1400], dtype=np.uint16)  # OPERATION ENABLED, attained + target reached
     cw = np.zeros(1, dtype=np.uint16)
     phases = []
-    for _ in range(2 + SETTLE_CYCLES):
+    for _ in range(1 + SETTLE_CYCLES):  # armed, then the edge and SETTLE_CYCLES - 1 more
         ctrl.step(stale, cw)
         homing.step(stale, cw)
         phases.append(int(homing.phase[0]))
