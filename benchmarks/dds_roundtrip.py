@@ -1,6 +1,6 @@
 """Command-to-state round trip at 1 kHz: the controller in another process over DDS, and in-process.
 
-    python benchmarks/dds_roundtrip.py [--cycles N] [--axes N] [--json]
+    python benchmarks/dds_roundtrip.py [--cycles N] [--axes N] [--json] [--stall-only]
 
 Remote: ``fieldbus serve`` (sim emulator, loopback, its own DDS domain) in a
 child process; this process runs the demo's sine through ``fieldbus.remote``:
@@ -10,6 +10,12 @@ In-process: the same sine on the same network with ``op.exchange()`` paced by
 ``fieldbus.run_cycles``; its "round trip" is the exchange() call (the command
 is on the wire in the same call). Misses: remote exchanges whose state did not
 come within the deadline (5 cycles); in-process cycles that were not fresh.
+
+Stall: a controller process commands the served bus for 1 s, sleeps 200 ms,
+commands again; this process watches the published states (no claim) and
+counts the bus's cycle numbers per wall second before, during and after the
+stall (their ratio is the point: 1.0 = the stall costs the bus nothing), and
+the cycles from the last command to HOLD and to SAFE_STOP.
 Wall-clock figures: they depend on the machine and its load (say which).
 """
 
@@ -19,6 +25,7 @@ import argparse
 import json
 import math
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -54,10 +61,9 @@ def _network(tmp: Path, axes: int) -> Path:
     return net
 
 
-def remote(net: Path, cycles: int) -> dict[str, Any]:
-    domain = 1 + os.getpid() % 200
+def _server(net: Path, domain: int, hold_after: int, stop_after: int) -> subprocess.Popen[str]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
-    server = subprocess.Popen(
+    return subprocess.Popen(
         [
             sys.executable,
             "-m",
@@ -72,14 +78,19 @@ def remote(net: Path, cycles: int) -> dict[str, Any]:
             "lo",
             "--json",
             "--stop-after",
-            "100000",
+            str(stop_after),
             "--hold-after",
-            "50000",
+            str(hold_after),
         ],
         stdout=subprocess.PIPE,
         text=True,
         env=env,
     )
+
+
+def remote(net: Path, cycles: int) -> dict[str, Any]:
+    domain = 1 + os.getpid() % 200
+    server = _server(net, domain, 50_000, 100_000)
     try:
         assert server.stdout is not None
         json.loads(server.stdout.readline())  # ready
@@ -144,23 +155,106 @@ def in_process(net: Path, cycles: int) -> dict[str, Any]:
     return {**_percentiles(times), "misses": misses, "cycles": len(times)}
 
 
+STALL_S, HOLD_AFTER, STOP_AFTER = 0.2, 20, 100
+
+
+def stall_controller(domain: int) -> int:
+    """The child: command for 1 s, sleep STALL_S, command for 0.5 s (prints 'stall' as it sleeps)."""
+    op = fieldbus.remote.connect("bench", domain=domain, interface="lo", deadline_s=0.05)
+    op.claim("joints")
+    op.enable("joints")
+    for seconds in (1.0, 0.5):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            op.exchange()
+        if seconds == 1.0:
+            print("stall", flush=True)
+            time.sleep(STALL_S)
+    print("done", flush=True)
+    return 0
+
+
+def stall(net: Path) -> dict[str, Any]:
+    """The served bus's rate while its controller sleeps STALL_S, from the published cycle numbers."""
+    domain = 1 + (os.getpid() + 1) % 200
+    server = _server(net, domain, HOLD_AFTER, STOP_AFTER)
+    env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
+    try:
+        assert server.stdout is not None
+        json.loads(server.stdout.readline())  # ready
+        child = subprocess.Popen(
+            [sys.executable, __file__, "--stall-controller", str(domain)],
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        assert child.stdout is not None
+        op = fieldbus.remote.connect("bench", domain=domain, interface="lo", deadline_s=0.05)
+        seen: list[tuple[float, int, int, int]] = []  # (wall s, cycle, gate, command age)
+        marks: dict[str, float] = {}
+        while "done" not in marks:
+            op.exchange()
+            st = op["joints"].state
+            seen.append((time.monotonic(), int(st.cycle), int(st.gate), int(st.command_age)))
+            if select.select([child.stdout], [], [], 0)[0]:
+                line = child.stdout.readline().strip()
+                if not line:
+                    break
+                marks[line] = time.monotonic()
+        child.wait(30)
+        op.close()
+    finally:
+        server.send_signal(signal.SIGTERM)
+        out, _ = server.communicate(timeout=30)
+    report = json.loads(out.strip().splitlines()[-1])
+
+    def rate(t0: float, t1: float) -> float:
+        w = [(t, c) for t, c, _, _ in seen if t0 <= t <= t1]
+        return (w[-1][1] - w[0][1]) / (w[-1][0] - w[0][0])
+
+    t_stall = marks["stall"]
+    before = rate(t_stall - 0.5, t_stall)
+    during = rate(t_stall, t_stall + STALL_S)
+    hold_at = [c for _, c, g, _ in seen if g == 2]
+    stop_at = [(c, a) for _, c, g, a in seen if g == 3]
+    return {
+        "stall_s": STALL_S,
+        "hold_after": HOLD_AFTER,
+        "stop_after": STOP_AFTER,
+        "bus_cycles_per_s_before": round(before, 1),
+        "bus_cycles_per_s_during_stall": round(during, 1),
+        "ratio_during_to_before": round(during / before, 3),
+        "hold_seen_age_min": min((a for _, _, g, a in seen if g == 2), default=None),
+        "safe_stop_age": stop_at[0][1] if stop_at else None,
+        "hold_states_seen": len(hold_at),
+        "last_command_cycle": min((c - a for _, c, g, a in seen if g == 2), default=None),
+        "server_missed": report["missed"],
+        "server_cycle_us": report["cycle_time_us"],
+    }
+
+
 def main() -> int:
+    if len(sys.argv) == 3 and sys.argv[1] == "--stall-controller":
+        return stall_controller(int(sys.argv[2]))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=5000)
     ap.add_argument("--axes", type=int, default=12)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--stall-only", action="store_true", help="only the 200 ms stalled-controller run")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="fieldbus-bench-") as tmp:
         net = _network(Path(tmp), a.axes)
-        out = {
+        out: dict[str, Any] = {
             "axes": a.axes,
             "rate_hz": 1000,
             "cpus": os.cpu_count(),
             "load_avg": os.getloadavg()[0],
-            "in_process": in_process(net, a.cycles),
-            "remote": remote(net, a.cycles),
         }
-    if a.json:
+        if not a.stall_only:
+            out["in_process"] = in_process(net, a.cycles)
+            out["remote"] = remote(net, a.cycles)
+        out["stall"] = stall(net)
+    if a.json or a.stall_only:
         print(json.dumps(out))
     else:
         for name in ("in_process", "remote"):

@@ -18,11 +18,13 @@ drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
 
 from pathlib import Path
 
-from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
+from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
+from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.core.sdo import canopen_plan, coe_plan
 from fieldbus.errors import (
     BackendUnavailableError,
@@ -35,7 +37,7 @@ from fieldbus.errors import (
     StateTransitionError,
     WorkingCounterError,
 )
-from fieldbus.network import BusStatus, CycleResult, Operational, open_network
+from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 from fieldbus.runtime.timing import CycleTimer
 
@@ -47,23 +49,29 @@ PDO_MAPS = Path(__file__).resolve().parent / "pdo_maps"
 __all__ = [
     "PDO_MAPS",
     "BackendUnavailableError",
+    "BusEvent",
     "BusStatus",
     "BusTimeoutError",
     "Cia402Controller",
     "CycleResult",
     "CycleTimer",
+    "DriveFault",
     "DriveMap",
     "FieldbusError",
     "Goal",
+    "Homing",
+    "HomingPhase",
     "Mode",
     "Operational",
     "PdoMapError",
     "PhaseError",
     "ProcessImage",
+    "SafeStopClearError",
     "SdoAbortError",
     "SdoMismatchError",
     "State402",
     "StateTransitionError",
+    "Verdict",
     "WorkingCounterError",
     "__version__",
     "canopen_plan",

@@ -624,6 +624,9 @@ class Operational(_Phase):
                 st.last_error = text
                 events.append(BusEvent(cycle, st.name, "acyclic_error", text))
 
+    def _bus_of(self, group: str) -> str:
+        return next(b.bus.name for b in self._net.backends if any(g.name == group for g in b.groups))
+
     def _read_code(self, b: Backend, fault: DriveFault) -> None:
         """Ask for 0x603F of a faulted drive whose map does not have it in a PDO (served by the cycle)."""
         k = self._net.backends.index(b)
@@ -639,10 +642,19 @@ class Operational(_Phase):
             if not fut.done():
                 keep.append((fault, fut))
                 continue
-            data = None if fut.cancelled() or fut.exception() is not None else fut.result()
-            if data and len(data) >= 2:
+            failed = fut.cancelled() or fut.exception() is not None
+            data = None if failed else fut.result()
+            if data is not None and len(data) >= 2:
                 code = int.from_bytes(data[:2], "little")
                 self.result.events.append(DriveFault(cycle, fault.group, fault.axis, fault.slave, code))
+            else:  # never silent: the fault stays reported without its code, and why
+                exc = None if fut.cancelled() else fut.exception()
+                why = "cancelled" if fut.cancelled() else (_reason(exc) if exc is not None else f"{data!r}")
+                self.result.events.append(
+                    BusEvent(
+                        cycle, self._bus_of(fault.group), "acyclic_error", f"0x603F of {fault.slave}: {why}"
+                    )
+                )
         self._code_reads = keep
 
     def record(self, path: str | Path, *, raw: bool = False, **options: Any) -> Recorder:

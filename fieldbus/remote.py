@@ -186,7 +186,14 @@ class Remote:
         self.claimed.clear()
 
     # -- requests --
-    def request(self, verb: str, group: str = "", *, timeout_s: float = 5.0) -> dict[str, Any] | None:
+    def request(
+        self,
+        verb: str,
+        group: str = "",
+        *,
+        argument: dict[str, Any] | None = None,
+        timeout_s: float = 5.0,
+    ) -> dict[str, Any] | None:
         """Send a request and wait for its reply; the reply's detail (JSON) or None.
 
         Raises :class:`ClaimError` when the group belongs to another client,
@@ -194,7 +201,8 @@ class Remote:
         """
         self._request_id += 1
         rid = self._request_id
-        req = m.Request(client_id=self.client_id, request_id=rid, group=group, verb=verb)
+        text = json.dumps(argument) if argument is not None else ""
+        req = m.Request(client_id=self.client_id, request_id=rid, group=group, verb=verb, argument=text)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             self._req.write(req)
@@ -254,6 +262,49 @@ class Remote:
         ):  # states from before the clear: not the answer to later
             if isinstance(st, m.AxisState):
                 self.groups[group].accept(st)
+
+    def home(self, group: str, *, timeout_s: float = 60.0) -> dict[str, Any]:
+        """Home every axis of ``group`` (enabled, claimed) with the drives' homing method (0x6098); waits
+        for the end. Refused with the axes and phases when an axis failed or timed out. While homing,
+        the deadline is paused; afterwards the position command starts at the new measured position."""
+        detail = self.request("home", group, timeout_s=timeout_s) or {}
+        self._reseed(group)
+        return detail
+
+    def set_mode(self, group: str, mode: str | int, *, timeout_s: float = 10.0) -> None:
+        """Switch ``group``'s drives to ``mode`` (a name of :class:`fieldbus.Mode`, e.g. "CSV", or its
+        number); waits until every drive shows it. The position command restarts at the joints."""
+        self.request("mode", group, argument={"mode": mode}, timeout_s=timeout_s)
+        self._reseed(group)
+
+    def sdo_read(
+        self, group: str, axis: str, index: int, sub_index: int = 0, *, timeout_s: float = 5.0
+    ) -> bytes:
+        """Read object ``index:sub_index`` of joint ``axis`` through the served bus's cycle."""
+        arg = {"axis": axis, "index": index, "sub_index": sub_index}
+        detail = self.request("sdo_read", group, argument=arg, timeout_s=timeout_s) or {}
+        return bytes.fromhex(str(detail.get("data", "")))
+
+    def sdo_write(
+        self, group: str, axis: str, index: int, sub_index: int, data: bytes, *, timeout_s: float = 5.0
+    ) -> None:
+        """Write ``data`` to object ``index:sub_index`` of joint ``axis`` (the group must be claimed)."""
+        arg = {"axis": axis, "index": index, "sub_index": sub_index, "data": bytes(data).hex()}
+        self.request("sdo_write", group, argument=arg, timeout_s=timeout_s)
+
+    def _reseed(self, group: str, timeout_s: float = 2.0) -> None:
+        """Take a state newer than the reply, then start the position command at the measured position."""
+        g, link = self[group], self._links[group]
+        seen = g.state.cycle
+        end = time.monotonic() + timeout_s
+        while g.state.cycle <= seen and time.monotonic() < end:
+            self._ws.wait(int(0.05 * 1e9))
+            for st in link.reader.take(N=8):
+                if isinstance(st, m.AxisState) and st.cycle > g.state.cycle:
+                    g.accept(st)
+        out, inp = g.command_channels.get("position"), g.joint_state.get("position")
+        if out is not None and inp is not None:
+            g.outputs.values[out] = g.inputs.values[inp]
 
     def command_channels(self, group: str) -> dict[str, str]:
         """Which output channel each command field carries (the rest belong to the server)."""

@@ -47,7 +47,7 @@ class BusThread:
         if self._thread is not None:
             self._thread.join(timeout=JOIN_TIMEOUT_S)
             self._thread = None
-        log = getattr(self, "log", None)  # an emulator's frame log (fieldbus.backends.canlog)
+        log = getattr(self, "log", None)  # an emulator's frame log (fieldbus.wire.canlog)
         if log is not None:
             log.close()
 

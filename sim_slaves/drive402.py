@@ -15,8 +15,9 @@ command has been seen for ``transition_cycles`` consecutive steps (default 1:
 on the step that first sees it). Fault reset acts on the rising edge of
 controlword bit 7; a held bit 7 is ignored.
 
-Physics (SI inside, counts at the object dictionary): a rigid rotor + load of
-inertia ``J`` [kg·m²] with viscous friction ``b`` [N·m·s/rad], integrated
+Physics (SI inside, at the motor shaft; counts at the object dictionary): a
+rigid rotor + load of inertia ``J`` [kg·m²] (the load reflected through the
+gear: its inertia / gear ratio²) with viscous friction ``b`` [N·m·s/rad], integrated
 exactly for a torque held over each control substep (``control_rate_hz``).
 Torque limit from 0x6072 [‰ of rated torque]. CSP: cascaded position P ->
 velocity PI -> torque with velocity (and optional acceleration) feed-forward
@@ -26,6 +27,17 @@ winding temperature from I²R losses through a first-order thermal network;
 the torque constant falls by ``kt_temp_coeff_per_k`` (NdFeB: -0.1 %/K), so the
 shaft torque falls short of the demand, while 0x6077 reports the drive's own
 estimate (current x nominal kt), as a real drive does.
+
+Units (CiA 402's factor group without a feed constant): position units are
+encoder counts, ``counts_per_rev`` per motor revolution (0x608F); the gear
+(0x6091, motor revolutions per revolution of the driven shaft) only converts
+for the driven shaft (:attr:`Cia402Drive.output_position_rad`); velocity units
+are ``velocity_units_per_count_s`` per count/s (1: counts/s), acceleration
+units (0x6085) velocity units per second; torque in ‰ of the motor's rated
+torque (0x6076, mN·m). Limits: 0x6072 max torque, 0x6080 max motor speed [rpm]
+(the velocity demand of CSP/CSV is held within it), 0x607D software position
+limits [counts] (the CSP target is held within them). :mod:`sim_slaves.drive_config`
+derives all of it from a drive map's scaling and a network file's ``emulator:`` options.
 
 Deterministic and pure: no randomness, no clock (``dt_s`` is a parameter).
 """
@@ -37,6 +49,7 @@ import random
 from collections import deque
 from dataclasses import dataclass
 from enum import IntEnum
+from fractions import Fraction
 from typing import Protocol
 
 from fieldbus.core.cia402 import (
@@ -64,7 +77,10 @@ class ObjectStore(Protocol):
 
 
 class Obj(IntEnum):
-    """CiA 402 objects the drive uses (all sub-index 0). Units at the OD: counts, counts/s, ‰, ms."""
+    """CiA 402 objects the drive uses (sub-index 0, records: see :data:`RECORDS`).
+
+    Units at the OD: counts, velocity units (counts/s by default), ‰, ms.
+    """
 
     ERROR_CODE = 0x603F  # UNSIGNED16, written by the drive
     CONTROLWORD = 0x6040  # UNSIGNED16, master output (required)
@@ -82,8 +98,13 @@ class Obj(IntEnum):
     TARGET_TORQUE = 0x6071  # INTEGER16 ‰ of rated torque, master output
     MAX_TORQUE = 0x6072  # UNSIGNED16 ‰ of rated torque
     TORQUE_ACTUAL = 0x6077  # INTEGER16 ‰ of rated torque, master input
+    MOTOR_RATED_TORQUE = 0x6076  # UNSIGNED32 mN·m (1000 ‰ of 0x6071/0x6072/0x6077)
     TARGET_POSITION = 0x607A  # INTEGER32 counts, master output
-    QUICK_STOP_DECELERATION = 0x6085  # UNSIGNED32 counts/s²
+    SOFTWARE_POSITION_LIMIT = 0x607D  # record: 1 min, 2 max, INTEGER32 counts
+    MAX_MOTOR_SPEED = 0x6080  # UNSIGNED32 rpm; 0: no limit (this emulator)
+    QUICK_STOP_DECELERATION = 0x6085  # UNSIGNED32 acceleration units (counts/s² by default)
+    POSITION_ENCODER_RESOLUTION = 0x608F  # record: 1 encoder increments, 2 motor revolutions (UNSIGNED32)
+    GEAR_RATIO = 0x6091  # record: 1 motor revolutions, 2 driven-shaft revolutions (UNSIGNED32)
     FOLLOWING_ERROR_ACTUAL = 0x60F4  # INTEGER32 counts, master input
     TARGET_VELOCITY = 0x60FF  # INTEGER32 counts/s, master output
 
@@ -91,12 +112,28 @@ class Obj(IntEnum):
 REQUIRED_OBJECTS: tuple[Obj, ...] = (Obj.CONTROLWORD, Obj.STATUSWORD)
 """Objects a drive cannot run without; every other object is used when present."""
 
+RECORDS = frozenset({Obj.SOFTWARE_POSITION_LIMIT, Obj.POSITION_ENCODER_RESOLUTION, Obj.GEAR_RATIO})
+"""Objects with sub-indices 1 and 2 (present when sub-index 1 is)."""
+
 FOLLOWING_ERROR_OFF = 0xFFFFFFFF
+INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
+RPM = TWO_PI / 60.0  # rad/s per rpm
+GEAR_DENOMINATOR = 1000  # 0x6091 holds the gear as motor : shaft revolutions, shaft revolutions up to this
 
 MAX_COMMAND_DELAY_CYCLES = 1000
 STICTION_RAD_S = 1e-6  # below this speed dry friction holds the rotor [rad/s]
 ERROR_FOLLOWING = 0x8611  # CiA 402: following error
 ERROR_OVERTEMPERATURE = 0x4310  # CiA 402: excess temperature, drive
+
+# homing mode (CiA 402-2 "Homing mode", modes of operation 6)
+_HM = 6
+HOMING_METHODS = (17, 18, 33, 34, 35, 37)
+"""Methods the emulated drive implements: 17/18 limit (home) switch negative/positive, 33/34 index pulse
+negative/positive, 35/37 the current position."""
+HOMING_METHOD, HOME_OFFSET, HOMING_SPEEDS, HOMING_ACCELERATION = 0x6098, 0x607C, 0x6099, 0x609A
+_SW_HOMING_ATTAINED = 1 << 12  # statusword bit 12 in homing mode
+_SW_HOMING_ERROR = 1 << 13  # statusword bit 13 in homing mode
+_CW_HOMING_START = 1 << 4  # controlword bit 4 in homing mode: rising edge starts, 0 interrupts
 
 
 class MissingObjectError(FieldbusError, LookupError):
@@ -112,18 +149,28 @@ class MissingObjectError(FieldbusError, LookupError):
 class DriveParams:
     """Drive and motor parameters (SI units unless the name says otherwise).
 
-    Defaults: a small robot-joint servo, 17-bit encoder, 1 N·m rated, 3 N·m peak.
-    Objects present in the OD (0x6065, 0x6066, 0x6067, 0x606D, 0x6072, 0x6085,
-    0x605A, 0x605E) override the matching defaults here; they are read when the
-    drive binds to an OD (first step, or :meth:`Cia402Drive.bind`) and again on
-    every state transition, so an SDO write during PRE-OP takes effect by the
-    time the drive is enabled; call ``bind(od)`` to apply one at once.
+    Defaults: a small robot-joint servo, 17-bit encoder, no gear, 1 N·m rated, 3 N·m peak.
+    Objects present in the OD (0x6065, 0x6066, 0x6067, 0x606D, 0x6072, 0x6076,
+    0x607D, 0x6080, 0x6085, 0x605A, 0x605E) override the matching defaults here;
+    they are read when the drive binds to an OD (first step, or
+    :meth:`Cia402Drive.bind`) and again on every state transition, so an SDO
+    write during PRE-OP takes effect by the time the drive is enabled; call
+    ``bind(od)`` to apply one at once. The units (``counts_per_rev``,
+    ``gear_ratio``, ``velocity_units_per_count_s``: 0x608F, 0x6091) are fixed
+    when the drive is built. :func:`sim_slaves.drive_config.drive_params` makes
+    them from a drive map; :func:`default_objects` puts them into an OD.
     """
 
-    counts_per_rev: int = 1 << 17  # encoder counts per revolution
-    inertia_kg_m2: float = 2.0e-4  # rotor + reflected load
-    friction_nm_s_per_rad: float = 1.0e-3  # viscous friction b
-    rated_torque_nm: float = 1.0  # 1000 ‰ in 0x6071/0x6072/0x6077
+    counts_per_rev: int = 1 << 17  # position units (counts) per motor revolution
+    inertia_kg_m2: float = 2.0e-4  # rotor + load, at the motor shaft (load inertia / gear ratio²)
+    friction_nm_s_per_rad: float = 1.0e-3  # viscous friction b, at the motor shaft
+    rated_torque_nm: float = 1.0  # motor rated torque (0x6076): 1000 ‰ in 0x6071/0x6072/0x6077
+    gear_ratio: float = 1.0  # 0x6091: motor revolutions per revolution of the driven shaft
+    velocity_units_per_count_s: float = 1.0  # velocity units (0x606C/0x60FF/0x606D) per count/s
+    max_motor_speed_rpm: float = 0.0  # 0x6080: CSP/CSV velocity demand held within it; 0: no limit
+    software_position_limit: tuple[int, int] | None = (
+        None  # 0x607D (min, max) [counts]: CSP target held within
+    )
     max_torque_permille: int = 3000  # default for 0x6072
     torque_constant_nm_per_a: float = 0.1  # kt at ambient_c
     resistance_ohm: float = 0.5  # winding (phase-equivalent) resistance at ambient_c
@@ -138,7 +185,7 @@ class DriveParams:
     following_error_timeout_ms: int = 0  # 0x6066: fault when exceeded for longer than this
     position_window_counts: int = 100  # 0x6067
     velocity_window_counts_s: int = 1000  # 0x606D
-    quick_stop_decel_counts_s2: int = 2_000_000  # 0x6085
+    quick_stop_decel_counts_s2: int = 2_000_000  # 0x6085, acceleration units (counts/s² by default)
     quick_stop_option: int = 2  # 0x605A
     fault_reaction_option: int = 0  # 0x605E
     # state machine timing, in steps (cycles)
@@ -147,7 +194,11 @@ class DriveParams:
     fault_reaction_cycles: int = 1  # minimum steps in FAULT_REACTION_ACTIVE (transition 14)
     mode_switch_cycles: int = 1  # steps before 0x6061 follows a new 0x6060
     initial_mode: int = Mode.CSP
-    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.CSP, Mode.CSV, Mode.CST)
+    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.HOMING, Mode.CSP, Mode.CSV, Mode.CST)
+    # homing: where the switches are on the motor shaft [rad from the power-on position] (17/18); the
+    # index pulse is at every whole motor revolution from there (33/34)
+    negative_switch_rad: float = -1.0
+    positive_switch_rad: float = 1.0
     # thermal model
     thermal: bool = False
     ambient_c: float = 25.0
@@ -167,7 +218,14 @@ class DriveParams:
     coulomb_friction_nm: float = 0.0  # dry friction opposing motion [N·m]
 
     def __post_init__(self) -> None:
-        positive = ("counts_per_rev", "inertia_kg_m2", "rated_torque_nm", "torque_constant_nm_per_a")
+        positive = (
+            "counts_per_rev",
+            "inertia_kg_m2",
+            "rated_torque_nm",
+            "torque_constant_nm_per_a",
+            "gear_ratio",
+            "velocity_units_per_count_s",
+        )
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"DriveParams.{name} must be > 0")
@@ -178,19 +236,25 @@ class DriveParams:
             "encoder_counts_per_rev",
             "encoder_noise_counts",
             "coulomb_friction_nm",
+            "max_motor_speed_rpm",
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"DriveParams.{name} must be >= 0")
         if self.command_delay_cycles > MAX_COMMAND_DELAY_CYCLES:
             raise ValueError(f"DriveParams.command_delay_cycles must be <= {MAX_COMMAND_DELAY_CYCLES}")
+        for name in ("transition_cycles", "self_test_cycles", "fault_reaction_cycles", "mode_switch_cycles"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"DriveParams.{name} must be >= 1")
+        limits = self.software_position_limit
+        if limits is not None and not INT32_MIN <= limits[0] < limits[1] <= INT32_MAX:
+            raise ValueError(
+                f"DriveParams.software_position_limit must be (min, max) in int32, min < max: {limits}"
+            )
 
     @property
     def encoder_cpr(self) -> int:
         """Encoder counts per revolution in force (``encoder_counts_per_rev`` or ``counts_per_rev``)."""
         return self.encoder_counts_per_rev or self.counts_per_rev
-        for name in ("transition_cycles", "self_test_cycles", "fault_reaction_cycles", "mode_switch_cycles"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"DriveParams.{name} must be >= 1")
 
 
 COMMUNICATION_FAULT = 0x8100  # CiA 301 emergency code: communication, generic
@@ -251,11 +315,12 @@ def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float
 class Cia402Drive:
     """One emulated CiA 402 servo drive. Call :meth:`step` once per cycle.
 
-    Public state (SI): ``state``, ``position_rad``, ``velocity_rad_s``,
+    Public state (SI, motor shaft): ``state``, ``position_rad``, ``velocity_rad_s``,
     ``torque_demand_nm`` (what the drive commands and reports in 0x6077),
     ``shaft_torque_nm`` (what the motor delivers: demand x kt(T)/kt0),
     ``load_torque_nm`` (external torque opposing motion, set by a test),
-    ``temperature_c``, ``error_code``, ``last_transition`` (number from the table).
+    ``temperature_c``, ``error_code``, ``last_transition`` (number from the table);
+    :attr:`output_position_rad` is the driven shaft's angle (after the gear).
     """
 
     def __init__(self, params: DriveParams | None = None, *, position_counts: int = 0) -> None:
@@ -266,6 +331,10 @@ class Cia402Drive:
         self.transitions_taken: int = 0
         self.rad_per_count = TWO_PI / p.counts_per_rev
         self.counts_per_rad = p.counts_per_rev / TWO_PI
+        self.velocity_per_rad_s = (
+            self.counts_per_rad * p.velocity_units_per_count_s
+        )  # velocity units per rad/s
+        self.rad_s_per_velocity = 1.0 / self.velocity_per_rad_s
         self.position_rad = position_counts * self.rad_per_count
         self.velocity_rad_s = 0.0
         self.torque_demand_nm = 0.0
@@ -292,6 +361,14 @@ class Cia402Drive:
         self._fault_persistent = False
         self._fe_time_s = 0.0
         self._standstill = False
+        # homing: frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
+        self._frame_rad = 0.0
+        self._home_v = 0.0
+        self.home_bits = 0
+        self._home_phase = 0  # 0 idle, 1 searching, 2 found (stopping)
+        self._home_method = 0
+        self._home_prev_cw = 0
+        self._home_found_from = 0.0  # physical position where the search began [rad]
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
@@ -308,6 +385,11 @@ class Cia402Drive:
         self._od: ObjectStore | None = None
         self._has: dict[int, bool] = {}
         self._load_config_defaults()
+
+    @property
+    def output_position_rad(self) -> float:
+        """Angle of the driven shaft [rad]: the motor's divided by the gear ratio (0x6091)."""
+        return self.position_rad / self.params.gear_ratio
 
     # -- fault injection (tests) --
 
@@ -345,7 +427,7 @@ class Cia402Drive:
 
     def _probe(self, od: ObjectStore, index: int) -> bool:
         try:
-            od.get_value(index, 0)
+            od.get_value(index, 1 if index in RECORDS else 0)
         except LookupError:
             return False
         return True
@@ -365,10 +447,21 @@ class Cia402Drive:
         self.fe_timeout_s = p.following_error_timeout_ms / 1000.0
         self.position_window = p.position_window_counts
         self.velocity_window = p.velocity_window_counts_s
+        self.rated_torque_nm = p.rated_torque_nm
         self.max_torque_nm = p.max_torque_permille * p.rated_torque_nm / 1000.0
-        self.qs_decel = p.quick_stop_decel_counts_s2 * self.rad_per_count
+        self.qs_decel = p.quick_stop_decel_counts_s2 * self.rad_s_per_velocity
         self.qs_option = p.quick_stop_option
         self.fr_option = p.fault_reaction_option
+        self.max_speed_rad_s = p.max_motor_speed_rpm * RPM or math.inf
+        lo, hi = p.software_position_limit or (INT32_MIN, INT32_MAX)
+        self._set_position_limits(lo, hi)
+
+    def _set_position_limits(self, lo: int, hi: int) -> None:
+        """0x607D as the drive applies it [counts]; the int32 extremes, or min >= max, mean no limit."""
+        if lo >= hi:
+            lo, hi = INT32_MIN, INT32_MAX
+        self.position_limit_min = -math.inf if lo <= INT32_MIN else float(lo)
+        self.position_limit_max = math.inf if hi >= INT32_MAX else float(hi)
 
     def _read_config(self, od: ObjectStore) -> None:
         self._load_config_defaults()
@@ -382,10 +475,19 @@ class Cia402Drive:
             self.position_window = int(od.get_value(Obj.POSITION_WINDOW, 0))
         if has[Obj.VELOCITY_WINDOW]:
             self.velocity_window = int(od.get_value(Obj.VELOCITY_WINDOW, 0))
-        if has[Obj.MAX_TORQUE]:
-            self.max_torque_nm = float(od.get_value(Obj.MAX_TORQUE, 0)) * p.rated_torque_nm / 1000.0
+        if has[Obj.MOTOR_RATED_TORQUE] and float(od.get_value(Obj.MOTOR_RATED_TORQUE, 0)) > 0:
+            self.rated_torque_nm = float(od.get_value(Obj.MOTOR_RATED_TORQUE, 0)) / 1000.0
+        permille = float(od.get_value(Obj.MAX_TORQUE, 0)) if has[Obj.MAX_TORQUE] else p.max_torque_permille
+        self.max_torque_nm = permille * self.rated_torque_nm / 1000.0
         if has[Obj.QUICK_STOP_DECELERATION]:
-            self.qs_decel = float(od.get_value(Obj.QUICK_STOP_DECELERATION, 0)) * self.rad_per_count
+            self.qs_decel = float(od.get_value(Obj.QUICK_STOP_DECELERATION, 0)) * self.rad_s_per_velocity
+        if has[Obj.MAX_MOTOR_SPEED]:
+            self.max_speed_rad_s = float(od.get_value(Obj.MAX_MOTOR_SPEED, 0)) * RPM or math.inf
+        if has[Obj.SOFTWARE_POSITION_LIMIT]:
+            self._set_position_limits(
+                int(od.get_value(Obj.SOFTWARE_POSITION_LIMIT, 1)),
+                int(od.get_value(Obj.SOFTWARE_POSITION_LIMIT, 2)),
+            )
         if has[Obj.QUICK_STOP_OPTION]:
             self.qs_option = int(od.get_value(Obj.QUICK_STOP_OPTION, 0))
         if has[Obj.FAULT_REACTION_OPTION]:
@@ -406,6 +508,8 @@ class Cia402Drive:
 
         self._state_machine(cw)
         self._modes(mode_req)
+        if self.mode_display == _HM or self._home_phase:
+            self._homing(cw)
 
         mode = self.mode_display
         state = self.state
@@ -424,23 +528,34 @@ class Cia402Drive:
             tp, tv, tt = history[0]  # what the master sent command_delay_cycles steps ago
             if state is _OE:
                 if mode == _CSP and has[_X_TARGET_POSITION]:
-                    target_rad = tp * self.rad_per_count
+                    target_rad = self._limit_position(tp) * self.rad_per_count
                 elif mode == _CSV and has[_X_TARGET_VELOCITY]:
-                    target_v = tv * self.rad_per_count
+                    target_v = self._limit_speed(tv * self.rad_s_per_velocity)
                 elif mode == _CST and has[_X_TARGET_TORQUE]:
-                    target_tau = tt * self.params.rated_torque_nm / 1000.0
+                    target_tau = tt * self.rated_torque_nm / 1000.0
         elif state is _OE:
             if mode == _CSP and has[_X_TARGET_POSITION]:
-                target_rad = float(get(_X_TARGET_POSITION, 0)) * self.rad_per_count
+                target_rad = self._limit_position(float(get(_X_TARGET_POSITION, 0))) * self.rad_per_count
             elif mode == _CSV and has[_X_TARGET_VELOCITY]:
-                target_v = float(get(_X_TARGET_VELOCITY, 0)) * self.rad_per_count
+                target_v = self._limit_speed(float(get(_X_TARGET_VELOCITY, 0)) * self.rad_s_per_velocity)
             elif mode == _CST and has[_X_TARGET_TORQUE]:
-                target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.params.rated_torque_nm / 1000.0
+                target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.rated_torque_nm / 1000.0
+        if state is _OE and mode == _HM:
+            target_v = self._home_v
         if not self._ideal_encoder and self.params.encoder_noise_counts:
             self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
         self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
         self._outputs(od, dt_s, state, mode, target_rad, target_v)
         self._prev_cw = cw
+
+    def _limit_position(self, counts: float) -> float:
+        """A target position held within the software position limits (0x607D) [counts]."""
+        return min(max(counts, self.position_limit_min), self.position_limit_max)
+
+    def _limit_speed(self, v: float) -> float:
+        """A velocity demand held within the max motor speed (0x6080) [rad/s]."""
+        vmax = self.max_speed_rad_s
+        return vmax if v > vmax else -vmax if v < -vmax else v
 
     # -- state machine (table-driven) --
 
@@ -534,6 +649,82 @@ class Cia402Drive:
             self._prev_target_rad = self.position_rad
             self._prev_vff = self.velocity_rad_s
 
+    # -- homing (mode 6) --
+
+    def _home_param(self, index: int, sub: int, default: int) -> int:
+        od = self._od
+        try:
+            return int(od.get_value(index, sub)) if od is not None else default
+        except LookupError:
+            return default
+
+    def _homing(self, cw: int) -> None:
+        """One cycle of the homing procedure: bit-4 edge starts it, bit 4 low interrupts it.
+
+        Statusword bits (in HM, OPERATION ENABLED): 10 target reached, 12 homing attained,
+        13 homing error. After homing, the position actual at the home point is the home offset (0x607C).
+        """
+        prev, self._home_prev_cw = self._home_prev_cw, cw
+        if self.mode_display != _HM or self.state is not _OE:
+            if self._home_phase == 1:  # left homing mode or enabled state while searching: error
+                self.home_bits = _SW_HOMING_ERROR
+            self._home_phase = 0
+            self._home_v = 0.0
+            return
+        start = cw & _CW_HOMING_START and not prev & _CW_HOMING_START
+        if start:
+            method = self._home_param(HOMING_METHOD, 0, 0)
+            self._home_method = method
+            if method not in HOMING_METHODS:
+                self.home_bits = _SW_HOMING_ERROR
+                self._home_phase = 0
+                return
+            if method in (35, 37):
+                self._home_at(self.position_rad - self._frame_rad)
+                return
+            fast = method in (17, 18)
+            speed = self._home_param(HOMING_SPEEDS, 1 if fast else 2, 0) * self.rad_s_per_velocity
+            self._home_v = -speed if method in (17, 33) else speed
+            self.home_bits = 0
+            self._home_phase = 1
+            self._home_found_from = self.position_rad - self._frame_rad
+            return
+        if not cw & _CW_HOMING_START and self._home_phase == 1:  # interrupted
+            self._home_phase = 0
+            self._home_v = 0.0
+            self.home_bits = _SW_TARGET_REACHED
+            return
+        phys = self.position_rad - self._frame_rad
+        if self._home_phase == 1:
+            m = self._home_method
+            p = self.params
+            if m == 17 and phys <= p.negative_switch_rad:
+                self._home_at(p.negative_switch_rad)
+            elif m == 18 and phys >= p.positive_switch_rad:
+                self._home_at(p.positive_switch_rad)
+            elif m in (33, 34):
+                rev_from = math.floor((self._home_found_from - p.negative_switch_rad) / TWO_PI)
+                rev_now = math.floor((phys - p.negative_switch_rad) / TWO_PI)
+                if rev_now != rev_from:
+                    self._home_at(p.negative_switch_rad + TWO_PI * max(rev_now, rev_from))
+        elif (
+            self._home_phase == 2
+            and abs(self.velocity_rad_s) * self.velocity_per_rad_s <= self.velocity_window
+        ):
+            self.home_bits = _SW_HOMING_ATTAINED | _SW_TARGET_REACHED
+            self._home_phase = 0
+
+    def _home_at(self, home_phys_rad: float) -> None:
+        """The home point (physical position) is found: shift the reported frame so it reads the home offset."""
+        offset_rad = self._home_param(HOME_OFFSET, 0, 0) * self.rad_per_count
+        shift = offset_rad - home_phys_rad - self._frame_rad
+        self._frame_rad += shift
+        self.position_rad += shift
+        self._prev_target_rad += shift
+        self._home_v = 0.0
+        self.home_bits = _SW_HOMING_ATTAINED
+        self._home_phase = 2
+
     # -- physics --
 
     def _coefficients(self, h: float) -> None:
@@ -587,6 +778,7 @@ class Cia402Drive:
             aff *= p.torque_feedforward * j
         ramp_v = self._ramp_v
         dv = self.qs_decel * h
+        vmax = self.max_speed_rad_s
         for k in range(1, n + 1):
             if not powered:
                 tau = 0.0
@@ -603,8 +795,12 @@ class Cia402Drive:
                 elif mode == _CSP:
                     ref = prev_t + (target_rad - prev_t) * (k / n)
                     v_ref = vff + kp * (ref - (math.floor(pos * epr + 0.5) + noise) * rpe)
+                    if v_ref > vmax:
+                        v_ref = vmax
+                    elif v_ref < -vmax:
+                        v_ref = -vmax
                     ff = aff
-                elif mode == _CSV:
+                elif mode in (_CSV, _HM):
                     v_ref = target_v
                     ff = 0.0
                 else:
@@ -612,7 +808,7 @@ class Cia402Drive:
                     ff = 0.0
                 if mode == _CST and not ramp:
                     tau = target_tau
-                elif mode in (_CSP, _CSV) or ramp:
+                elif mode in (_CSP, _CSV, _HM) or ramp:
                     ev = v_ref - vel
                     integ += ki * ev * h
                     if integ > tmax:
@@ -682,6 +878,7 @@ class Cia402Drive:
         else:
             enc = math.floor(self.position_rad * self.enc_per_rad + 0.5) + self._noise
             pos_counts = math.floor(enc * p.counts_per_rev / p.encoder_cpr + 0.5)
+        vpr = self.velocity_per_rad_s
         sw = _SW_STATE[state] | _SW_REMOTE
         if state is not _NOT_READY:
             sw |= _SW_VOLTAGE
@@ -702,10 +899,12 @@ class Cia402Drive:
                 if abs(fe) <= self.position_window:
                     sw |= _SW_TARGET_REACHED
             elif mode == _CSV:
-                if abs(self.velocity_rad_s - target_v) * cpr <= self.velocity_window:
+                if abs(self.velocity_rad_s - target_v) * vpr <= self.velocity_window:
                     sw |= _SW_TARGET_REACHED
             elif mode == _CST:
                 sw |= _SW_TARGET_REACHED
+            elif mode == _HM:
+                sw |= self.home_bits
         elif state is _QSA and self._standstill:
             sw |= _SW_TARGET_REACHED
         if self.limit_active:
@@ -719,9 +918,9 @@ class Cia402Drive:
         if has[_X_POSITION_ACTUAL]:
             put(_X_POSITION_ACTUAL, 0, pos_counts)
         if has[_X_VELOCITY_ACTUAL]:
-            put(_X_VELOCITY_ACTUAL, 0, math.floor(self.velocity_rad_s * cpr + 0.5))
+            put(_X_VELOCITY_ACTUAL, 0, math.floor(self.velocity_rad_s * vpr + 0.5))
         if has[_X_TORQUE_ACTUAL]:
-            put(_X_TORQUE_ACTUAL, 0, math.floor(self.torque_demand_nm * 1000.0 / p.rated_torque_nm + 0.5))
+            put(_X_TORQUE_ACTUAL, 0, math.floor(self.torque_demand_nm * 1000.0 / self.rated_torque_nm + 0.5))
         if has[_X_FOLLOWING_ERROR]:
             put(_X_FOLLOWING_ERROR, 0, fe)
         if has[_X_ERROR_CODE]:
@@ -752,8 +951,20 @@ def default_objects(params: DriveParams | None = None) -> dict[tuple[int, int], 
         Obj.QUICK_STOP_DECELERATION: p.quick_stop_decel_counts_s2,
         Obj.FOLLOWING_ERROR_ACTUAL: 0,
         Obj.TARGET_VELOCITY: 0,
+        Obj.MOTOR_RATED_TORQUE: round(p.rated_torque_nm * 1000.0),
+        Obj.MAX_MOTOR_SPEED: round(p.max_motor_speed_rpm),
     }
-    return {(int(index), 0): value for index, value in values.items()}
+    out: dict[tuple[int, int], int | float] = {(int(index), 0): value for index, value in values.items()}
+    gear = Fraction(p.gear_ratio).limit_denominator(GEAR_DENOMINATOR)
+    records = {
+        Obj.SOFTWARE_POSITION_LIMIT: p.software_position_limit or (INT32_MIN, INT32_MAX),
+        Obj.POSITION_ENCODER_RESOLUTION: (p.encoder_cpr, 1),
+        Obj.GEAR_RATIO: (gear.numerator, gear.denominator),
+    }
+    for index, (first, second) in records.items():
+        out[(int(index), 1)] = first
+        out[(int(index), 2)] = second
+    return out
 
 
 class DictObjectStore:

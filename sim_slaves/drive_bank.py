@@ -61,7 +61,7 @@ B = npt.NDArray[np.bool_]
 
 _STATES = tuple(State402)
 _NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
-_CSP, _CSV, _CST = 8, 9, 10
+_HM, _CSP, _CSV, _CST = 6, 8, 9, 10
 _SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
 #: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
@@ -86,6 +86,12 @@ _FLOAT_SLOTS = {
     "fe_timeout_s": "fe_timeout",
     "max_torque_nm": "tmax",
     "qs_decel": "qs_decel",
+    "rated_torque_nm": "rated",
+    "max_speed_rad_s": "vmax",
+    "position_limit_min": "pmin",
+    "position_limit_max": "pmax",
+    "_frame_rad": "frame",
+    "_home_v": "home_v",
 }
 _INT_SLOTS = {
     "error_code": "error_code",
@@ -99,6 +105,8 @@ _INT_SLOTS = {
     "qs_option": "qs_option",
     "fr_option": "fr_option",
     "_noise": "noise",
+    "home_bits": "home_bits",
+    "_home_phase": "home_phase",
 }
 _BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
 
@@ -208,6 +216,14 @@ class DriveBank:
         self.fe_timeout: F64 = z(n)
         self.tmax: F64 = z(n)
         self.qs_decel: F64 = z(n)
+        self.rated: F64 = z(n)  # motor rated torque [N·m] (0x6076)
+        self.vmax: F64 = z(n)  # max motor speed [rad/s] (0x6080; inf: none)
+        self.pmin: F64 = z(n)  # software position limits [counts] (0x607D; ±inf: none)
+        self.pmax: F64 = z(n)
+        self.frame: F64 = z(n)  # homing: reported - physical position [rad]
+        self.home_v: F64 = z(n)  # homing: speed demand [rad/s]
+        self.home_bits: I64 = z(n, dtype=np.int64)  # homing: statusword bits 10, 12, 13
+        self.home_phase: I64 = z(n, dtype=np.int64)  # homing: 0 idle, 1 searching, 2 found
         self.error_code: I64 = z(n, dtype=np.int64)
         self.mode_display: I64 = z(n, dtype=np.int64)
         self.following_error: I64 = z(n, dtype=np.int64)
@@ -242,9 +258,10 @@ class DriveBank:
         pa = _param_array
         self.rpc = pa(params, lambda p: TWO_PI / p.counts_per_rev)
         self.cpr = pa(params, lambda p: p.counts_per_rev / TWO_PI)
+        self.vpr = self.cpr * pa(params, lambda p: p.velocity_units_per_count_s)  # velocity units per rad/s
+        self.rpv = 1.0 / self.vpr
         self.inertia = pa(params, lambda p: p.inertia_kg_m2)
         self.friction = pa(params, lambda p: p.friction_nm_s_per_rad)
-        self.rated = pa(params, lambda p: p.rated_torque_nm)
         self.control_rate = pa(params, lambda p: p.control_rate_hz)
         wv = pa(params, lambda p: TWO_PI * p.velocity_bandwidth_hz)
         self.kv = self.inertia * wv
@@ -286,6 +303,7 @@ class DriveBank:
         self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
         self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
         self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
+        self._limited: dict[tuple[int, int], tuple[bool, bool]] = {}  # run -> (speed limit, position limits)
         self.drives = [BankDrive(self, i, p) for i, p in enumerate(params)]
 
     # -- per-drive bookkeeping --
@@ -294,6 +312,7 @@ class DriveBank:
         """Something outside the cycle changed a drive (fault injected, OD bound): look again next step."""
         self._uniform.clear()
         self._calm.clear()
+        self._limited.clear()
 
     def reset_slot(self, i: int) -> None:
         """Power-on values for drive ``i`` (its :class:`BankDrive` then sets its own)."""
@@ -381,9 +400,18 @@ class DriveBank:
         mode_req = self.mode_request[sl]
         new_cw = cw != self.prev_cw[sl]
         new_mode = mode_req != self.mode_display[sl]
-        if (a, b) in self._calm and not new_cw.any() and not new_mode.any():
+        homing = (self.mode_display[sl] == _HM) | (self.home_phase[sl] != 0)
+        if homing.any():  # the homing procedure runs per drive, through the scalar drive's code
+            self.changed()
+            for i in (np.flatnonzero(homing) + a).tolist():
+                d = self.drives[i]
+                d._state_machine(int(cw[i - a]))
+                d._modes(int(mode_req[i - a]))
+                d._homing(int(cw[i - a]))
+                self.quiet[i] = False
+        elif (a, b) in self._calm and not new_cw.any() and not new_mode.any():
             return
-        need = new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)
+        need = (new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)) & ~homing
         if need.any():
             self.changed()
             for i in (np.flatnonzero(need) + a).tolist():
@@ -391,8 +419,13 @@ class DriveBank:
                 taken = d.transitions_taken
                 d._state_machine(int(cw[i - a]))
                 d._modes(int(mode_req[i - a]))
+                if d.mode_display == _HM or d._home_phase:  # switched into homing mode this cycle
+                    d._homing(int(cw[i - a]))
                 self.quiet[i] = (
-                    bool(_STEADY[self.state[i]]) and d._pending is None and d.transitions_taken == taken
+                    bool(_STEADY[self.state[i]])
+                    and d._pending is None
+                    and d.transitions_taken == taken
+                    and d.mode_display != _HM
                 )
         self.prev_cw[sl] = cw
         if self.quiet[sl].all() and not self.fault_pending[sl].any():
@@ -419,14 +452,36 @@ class DriveBank:
             tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
         prev_t = self.prev_target[sl]
         use_p = oe & csp & self.has_tp[sl]
+        speed_limited, position_limited = self._limits(a, b)
+        if position_limited:
+            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
         target = np.where(use_p, tp * rpc, prev_t)
-        target_v = np.where(oe & csv & self.has_tv[sl], tv * rpc, 0.0)
+        target_v = np.where(oe & csv & self.has_tv[sl], tv * self.rpv[sl], 0.0)
+        if speed_limited:
+            vmax = self.vmax[sl]
+            target_v = np.clip(target_v, -vmax, vmax)
         target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
+        hm = oe & (mode == _HM)
+        if hm.any():
+            target_v = np.where(hm, self.home_v[sl], target_v)
         if not self.ideal_encoder:
             sd = self.noise_sd[sl]
             self.noise[sl] = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0)
-        self._physics(sl, dt, n, state, oe, csp, csv, cst, target, target_v, target_tau)
+        self._physics(sl, dt, n, state, oe, csp, csv | hm, cst, target, target_v, target_tau, speed_limited)
         self._outputs(sl, dt, state, oe, csp, csv, cst, target, target_v)
+        if hm.any():
+            self.statusword[sl] |= np.where(hm, self.home_bits[sl], 0)
+
+    def _limits(self, a: int, b: int) -> tuple[bool, bool]:
+        """Whether any drive of the run has a max motor speed, and software position limits (cached)."""
+        got = self._limited.get((a, b))
+        if got is None:
+            sl = slice(a, b)
+            got = self._limited[(a, b)] = (
+                bool(np.isfinite(self.vmax[sl]).any()),
+                bool(np.isfinite(self.pmin[sl]).any() or np.isfinite(self.pmax[sl]).any()),
+            )
+        return got
 
     def _kind(self, sl: slice) -> str:
         """Which path steps a run: "csp" (all enabled in plain CSP), "idle" (none powered), "general"."""
@@ -493,7 +548,7 @@ class DriveBank:
             state != _NR, _SW_REMOTE | _SW_VOLTAGE, _SW_REMOTE
         )
         self.following_error[sl] = 0
-        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.velocity_counts[sl] = np.floor(vel * self.vpr[sl] + 0.5)
         self.torque_permille[sl] = 0
 
     def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
@@ -501,6 +556,10 @@ class DriveBank:
         sl = slice(a, b)
         rpc, cpr = self.rpc[sl], self.cpr[sl]
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
+        speed_limited, position_limited = self._limits(a, b)
+        if position_limited:
+            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
+        vmax = self.vmax[sl]
         target = tp * rpc
         prev_t = self.prev_target[sl]
         e_, f_, g_, hh_, ki_h = self._coefficients(a, b, dt / steps)
@@ -533,6 +592,8 @@ class DriveBank:
             ev -= measured
             ev *= kp
             ev += vff
+            if speed_limited:
+                ev = np.clip(ev, -vmax, vmax)
             ev -= vel  # velocity error
             integ = np.minimum(np.maximum(integ + ki_h * ev, ntmax), tmax)
             tau = kv * ev
@@ -582,7 +643,7 @@ class DriveBank:
         self.statusword[sl] = sw
         self.following_error[sl] = fe
         self.position_counts[sl] = pos_counts
-        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.velocity_counts[sl] = np.floor(vel * self.vpr[sl] + 0.5)
         self.torque_permille[sl] = np.floor(tau * 1000.0 / self.rated[sl] + 0.5)
 
     def _delayed(self, a: int, b: int) -> tuple[I64, I64, I64]:
@@ -612,6 +673,7 @@ class DriveBank:
         target: F64,
         target_v: F64,
         target_tau: F64,
+        speed_limited: bool = False,
     ) -> None:
         steps = int(n[0])
         h = dt / n
@@ -659,6 +721,7 @@ class DriveBank:
         fc = self.coulomb[sl]
         dry = self.any_coulomb
         any_ramp = bool(ramp.any())
+        vmax = self.vmax[sl]
         for k in range(1, steps + 1):
             if any_ramp:
                 ramp_v = np.where(
@@ -666,11 +729,10 @@ class DriveBank:
                 )
             ref = prev_t + (target - prev_t) * (k / steps)
             measured = (np.floor(pos * epr + 0.5) + noise) * rpe
-            v_ref = np.where(
-                ramp,
-                ramp_v,
-                np.where(csp_loop, vff + kp * (ref - measured), np.where(csv_loop, target_v, 0.0)),
-            )
+            v_pos = vff + kp * (ref - measured)
+            if speed_limited:
+                v_pos = np.clip(v_pos, -vmax, vmax)
+            v_ref = np.where(ramp, ramp_v, np.where(csp_loop, v_pos, np.where(csv_loop, target_v, 0.0)))
             ev = v_ref - vel
             integ = np.where(pi, np.clip(integ + ki * ev * h, -tmax, tmax), integ)
             tau = np.where(pi, kv * ev + integ + ff, np.where(direct, target_tau, 0.0))
@@ -743,9 +805,10 @@ class DriveBank:
         if trip.any():
             self.changed()
         vel = self.vel[sl]
+        vpr = self.vpr[sl]
         reached = (
             (oe_csp & (afe <= self.position_window[sl]))
-            | (oe & csv & (np.abs(vel - target_v) * cpr <= self.velocity_window[sl]))
+            | (oe & csv & (np.abs(vel - target_v) * vpr <= self.velocity_window[sl]))
             | (oe & cst)
             | ((state == _QSA) & self.standstill[sl])
         )
@@ -758,7 +821,7 @@ class DriveBank:
         self.statusword[sl] = sw
         self.following_error[sl] = fe
         self.position_counts[sl] = pos_counts
-        self.velocity_counts[sl] = np.floor(vel * cpr + 0.5)
+        self.velocity_counts[sl] = np.floor(vel * vpr + 0.5)
         self.torque_permille[sl] = np.floor(self.tau[sl] * 1000.0 / self.rated[sl] + 0.5)
 
 

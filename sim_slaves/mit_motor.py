@@ -23,9 +23,9 @@ from typing import Any
 
 import can
 
-from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
 
 

@@ -24,12 +24,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import TYPE_CHECKING
 
 from fieldbus.core import datatypes
 from fieldbus.core.datatypes import DataType
 from fieldbus.core.pdo.model import Channel, DriveMap, Pdo
 from fieldbus.core.pdo.names import CIA402_NAMES
 from fieldbus.errors import SdoAbortError
+
+if TYPE_CHECKING:
+    from sim_slaves.drive402 import DriveParams
 
 U8 = datatypes.lookup("uint8")
 U16 = datatypes.lookup("uint16")
@@ -137,14 +141,23 @@ CIA402_TYPES: dict[int, str] = {
     0x606D: "uint16",  # velocity window [counts/s]
     0x6071: "int16",  # target torque [per mille]
     0x6072: "uint16",  # max torque [per mille]
+    0x6076: "uint32",  # motor rated torque [mN·m]
     0x6077: "int16",  # torque actual [per mille]
     0x607A: "int32",  # target position [counts]
-    0x6085: "uint32",  # quick stop deceleration [counts/s^2]
+    0x6080: "uint32",  # max motor speed [rpm]
+    0x6085: "uint32",  # quick stop deceleration [acceleration units]
     0x60F4: "int32",  # following error actual [counts]
     0x60FF: "int32",  # target velocity [counts/s]
     0x6502: "uint32",  # supported drive modes
 }
-SUPPORTED_MODES_CSP_CSV_CST = 0x00000380
+# CiA 402 arrays of two sub-indices: type, object name, sub-index names (values: sim_slaves.drive402)
+CIA402_RECORDS: dict[int, tuple[str, str, tuple[str, str]]] = {
+    0x607D: ("int32", "Software position limit", ("Min position limit", "Max position limit")),
+    0x608F: ("uint32", "Position encoder resolution", ("Encoder increments", "Motor revolutions")),
+    0x6091: ("uint32", "Gear ratio", ("Motor revolutions", "Shaft revolutions")),
+}
+NOT_MAPPABLE_402 = frozenset({0x6076, 0x6080, 0x6502})  # configuration objects: SDO only
+SUPPORTED_MODES_HM_CSP_CSV_CST = 0x000003A0  # 0x6502 bits 5 (homing), 7, 8, 9 (CSP, CSV, CST)
 CIA402_OUTPUTS = frozenset({0x6040, 0x6060, 0x6071, 0x6072, 0x607A, 0x60FF})  # RxPDO-mappable
 IDENTITY_NAMES = ("Vendor ID", "Product code", "Revision number", "Serial number")
 DEFTYPE_PDO_MAPPING = 0x0021  # CiA 301 structured types (SDO Information data type of records)
@@ -362,14 +375,17 @@ class ObjectDictionary:
     # -- from a drive map --
 
     @classmethod
-    def from_drive_map(cls, drive: DriveMap) -> ObjectDictionary:
+    def from_drive_map(cls, drive: DriveMap, params: DriveParams | None = None) -> ObjectDictionary:
         """The OD of an emulated device described by ``drive``.
 
         Holds 0x1000 device type, 0x1008 name, 0x1018 identity, 0x1C00 SM
         communication types, 0x1C12/0x1C13 assignment, the map's 0x16xx/0x1Axx
         mapping objects, every mapped object with its type, the start-up SDO
         objects, and the CiA 402 objects for ``profile: cia402`` maps (or maps
-        that map 0x6040).
+        that map 0x6040), at the values of the drive ``params`` describe
+        (default: the drive the map implies, :func:`sim_slaves.drive_config.drive_params`):
+        units (0x608F, 0x6091), rated torque (0x6076), limits (0x6072, 0x607D,
+        0x6080), quick stop (0x605A, 0x6085), windows.
         """
         od = cls()
         is402 = is_cia402_drive(drive)
@@ -392,20 +408,27 @@ class ObjectDictionary:
         for sub, v in enumerate((1, 2, 3, 4), start=1):
             od.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO, name=f"Communication type SM{sub - 1}")
         if is402:
-            defaults = _cia402_defaults()
+            defaults = _cia402_defaults(drive, params)
             for index, tname in CIA402_TYPES.items():
                 dt = datatypes.lookup(tname)
                 assert dt is not None
-                value = SUPPORTED_MODES_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
+                value = SUPPORTED_MODES_HM_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
+                mappable = index not in NOT_MAPPABLE_402
                 od.add(
                     index,
                     0,
                     dt,
                     value,
                     name=CIA402_NAMES.get((index, 0), f"0x{index:04X}"),
-                    mappable=index != 0x6502,
-                    pdo_dir=0 if index == 0x6502 else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
+                    mappable=mappable,
+                    pdo_dir=0 if not mappable else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
                 )
+            for index, (tname, name, subs) in CIA402_RECORDS.items():
+                dt = datatypes.lookup(tname)
+                assert dt is not None
+                od.describe(index, name, ObjectCode.ARRAY)
+                for sub, sub_name in enumerate(subs, start=1):
+                    od.add(index, sub, dt, defaults.get((index, sub), 0), name=sub_name)
         for sdo in drive.sdo:
             if not od.has(sdo.index, sdo.sub_index):
                 od.add(sdo.index, sdo.sub_index, sdo.type, 0, name=sdo.description)
@@ -470,9 +493,10 @@ def _is_mapping(index: int) -> bool:
     return index in RXPDO_MAP or index in TXPDO_MAP or index in (RXPDO_ASSIGN, TXPDO_ASSIGN)
 
 
-def _cia402_defaults() -> dict[tuple[int, int], int | float]:
+def _cia402_defaults(drive: DriveMap, params: DriveParams | None) -> dict[tuple[int, int], int | float]:
     try:
         from sim_slaves.drive402 import default_objects
+        from sim_slaves.drive_config import drive_params
     except ImportError:  # the drive model is optional for the OD
         return {}
-    return dict(default_objects())
+    return dict(default_objects(params or drive_params(drive)))

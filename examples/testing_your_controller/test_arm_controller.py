@@ -1,5 +1,8 @@
 """Tests of the example arm controller against emulated drives, with fieldbus.testing only.
 
+The joints are geared drives (arm_joint.yaml: a 2^20-count motor encoder behind a 50:1 gear), and
+the emulated drives take their resolution and gear from that map.
+
 Every test runs on the in-process EtherCAT emulator and on CANopen (virtual
 time: as fast as the CPU allows, the same cycles on any machine) and over a
 veth pair with the real pysoem master (wall time; skipped where the machine

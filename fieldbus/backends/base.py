@@ -133,6 +133,7 @@ class Backend(abc.ABC):
             list[tuple[DirectionImage, npt.NDArray[np.uint8], npt.NDArray[np.bool_]]] | None
         ) = None
         self._accept_src: npt.NDArray[np.bool_] | None = None
+        self._expected_wkc: int | None = None
 
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
         """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
@@ -178,10 +179,12 @@ class Backend(abc.ABC):
 
     @property
     def expected_wkc(self) -> int:
-        """Working counter a complete cycle returns (EtherCAT rule; CAN backends override)."""
-        from fieldbus.core.wkc import expected_wkc
+        """Working counter a complete cycle returns (EtherCAT rule; CAN backends override). Computed once."""
+        if self._expected_wkc is None:
+            from fieldbus.core.wkc import expected_wkc
 
-        return expected_wkc([a.layout for a in self.areas])
+            self._expected_wkc = expected_wkc([a.layout for a in self.areas])
+        return self._expected_wkc
 
     def check_identities(self, found: list[tuple[str, int, int] | None], where: str) -> None:
         """Compare what sits at each wire position, ``(name, vendor id, product id)``, with the maps.

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from fieldbus.backends.canlog import CanLogWriter, LoggedBus
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
+from fieldbus.wire.canlog import CanLogWriter, LoggedBus
 
 
 def open_can_bus(bus: Bus, default_interface: str = "socketcan") -> Any:

@@ -58,7 +58,6 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.backends.canlog import open_log
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.candecode import NMT_STATES
 from fieldbus.core.emcy import Emergency
@@ -74,6 +73,7 @@ from fieldbus.errors import (
     StateTransitionError,
 )
 from fieldbus.runtime.clock import monotonic_s
+from fieldbus.wire.canlog import open_log
 
 try:
     import can

@@ -11,15 +11,23 @@ sent, the reply is awaited for at most the bus's receive timeout with the GIL
 released, inputs are copied back into the slaves' rows of the process images.
 
 Recovery (like SOEM's ``ecatcheck``) is a generator advanced by the cycle one
-pysoem call or one frame at a time, after a miss and while a slave is known
-not to be in OP; a power-cycled slave is configured again step by step (SOEM's
-``reconfig`` sequence, split), see docs/backends.md.
+datagram at a time, after a miss and while a slave is known not to be in OP; a
+power-cycled slave is found again by position (SOEM's ``recover``, split: see
+:mod:`.ecat_raw`) and configured again step by step (SOEM's ``reconfig``
+sequence, split), see docs/backends.md.
+
+Bounded steps: in OP no pysoem call that waits longer than one reply is made.
+Each cycle sends its LRW and at most one other datagram (a recovery step or a
+step of an SDO transfer, :mod:`.ecat_mailbox`), which waits at most
+``frame_timeout_us`` (the bus's receive timeout, at most 1 ms by default,
+below SOEM's ``EC_TIMEOUTRET``, 2 ms, so SOEM sends it once); so one ``exchange()``
+waits at most the receive timeout plus that. docs/reliability.md, "Bounded steps".
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
+import struct
 import time
 from collections import deque
 from collections.abc import Generator
@@ -28,20 +36,25 @@ from typing import Any
 from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
-from fieldbus.backends.ecat_pcap import EthercatCapture
-from fieldbus.backends.sdo_exec import apply_plan, plan_transfers, retried
+from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
+from fieldbus.backends.ecat_raw import RawDatagrams
+from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
+from fieldbus.core.coe_mailbox import SdoTransfer
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
+from fieldbus.core.ecat import Command, Datagram
 from fieldbus.core.network import Bus
-from fieldbus.core.sdo import coe_plan
+from fieldbus.core.sdo import StepKind, coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import (
     BackendUnavailableError,
     BusTimeoutError,
     FieldbusError,
     SdoAbortError,
+    SdoMismatchError,
     StateTransitionError,
 )
+from fieldbus.wire.pcap import EthercatCapture
 
 try:
     import pysoem
@@ -57,19 +70,30 @@ HOST_OFFSET_FRACTION = 50  # host sends this % of a cycle after each SYNC0 (SOEM
 SDO_RETRIES = 2  # an SDO without answer (not an abort) is tried this many more times
 MAX_EMERGENCIES = 1000  # emergencies kept (oldest dropped)
 REDUNDANT_SLACK_US = 200  # a reply handed over this long past the timeout is still in time (redundant port)
-ACYCLIC_SDO_TIMEOUT_US = 3000  # SOEM's mailbox timeout for an SDO served in the cycle (default 700 ms)
+# An SDO asked for in OP runs one datagram per cycle; it gets a BusTimeoutError when not complete after
+# this long in cycles (cycles in which it got its datagram: none while the bus recovers). SOEM's own SDO
+# timeout is 700 ms. No cycle waits for it: see the frame timeout.
+ACYCLIC_SDO_TIMEOUT_US = 500_000
+# One datagram beside the LRW (acyclic or recovery) waits at most the bus's receive timeout, and at most
+# this by default: the acyclic budget of one exchange() (as recovery's frames before). Option
+# frame_timeout_us up to SOEM's EC_TIMEOUTRET (pysoem.settings.timeouts.ret, 2 ms): SOEM sends a frame
+# again when no reply came within EC_TIMEOUTRET, so below it a call is one frame.
+FRAME_TIMEOUT_US = 1000
 PLAN_RETRY_S = 1.0  # a slave whose reconfiguration failed is tried again after this
-RECOVERY_FRAME_TIMEOUT_US = 1000  # one register read/write during recovery (a lost frame costs this)
 RECOVERY_FRAME_TRIES = 4  # a register write whose reply is lost or late is sent again, one try per cycle
-# SOEM's mailbox timeout for one of the plan's SDOs during recovery (default 700 ms): the cycle that
-# carries it waits at most this long; a transfer without answer is sent again next cycle
-RECOVERY_SDO_TIMEOUT_US = 3_000
-RECOVERY_SDO_TRIES = 4
+RECOVERY_SDO_TIMEOUT_US = 100_000  # one of the plan's SDOs during recovery, in cycles as above
+RECOVERY_SDO_TRIES = 4  # ... tried this many times when it does not complete in time
+EEPROM_POLLS = 100  # cycles a found-again slave's EEPROM may stay busy for one read
+PRIME_STEPS = 50  # datagrams of the upload that takes over a slave's mailbox counter (bring-up)
 STATE_POLL_STEPS = 200  # cycles a reconfigured slave may take to reach a state
 SNAPSHOT_TIMEOUT_US = 20_000
+SNAPSHOT_TRIES = 3
 SM_SNAPSHOT, FMMU_SNAPSHOT = 8, 4  # SyncManagers and FMMUs kept per slave (SOEM: EC_MAXSM, EC_MAXFMMU)
 REG_FMMU0, REG_SM0 = 0x0600, 0x0800
 REG_AL_CONTROL, REG_AL_STATUS, REG_EEPROM_CONFIG = 0x0120, 0x0130, 0x0500
+REG_STATION, REG_EEPROM_CONTROL = 0x0010, 0x0502  # station address, alias; EEPROM control/status
+EEPROM_READ, EEPROM_BUSY, EEPROM_NACK = 0x0100, 0x8000, 0x2000  # EEPROM command; status bits
+SII_VENDOR, SII_PRODUCT, SII_REVISION = 0x08, 0x0A, 0x0C  # SII word addresses (identity)
 
 
 class EthercatBackend(Backend):
@@ -77,7 +101,12 @@ class EthercatBackend(Backend):
 
     Options: ``exact_timeout`` (default True: SOEM's packet socket non-blocking,
     so a lost frame costs the receive timeout, not a scheduler tick; False
-    keeps SOEM's blocking wait).
+    keeps SOEM's blocking wait); ``frame_timeout_us`` (the acyclic budget: how
+    long the one datagram beside the LRW waits; default the receive timeout,
+    at most ``FRAME_TIMEOUT_US``; up to SOEM's ``EC_TIMEOUTRET``);
+    ``sdo_timeout_s`` (as on canopen: an SDO in OP fails when not complete
+    after this many seconds of cycles in which it ran - one datagram each -
+    default ``ACYCLIC_SDO_TIMEOUT_US``).
     """
 
     kind = "ethercat"
@@ -115,7 +144,22 @@ class EthercatBackend(Backend):
         # frame index only (16 of them), so a frame still queued when a cycle starts is discarded.
         self.stale_frames = 0
         self._drain_buf = [bytearray(soem_socket.MAX_FRAME)]
-        self._sdo_tries = SDO_RETRIES + 1  # tries per SDO (1 during recovery: no cycle waits for retries)
+        self._sdo_tries = SDO_RETRIES + 1  # tries per blocking SDO (bring-up)
+        cap = int(pysoem.settings.timeouts.ret)
+        default = min(bus.receive_timeout_us, FRAME_TIMEOUT_US, cap)
+        self.frame_timeout_us = int(options.get("frame_timeout_us", default))  # type: ignore[call-overload]
+        sdo_timeout_us = 1e6 * float(options.get("sdo_timeout_s", ACYCLIC_SDO_TIMEOUT_US / 1e6))  # type: ignore[arg-type]
+        self._sdo_steps_max = max(1, int(sdo_timeout_us) // bus.cycle_time_us)  # datagrams (= cycles) per SDO
+        if not 0 < self.frame_timeout_us <= cap:
+            raise FieldbusError(
+                f"bus '{bus.name}': frame_timeout_us {self.frame_timeout_us} out of 1..{cap} (SOEM's EC_TIMEOUTRET)"
+            )
+        # one datagram besides the LRW per cycle: set by the ports, cleared by send()
+        self._frame_sent = False
+        self._mailboxes: list[SlaveMailbox | None] = []  # per slave, from its SM0/SM1 registers (SAFE-OP)
+        self._stations: list[tuple[int, int]] = []  # per slave: (station address, alias) as SOEM set them
+        self._acyclic: tuple[SdoRequest, Generator[None, None, bytes | None]] | None = None
+        self._raw: RawDatagrams | None = None  # our own frames on SOEM's socket (position addressing)
         self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose reconfiguration failed waits
         self._sm_regs: list[list[tuple[int, bytes]]] = []  # per slave: (register, bytes) to write again
         self._fmmu_regs: list[list[tuple[int, bytes]]] = []
@@ -208,6 +252,27 @@ class EthercatBackend(Backend):
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
         self._snapshot_registers()
+        self._prime_mailboxes()
+
+    def _prime_mailboxes(self) -> None:
+        """Take over each slave's mailbox counter from SOEM with a harmless upload (0x1000:0, device type).
+
+        SOEM counted 1..7 during bring-up and does not say where it stopped;
+        this first request carries 0, which SOEM never sends, and every later
+        one 1..7 in turn, so none can be taken for a repeat of SOEM's last. Were
+        this upload's write reply lost and sent again, a slave that takes every
+        0 as new would answer it twice: a read, harmless. Its outcome (an abort,
+        no answer) does not matter; the counter has moved on either way.
+        """
+        for i, mbx in enumerate(self._mailboxes):
+            if mbx is None:
+                continue
+            steps = self._sdo_steps(i, 0x1000, 0, None, PRIME_STEPS)
+            try:
+                while True:
+                    next(steps)
+            except (StopIteration, FieldbusError):
+                pass
 
     def _snapshot_registers(self) -> None:
         """Keep each slave's SyncManager and FMMU registers as SOEM programmed them (SAFE-OP).
@@ -218,9 +283,18 @@ class EthercatBackend(Backend):
         the SM status and PDI-control bytes are read-only and written as 0.
         """
         self._sm_regs, self._fmmu_regs = [], []
-        for s in self._slaves:
-            sm = s._fprd(REG_SM0, SM_SNAPSHOT * 8, SNAPSHOT_TIMEOUT_US)
-            fmmu = s._fprd(REG_FMMU0, FMMU_SNAPSHOT * 16, SNAPSHOT_TIMEOUT_US)
+        self._mailboxes, self._stations = [], []
+        for i, s in enumerate(self._slaves):
+            sm = self._snapshot_read(i, REG_SM0, SM_SNAPSHOT * 8)
+            fmmu = self._snapshot_read(i, REG_FMMU0, FMMU_SNAPSHOT * 16)
+            station = self._snapshot_read(i, REG_STATION, 4)  # station address, alias
+            self._stations.append(struct.unpack("<HH", station))
+            layout = MailboxLayout.from_sm_registers(sm[:16])
+            self._mailboxes.append(
+                None
+                if layout is None
+                else SlaveMailbox(layout, _SoemPort(self, s), functools.partial(self._emcy, i))
+            )
             self._sm_regs.append(
                 [
                     (REG_SM0 + 8 * k, sm[8 * k : 8 * k + 5] + b"\0" + sm[8 * k + 6 : 8 * k + 7] + b"\0")
@@ -235,6 +309,19 @@ class EthercatBackend(Backend):
                     if fmmu[16 * k + 12] & 1
                 ]
             )
+
+    def _snapshot_read(self, i: int, ado: int, size: int) -> bytes:
+        """``size`` bytes of slave ``i``'s registers at ``ado`` (bring-up: SOEM's waits, tried 3 times)."""
+        for _ in range(SNAPSHOT_TRIES):
+            try:
+                data: bytes = self._slaves[i]._fprd(ado, size, SNAPSHOT_TIMEOUT_US)
+            except (pysoem.WkcError, pysoem.PacketError):
+                continue
+            return data
+        raise StateTransitionError(
+            f"bus '{self.bus.name}': position {i} ({self.areas[i].slave.name}) did not answer a read of "
+            f"register 0x{ado:04X} in {SNAPSHOT_TRIES} tries of {SNAPSHOT_TIMEOUT_US / 1000:g} ms"
+        )
 
     def _configure_dc(self) -> None:
         """DC for maps with ``assign_activate``: ``config_dc``, then SYNC0 (and SYNC1) per slave.
@@ -260,16 +347,16 @@ class EthercatBackend(Backend):
         )
 
     def _reconfigure(self, i: int) -> Generator[None, None, None]:
-        """Slave ``i`` from INIT/PRE-OP back to SAFE-OP, one frame or one SDO per step.
+        """Slave ``i`` from INIT/PRE-OP back to SAFE-OP, one datagram per step.
 
         The sequence of SOEM's ``ecx_reconfig_slave`` (INIT, EEPROM to PDI, the
-        SyncManagers, PRE-OP, the SDO plan - written, then read back - SAFE-OP,
-        the FMMUs), split so that no cycle waits for more than one of them. A
-        failure (an SDO abort, a state that is not reached) puts the slave back
-        to INIT and raises: it never runs with a mapping the network did not write.
+        SyncManagers, PRE-OP, the SDO plan - written, then read back, through
+        :mod:`.ecat_mailbox` - SAFE-OP, the FMMUs), split so that no cycle waits
+        for more than one reply. A failure (an SDO abort, a state that is not
+        reached) puts the slave back to INIT (in a step of its own) and raises:
+        it never runs with a mapping the network did not write.
         """
-        s, area = self._slaves[i], self.areas[i]
-        t = RECOVERY_FRAME_TIMEOUT_US
+        area = self.areas[i]
         step = "INIT request"
         try:
             yield from self._write(i, REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
@@ -285,19 +372,7 @@ class EthercatBackend(Backend):
             step = "waiting for PRE-OP"
             yield from self._await_state(i, AL_PREOP)
             step = "SDO plan"
-            m = self.master
-            saved = m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries
-            m.sdo_read_timeout = m.sdo_write_timeout = RECOVERY_SDO_TIMEOUT_US
-            self._sdo_tries = 1
-            try:
-                yield from plan_transfers(
-                    coe_plan(area.slave.map),
-                    *self.plan_io(i),
-                    slave=area.slave.name,
-                    tries=RECOVERY_SDO_TRIES,
-                )
-            finally:
-                m.sdo_read_timeout, m.sdo_write_timeout, self._sdo_tries = saved
+            yield from self._plan_steps(i)
             step = "SAFE-OP request"
             yield from self._write(i, REG_AL_CONTROL, bytes([AL_SAFEOP, 0]))
             step = "waiting for SAFE-OP"
@@ -307,12 +382,78 @@ class EthercatBackend(Backend):
                 yield from self._write(i, address, data)
         except Exception as exc:
             self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
-            with contextlib.suppress(Exception):
-                s._fpwr(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]), t)
+            yield  # the step that failed had its datagram; the INIT request gets a step of its own
+            _SoemPort(self, self._slaves[i]).write(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
             raise StateTransitionError(
                 f"bus '{self.bus.name}': position {i} ({area.slave.name}) could not be configured again after "
                 f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {step}: {_describe(exc)}"
             ) from exc
+
+    def _plan_steps(self, i: int) -> Generator[None, None, int]:
+        """Slave ``i``'s SDO plan through its mailbox, one datagram per step: the writes, then the read-backs.
+
+        As :func:`~fieldbus.backends.sdo_exec.apply_plan`: the first abort or
+        mismatch raises. A transfer not complete within ``RECOVERY_SDO_TIMEOUT_US``
+        is made again (``RECOVERY_SDO_TRIES`` in all); transfers are idempotent.
+        """
+        name = self.areas[i].slave.name
+        plan = coe_plan(self.areas[i].slave.map)
+        transfers = 0
+        for st in plan.steps:
+            if st.kind is StepKind.WRITE:
+                yield from self._plan_sdo(i, st.index, st.sub_index, st.data)
+                transfers += 1
+                yield
+        for st in plan.checks:
+            assert st.readback is not None
+            got = yield from self._plan_sdo(i, st.index, st.sub_index, None)
+            transfers += 1
+            want = st.readback
+            if got is None or got[: len(want)] != want or any(got[len(want) :]):
+                raise SdoMismatchError(
+                    index=st.index, sub_index=st.sub_index, expected=want, received=got or b"", slave=name
+                )
+            yield
+        return transfers
+
+    def _plan_sdo(
+        self, i: int, index: int, sub: int, data: bytes | None
+    ) -> Generator[None, None, bytes | None]:
+        last: BusTimeoutError | None = None
+        for attempt in range(RECOVERY_SDO_TRIES):
+            if attempt:
+                yield
+            try:
+                steps = max(1, RECOVERY_SDO_TIMEOUT_US // self.bus.cycle_time_us)
+                return (yield from self._sdo_steps(i, index, sub, data, steps))
+            except BusTimeoutError as exc:
+                last = exc
+        assert last is not None
+        raise last
+
+    def _sdo_steps(
+        self, i: int, index: int, sub: int, data: bytes | None, max_steps: int
+    ) -> Generator[None, None, bytes | None]:
+        """One SDO transfer with slave ``i`` through its mailbox, one datagram per step (the last: no yield)."""
+        name = self.areas[i].slave.name
+        mbx = self._mailboxes[i] if i < len(self._mailboxes) else None
+        if mbx is None:
+            raise FieldbusError(f"bus '{self.bus.name}' slave {name}: no mailbox (no SDO access)")
+        t = SdoTransfer(index, sub, data, mailbox_out=mbx.layout.out_size)
+        try:
+            return (yield from mbx.transfer(t, max_steps))
+        except SdoAbortError as exc:
+            raise SdoAbortError(exc.code, index=exc.index, sub_index=exc.sub_index, slave=name) from None
+        except BusTimeoutError:
+            what = "read" if data is None else "write"
+            raise BusTimeoutError(
+                f"bus '{self.bus.name}' slave {name}: SDO {what} 0x{index:04X}:{sub:02X} not complete in "
+                f"{max_steps} cycles (one datagram per cycle)"
+            ) from None
+
+    def _emcy(self, slave: int, code: int, register: int) -> None:
+        self.emergencies.append((slave, code, register))
+        self.emcy_count += 1
 
     def _write(self, i: int, address: int, data: bytes) -> Generator[None, None, None]:
         """One register write to slave ``i``, then a step; a lost or late reply is sent again next step.
@@ -321,9 +462,15 @@ class EthercatBackend(Backend):
         owner, SM and FMMU entries), so a repeat is safe, as in SOEM's own
         ``ecx_FPWRw``, which repeats a frame until its (longer) timeout.
         """
-        fpwr = functools.partial(self._slaves[i]._fpwr, address, data, RECOVERY_FRAME_TIMEOUT_US)
-        yield from retried(fpwr, RECOVERY_FRAME_TRIES, (pysoem.WkcError, pysoem.PacketError))
-        yield
+        port = _SoemPort(self, self._slaves[i])
+        for _ in range(RECOVERY_FRAME_TRIES):
+            if port.write(address, data):
+                yield
+                return
+            yield
+        raise BusTimeoutError(
+            f"register 0x{address:04X} write not acknowledged in {RECOVERY_FRAME_TRIES} tries"
+        )
 
     def _await_state(self, i: int, state: int) -> Generator[None, None, None]:
         """Read slave ``i``'s AL status once per step until it shows ``state``; give up after a while.
@@ -332,14 +479,13 @@ class EthercatBackend(Backend):
         """
         for _ in range(STATE_POLL_STEPS):
             got = self._al_status(i)
+            yield  # the step ends with its datagram, whatever it showed
             if got is None:
-                yield
                 continue
             if got & 0x0F == state:
                 return
             if got & AL_ERROR and state != AL_INIT:
                 raise StateTransitionError(f"{state_name(got)} instead of {state_name(state)}")
-            yield
         raise BusTimeoutError(f"did not reach {state_name(state)} within {STATE_POLL_STEPS} cycles")
 
     def op(self) -> None:
@@ -395,6 +541,7 @@ class EthercatBackend(Backend):
             s.output = bytes(mv)
         if self._exact_timeout:
             self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
+        self._frame_sent = False
         self._sent_ns = time.perf_counter_ns()
         self.master.send_processdata(release_gil=True)
 
@@ -429,16 +576,22 @@ class EthercatBackend(Backend):
         return c
 
     def _recover(self) -> Generator[None, None, bool]:
-        """SOEM's ecatcheck as steps of one frame (or one pysoem call); passes repeat until all are in OP.
+        """SOEM's ecatcheck as steps of one datagram; passes repeat until all are in OP.
 
-        Each slave's AL status is read on its own (one FPRD per step) rather
-        than with SOEM's ``read_state``, which reads every slave one by one
-        when they differ - up to 5 ms for 12 slaves in one call. Runs in the
-        cycle's thread on purpose: pysoem holds the GIL in its calls, so a
-        monitor thread would stall the cycle at moments nobody chose.
+        A pass starts with one broadcast read of every slave's AL status (as
+        SOEM's ``read_state`` does): all answered and all in OP ends it there,
+        one datagram after a miss that left every slave in OP. Otherwise each
+        slave's AL status is read on its own (one FPRD per step) rather than
+        with ``read_state``, which then reads every slave one by one in one
+        call - up to 5 ms for 12 slaves. Runs in the cycle's thread on purpose:
+        pysoem holds the GIL in its calls, so a monitor thread would stall the
+        cycle at moments nobody chose.
         """
         worked = False
         while True:
+            if not any(s.is_lost for s in self._slaves) and (yield from self._all_in_op()):
+                self.recoveries += worked
+                return True
             all_ok = True
             for i, s in enumerate(self._slaves):
                 state = None if s.is_lost else self._al_status(i)
@@ -457,7 +610,7 @@ class EthercatBackend(Backend):
                     yield from self._reconfigure(i)
                     yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
                 elif action is Recovery.RECOVER:  # silent at its address: find it by position (SOEM)
-                    s.is_lost = s.recover(timeout=RECONFIG_TIMEOUT_US) <= 0
+                    s.is_lost = not (yield from self._find_again(i))
                 yield
             if all_ok:
                 self.recoveries += worked
@@ -466,15 +619,95 @@ class EthercatBackend(Backend):
 
     def _al_status(self, i: int) -> int | None:
         """Slave ``i``'s AL status register (one FPRD), None when it does not answer at its address."""
-        try:
-            raw = self._slaves[i]._fprd(REG_AL_STATUS, 2, RECOVERY_FRAME_TIMEOUT_US)
-        except (pysoem.WkcError, pysoem.PacketError):
+        raw = _SoemPort(self, self._slaves[i]).read(REG_AL_STATUS, 2)
+        return None if raw is None else int.from_bytes(raw, "little")
+
+    def _raw_channel(self) -> RawDatagrams | None:
+        """Our own datagrams on SOEM's socket(s), opened at first use; None without a socket."""
+        if self._raw is None and self.sockets:
+            self._raw = RawDatagrams(self.sockets)
+        return self._raw
+
+    def _all_in_op(self) -> Generator[None, None, bool]:
+        """One BRD of AL status (0x0130): True when every slave answered and the OR of their states is OP."""
+        raw = self._raw_channel()
+        if raw is None:  # pragma: no cover - SOEM always opens a packet socket on Linux
+            return False
+        self._frame_sent = True
+        d = raw.txrx(Datagram.physical(Command.BRD, 0, REG_AL_STATUS, bytes(2)), self.frame_timeout_us)
+        yield
+        return (
+            d is not None
+            and d.wkc == len(self._slaves)
+            and int.from_bytes(d.data, "little") & (0x0F | AL_ERROR) == AL_OP
+        )
+
+    def _find_again(self, i: int) -> Generator[None, None, bool]:
+        """SOEM's ``ecx_recover_slave`` for slave ``i`` as single datagrams (one per step); True: found.
+
+        By position (APRD/APWR, :mod:`.ecat_raw`): its station address and
+        alias; a slave that lost its address (0: power-cycled) and shows the
+        same alias and, in its SII, the same vendor, product and revision as
+        at bring-up gets its station address back. Position addressing
+        throughout, so no temporary address is needed (SOEM uses one). Each
+        datagram ends its step (:meth:`_ap`).
+        """
+        s = self._slaves[i]
+        if self._raw_channel() is None:  # pragma: no cover - SOEM always opens a packet socket on Linux
+            return bool(s.recover(timeout=RECONFIG_TIMEOUT_US) > 0)  # unbounded (documented)
+        station, alias = self._stations[i]
+        got = yield from self._ap(i, Command.APRD, REG_STATION, bytes(4))
+        if got is None:
+            return False
+        now, now_alias = struct.unpack("<HH", got)
+        if now == station:
+            return True
+        if now != 0 or now_alias != alias:
+            return False  # another slave at this position, or one that kept another address: not adopted
+        if (yield from self._ap(i, Command.APWR, REG_EEPROM_CONFIG, b"\x00")) is None:  # EEPROM to master
+            return False
+        for word, want in ((SII_VENDOR, s.man), (SII_PRODUCT, s.id), (SII_REVISION, s.rev)):
+            value = yield from self._ap_eeprom(i, word)
+            if value != want:
+                return False
+        return (yield from self._ap(i, Command.APWR, REG_STATION, struct.pack("<H", station))) is not None
+
+    def _ap(self, i: int, cmd: Command, ado: int, data: bytes) -> Generator[None, None, bytes | None]:
+        """One position-addressed datagram to slave ``i``, then a step; its data, None without WKC 1."""
+        assert self._raw is not None
+        self._frame_sent = True
+        d = self._raw.txrx(Datagram.physical(cmd, -i, ado, data), self.frame_timeout_us)
+        yield
+        return d.data if d is not None and d.wkc == 1 else None
+
+    def _ap_eeprom(self, i: int, word: int) -> Generator[None, None, int | None]:
+        """Four bytes of slave ``i``'s SII from ``word``: the read command, then polls of status and data.
+
+        One poll reads control/status, address and data (0x0502-0x050B) in one
+        datagram. None when a datagram is not answered; a busy EEPROM is polled
+        for ``EEPROM_POLLS`` steps, then :class:`BusTimeoutError`.
+        """
+        command = struct.pack("<HI", EEPROM_READ, word)
+        if (yield from self._ap(i, Command.APWR, REG_EEPROM_CONTROL, command)) is None:
             return None
-        return int.from_bytes(raw, "little")
+        for _ in range(EEPROM_POLLS):
+            raw = yield from self._ap(i, Command.APRD, REG_EEPROM_CONTROL, bytes(10))
+            if raw is None:
+                return None
+            status = int.from_bytes(raw[:2], "little")
+            if status & EEPROM_NACK:
+                return None
+            if not status & EEPROM_BUSY:
+                return int.from_bytes(raw[6:10], "little")
+        raise BusTimeoutError(f"position {i}: EEPROM busy for {EEPROM_POLLS} cycles")
 
     # -- shut-down --------------------------------------------------------------------
     def stop(self) -> None:
         self._recovery = None
+        self._acyclic = None
+        if self._raw is not None:
+            self._raw.close()
+            self._raw = None
         if self._open and self._slaves:
             self.master.state = pysoem.INIT_STATE
             self.master.write_state()
@@ -519,34 +752,33 @@ class EthercatBackend(Backend):
         )
 
     def acyclic_step(self, request: SdoRequest) -> bool:
-        """An SDO asked for in OP, run in the cycle thread with SOEM's mailbox timeout cut to
-        ``ACYCLIC_SDO_TIMEOUT_US`` and no retry, so it holds the cycle at most about that long.
+        """Advance an SDO asked for in OP by one datagram (:mod:`.ecat_mailbox`); True when finished.
 
-        A drive slower than that to answer gets a :class:`BusTimeoutError` (ask again).
+        No SOEM mailbox call: the request goes into the slave's SM0, SM1 is
+        polled and read, one datagram per cycle, each waiting at most
+        :attr:`frame_timeout_us`. In a cycle whose datagram went to recovery it
+        waits for the next. Not complete after ``sdo_timeout_s`` worth of
+        cycles (datagrams): :class:`BusTimeoutError` (ask again). Never raises.
         """
-        m = self.master
-        saved = m.sdo_read_timeout, m.sdo_write_timeout
-        m.sdo_read_timeout = m.sdo_write_timeout = ACYCLIC_SDO_TIMEOUT_US
+        if self._frame_sent:
+            return False
         try:
-            if request.data is None:
-                request.finish(
-                    self._sdo_read_sized(request.slave, request.index, request.sub_index, 0, tries=1)
+            if self._acyclic is None or self._acyclic[0] is not request:
+                steps = self._sdo_steps(
+                    request.slave, request.index, request.sub_index, request.data, self._sdo_steps_max
                 )
-            else:
-                data = request.data
-                self._sdo(
-                    request.slave,
-                    request.index,
-                    request.sub_index,
-                    "write",
-                    lambda s: s.sdo_write(request.index, request.sub_index, data, release_gil=True),
-                    tries=1,
-                )
-                request.finish(None)
+                self._acyclic = (request, steps)
+            next(self._acyclic[1])
+            return False
+        except StopIteration as done:
+            request.finish(done.value)
         except FieldbusError as exc:
             request.finish(error=exc)
-        finally:
-            m.sdo_read_timeout, m.sdo_write_timeout = saved
+        except Exception as exc:  # a fault of ours or of the bus: that request's, not the cycle's
+            request.finish(
+                error=FieldbusError(f"bus '{self.bus.name}': SDO transfer failed: {_describe(exc)}")
+            )
+        self._acyclic = None
         return True
 
     def _sdo(
@@ -589,3 +821,28 @@ def _describe(exc: BaseException) -> str:
         if text
         else f"{type(exc).__name__} (no answer at the slave's address)"
     )
+
+
+class _SoemPort:
+    """Slave registers through pysoem's ``_fprd`` / ``_fpwr``: one frame each, waiting the backend's frame
+    timeout (below SOEM's EC_TIMEOUTRET, so SOEM sends it once); marks the cycle's datagram as spent."""
+
+    def __init__(self, backend: EthercatBackend, slave: Any) -> None:
+        self.backend = backend
+        self.slave = slave
+
+    def read(self, ado: int, size: int) -> bytes | None:
+        self.backend._frame_sent = True
+        try:
+            data: bytes = self.slave._fprd(ado, size, self.backend.frame_timeout_us)
+        except (pysoem.WkcError, pysoem.PacketError):
+            return None
+        return data
+
+    def write(self, ado: int, data: bytes) -> bool:
+        self.backend._frame_sent = True
+        try:
+            self.slave._fpwr(ado, data, self.backend.frame_timeout_us)
+        except (pysoem.WkcError, pysoem.PacketError):
+            return False
+        return True

@@ -25,6 +25,15 @@ switches a motor's mode between cycles; the reply's error code is watched
 :attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`); ``stop()``
 sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
 the disable frame.
+
+Family ``odrive`` (:mod:`fieldbus.core.odrive`, CANSimple): each cycle a motor gets its mode's
+set-point frame (``node << 5 | 0x0C/0x0D/0x0E``) and a remote frame asking for Get_Encoder_Estimates,
+whose answer is the cycle's reply; heartbeats (and, firmware 0.6, Get_Error answers) update the
+image's ``axis_error`` / ``axis_state`` whenever they come, a new error is a counted fault named by
+its bits; the image's ``requested_state`` is sent as Set_Axis_State when it changes, and while it is
+IDLE no set-point goes out (the safe stop writes IDLE); ``op()`` requests CLOSED_LOOP_CONTROL and waits
+for the heartbeats to say so; ``stop()`` requests IDLE. ``configure()`` waits for a heartbeat, sends
+Set_Controller_Mode and writes the map's endpoints (RxSdo, 0.6) and reads them back (TxSdo).
 """
 
 from __future__ import annotations
@@ -40,12 +49,12 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.backends.canlog import open_log
-from fieldbus.core import damiao
+from fieldbus.core import damiao, odrive
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.runtime.clock import monotonic_s
+from fieldbus.wire.canlog import open_log
 
 try:
     import can
@@ -87,7 +96,10 @@ class RawCanBackend(CanFaults, Backend):
         self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
         self._arrived = np.zeros(self.n_slaves, dtype=bool)
         # each motor's reply bytes as the frame has them: its input row, reversed (a view)
-        self._reply_rows = [self.in_row(i)[::-1] for i in range(self.n_slaves)]
+        self._reply_rows = [
+            self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
+        ]
+        self._reply_len = [8 if self._od_of(i) else row.size for i, row in enumerate(self._reply_rows)]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
@@ -104,6 +116,23 @@ class RawCanBackend(CanFaults, Backend):
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
         self._cycles = 0
+        # family odrive: protocol, mode, set-point frames by command id, the RTR, heartbeat routing
+        self._od: list[odrive.OdriveProtocol | None] = [self._od_of(i) for i in range(self.n_slaves)]
+        self._od_mode: list[odrive.OdriveMode | None] = [None] * self.n_slaves
+        self._od_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_slaves)]
+        self._od_rtr: list[Any] = [None] * self.n_slaves
+        self._od_sent_state = [0] * self.n_slaves  # the last Set_Axis_State sent (0: none)
+        self._od_side: dict[
+            int, tuple[int, str]
+        ] = {}  # CAN id -> (motor, "heartbeat" | "get_error" | "txsdo")
+        self._od_at: list[tuple[int, int]] = [
+            (0, 0)
+        ] * self.n_slaves  # image offsets of axis error, axis state
+        self._od_hb: list[tuple[int, int] | None] = [None] * self.n_slaves  # last heartbeat (error, state)
+        self.active_errors: dict[
+            str, tuple[int, int]
+        ] = {}  # 0.6 Get_Error answers: (active errors, disarm reason)
+        self._sdo_answer: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -120,6 +149,8 @@ class RawCanBackend(CanFaults, Backend):
             reply_id = cfg.reply_can_id(node)
             if cfg.damiao is not None:
                 self._family_init(i, cfg, node)
+            if cfg.odrive is not None:
+                reply_id = self._odrive_init(i, cfg, node)
             byte = -1
             if cfg.node_field:
                 bit = 0
@@ -140,6 +171,7 @@ class RawCanBackend(CanFaults, Backend):
                 )
             self._route[key] = i
         self._families = any(m is not None for m in self._mode)
+        self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -268,8 +300,24 @@ class RawCanBackend(CanFaults, Backend):
 
     def set_mode(self, slave: int | str, mode: str) -> None:
         """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
-        then its commands go out as that mode's frames. Blocking: call it between cycles."""
+        then its commands go out as that mode's frames. Blocking: call it between cycles.
+        An ODrive gets Set_Controller_Mode (CANSimple has no read-back of it; firmware 0.6 could read the
+        endpoint) and its set-points go out as that mode's command from the next cycle."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
+        od = self._od[i]
+        if od is not None:
+            try:
+                new_od = od.mode_named(mode)
+            except KeyError:
+                raise FieldbusError(
+                    f"{self.areas[i].slave.name}: no mode '{mode}' (have: {', '.join(m.name for m in od.modes)})"
+                ) from None
+            try:
+                self._od_frame(i, "set_controller_mode", odrive.controller_mode_frame(new_od))
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("send", exc) from exc
+            self._od_mode[i] = new_od
+            return
         proto = self._proto(i)
         try:
             new = proto.mode_named(mode)
@@ -282,7 +330,8 @@ class RawCanBackend(CanFaults, Backend):
 
     def mode(self, slave: int | str) -> str | None:
         """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
-        m = self._mode[slave if isinstance(slave, int) else self.slave_index(slave)]
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        m = self._mode[i] or self._od_mode[i]
         return m.name if m is not None else None
 
     def error_code(self, slave: int | str) -> int:
@@ -315,17 +364,219 @@ class RawCanBackend(CanFaults, Backend):
                     )
                 self._codes[i] = code
 
+    # -- family odrive -------------------------------------------------------------------
+    def _little(self, i: int) -> bool:
+        cfg = self.areas[i].slave.map.rawcan
+        return cfg is not None and cfg.byte_order == "little"
+
+    def _od_of(self, i: int) -> odrive.OdriveProtocol | None:
+        cfg = self.areas[i].slave.map.rawcan
+        return cfg.odrive if cfg is not None else None
+
+    def _odrive_init(self, i: int, cfg: Any, node: int) -> int:
+        """Frames and routing of ODrive motor ``i``; returns the CAN id of its cyclic reply."""
+        proto: odrive.OdriveProtocol = cfg.odrive
+        if not 0 <= node < 0x40:
+            raise FieldbusError(
+                f"{self.areas[i].slave.name}: an ODrive node id is 0..63 (11-bit id = node << 5 | cmd)"
+            )
+        self._od_mode[i] = proto.mode_named(proto.mode)
+        for m in proto.modes:
+            self._od_msgs[i][m.command] = can.Message(
+                arbitration_id=node << 5 | m.command, data=bytearray(8), is_extended_id=False
+            )
+        reply_id = proto.can_id(node, "get_encoder_estimates")
+        self._od_rtr[i] = can.Message(
+            arbitration_id=reply_id, is_remote_frame=True, dlc=8, is_extended_id=False
+        )
+        self._od_side[proto.can_id(node, "heartbeat")] = (i, "heartbeat")
+        if proto.protocol == "0.6":
+            self._od_side[proto.can_id(node, "get_error")] = (i, "get_error")
+            self._od_side[proto.can_id(node, "txsdo")] = (i, "txsdo")
+        at, offsets = 0, {}
+        for f in cfg.reply:
+            offsets[f.name] = at
+            at += f.bits // 8
+        self._od_at[i] = (offsets[proto.error_field], offsets[proto.state_field])
+        return reply_id
+
+    def _od_frame(self, i: int, command: str, data: bytes = b"", remote: bool = False) -> None:
+        proto = self._od[i]
+        assert proto is not None
+        node = self.areas[i].slave.node_id or 0
+        msg = can.Message(
+            arbitration_id=proto.can_id(node, command),
+            data=data,
+            is_remote_frame=remote,
+            dlc=8 if remote else len(data),
+            is_extended_id=False,
+        )
+        self._bus.send(msg)
+
+    def _side_frame(self, msg: Any) -> bool:
+        """A heartbeat, Get_Error or TxSdo frame of an ODrive: taken in (image, faults), True; else False."""
+        got = self._od_side.get(msg.arbitration_id)
+        if got is None or msg.is_remote_frame or msg.is_extended_id:
+            return False
+        i, kind = got
+        data = bytes(msg.data)
+        proto = self._od[i]
+        assert proto is not None
+        if kind == "heartbeat" and len(data) >= 5:
+            error, state = odrive.heartbeat(data)
+            row, (e_at, s_at) = self._reply_rows[i], self._od_at[i]
+            row[e_at : e_at + 4] = np.frombuffer(data[:4], dtype=np.uint8)
+            row[s_at] = state
+            last = self._od_hb[i]
+            self._od_hb[i] = (error, state)
+            if error and (last is None or last[0] != error):
+                self.motor_faults += 1
+                name = self.areas[i].slave.name
+                self.faults.append(MotorFault(self._cycles, name, error, proto.error_names(error)))
+                if proto.protocol == "0.6":  # the detail: active errors and the disarm reason
+                    self._od_frame(i, "get_error", remote=True)
+        elif kind == "get_error" and len(data) == 8:
+            self.active_errors[self.areas[i].slave.name] = (
+                int.from_bytes(data[:4], "little"),
+                int.from_bytes(data[4:], "little"),
+            )
+        elif kind == "txsdo":
+            answer = odrive.sdo_reply(data)
+            if answer is not None:
+                self._sdo_answer = (i, *answer)
+        return True
+
+    def _await(self, done: Any, timeout_s: float) -> bool:
+        """Receive (taking in side frames) until ``done()`` or the time-out; True when done."""
+        deadline = self._now() + timeout_s
+        try:
+            while not done() and (left := deadline - self._now()) > 0:
+                msg = self._bus.recv(timeout=left)
+                if msg is not None and not msg.is_error_frame:
+                    self._side_frame(msg)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        return bool(done())
+
+    def _od_wait_heartbeat(self, i: int, state: int | None = None) -> None:
+        proto = self._od[i]
+        assert proto is not None
+        timeout = max(ENTER_TIMEOUT_S, 3 * proto.heartbeat_ms / 1000)
+        hb = self._od_hb
+
+        def reached() -> bool:
+            seen = hb[i]
+            return seen is not None and (state is None or seen[1] == state)
+
+        if not self._await(reached, timeout):
+            slave = self.areas[i].slave
+            seen = hb[i]
+            what = (
+                "no heartbeat"
+                if seen is None
+                else f"axis state {seen[1]}, error {proto.error_names(seen[0])}"
+            )
+            raise StateTransitionError(
+                f"bus '{self.bus.name}': {slave.name} (ODrive node {slave.node_id}) "
+                + (f"did not reach axis state {state}: " if state is not None else "")
+                + f"{what} within {timeout * 1000:.0f} ms",
+                slave=slave.name,
+            )
+
+    def sdo(self, slave: int | str, endpoint: int, value: bytes | None = None) -> bytes:
+        """Read (``value`` None) or write an ODrive endpoint through RxSdo (firmware 0.6); a write is
+        confirmed by reading it back. Returns the 4 value bytes the controller answers. Blocking."""
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        proto = self._od[i]
+        if proto is None or proto.protocol != "0.6":
+            raise FieldbusError(
+                f"{self.areas[i].slave.name}: no endpoint access over CAN (ODrive firmware 0.6 only)"
+            )
+        self._drain()
+        try:
+            if value is not None:
+                self._od_frame(i, "rxsdo", odrive.sdo_request(odrive.SDO_WRITE, endpoint, value))
+            self._sdo_answer = None
+            self._od_frame(i, "rxsdo", odrive.sdo_request(odrive.SDO_READ, endpoint))
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("endpoint access", exc) from exc
+        if not self._await(
+            lambda: self._sdo_answer is not None and self._sdo_answer[:2] == (i, endpoint), REGISTER_TIMEOUT_S
+        ):
+            raise BusTimeoutError(
+                f"bus '{self.bus.name}': {self.areas[i].slave.name} did not answer the read of endpoint "
+                f"{endpoint} within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
+            )
+        assert self._sdo_answer is not None
+        return self._sdo_answer[2]
+
+    def _configure_odrive(self, i: int) -> None:
+        """A heartbeat seen; Set_Controller_Mode for the map's mode; the map's endpoints written and read back."""
+        proto, mode = self._od[i], self._od_mode[i]
+        assert proto is not None and mode is not None
+        self._drain()
+        self._od_wait_heartbeat(i)
+        try:
+            self._od_frame(i, "set_controller_mode", odrive.controller_mode_frame(mode))
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
+        for item in proto.config:
+            back = odrive.unpack_config(item, self.sdo(i, item.endpoint, odrive.pack_config(item)))
+            if back != odrive.unpack_config(item, odrive.pack_config(item)):
+                raise StateTransitionError(
+                    f"bus '{self.bus.name}': {self.areas[i].slave.name} endpoint {item.name} ({item.endpoint}) "
+                    f"reads back {back:g} after writing {item.value:g}",
+                    slave=self.areas[i].slave.name,
+                )
+
+    def _od_request_state(self, i: int, state: int) -> None:
+        self._od_frame(i, "set_axis_state", odrive.axis_state_frame(state))
+        self._od_sent_state[i] = state
+
+    def _op_odrive(self) -> None:
+        """Every ODrive: CLOSED_LOOP_CONTROL requested (and written to the image's requested state), then
+        awaited in the heartbeats."""
+        for i, proto in enumerate(self._od):
+            if proto is None:
+                continue
+            a = self.areas[i]
+            self.groups[a.group].image.outputs.values[a.row][proto.request_field] = proto.closed_loop
+            self._od_hb[i] = None  # the state is read from a heartbeat that comes after the request
+            try:
+                self._od_request_state(i, proto.closed_loop)
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("send", exc) from exc
+            self._od_wait_heartbeat(i, proto.closed_loop)
+
+    def _send_odrive(self, i: int, proto: odrive.OdriveProtocol) -> None:
+        """One ODrive's cycle: Set_Axis_State when the image asks a new state; the set-point unless IDLE; the RTR."""
+        values = self._mode_values(i)
+        want = int(values[proto.request_field])
+        if want and want != self._od_sent_state[i]:
+            self._od_request_state(i, want)
+        mode = self._od_mode[i]
+        assert mode is not None
+        if want != proto.idle:
+            m = self._od_msgs[i][mode.command]
+            m.data[:] = damiao.encode_fields(mode.fields, values, {})
+            self._bus.send(m)
+        self._bus.send(self._od_rtr[i])
+
     def configure(self) -> None:
         """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); MIT motors
         of family ``mit`` have no registers: nothing to configure."""
         for i in range(self.n_slaves):
             if self._mode[i] is not None:
                 self._configure_damiao(i)
+            if self._od[i] is not None:
+                self._configure_odrive(i)
 
     def safe_op(self) -> None:
         """Nothing: motors stay out of motor mode until :meth:`op`."""
 
     def op(self) -> None:
+        if self._odrives:
+            self._op_odrive()
         missing = self._special("enter")
         if missing:
             raise StateTransitionError(
@@ -344,6 +595,12 @@ class RawCanBackend(CanFaults, Backend):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
                 msg, _, _ = self._cmd[i]
+                if cfg.odrive is not None:
+                    if which == "clear":
+                        self._od_frame(i, "clear_errors", cfg.odrive.clear)
+                    elif which == "exit":
+                        self._od_request_state(i, cfg.odrive.idle)
+                    continue  # no answer to await: the heartbeat tells
                 if which == "clear":
                     if cfg.damiao is None:
                         continue  # nothing to clear on this motor
@@ -356,9 +613,11 @@ class RawCanBackend(CanFaults, Backend):
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
+        for i, proto in enumerate(self._od):
+            self._arrived[i] = proto is not None
         if which == "clear":
             for i, area in enumerate(self.areas):
-                self._arrived[i] = area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
+                self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
         deadline = self._now() + ENTER_TIMEOUT_S
         try:
             while not self._arrived.all() and self._now() < deadline:
@@ -374,6 +633,10 @@ class RawCanBackend(CanFaults, Backend):
         self._drain()
         try:
             for i, (msg, rev, data) in enumerate(self._cmd):
+                proto = self._od[i]
+                if proto is not None:
+                    self._send_odrive(i, proto)
+                    continue
                 mode = self._mode[i]
                 if mode is None or mode.mit:
                     np.copyto(data, rev)
@@ -415,6 +678,8 @@ class RawCanBackend(CanFaults, Backend):
         if msg.is_error_frame:
             self._error_frame(msg)
             return -1
+        if self._odrives and self._side_frame(msg):
+            return -1
         if msg.is_extended_id or msg.is_remote_frame:
             return -1
         can_id = msg.arbitration_id
@@ -436,9 +701,10 @@ class RawCanBackend(CanFaults, Backend):
         if copy:
             row = self._reply_rows[i]
             data = msg.data
-            if len(data) != row.size:
+            n = self._reply_len[i]
+            if len(data) != n:
                 return False
-            row[:] = np.frombuffer(data, dtype=np.uint8)
+            row[:n] = np.frombuffer(data, dtype=np.uint8)
         self._arrived[i] = True
         return True
 

@@ -4,7 +4,7 @@ Real EtherCAT without a network card, root or veth: bring-up and the cycle
 are frames (built by :mod:`fieldbus.core.ecat`) passed to
 :meth:`sim_slaves.ethercat.chain.EscChain.process_into`, so working counters,
 AL states, the CoE mailbox and the SII are the emulator's, not shortcuts.
-The bring-up is :class:`~fieldbus.backends.framemaster.FrameMaster`'s.
+The bring-up is :class:`~fieldbus.wire.framemaster.FrameMaster`'s.
 
 Options (``open_network(path, backend="sim", **options)``):
 
@@ -41,7 +41,6 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
-from fieldbus.backends.framemaster import FrameMaster, Mapping, SlaveInfo, layout_image
 from fieldbus.backends.sdo_exec import apply_plan
 from fieldbus.core.al import AL_ACK, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
 from fieldbus.core.ecat import Command, Datagram, build_master_frame
@@ -51,6 +50,7 @@ from fieldbus.core.sdo import coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import FieldbusError, StateTransitionError
 from fieldbus.runtime.clock import Clock, is_virtual
+from fieldbus.wire.framemaster import FrameMaster, Mapping, SlaveInfo, layout_image
 
 MAX_FRAME_DATA = 1486  # datagram data per frame (SOEM's EC_MAXLRWDATA)
 STATE_POLLS = 100
@@ -81,7 +81,9 @@ class SimBackend(Backend):
                 "(CAN buses run on python-can's virtual interface: fieldbus demo --backend canopen|rawcan)"
             )
         super().__init__(bus, **options)
-        from sim_slaves.ethercat.chain import EscChain
+        from fieldbus.emulators import emulator_part
+
+        EscChain = emulator_part("ethercat_chain")
 
         maps = options.get("chain_maps")
         chain_maps: Sequence[DriveMap] = maps if isinstance(maps, Sequence) else [s.map for s in bus.slaves]
@@ -111,7 +113,7 @@ class SimBackend(Backend):
 
     # -- transport ----------------------------------------------------------------------
     def _transport(self, frame: bytes) -> bytes | None:
-        reply = self.chain.process(frame, self.clock())
+        reply: bytes | None = self.chain.process(frame, self.clock())
         if not self._waited(reply is None, self.chain.take_delay()):
             return None
         return reply

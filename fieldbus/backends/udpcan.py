@@ -39,7 +39,7 @@ from typing import Any
 import can
 from can.typechecking import AutoDetectedConfig
 
-from fieldbus.backends.sockfilter import attach_filter, drop_udp_payload_u64
+from fieldbus.wire.sockfilter import attach_filter, drop_udp_payload_u64
 
 INTERFACE = "fieldbus_udp"
 DEFAULT_GROUP = "239.74.163.2"

@@ -31,6 +31,7 @@ from fieldbus.commands.outputs import check_plot
 from fieldbus.commands.usage import add_command
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.network import load_network
+from fieldbus.emulators import emulator_part
 from fieldbus.errors import FieldbusError, PdoMapError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.report import run_report
@@ -195,13 +196,11 @@ class DemoSetup:
     def control(self, net: Network, **msg: Any) -> dict[str, Any]:
         """An EtherCAT emulator command (``sim_slaves.ethercat.runner.handle_control``): drop, status, ..."""
         if self.backend == "sim":
-            from sim_slaves.ethercat.runner import handle_control
-
-            return handle_control(net.backends[0].chain, msg)  # type: ignore[attr-defined]
+            status: dict[str, Any] = emulator_part("ethercat_control")(net.backends[0].chain, msg)  # type: ignore[attr-defined]
+            return status
         if self.backend is None and type(self.emulator).__name__ == "CanopenSimulator":
-            from sim_slaves.canopen.control import handle_control as canopen_control
-
-            return canopen_control(self.emulator, msg)
+            answer: dict[str, Any] = emulator_part("canopen_control")(self.emulator, msg)
+            return answer
         if hasattr(self.emulator, "command"):
             result: dict[str, Any] = self.emulator.command(**msg)
             return result
@@ -246,8 +245,7 @@ def _setups(backend: str, axes: int, rate_hz: float, workdir: Path, delay_us: fl
         net.write_text(head + "buses:\n  - name: joints\n    type: ethercat\n    interface: sim\n" + slaves)
         yield DemoSetup(net, "sim")
     elif backend == "ethercat":
-        from sim_slaves.ethercat.veth import emulated_segment
-
+        emulated_segment = emulator_part("veth_segment")
         # the emulator builds its drives (and their emulator: options) from the same slaves
         emulated = workdir / "emulated.yaml"
         emulated.write_text(
@@ -271,7 +269,8 @@ def _canopen_network(head: str, axes: int, net: Path) -> Iterator[DemoSetup]:
         import can
 
         from fieldbus.core.pdo import load_drive_map
-        from sim_slaves.canopen import CanopenSimulator  # type: ignore[import-not-found,unused-ignore]
+
+        CanopenSimulator = emulator_part("canopen_simulator")
     except ImportError as exc:
         raise FieldbusError(f"the canopen demo needs {exc.name}: pip install 'fieldbus[can]'") from None
     channel = f"fieldbus-demo-{id(net)}"
@@ -294,7 +293,8 @@ def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator
         import can
 
         from fieldbus.core.pdo import load_drive_map
-        from sim_slaves.mit_motor import MitMotorSimulator
+
+        MitMotorSimulator = emulator_part("mit_simulator")
     except ImportError as exc:
         raise FieldbusError(f"the rawcan demo needs {exc.name}: pip install 'fieldbus[can]'") from None
     channel = f"fieldbus-demo-mit-{id(net)}"

@@ -115,8 +115,9 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
             net_file, backend = Path(args.network), "sim"
 
             def control_for(net: Network) -> Control:
-                from sim_slaves.ethercat.runner import handle_control
+                from fieldbus.emulators import emulator_part
 
+                handle_control = emulator_part("ethercat_control")
                 return lambda **msg: handle_control(net.backends[0].chain, msg)  # type: ignore[attr-defined]
 
         def opener() -> tuple[Network, Control]:

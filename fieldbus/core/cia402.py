@@ -18,14 +18,17 @@ outlives the call: every array is preallocated and ufuncs write with ``out=``.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
+
+from fieldbus.core.pdo.model import DriveMap
+from fieldbus.errors import ChannelNameError
 
 # --------------------------------------------------------------------------- states
 
@@ -465,6 +468,58 @@ _REACHED_FLAT = CONTROLLER_REACHED.reshape(-1)
 _PULSE_FLAT = CONTROLLER_PULSE.reshape(-1)
 
 
+class DirectionLike(Protocol):
+    """One direction of a process image: named (N,) channel views."""
+
+    @property
+    def names(self) -> tuple[str, ...]: ...
+
+    def __getitem__(self, name: str) -> npt.NDArray[Any]: ...
+
+
+class ProcessImageLike(Protocol):
+    """What :meth:`Cia402Controller.step_image` needs of a group's image (a :class:`ProcessImage`)."""
+
+    @property
+    def outputs(self) -> DirectionLike: ...
+
+    @property
+    def inputs(self) -> DirectionLike: ...
+
+
+_SEEDED: tuple[tuple[Mode, str, str | None], ...] = (
+    (Mode.CSP, "target_position", "position_actual_value"),
+    (Mode.CSV, "target_velocity", "velocity_actual_value"),
+    (Mode.CST, "target_torque", None),  # torque 0: no jump whatever the load
+)
+"""Per cyclic mode: its target (master output) and the actual value it is seeded from (master input)."""
+
+
+class _ImageBinding:
+    """The channel views of one image :meth:`Cia402Controller.step_image` uses, looked up once."""
+
+    def __init__(self, img: ProcessImageLike, n_axes: int) -> None:
+        out, inp = img.outputs, img.inputs
+        self.img = img
+        for d, name in ((inp, "statusword"), (out, "controlword")):
+            if name not in d.names:
+                raise ChannelNameError(f"step_image needs a {name} channel (channels: {', '.join(d.names)})")
+        self.statusword = inp["statusword"]
+        self.controlword = out["controlword"]
+        if self.statusword.shape != (n_axes,):
+            raise ValueError(f"the image has {self.statusword.shape[0]} axes, the controller {n_axes}")
+        has_modes = "modes_of_operation" in out.names
+        self.modes_out = out["modes_of_operation"] if has_modes else None
+        has_display = "modes_of_operation_display" in inp.names
+        self.modes_display = inp["modes_of_operation_display"] if has_display else None
+        self.zero = np.zeros((), dtype=np.float64)
+        self.seeds: list[tuple[np.int8, npt.NDArray[Any], npt.NDArray[Any] | None]] = []
+        for mode, target, actual in _SEEDED:
+            if target not in out.names or (actual is not None and actual not in inp.names):
+                continue
+            self.seeds.append((np.int8(mode), out[target], None if actual is None else inp[actual]))
+
+
 class Cia402Controller:
     """Non-blocking CiA 402 master logic for ``n_axes`` drives, one table step per cycle.
 
@@ -551,6 +606,11 @@ class Cia402Controller:
         self._bit7 = np.uint16(FAULT_RESET_BIT)
         self._switch_on = np.uint16(CONTROLWORD[Trigger.SWITCH_ON])
         self._zero_i32 = np.int32(0)
+        # bumpless targets (step_image)
+        self._binding: _ImageBinding | None = None
+        self._seed = np.zeros(n, dtype=bool)
+        self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
+        self._enabled_code = np.int8(State402.OPERATION_ENABLED)
 
     # -- goals (not in the cycle's hot path, but allocation-free too) --
 
@@ -561,6 +621,11 @@ class Cia402Controller:
 
     def request_mode(self, mode: Mode | int, axes: Any = slice(None)) -> None:
         """Ask ``axes`` to switch to ``mode`` (written to modes_of_operation each :meth:`step`)."""
+        np.not_equal(self.mode_request, np.int8(int(mode)), out=self._b1)
+        self._b2.fill(False)
+        self._b2[axes] = True
+        np.logical_and(self._b1, self._b2, out=self._b1)
+        np.logical_or(self._switching, self._b1, out=self._switching)
         self.mode_request[axes] = int(mode)
         self._restart(axes)
 
@@ -679,6 +744,49 @@ class Cia402Controller:
         write_command_word(controlword_out, self.safe_stop_word)
         self._last_sm.fill(self.safe_stop_word)
 
+    # -- the whole image: bumpless targets --
+
+    def step_image(self, img: ProcessImageLike) -> None:
+        """One cycle on a group's process image: :meth:`step` plus bumpless targets.
+
+        Reads the statusword and, where the map has them, modes_of_operation_display
+        and the actual values (master inputs); writes the controlword and
+        modes_of_operation (master outputs) as :meth:`step` does. Then, per axis,
+        the target of the requested mode is **seeded from the actual value**
+        (target_position <- position_actual_value in CSP, target_velocity <-
+        velocity_actual_value in CSV, target_torque <- 0 in CST) while the axis
+        is not OPERATION ENABLED, on the cycle it is first seen enabled, and on
+        every cycle of a mode switch (from :meth:`request_mode` until the display
+        shows the new mode). A user who writes nothing yet holds the axis where
+        it is; a target the user writes after this call takes over from then on.
+        Channels are found by their CiA 402 names; a mode whose target (or, for
+        CSP/CSV, actual value) is not in the image is left alone. Values are
+        copied in the image's units: the target and the actual value must share
+        a unit (both counts, or both rad...), as the map loader checks for the
+        shipped maps. Allocation-free after the first call on an image.
+        """
+        b = self._binding
+        if b is None or b.img is not img:
+            b = self._binding = _ImageBinding(img, self.n_axes)
+        self.step(b.statusword, b.controlword, b.modes_display, b.modes_out)
+        seed = self._seed
+        np.not_equal(self.state, self._enabled_code, out=seed)
+        np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
+        np.logical_or(seed, self._switching, out=seed)
+        if b.modes_display is not None:
+            np.logical_and(self._switching, self._goal_not_enable, out=self._b1)  # nothing to wait for
+            np.logical_or(self._b1, self.mode_ok, out=self._b1)
+        else:
+            self._b1.fill(True)
+        np.greater(self._switching, self._b1, out=self._switching)  # done once the display follows
+        for mode, target, actual in b.seeds:
+            np.equal(self.mode_request, mode, out=self._b2)
+            np.logical_and(self._b2, seed, out=self._b2)
+            if actual is None:
+                np.copyto(target, b.zero, where=self._b2)
+            else:
+                np.copyto(target, actual, where=self._b2, casting="unsafe")
+
     @property
     def all_reached(self) -> bool:
         """Every axis is at its goal."""
@@ -688,3 +796,147 @@ class Cia402Controller:
     def any_stuck(self) -> bool:
         """Some axis made no progress for more than ``timeout_cycles`` cycles."""
         return bool(self.stuck.any())
+
+
+# --------------------------------------------------------------------------- homing
+
+
+class HomingPhase(IntEnum):
+    """Where each axis is in :class:`Homing` (per-axis codes in :attr:`Homing.phase`)."""
+
+    IDLE = 0  # not asked to home (or never)
+    WAIT = 1  # HOMING requested; waiting for OPERATION ENABLED in mode 6
+    ARMED = 2  # bit 4 low for one cycle, so the next cycle is a rising edge
+    RUNNING = 3  # bit 4 high; watching statusword bits 10/12/13
+    DONE = 4  # homing attained (bits 12 and 10); back in the previous mode
+    FAILED = 5  # homing error (bit 13); back in the previous mode
+    TIMED_OUT = 6  # no result within timeout_cycles; bit 4 dropped (interrupts it), previous mode
+
+
+HOMING_START_BIT = 0x0010  # controlword bit 4 in homing mode (master output): rising edge starts
+HOMING_ATTAINED = 0x1000  # statusword bit 12 in homing mode (master input)
+HOMING_ERROR = 0x2000  # statusword bit 13 in homing mode (master input)
+
+
+SETTLE_CYCLES = 2  # cycles after the bit-4 edge before a homing's statusword bits are believed
+
+
+class Homing:
+    """Non-blocking, per-axis homing on top of a :class:`Cia402Controller`, one step per cycle.
+
+    :meth:`start` switches the axes to HOMING (mode 6); each :meth:`step`, called
+    right after the controller's step with the same arrays, gives each axis's
+    controlword bit 4 a rising edge once the axis is OPERATION ENABLED in mode 6,
+    then follows statusword bits 12 (attained, with 10) and 13 (error). When an
+    axis is done, failed or took more than ``timeout_cycles`` cycles, bit 4 drops
+    and the axis goes back to the mode it had before :meth:`start`. The homing
+    parameters (0x6098 method, 0x607C offset, 0x6099 speeds, 0x609A acceleration)
+    are configuration, written at bring-up from the drive map's ``homing:``
+    section. Axes home together or, with ``order``, in declared stages.
+    ``timeout_cycles`` is one number for every axis or one per axis; :meth:`from_maps`
+    takes each axis's from its map's ``homing.timeout_ms``.
+    """
+
+    def __init__(self, ctrl: Cia402Controller, *, timeout_cycles: int | Sequence[int] = 30_000) -> None:
+        n = ctrl.n_axes
+        limit = np.broadcast_to(np.asarray(timeout_cycles, dtype=np.int64), (n,)).astype(np.int32)
+        if (limit < 1).any():
+            raise ValueError(f"timeout_cycles must be >= 1, got {timeout_cycles}")
+        self.ctrl = ctrl
+        self.timeout_cycles = limit  # per axis [cycles]
+        self.phase: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)
+        self.cycles: npt.NDArray[np.int32] = np.zeros(n, dtype=np.int32)  # cycles since start
+        self._running = np.zeros(n, dtype=np.int32)  # cycles since the bit-4 edge went out
+        self._prev_mode = np.full(n, int(Mode.CSP), dtype=np.int8)
+        self._stages: list[npt.NDArray[np.bool_]] = []
+        self._m = np.zeros(n, dtype=bool)
+        self._m2 = np.zeros(n, dtype=bool)
+        self._sw = np.zeros(n, dtype=np.uint16)
+        self._bit4 = np.uint16(HOMING_START_BIT)
+        self._not_bit4 = np.uint16(0xFFFF & ~HOMING_START_BIT)
+
+    @classmethod
+    def from_maps(cls, ctrl: Cia402Controller, maps: Sequence[DriveMap], cycle_time_us: int) -> Homing:
+        """Homing for axes described by ``maps`` (one per axis, e.g. ``[s.map for s in op.groups[g].slaves]``),
+        each timed out after its ``homing.timeout_ms`` (30 s without a section) at ``cycle_time_us``."""
+        if len(maps) != ctrl.n_axes:
+            raise ValueError(f"{len(maps)} drive maps for {ctrl.n_axes} axes")
+        if cycle_time_us < 1:
+            raise ValueError(f"cycle_time_us must be >= 1, got {cycle_time_us}")
+        ms = [m.homing.timeout_ms if m.homing is not None else 30_000 for m in maps]
+        return cls(ctrl, timeout_cycles=[max(1, -(-t * 1000 // cycle_time_us)) for t in ms])
+
+    def start(self, axes: Any = slice(None), *, order: list[Any] | None = None) -> None:
+        """Home ``axes`` (index, slice or mask), all at once; or the stages of ``order`` one after another
+        (a list of axis selections: a leg's hips before its knees). Allocates: call it outside the cycle."""
+        stages = [axes] if order is None else list(order)
+        self._stages = []
+        for st in stages:
+            m = np.zeros(self.ctrl.n_axes, dtype=bool)
+            m[st] = True
+            self._stages.append(m)
+        self._begin(self._stages.pop(0))
+
+    def _begin(self, m: npt.NDArray[np.bool_]) -> None:
+        self._prev_mode[m] = self.ctrl.mode_request[m]
+        self.phase[m] = HomingPhase.WAIT
+        self.cycles[m] = 0
+        self._running[m] = 0
+        self.ctrl.request_mode(Mode.HOMING, m)
+
+    def step(self, statusword: npt.NDArray[Any], controlword_out: npt.NDArray[Any]) -> None:
+        """One cycle, after :meth:`Cia402Controller.step`: bit 4 of the controlwords (master outputs)
+        from the statuswords (master inputs)."""
+        ph, m, m2 = self.phase, self._m, self._m2
+        np.copyto(self._sw, statusword, casting="unsafe")
+        # ARMED -> RUNNING (bit 4 goes high now, after a cycle low: a rising edge)
+        np.equal(ph, HomingPhase.ARMED, out=m2)
+        np.copyto(ph, np.int8(HomingPhase.RUNNING), where=m2)
+        # WAIT -> ARMED once enabled in mode 6 (the controller's goal reached)
+        np.equal(ph, HomingPhase.WAIT, out=m)
+        np.logical_and(m, self.ctrl.reached, out=m)
+        np.copyto(ph, np.int8(HomingPhase.ARMED), where=m)
+        active = (ph >= HomingPhase.WAIT) & (ph <= HomingPhase.RUNNING)
+        np.add(self.cycles, active, out=self.cycles)
+        running = ph == HomingPhase.RUNNING
+        np.add(self._running, running, out=self._running)
+        np.bitwise_and(controlword_out, self._not_bit4, out=controlword_out)
+        np.bitwise_or(controlword_out, self._bit4, out=controlword_out, where=running)
+        # the statusword is judged only once it can answer the edge: the edge goes out this cycle, the
+        # drive sees it, its answer comes back (bits 10/12/13 of an earlier homing are stale until then)
+        judged = running & (self._running > SETTLE_CYCLES)
+        attained = judged & ((self._sw & (HOMING_ATTAINED | StatusBit.TARGET_REACHED)) == 0x1400)
+        failed = judged & ((self._sw & HOMING_ERROR) != 0)
+        late = active & (self.cycles > self.timeout_cycles)
+        if attained.any() or failed.any() or late.any():  # rare path: an axis finishes
+            self._finish(attained, failed & ~attained, late & ~attained & ~failed, controlword_out)
+
+    def _finish(
+        self,
+        attained: npt.NDArray[np.bool_],
+        failed: npt.NDArray[np.bool_],
+        late: npt.NDArray[np.bool_],
+        controlword_out: npt.NDArray[Any],
+    ) -> None:
+        for mask, phase in (
+            (attained, HomingPhase.DONE),
+            (failed, HomingPhase.FAILED),
+            (late, HomingPhase.TIMED_OUT),
+        ):
+            if not mask.any():
+                continue
+            self.phase[mask] = phase
+            controlword_out[mask] &= self._not_bit4
+            for i in np.flatnonzero(mask):
+                self.ctrl.request_mode(int(self._prev_mode[i]), int(i))
+        busy = (self.phase >= HomingPhase.WAIT) & (self.phase <= HomingPhase.RUNNING)
+        if self._stages and not busy.any():
+            self._begin(self._stages.pop(0))
+
+    @property
+    def done(self) -> bool:
+        """No axis is homing any more (each is IDLE, DONE, FAILED or TIMED_OUT)."""
+        return (
+            not bool(((self.phase >= HomingPhase.WAIT) & (self.phase <= HomingPhase.RUNNING)).any())
+            and not self._stages
+        )

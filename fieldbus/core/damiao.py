@@ -31,7 +31,7 @@ REGISTER_KEYS = (
     "can_id", "read", "write", "save", "refresh", "master_id", "timeout", "ctrl_mode", "pmax", "vmax", "tmax"
 )  # fmt: skip
 ERROR_KEYS = ("code", "name")
-MODE_TYPES = {"float32": ("<f", 4), "uint16": ("<H", 2)}
+MODE_TYPES = {"float32": ("<f", 4), "uint16": ("<H", 2), "int16": ("<h", 2)}  # int16: ODrive's feed-forwards
 CLEAR_ERROR = bytes([0xFF] * 7 + [0xFB])
 # the limit registers and the MIT command field whose range each must equal
 LIMIT_FIELDS = (("PMAX", "pmax", "position"), ("VMAX", "vmax", "velocity"), ("TMAX", "tmax", "torque"))
@@ -43,7 +43,7 @@ class ModeField:
     (``per_unit``: ``value / max_of_that_channel * scale``); uint16 fields saturate at 0..65535."""
 
     source: str
-    type: str  # float32 | uint16
+    type: str  # float32 | uint16 | int16 (signed, saturates at -32768..32767)
     scale: float = 1.0
     per_unit: bool = False
 
@@ -216,9 +216,16 @@ def float32(value: float) -> float:
 
 def encode_mode(mode: Mode, values: Mapping[str, float], maxima: Mapping[str, float]) -> bytes:
     """A non-MIT mode frame from engineering values (``maxima``: per-unit bases), zero-padded to 8 bytes."""
-    out = bytearray(8)
+    return encode_fields(mode.fields, values, maxima)
+
+
+def encode_fields(
+    fields: tuple[ModeField, ...], values: Mapping[str, float], maxima: Mapping[str, float], size: int = 8
+) -> bytes:
+    """Little-endian numbers taken from engineering values, zero-padded to ``size`` bytes."""
+    out = bytearray(size)
     at = 0
-    for f in mode.fields:
+    for f in fields:
         x = float(values.get(f.source, 0.0))
         if f.per_unit:
             x = abs(x) / maxima[f.source]
@@ -227,6 +234,8 @@ def encode_mode(mode: Mode, values: Mapping[str, float], maxima: Mapping[str, fl
         if f.type == "uint16":
             x = min(65535.0, max(0.0, round(abs(x))))
             struct.pack_into(fmt, out, at, int(x))
+        elif f.type == "int16":
+            struct.pack_into(fmt, out, at, int(min(32767.0, max(-32768.0, round(x)))))
         else:
             struct.pack_into(fmt, out, at, x)
         at += size
@@ -235,9 +244,16 @@ def encode_mode(mode: Mode, values: Mapping[str, float], maxima: Mapping[str, fl
 
 def decode_mode(mode: Mode, data: bytes, maxima: Mapping[str, float]) -> dict[str, float]:
     """The engineering values a mode frame carries, keyed by their command channel."""
+    return decode_fields(mode.fields, data, maxima)
+
+
+def decode_fields(
+    fields: tuple[ModeField, ...], data: bytes, maxima: Mapping[str, float]
+) -> dict[str, float]:
+    """The engineering values little-endian ``fields`` carry in ``data``, keyed by their command channel."""
     out: dict[str, float] = {}
     at = 0
-    for f in mode.fields:
+    for f in fields:
         fmt, size = MODE_TYPES[f.type]
         x = float(struct.unpack_from(fmt, data, at)[0]) / f.scale
         if f.per_unit:

@@ -27,16 +27,19 @@ from fieldbus.core.yamlsrc import PathT
 
 if TYPE_CHECKING:
     from fieldbus.core.damiao import DamiaoProtocol
+    from fieldbus.core.odrive import OdriveProtocol
 
 RAWCAN_KEYS = (
     "family", "command_id", "reply_id", "reply_id_offset", "node_field", "span", "enter", "exit", "zero",
-    "command", "reply", "damiao",
+    "command", "reply", "damiao", "odrive", "byte_order",
 )  # fmt: skip
 FAMILIES = (
     "mit",
     "damiao",
-)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao)
-FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value")
+    "odrive",
+)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple
+FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
+FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
 MIT_SAFE_FIELDS = ("kp", "kd", "torque", "t_ff", "tau", "tau_ff")
 COMMAND_OBJECT = 0x2000  # pseudo object indices: the fields have no object dictionary
@@ -56,6 +59,7 @@ class RawCanField:
     max: float | None = None
     unit: str | None = None
     safe_value: float | None = None  # command fields: what the safe stop sends (engineering units)
+    type: str = "uint"  # uint | int | float32 (byte_order little)
 
     @property
     def scaled(self) -> bool:
@@ -81,6 +85,8 @@ class RawCanConfig:
     family: str = "mit"
     reply_id_offset: int | None = None
     damiao: DamiaoProtocol | None = None  # family "damiao": modes, registers, errors
+    odrive: OdriveProtocol | None = None  # family "odrive": CANSimple commands, modes, states, errors
+    byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
 
     def reply_can_id(self, node: int) -> int:
         """The CAN id motor ``node`` answers on."""
@@ -96,8 +102,12 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
     path: PathT = ("rawcan",)
     m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
-    command = _fields(r, m["command"], (*path, "command"))
-    reply = _fields(r, m["reply"], (*path, "reply"))
+    family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
+    order = r.choice(m.get("byte_order", "big"), (*path, "byte_order"), ("big", "little"))
+    # an ODrive's image is not one frame: its set-points are built per mode, its reply plus the heartbeat
+    max_bits = 128 if family == "odrive" else 64
+    command = _fields(r, m["command"], (*path, "command"), order, max_bits)
+    reply = _fields(r, m["reply"], (*path, "reply"), order, max_bits)
     for i, f in enumerate(reply):
         if f.safe_value is not None:
             raise r.err((*path, "reply", i, "safe_value"), "safe_value belongs to command fields (outputs)")
@@ -107,8 +117,7 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         if node_field not in {f.name for f in reply} or any(f.scaled for f in reply if f.name == node_field):
             raise r.err((*path, "node_field"), f"'{node_field}' is not an unscaled reply field")
     command = _safe_defaults(r, command, (*path, "command"))
-    family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
-    damiao = None
+    damiao = odrive = None
     if family == "damiao":
         from fieldbus.core.damiao import parse_damiao
 
@@ -117,6 +126,14 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         damiao = parse_damiao(r, m["damiao"], (*path, "damiao"), command, reply)
     elif "damiao" in m:
         raise r.err((*path, "damiao"), "a 'damiao' section needs family: damiao", key=True)
+    if family == "odrive":
+        from fieldbus.core.odrive import parse_odrive
+
+        if "odrive" not in m or order != "little":
+            raise r.err(path, "family odrive needs byte_order: little and its 'odrive' section (CANSimple)")
+        odrive = parse_odrive(r, m["odrive"], (*path, "odrive"), command, reply)
+    elif "odrive" in m:
+        raise r.err((*path, "odrive"), "an 'odrive' section needs family: odrive", key=True)
     if "reply_id" in m and "reply_id_offset" in m:
         raise r.err((*path, "reply_id_offset"), "give reply_id or reply_id_offset, not both", key=True)
     cfg = RawCanConfig(
@@ -136,9 +153,12 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
             else None
         ),
         damiao=damiao,
+        odrive=odrive,
+        byte_order=order,
     )
-    rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True)),)
-    tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False)),)
+    little = order == "little"
+    rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True, little=little)),)
+    tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False, little=little)),)
     return cfg, rpdo, tpdo
 
 
@@ -181,7 +201,7 @@ def _frame(r: Any, raw: Any, path: PathT, default: bytes) -> bytes:
     return bytes(r.integer(v, (*path, i), 0, 255) for i, v in enumerate(items))
 
 
-def _fields(r: Any, raw: Any, path: PathT) -> tuple[RawCanField, ...]:
+def _fields(r: Any, raw: Any, path: PathT, order: str = "big", max_bits: int = 64) -> tuple[RawCanField, ...]:
     out: list[RawCanField] = []
     seen: set[str] = set()
     for i, item in enumerate(r.sequence(raw, path)):
@@ -200,22 +220,37 @@ def _fields(r: Any, raw: Any, path: PathT) -> tuple[RawCanField, ...]:
             raise r.err((*fp, "max"), f"max {hi:g} must be greater than min {lo:g}")
         unit = r.string(f["unit"], (*fp, "unit")) if "unit" in f else None
         safe = r.number(f["safe_value"], (*fp, "safe_value")) if "safe_value" in f else None
+        kind = r.choice(f.get("type", "uint"), (*fp, "type"), FIELD_TYPES)
+        if kind != "uint" and (order != "little" or bits not in (8, 16, 32) or lo is not None):
+            raise r.err(
+                (*fp, "type"), f"a {kind} field needs byte_order: little, 8/16/32 bits and no min/max"
+            )
+        if kind == "float32" and bits != 32:
+            raise r.err((*fp, "bits"), "a float32 field has 32 bits")
         if safe is not None and lo is not None and hi is not None and not lo <= safe <= hi:
             raise r.err((*fp, "safe_value"), f"safe_value {safe:g} is outside min..max ({lo:g}..{hi:g})")
-        out.append(RawCanField(name, bits, lo, hi, unit, safe))
+        out.append(RawCanField(name, bits, lo, hi, unit, safe, kind))
     total = sum(f.bits for f in out)
-    if not out or total % 8 or total > 64:
-        raise r.err(path, f"fields add up to {total} bits; a classic CAN frame is 8..64 bits in whole bytes")
+    if not out or total % 8 or total > max_bits:
+        what = (
+            "a classic CAN frame is 8..64 bits" if max_bits == 64 else f"the image takes 8..{max_bits} bits"
+        )
+        raise r.err(path, f"fields add up to {total} bits; {what} in whole bytes")
     return tuple(out)
 
 
-def _channels(fields: tuple[RawCanField, ...], obj: int, span: str, *, outputs: bool) -> tuple[Channel, ...]:
-    """PDO channels of the byte-reversed frame: fields in reverse order, LSB first."""
+def _channels(
+    fields: tuple[RawCanField, ...], obj: int, span: str, *, outputs: bool, little: bool = False
+) -> tuple[Channel, ...]:
+    """PDO channels of the byte-reversed frame: fields in reverse order, LSB first (``little``: the frame
+    as it is, fields in order)."""
     chans: list[Channel] = []
     bit = 0
-    for sub, f in reversed(list(enumerate(fields, start=1))):
+    order = list(enumerate(fields, start=1))
+    for sub, f in order if little else reversed(order):
         aligned = bit % 8 == 0 and f.bits in (8, 16, 32)
-        dt = datatypes.lookup(f"uint{f.bits}" if aligned else f"bit{f.bits}")
+        kind = {"float32": "float", "int": f"int{f.bits}"}.get(f.type, f"uint{f.bits}")
+        dt = datatypes.lookup(kind if aligned else f"bit{f.bits}")
         assert dt is not None
         factor, offset = 1.0, 0.0
         if f.min is not None and f.max is not None:

@@ -23,7 +23,18 @@ from enum import IntEnum
 
 from fieldbus.errors import FieldbusError
 
-VERBS = ("describe", "claim", "release", "enable", "disable", "clear_safe_stop")
+VERBS = (
+    "describe",
+    "claim",
+    "release",
+    "enable",
+    "disable",
+    "clear_safe_stop",
+    "home",
+    "mode",
+    "sdo_read",
+    "sdo_write",
+)
 """What a :class:`~fieldbus.dds.messages.Request` may ask."""
 
 
@@ -135,6 +146,16 @@ class CommandGate:
             elif self.age >= self.deadline.hold_after:
                 self.state = GateState.HOLD
         return self.state
+
+    def pause(self, client: str) -> None:
+        """The owner starts a procedure the server drives (homing, a mode switch): IDLE, no deadline,
+        until the owner's next command; :class:`ClaimError` if not the owner, refused while latched."""
+        self._check_owner(client)
+        if self.latched:
+            raise ClaimError("safe stop latched: send clear_safe_stop first")
+        self.state = GateState.IDLE
+        self.age = 0
+        self._fresh = False
 
     def clear(self, client: str) -> None:
         """The owner opens the latch; the group is IDLE until its next command."""

@@ -66,6 +66,9 @@ def interface_config(interface: str | None, peers: Sequence[str] = ()) -> str | 
     return f"<General>{general}</General><Discovery>{disco}</Discovery>"
 
 
+_DOMAINS: dict[int, tuple[str, Domain]] = {}  # configured in this process: Cyclone DDS allows one per id
+
+
 class Participant:
     """One DDS participant on the chosen domain and interface (keep it on one thread)."""
 
@@ -73,13 +76,24 @@ class Participant:
         self.domain_id = domain_id(domain)
         config = interface_config(interface, peers)
         try:
-            self._domain = Domain(self.domain_id, config) if config is not None else None
+            self._domain = self._configured(config) if config is not None else None
             self.dp = DomainParticipant(self.domain_id)
         except Exception as exc:
             where = f"interface '{interface}'" if interface else "the default interface"
             raise FieldbusError(
                 f"cannot join DDS domain {self.domain_id} on {where}: {type(exc).__name__}: {exc}"
             ) from None
+
+    def _configured(self, config: str) -> Domain:
+        """The domain with ``config``: configured once per process, shared by its participants."""
+        known = _DOMAINS.get(self.domain_id)
+        if known is None:
+            known = _DOMAINS[self.domain_id] = (config, Domain(self.domain_id, config))
+        elif known[0] != config:
+            raise FieldbusError(
+                f"DDS domain {self.domain_id} is configured differently in this process already"
+            )
+        return known[1]
 
 
 def topic_names(namespace: str, group: str) -> dict[str, str]:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,7 +22,7 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
+from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
@@ -92,8 +94,12 @@ class ServedGroup:
         name: str,
         image: ProcessImage,
         axes: tuple[str, ...],
+        maps: tuple[Any, ...] = (),
     ) -> None:
         self.name = name
+        self.bus = ""  # the bus it is on, from attach()
+        self.maps = maps  # one drive map per axis (homing time-outs)
+        self.homing: Homing | None = None  # a home request under way
         self.image = image
         self.axes = axes
         self.n = len(axes)
@@ -163,6 +169,8 @@ class ServedGroup:
             self.ctrl.set_goal(Goal.DISABLE)  # after a clear the drives stay off until asked to enable
         if self.ctrl is not None:
             self.ctrl.step(*self._cia)
+            if self.homing is not None:
+                self.homing.step(self._cia[0], self._cia[1])
         pos_out, pos_in = self.out_roles.get("position"), self.in_roles.get("position")
         if state is GateState.IDLE and pos_out is not None and pos_in is not None:
             # no command yet: the target follows the joint, so an enable or a first command starts from here
@@ -208,9 +216,14 @@ class BusServer:
         self.participant = participant
         self.options = options
         self.groups: dict[str, ServedGroup] = {
-            name: ServedGroup(self, name, g.image, tuple(s.name for s in g.slaves))
+            name: ServedGroup(
+                self, name, g.image, tuple(s.name for s in g.slaves), tuple(s.map for s in g.slaves)
+            )
             for name, g in net.groups.items()
         }
+        # requests answered in a later cycle: (request, a check returning the detail or None while under way)
+        self._pending: list[tuple[m.Request, Callable[[], dict[str, Any] | None]]] = []
+        self._answered: dict[str, tuple[int, m.Reply]] = {}  # per client its newest reply (a resend)
         dp = participant.dp
         names = service_names(options.namespace)
         self.req_reader = DataReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
@@ -224,6 +237,7 @@ class BusServer:
             for g in bv.backend.groups:
                 served = self.groups[g.name]
                 served.fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
+                served.bus = bv.name
                 served.writer = op.safe_stops[g.name]
         self._op = op
 
@@ -249,6 +263,8 @@ class BusServer:
         for req in self.req_reader.take(N=16):
             if isinstance(req, m.Request):
                 self._answer(req)
+        if self._pending:
+            self._advance_pending()
         for g in self.groups.values():
             g.take_commands()
             g.before_exchange()
@@ -263,17 +279,50 @@ class BusServer:
         return False
 
     def _answer(self, req: m.Request) -> None:
+        done = self._answered.get(req.client_id)
+        if done is not None and done[0] == req.request_id:  # a resend of an answered request
+            self.reply_writer.write(done[1])
+            return
+        if any(p.client_id == req.client_id and p.request_id == req.request_id for p, _ in self._pending):
+            return  # a resend of a request under way: answered when it ends
         self.requests += 1
-        reply = m.Reply(client_id=req.client_id, request_id=req.request_id, ok=True)
         try:
             detail = self._do(req)
-            reply.detail = json.dumps(detail) if detail is not None else ""
         except FieldbusError as exc:
+            self._reply(req, exc)
+            return
+        if callable(detail):
+            self._pending.append((req, detail))
+        else:
+            self._reply(req, detail)
+
+    def _advance_pending(self) -> None:
+        """Once a cycle: the requests under way that have ended are answered."""
+        still = []
+        for req, check in self._pending:
+            try:
+                detail = check()
+            except FieldbusError as exc:
+                self._reply(req, exc)
+                continue
+            if detail is None:
+                still.append((req, check))
+            else:
+                self._reply(req, detail)
+        self._pending = still
+
+    def _reply(self, req: m.Request, outcome: dict[str, Any] | FieldbusError | None) -> None:
+        reply = m.Reply(client_id=req.client_id, request_id=req.request_id, ok=True)
+        if isinstance(outcome, FieldbusError):
             reply.ok = False
-            reply.error = f"{type(exc).__name__}: {exc}"
+            reply.error = f"{type(outcome).__name__}: {outcome}"
+        elif outcome is not None:
+            reply.detail = json.dumps(outcome)
+        self._answered[req.client_id] = (req.request_id, reply)
         self.reply_writer.write(reply)
 
-    def _do(self, req: m.Request) -> dict[str, Any] | None:
+    def _do(self, req: m.Request) -> dict[str, Any] | Callable[[], dict[str, Any] | None] | None:
+        """Carry out ``req``: its detail, or a check the cycle calls until it gives the detail."""
         verb = req.verb
         if verb not in VERBS:
             raise FieldbusError(f"unknown request '{verb}' (have: {', '.join(VERBS)})")
@@ -302,7 +351,104 @@ class BusServer:
             if self.op.result.safe_stop:
                 self.op.clear_safe_stop()  # SafeStopClearError while a bus is still missing
             gate.clear(client)
+        elif verb == "home":
+            return self._home(g, client)
+        elif verb == "mode":
+            return self._mode(g, client, _argument(req))
+        elif verb in ("sdo_read", "sdo_write"):
+            return self._sdo(g, client, verb, _argument(req))
         return None
+
+    def _home(self, g: ServedGroup, client: str) -> Callable[[], dict[str, Any] | None]:
+        """Home every axis of ``g`` (the drive's method 0x6098, the map's homing time-out)."""
+        ctrl = self._cia402(g)
+        g.gate.check_owner(client)
+        if g.homing is not None and not g.homing.done:
+            raise FieldbusError(f"group '{g.name}' is homing already")
+        if not (ctrl.state == State402.OPERATION_ENABLED).all():
+            raise FieldbusError(f"group '{g.name}': enable the drives before homing (states {_names(ctrl)})")
+        g.gate.pause(client)  # the target follows the joints while the drives home
+        homing = g.homing = Homing.from_maps(ctrl, g.maps, int(self.op.cycle_time_us))
+        homing.start()
+
+        def check() -> dict[str, Any] | None:
+            display = g._cia[2]
+            back = display is None or bool((display == ctrl.mode_request).all())
+            if not homing.done or not back:  # answered once every drive shows its previous mode again
+                return None
+            g.homing = None
+            phases = [HomingPhase(int(p)).name for p in homing.phase]
+            bad = [f"{a}: {p}" for a, p in zip(g.axes, phases, strict=True) if p != "DONE"]
+            if bad:
+                raise FieldbusError(f"homing of group '{g.name}' did not end: {', '.join(bad)}")
+            return {"phases": phases, "cycles": homing.cycles.tolist()}
+
+        return check
+
+    def _mode(self, g: ServedGroup, client: str, arg: dict[str, Any]) -> Callable[[], dict[str, Any] | None]:
+        """Switch ``g``'s drives to ``arg['mode']`` (a name such as "CSV" or a CiA 402 number)."""
+        ctrl = self._cia402(g)
+        g.gate.check_owner(client)
+        want = arg.get("mode")
+        try:
+            mode = Mode[want.upper()] if isinstance(want, str) else Mode(int(want))  # type: ignore[arg-type]
+        except (KeyError, ValueError, TypeError):
+            have = ", ".join(x.name for x in Mode)
+            raise FieldbusError(f"unknown mode {want!r} (have: {have}, or their numbers)") from None
+        if g._cia[2] is None or g._cia[3] is None:
+            raise FieldbusError(f"group '{g.name}' maps no modes of operation (0x6060/0x6061)")
+        if g.homing is not None and not g.homing.done:
+            raise FieldbusError(f"group '{g.name}' is homing: wait for its reply first")
+        g.gate.pause(client)  # the targets follow the joints through the switch
+        ctrl.request_mode(mode)
+        display = g._cia[2]
+        end = self.op.result.cycle + ENABLE_TIMEOUT_CYCLES
+
+        def check() -> dict[str, Any] | None:
+            if (display == int(mode)).all():
+                return {"mode": mode.name}
+            if self.op.result.cycle > end:
+                raise FieldbusError(
+                    f"group '{g.name}' did not switch to {mode.name} within {ENABLE_TIMEOUT_CYCLES} cycles "
+                    f"(modes shown: {display.tolist()})"
+                )
+            return None
+
+        return check
+
+    def _sdo(
+        self, g: ServedGroup, client: str, verb: str, arg: dict[str, Any]
+    ) -> Callable[[], dict[str, Any] | None]:
+        """``arg``: axis (a joint name), index, sub_index, and for a write data (hex). Reading needs no
+        claim; writing needs the group's claim."""
+        axis = arg.get("axis")
+        if axis not in g.axes:
+            raise FieldbusError(f"SDO: no axis {axis!r} in group '{g.name}' (have: {', '.join(g.axes)})")
+        index, sub = arg.get("index"), arg.get("sub_index", 0)
+        if not isinstance(index, int) or not isinstance(sub, int):
+            raise FieldbusError(f"SDO: index and sub_index must be whole numbers, not {index!r}, {sub!r}")
+        if verb == "sdo_read":
+            future: Future[bytes | None] = self.op.submit_sdo_read(g.bus, axis, index, sub)
+        else:
+            g.gate.check_owner(client)
+            try:
+                data = bytes.fromhex(str(arg.get("data", "")))
+            except ValueError:
+                raise FieldbusError(f"SDO write: data must be hex text, not {arg.get('data')!r}") from None
+            future = self.op.submit_sdo_write(g.bus, axis, index, sub, data)
+
+        def check() -> dict[str, Any] | None:
+            if not future.done():
+                return None
+            exc = future.exception()
+            if exc is not None:
+                if isinstance(exc, FieldbusError):
+                    raise exc
+                raise FieldbusError(f"SDO {axis} 0x{index:04X}:{sub:02X}: {type(exc).__name__}: {exc}")
+            got = future.result()
+            return {"data": got.hex() if got is not None else ""}
+
+        return check
 
     @staticmethod
     def _cia402(g: ServedGroup) -> Cia402Controller:
@@ -352,6 +498,23 @@ class BusServer:
                 )
             )
         return m.DiagnosticArray(header=m.Header(stamp=_stamp(time.time_ns())), status=status)
+
+
+def _argument(req: m.Request) -> dict[str, Any]:
+    """A request's argument: a JSON object."""
+    try:
+        arg = json.loads(req.argument) if req.argument else {}
+    except json.JSONDecodeError as exc:
+        raise FieldbusError(
+            f"'{req.verb}': argument is not JSON ({exc.msg} at character {exc.pos})"
+        ) from None
+    if not isinstance(arg, dict):
+        raise FieldbusError(f"'{req.verb}': argument must be a JSON object")
+    return arg
+
+
+def _names(ctrl: Cia402Controller) -> str:
+    return ", ".join(_state_name(int(s)) for s in ctrl.state)
 
 
 def _state_name(code: int) -> str:

@@ -166,7 +166,7 @@ class _Sii:
 
 
 def _strings(data: bytes) -> list[str]:
-    from fieldbus.backends.framemaster import sii_strings
+    from fieldbus.wire.framemaster import sii_strings
 
     return sii_strings(data)
 

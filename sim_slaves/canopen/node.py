@@ -52,6 +52,7 @@ COMM_AREA = range(0x1000, 0x2000)  # restored by NMT reset communication
 PDO_OBJECTS = range(0x1400, 0x1C00)  # communication and mapping objects of PDOs
 
 Frame = tuple[int, bytes]  # (11-bit COB-ID, data)
+ERROR_FIELD, ERROR_FIELD_DEPTH = 0x1003, 8  # CiA 301 pre-defined error field: the last 8 errors
 
 
 class NmtState(IntEnum):
@@ -188,6 +189,9 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
     PDOs the map does not have are not valid (COB-ID bit 31 set) and asynchronous (255).
     """
     od.add(0x1005, 0, U32, COB_SYNC, name="COB-ID SYNC")
+    od.add(ERROR_FIELD, 0, U8, 0, name="number of errors")  # pre-defined error field, newest at sub 1
+    for sub in range(1, ERROR_FIELD_DEPTH + 1):
+        od.add(ERROR_FIELD, sub, U32, 0, access=Access.RO, name=f"standard error field {sub}")
     hb = drive.canopen.heartbeat_ms if drive.canopen is not None else 0
     od.add(0x1017, 0, U16, hb, name="producer heartbeat time")
     for direction, comm_base, map_base, cobs, pdos in (
@@ -299,6 +303,14 @@ class CanopenNode:
     def emergency(self, code: int, register: int = 0, data: bytes = b"") -> Frame:
         """An EMCY frame (0x80 + node id): u16 error code, u8 error register, 5 bytes manufacturer data."""
         self.od.set_value(0x1001, 0, register)
+        if code:  # an error (0x0000 is "error reset"): into 0x1003, newest at sub 1, the oldest drops off
+            od = self.od
+            count = min(int(od.get_value(ERROR_FIELD, 0)) + 1, ERROR_FIELD_DEPTH)
+            for sub in range(count, 1, -1):
+                od.set_value(ERROR_FIELD, sub, od.get_value(ERROR_FIELD, sub - 1))
+            info = int.from_bytes(data[:2].ljust(2, b"\0"), "little")  # manufacturer data -> additional info
+            od.set_value(ERROR_FIELD, 1, (info << 16) | code)
+            od.set_value(ERROR_FIELD, 0, count)
         return (COB_EMCY + self.node_id, struct.pack("<HB", code, register) + data[:5].ljust(5, b"\0"))
 
     # -- SDO server (CiA 301 7.2.4) -----------------------------------------------------------

@@ -25,13 +25,13 @@ from typing import Any
 import can
 import numpy as np
 
-from fieldbus.backends.canlog import LoggedBus, open_log
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
-from sim_slaves.drive402 import DriveParams
 from sim_slaves.drive_bank import DriveBank, runs
+from sim_slaves.drive_config import drive_params
 from sim_slaves.od import is_cia402_drive
 
 TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
@@ -67,7 +67,7 @@ class CanopenSimulator(BusThread):
             raise ValueError(f"node id {next(i for i in ids if ids.count(i) > 1)} used twice")
         # every CiA 402 drive in one bank, stepped together on SYNC (slot k: the k-th drive node)
         drives = [node_id for drive, node_id in nodes if is_cia402_drive(drive)]
-        self.bank = DriveBank([DriveParams() for _ in drives])
+        self.bank = DriveBank([drive_params(drive) for drive, _ in nodes if is_cia402_drive(drive)])
         self._slot = {node_id: k for k, node_id in enumerate(drives)}
         for drive, node_id in nodes:
             k = self._slot.get(node_id)

@@ -1,7 +1,7 @@
 """Slaves of an :class:`EscChain` to OP in-process, for tests and benchmarks that need no network.
 
 The bring-up is the product's own frame-level master
-(:class:`fieldbus.backends.framemaster.FrameMaster`, the one the sim backend
+(:class:`fieldbus.wire.framemaster.FrameMaster`, the one the sim backend
 uses) over ``chain.process``: station addresses 0x1001.., SII through the
 EEPROM interface, mailbox SyncManagers, SM2/SM3 and FMMUs for an LRW image as
 SOEM lays it out (all outputs from logical address 0 in wire order, then all
@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from fieldbus.backends.framemaster import STATION_BASE, FrameMaster, Mapping, layout_image
 from fieldbus.core.al import AL_OP, AL_PREOP, AL_SAFEOP, state_name
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.errors import BusTimeoutError, StateTransitionError
+from fieldbus.wire.framemaster import STATION_BASE, FrameMaster, Mapping, layout_image
 from sim_slaves.ethercat.chain import EscChain
 
 __all__ = ["STATION_BASE", "ProcessDataPlan", "bring_up", "exchange"]

@@ -37,14 +37,15 @@ import numpy.typing as npt
 from fieldbus.core.dc.model import DcRegister, EscTiming, SyncActivation, wrap_signed
 from fieldbus.core.ecat import DATAGRAM_HEADER_SIZE, LOCALLY_ADMINISTERED, datagram_offsets
 from fieldbus.core.pdo.model import DriveMap
-from sim_slaves.drive402 import Cia402Drive, DriveParams
+from sim_slaves.drive402 import Cia402Drive
 from sim_slaves.drive_bank import DriveBank, runs, warm_up
+from sim_slaves.drive_config import drive_params as map_drive_params
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
 from sim_slaves.ethercat.esc import DEFAULT_DT_S, MEM_SIZE, App, Esc
 from sim_slaves.ethercat.pdplan import CopyPlan, DriveLink, build_copy_plan, build_drive_link, pdo_offsets
 from sim_slaves.ethercat.sii import SiiImage, build_sii
-from sim_slaves.od import ObjectDictionary
+from sim_slaves.od import ObjectDictionary, is_cia402_drive
 
 ETHERTYPE_VLAN = 0x8100  # IEEE 802.1Q tag protocol identifier
 VLAN_TAG_SIZE = 4  # TPID + TCI, between the source MAC and the EtherCAT ethertype [bytes]
@@ -356,9 +357,9 @@ class EscChain:
     ) -> EscChain:
         """One slave per map, in wire order. ``app``: "auto" (CiA 402 drive for 402 maps), None, or a factory.
 
-        ``drive_params``: per slave, keyword arguments for its drive's
-        :class:`~sim_slaves.drive402.DriveParams` ("auto" only; None: defaults),
-        e.g. from a network file's ``emulator:`` options.
+        ``drive_params``: per slave, options of its drive ("auto" only; None:
+        none), e.g. a network file's ``emulator:`` options; a CiA 402 drive
+        follows its map and these (:func:`sim_slaves.drive_config.drive_params`).
 
         ``drift_ppm``: each slave's clock drift (default 0); slave i's local
         time starts at i x :data:`DC_POWER_UP_STAGGER_NS`.
@@ -368,14 +369,15 @@ class EscChain:
             raise ValueError(f"need {n} drifts (one per slave), got {len(drift_ppm)}")
         slaves = []
         for i, drive in enumerate(maps):
-            od = ObjectDictionary.from_drive_map(drive)
+            extra = drive_params[i] if drive_params is not None else None
+            params = map_drive_params(drive, extra) if is_cia402_drive(drive) else None  # the map's drive
+            od = ObjectDictionary.from_drive_map(drive, params)
             image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive)
             assert image is not None
             factory = default_app if app == "auto" else app
             the_app = factory(drive, od) if callable(factory) else None
-            extra = drive_params[i] if drive_params is not None else None
-            if extra and isinstance(the_app, Cia402Drive):
-                the_app = Cia402Drive(DriveParams(**extra))
+            if params is not None and (extra or factory is default_app) and isinstance(the_app, Cia402Drive):
+                the_app = Cia402Drive(params)
             dc = EscDc(
                 drift_ppm=0.0 if drift_ppm is None else float(drift_ppm[i]),
                 initial_local_ns=i * DC_POWER_UP_STAGGER_NS,
@@ -705,7 +707,7 @@ class EscChain:
         """
         esc = self.slaves[slave]
         if self.drive_maps is not None:
-            od = ObjectDictionary.from_drive_map(self.drive_maps[slave])
+            od = ObjectDictionary.from_drive_map(self.drive_maps[slave], getattr(esc.app, "params", None))
             esc.od = od
             esc.mailbox.sdo.od = od
         self._step_pending()
@@ -726,6 +728,15 @@ class EscChain:
         """SDO accesses to ``index:sub`` on slave ``slave`` abort with ``code`` (until cleared)."""
         self.slaves[slave].od.inject_abort(index, sub, code)
 
+    def mute_mailbox(self, slave: int, *, stuck: bool = False) -> None:
+        """Slave ``slave``'s mailbox never answers (until cleared): its application drops every request,
+        or, ``stuck``, never takes one, so SM0 stays full and the master's later writes are refused."""
+        self.slaves[slave].mailbox_fault = "stuck" if stuck else "silent"
+
+    def stick_eeprom(self, slave: int) -> None:
+        """Slave ``slave``'s EEPROM interface stays busy after the next command (until cleared)."""
+        self.slaves[slave].eeprom_stuck = True
+
     def emergency(self, slave: int, error_code: int, error_register: int = 0) -> None:
         """Slave ``slave`` sends a CoE emergency message."""
         self.slaves[slave].send_emergency(error_code, error_register)
@@ -735,7 +746,7 @@ class EscChain:
         self.faults = Faults()
         self.pending_delay = 0.0
         for s in self.slaves:
-            s.refuse.clear()
+            s.clear_faults()
             s.od.clear_aborts()
 
 

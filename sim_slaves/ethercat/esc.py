@@ -35,6 +35,7 @@ FEATURES = 0x000C  # DC supported, 64-bit DC
 N_FMMU = 8
 N_SM = 8
 EEPROM_R64 = 0x0040  # EEPROM status: 8-byte reads
+EEPROM_BUSY = 0x8000  # EEPROM status: a command is running
 WD_DIVIDER_DEFAULT = 2498  # (2498 + 2) x 40 ns = 100 us
 WD_PD_DEFAULT = 1000  # x 100 us = 100 ms
 DEFAULT_DT_S = 0.001
@@ -99,6 +100,11 @@ class Esc:
         mbx_in = sii.mailbox_in[1] if sii.protocols else 0
         self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in)
         self.refuse: dict[AlState, int] = {}  # fault hook: refuse entering a state with this AL status code
+        # fault hooks (kept over a power cycle, until cleared): a mailbox that never answers ("silent":
+        # requests are taken and dropped; "stuck": SM0 stays full, so later writes are refused), and an
+        # EEPROM interface that stays busy
+        self.mailbox_fault: str | None = None
+        self.eeprom_stuck = False
         self.cycles = 0
         self.mem: bytearray | memoryview = bytearray(MEM_SIZE)
         #: called when what the process-data path depends on changes (FMMU, SM, AL state, layout, power)
@@ -270,6 +276,10 @@ class Esc:
             return
         self.sm0_full = True
         self._sm_status()
+        if self.mailbox_fault is not None:
+            self.sm0_full = self.mailbox_fault == "stuck"  # "silent": taken, never answered
+            self._sm_status()
+            return
         hook = self.sync_hook if self.fast else None
         if hook is not None:
             hook(self, False)
@@ -303,6 +313,17 @@ class Esc:
     def _sm_status(self) -> None:
         self.mem[0x0805] = 0x08 if self.sm0_full else 0x00
         self.mem[0x080D] = 0x08 if self.sm1_full else 0x00
+
+    def clear_faults(self) -> None:
+        """Undo this slave's fault hooks: states taken again, mailbox and EEPROM working."""
+        self.refuse.clear()
+        if self.mailbox_fault == "stuck":
+            self.sm0_full = False
+            self._sm_status()
+        self.mailbox_fault = None
+        if self.eeprom_stuck:
+            self.eeprom_stuck = False
+            _U16.pack_into(self.mem, 0x0502, EEPROM_R64)
 
     def send_emergency(self, error_code: int, error_register: int = 0, data: bytes = b"") -> None:
         """Queue a CoE emergency message for the master (when the mailbox is in use)."""
@@ -545,4 +566,7 @@ class Esc:
             mem[0x0508:0x0510] = self.sii.read(addr, 8)
         elif cmd == 2 and ctrl & 0x01:  # write one word (write enable set)
             self.sii.write_word(addr, mem[0x0508] | mem[0x0509] << 8)
+        if self.eeprom_stuck:
+            _U16.pack_into(mem, 0x0502, EEPROM_R64 | EEPROM_BUSY)  # fault hook: never done
+            return
         _U16.pack_into(mem, 0x0502, EEPROM_R64)  # done at once: never busy, no error

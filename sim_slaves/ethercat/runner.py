@@ -3,6 +3,8 @@
     python -m sim_slaves.ethercat --iface IFACE (--map MAP.yaml [--map ...] [--count N] | --network NET [--bus NAME])
         [--pcap FILE] [--control PATH] [--app auto|loopback|none]
         [--drift-ppm X [--drift-seed N]] [--esc-delays-ns TP TF] [--cable-m M] [--dc-min-sample-us US]
+        [--rt-priority N|auto|off] [--cpu N] [--lock-memory auto|on|off] [--spin-us US]
+        [--after-reply yield|hold]
 
 Slaves are the maps in the order given, the whole list repeated ``--count``
 times; or, with ``--network``, the slaves of one EtherCAT bus of a network
@@ -42,8 +44,11 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
     {"cmd": "emergency", "slave": 0, "code": 33297}
     {"cmd": "drive_fault", "slave": 0, "code": 29440}    the drive faults (0x603F = code), EMCY sent
+    {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
+    {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
+    {"cmd": "timing", "reset": false}                   the runner's reply times (see ReplyTimes)
     {"cmd": "dc"}                                       every slave's DC registers and clock at one instant
     {"cmd": "dc_config", "drift_ppm": 100, "seed": 0}   drifts (±X spread, or a list), from now on;
         optional "processing_ns", "forwarding_ns", "cable_m": the line,
@@ -51,12 +56,31 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
 
 A sender with a bound address gets ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}`` back
 (:func:`send_control` does this).
+
+Reply time (docs/emulator.md, "Reply time"): a master waits for each reply,
+so the runner keeps everything it can off the path from a frame's arrival to
+its reply. It sends the reply first and only then steps the drives (their
+inputs travel in the next frame either way); at SCHED_FIFO it first waits up
+to 50 µs so that a master sharing its CPU takes the reply (:class:`AfterReply`,
+``--after-reply``). Python's garbage collector is frozen after start-up and
+switched off; the runner collects in the gaps between frames instead
+(:class:`IdleCollector`). Where the process has
+CAP_SYS_NICE it runs at SCHED_FIFO (``--rt-priority``, default
+:data:`DEFAULT_RT_PRIORITY`; ``off`` to leave the scheduler alone), so a busy
+machine's other processes cannot keep it from waking up; there it polls the
+socket only 50 µs after a reply before it sleeps (300 µs otherwise), so its
+spin does not keep a plain master off the CPU. ``--lock-memory`` (default
+``auto``: where CAP_IPC_LOCK) locks its memory and prefaults a heap (mlockall),
+``--cpu N`` pins it. What was applied and what refused is printed on stderr
+and returned by the ``timing`` control command, with the runner's own reply
+times (:class:`ReplyTimes`).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import os
 import select
@@ -69,14 +93,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fieldbus.backends.ecat_pcap import PcapWriter
-from fieldbus.backends.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from fieldbus.core.dc.model import EscTiming
 from fieldbus.core.dc.sim import spread_drifts
 from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import FieldbusError
 from fieldbus.interop.device import load_device
+from fieldbus.runtime.rt import RtConfig, realtime
+from fieldbus.runtime.timing import LatencyHistogram
+from fieldbus.wire.pcap import PcapWriter
+from fieldbus.wire.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
 from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
@@ -93,11 +119,129 @@ PACKET_IGNORE_OUTGOING = 23  # Linux >= 4.20; PACKET_OUTGOING is checked as well
 TP_STATUS_VLAN_VALID = 0x10
 TP_STATUS_VLAN_TPID_VALID = 0x40
 _AUXDATA = struct.Struct("<IIIHHHH")  # tpacket_auxdata: status, len, snaplen, mac, net, vlan_tci, vlan_tpid
-_AUX_SPACE = socket.CMSG_SPACE(_AUXDATA.size)
+SO_TIMESTAMPNS = 35  # linux/asm-generic/socket.h: receive time of each frame (CLOCK_REALTIME) as a cmsg
+_TIMESPEC = struct.Struct("@qq")
+_AUX_SPACE = socket.CMSG_SPACE(_AUXDATA.size) + socket.CMSG_SPACE(_TIMESPEC.size)
 _VLAN_TAG = struct.Struct(">HH")  # TPID, TCI as on the wire
 # ldh [12]; jeq #0x88A4 ? accept : drop (the kernel has taken a VLAN tag out of the data already)
 _ECAT_ONLY = ((LDH_ABS, 0, 0, 12), (JEQ_K, 0, 1, ETHERTYPE_ECAT), (RET_K, 0, 0, 0x40000), (RET_K, 0, 0, DROP))
 SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in poll()
+RT_SPIN_NS = 50_000  # the same at SCHED_FIFO: shorter, the spin would keep a plain master off its CPU
+YIELD_NS = 50_000  # at SCHED_FIFO, sleep this long after a reply before the work after it (AfterReply)
+YIELD_GAP_NS = 300_000  # ... when at least this long passed since the frame before (a paced master)
+DEFAULT_RT_PRIORITY = 40  # SCHED_FIFO priority where CAP_SYS_NICE allows it
+CAP_SYS_NICE = 23  # capability numbers (linux/capability.h)
+CAP_IPC_LOCK = 14
+GC_GEN0 = 700  # net allocations before a young collection (CPython's default gen-0 threshold)
+GC_OLDER = 10  # collections of a generation before the next one is collected (CPython's default)
+
+
+def has_capability(cap: int) -> bool:
+    """True if this process's effective capability set holds ``cap`` (``/proc/self/status`` CapEff)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("CapEff:"):
+                    return bool(int(line.split()[1], 16) >> cap & 1)
+    except OSError:
+        pass
+    return False
+
+
+class IdleCollector:
+    """Python's garbage collection moved out of the reply path: frozen, disabled, run in idle gaps.
+
+    :meth:`start` collects once, freezes every object alive (start-up data:
+    maps, object dictionaries, the chain; never scanned again) and disables
+    the automatic collector, which would otherwise run in the middle of a
+    frame whenever allocations cross its threshold. The runner calls
+    :meth:`gap` when no frame is waiting: it collects the young generation
+    (and, as CPython's thresholds would, an older one now and then) there.
+    A full collection waits for :meth:`quiet` (no frame for a whole poll
+    timeout), unless garbage piles up. :meth:`stop` restores the collector.
+    """
+
+    def __init__(self) -> None:
+        self.was_enabled = gc.isenabled()
+        self.collections = 0
+
+    def start(self) -> None:
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+
+    def gap(self) -> bool:
+        """Collect if the young generation is due; True if it did (time was spent: look for frames again)."""
+        young, gen1, gen2 = gc.get_count()
+        if young < GC_GEN0:
+            return False
+        if gen1 >= GC_OLDER:
+            gc.collect(2 if gen2 >= GC_OLDER * GC_OLDER else 1)
+        else:
+            gc.collect(0)
+        self.collections += 1
+        return True
+
+    def quiet(self) -> None:
+        """No frames for a while: a full collection if anything is left for it."""
+        if any(gc.get_count()):
+            gc.collect()
+            self.collections += 1
+
+    def stop(self) -> None:
+        gc.unfreeze()
+        if self.was_enabled:
+            gc.enable()
+
+
+class AfterReply:
+    """What the runner does between a reply's send and the work after it (drive step, idle work, spin).
+
+    At SCHED_FIFO that work keeps every plain process off the runner's CPU,
+    and the master woken by the reply is often placed there (the kernel puts
+    a wakee near its waker): it would wait until the work is done, 100-200 µs
+    with a few drives. ``yield`` (the default) waits up to :data:`YIELD_NS`
+    first, so the master takes its reply (a frame arriving meanwhile ends the
+    wait: the frames of one cycle follow each other), when the frame came at
+    least :data:`YIELD_GAP_NS` after the one before: a master that paces its
+    cycle has that time to spare, one that sends flat out would only find
+    the work in front of its next frame; ``hold`` goes straight on.
+    (Dropping to the plain policy for the work instead was measured: on a
+    busy machine the work, and with it the next frame, then waits for
+    milliseconds.) Without SCHED_FIFO both go straight on.
+    """
+
+    def __init__(self, mode: str, sock: socket.socket | None = None) -> None:
+        if mode not in ("yield", "hold"):
+            raise ValueError(f"after a reply: 'yield' or 'hold', not {mode!r}")
+        self.mode = mode if os.sched_getscheduler(0) == os.SCHED_FIFO else "hold"
+        self.sock = sock  # the port: a frame arriving ends the wait
+        self.last_ns = 0  # when the frame before arrived (monotonic)
+
+    def replied(self, arrived_ns: int) -> None:
+        """The reply to the frame that arrived at ``arrived_ns`` (monotonic) is sent: let a master that
+        shares the CPU take it (``yield``, a paced master)."""
+        gap, self.last_ns = arrived_ns - self.last_ns, arrived_ns
+        if self.mode == "yield" and gap >= YIELD_GAP_NS:
+            if self.sock is not None:
+                select.select([self.sock], [], [], YIELD_NS / 1e9)
+            else:
+                time.sleep(YIELD_NS / 1e9)
+
+
+def reply_timing(priority: str, cpu: int | None, lock_memory: str) -> RtConfig:
+    """The real-time settings the runner asks for: ``priority`` "auto" (SCHED_FIFO at
+    :data:`DEFAULT_RT_PRIORITY` if CAP_SYS_NICE), "off", or a number 1-99; ``lock_memory``
+    "auto" (mlockall if CAP_IPC_LOCK), "on" or "off"."""
+    lock = lock_memory == "on" or (lock_memory == "auto" and has_capability(CAP_IPC_LOCK))
+    level: int | None
+    if priority == "off":
+        level = None
+    elif priority == "auto":
+        level = DEFAULT_RT_PRIORITY if has_capability(CAP_SYS_NICE) else None
+    else:
+        level = int(priority)
+    return RtConfig(priority=level, cpu=cpu, lock_memory=lock)
 
 
 def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
@@ -194,13 +338,29 @@ def _dc_command(chain: EscChain, msg: dict[str, Any], now_ns: int) -> dict[str, 
     }
 
 
-def handle_control(chain: EscChain, msg: dict[str, Any], now_ns: int | None = None) -> dict[str, Any]:
+def handle_control(
+    chain: EscChain, msg: dict[str, Any], now_ns: int | None = None, *, times: ReplyTimes | None = None
+) -> dict[str, Any]:
     """Apply one control command to ``chain``; the answer to send back.
 
     ``now_ns``: the chain's time line (default ``time.monotonic_ns()``, the
-    runner's frame clock), used by the DC commands.
+    runner's frame clock), used by the DC commands; ``times``: the runner's
+    reply times (the ``timing`` command).
     """
     cmd = msg.get("cmd")
+    if cmd == "timing":
+        if times is None:
+            return {"ok": False, "error": "no reply times here"}
+        answer = {
+            "ok": True,
+            "frames": chain.frames,
+            "reply_us": times.to_json(),
+            **times.settings,
+            "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
+        }
+        if msg.get("reset"):
+            times.reset()
+        return answer
     if cmd in ("dc", "dc_config"):
         return _dc_command(chain, msg, time.monotonic_ns() if now_ns is None else now_ns)
     slave = int(msg.get("slave", 0))
@@ -219,6 +379,10 @@ def handle_control(chain: EscChain, msg: dict[str, Any], now_ns: int | None = No
     elif cmd == "abort_sdo":
         sub = msg.get("sub")
         chain.abort_sdo(slave, int(msg["index"]), None if sub is None else int(sub), int(msg["code"]))
+    elif cmd == "mute_mailbox":
+        chain.mute_mailbox(slave, stuck=bool(msg.get("stuck")))
+    elif cmd == "stick_eeprom":
+        chain.stick_eeprom(slave)
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "drive_fault":
@@ -277,11 +441,54 @@ def open_port0(iface: str) -> socket.socket:
             sock.setsockopt(SOL_PACKET, PACKET_ADD_MEMBERSHIP, mreq)
         with contextlib.suppress(OSError):
             attach_filter(sock, _ECAT_ONLY)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         sock.setblocking(False)
     except BaseException:
         sock.close()
         raise
     return sock
+
+
+def received_ns(ancdata: list[tuple[int, int, bytes]]) -> int:
+    """When the kernel received the frame (SO_TIMESTAMPNS, CLOCK_REALTIME ns), 0 if the cmsg is missing."""
+    for level, kind, data in ancdata:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            return int(sec * 1_000_000_000 + nsec)
+    return 0
+
+
+class ReplyTimes:
+    """The emulator's own reply time: from the kernel's receipt of a frame to the return of its reply's send.
+
+    ``reply`` includes the runner's wake-up and the frame's processing, not
+    the master's side; ``pickup`` is the part until the runner has the frame
+    (the kernel's delivery and the runner's wake-up). ``{"cmd": "timing"}``
+    on the control socket reads both (``"reset": true`` starts afresh).
+    """
+
+    def __init__(self, settings: dict[str, Any] | None = None) -> None:
+        self.reply = LatencyHistogram(max_us=20_000)
+        self.pickup = LatencyHistogram(max_us=20_000)
+        self.over_1ms = 0
+        self.settings = settings or {}  # what the runner applied (scheduling, memory, collector)
+
+    def reset(self) -> None:
+        self.reply = LatencyHistogram(max_us=20_000)
+        self.pickup = LatencyHistogram(max_us=20_000)
+        self.over_1ms = 0
+
+    def add(self, received_ns: int, picked_ns: int, sent_ns: int) -> None:
+        """One frame: kernel receipt, runner has it, reply sent (CLOCK_REALTIME ns)."""
+        reply = sent_ns - received_ns
+        self.reply.add(reply)
+        self.pickup.add(picked_ns - received_ns)
+        if reply > 1_000_000:
+            self.over_1ms += 1
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.reply.to_json(), "over_1ms": self.over_1ms, "pickup": self.pickup.to_json()}
 
 
 def vlan_tag(ancdata: list[tuple[int, int, bytes]]) -> int | None:
@@ -309,9 +516,56 @@ def insert_vlan_tag(buf: bytearray, n: int, tci: int) -> int:
     return n + VLAN_TAG_SIZE
 
 
-def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str | None = None) -> None:
-    """Answer frames on ``iface`` until SIGTERM/SIGINT."""
+def serve(
+    chain: EscChain,
+    iface: str,
+    *,
+    pcap: str | None = None,
+    control: str | None = None,
+    timing: RtConfig | None = None,
+    spin_ns: int | None = None,
+    after_reply: str = "yield",
+) -> None:
+    """Answer frames on ``iface`` until SIGTERM/SIGINT; ``timing``: real-time settings (None: none);
+    ``spin_ns``: how long to poll the socket after a reply before sleeping (default :data:`SPIN_NS`)."""
+    with realtime(timing or RtConfig(), warn=_note) as applied:
+        for line in applied.applied:
+            _note(f"real-time: {line}")
+        fifo = os.sched_getscheduler(0) == os.SCHED_FIFO
+        collector = IdleCollector()
+        collector.start()
+        try:
+            _serve(
+                chain,
+                iface,
+                pcap=pcap,
+                control=control,
+                collector=collector,
+                spin_ns=(RT_SPIN_NS if fifo else SPIN_NS) if spin_ns is None else spin_ns,
+                times=ReplyTimes({"realtime": applied.to_json(), "sched_fifo": fifo}),
+                after=AfterReply(after_reply),
+            )
+        finally:
+            collector.stop()
+
+
+def _note(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _serve(
+    chain: EscChain,
+    iface: str,
+    *,
+    pcap: str | None,
+    control: str | None,
+    collector: IdleCollector,
+    spin_ns: int,
+    times: ReplyTimes,
+    after: AfterReply,
+) -> None:
     sock = open_port0(iface)
+    after.sock = sock
     ctl: socket.socket | None = None
     if control:
         if os.path.exists(control):
@@ -338,6 +592,7 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
     recv_into = sock.recvmsg_into
     send = sock.send
     clock = time.monotonic_ns
+    wall = time.time_ns  # the clock of the kernel's receive timestamps
     dc_line = chain.dc_line
     print(f"ready {iface} {len(chain)} slaves", flush=True)
     try:
@@ -345,9 +600,10 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
             events = poller.poll(20)
             if not events:
                 chain.tick(clock())
+                collector.quiet()
                 continue
             if ctl is not None:
-                _serve_control(chain, ctl)
+                _serve_control(chain, ctl, times)
             spin_until = 0
             while True:
                 try:
@@ -358,21 +614,26 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                         continue
                     if chain.idle():  # idle: copy plans after a configuration change
                         continue
+                    if collector.gap():  # idle: garbage collection, never while a frame waits
+                        continue
                     # busy-wait briefly for the master's next frame: a poll() wake-up costs more
                     if not spin_until:
-                        spin_until = clock() + SPIN_NS
+                        spin_until = clock() + spin_ns
                     if clock() < spin_until:
                         continue
                     break
                 spin_until = 0
                 if addr[2] == PACKET_OUTGOING or n < 16 or buf[12] << 8 | buf[13] != ETHERTYPE_ECAT:
                     continue
+                arrived = picked = 0
                 if anc:
                     tci = vlan_tag(anc)
                     if tci is not None:
                         if tci < 0:
                             continue
                         n = insert_vlan_tag(buf, n, tci)
+                    arrived = received_ns(anc)
+                    picked = wall()
                 now = clock()
                 if writer is not None:
                     writer.write(bytes(view[:n]), time.time())
@@ -387,6 +648,9 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                 if delay:
                     time.sleep(delay)
                 send(view[:m])
+                if arrived and not delay:
+                    times.add(arrived, picked, wall())
+                after.replied(now)
                 if writer is not None:
                     writer.write(bytes(view[:m]), time.time())
                 chain.run_cycles(now)
@@ -400,14 +664,14 @@ def serve(chain: EscChain, iface: str, *, pcap: str | None = None, control: str 
                 os.unlink(control)
 
 
-def _serve_control(chain: EscChain, ctl: socket.socket) -> None:
+def _serve_control(chain: EscChain, ctl: socket.socket, times: ReplyTimes | None = None) -> None:
     while True:
         try:
             data, sender = ctl.recvfrom(65536)
         except BlockingIOError:
             return
         try:
-            answer = handle_control(chain, json.loads(data))
+            answer = handle_control(chain, json.loads(data), times=times)
         except (ValueError, KeyError, IndexError, TypeError) as e:
             answer = {"ok": False, "error": f"{type(e).__name__}: {e}"}
         if sender:
@@ -440,6 +704,29 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--cable-m", type=float, default=1.0, help="DC: cable per hop in metres (5 ns/m)")
     p.add_argument(
+        "--rt-priority",
+        default="auto",
+        help=f"SCHED_FIFO priority 1-99, 'off', or 'auto' (default: {DEFAULT_RT_PRIORITY} where CAP_SYS_NICE)",
+    )
+    p.add_argument("--cpu", type=int, help="pin the runner to this CPU")
+    p.add_argument(
+        "--after-reply",
+        choices=("yield", "hold"),
+        default="yield",
+        help="at SCHED_FIFO, after a reply: wait up to 50 us first (default) or go straight on",
+    )
+    p.add_argument(
+        "--spin-us",
+        type=float,
+        help="after a reply, poll the socket this long before sleeping (default 300, 50 at SCHED_FIFO)",
+    )
+    p.add_argument(
+        "--lock-memory",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="mlockall and a prefaulted heap (default: where CAP_IPC_LOCK)",
+    )
+    p.add_argument(
         "--dc-min-sample-us",
         type=float,
         default=DC_MIN_SAMPLE_INTERVAL_NS / 1000,
@@ -462,6 +749,10 @@ def main(argv: list[str] | None = None) -> int:
             p.error(str(exc))
     if args.drift_ppm < 0 or args.cable_m < 0 or args.dc_min_sample_us < 0:
         p.error("--drift-ppm, --cable-m and --dc-min-sample-us must be >= 0")
+    if args.rt_priority not in ("auto", "off") and not (
+        args.rt_priority.isdigit() and 1 <= int(args.rt_priority) <= 99
+    ):
+        p.error("--rt-priority takes 1-99, 'auto' or 'off'")
     timing = EscTiming(*args.esc_delays_ns) if args.esc_delays_ns else None
     chain = build_chain(
         args.map or [],
@@ -475,5 +766,13 @@ def main(argv: list[str] | None = None) -> int:
         devices=devices,
         drive_params=params,
     )
-    serve(chain, args.iface, pcap=args.pcap, control=args.control)
+    serve(
+        chain,
+        args.iface,
+        pcap=args.pcap,
+        control=args.control,
+        timing=reply_timing(args.rt_priority, args.cpu, args.lock_memory),
+        spin_ns=None if args.spin_us is None else round(args.spin_us * 1000),
+        after_reply=args.after_reply,
+    )
     return 0

@@ -14,10 +14,10 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from fieldbus.backends.framemaster import sii_strings
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap, Pdo
 from fieldbus.errors import FieldbusError
+from fieldbus.wire.framemaster import sii_strings
 
 CAT_STRINGS = 10
 CAT_GENERAL = 30

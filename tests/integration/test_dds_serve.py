@@ -8,6 +8,7 @@ message definitions only, not fieldbus.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -17,6 +18,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -68,16 +70,26 @@ def env() -> dict[str, str]:
     return {**os.environ, "CYCLONEDDS_URI": LOOPBACK}
 
 
-@pytest.fixture
-def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) -> Iterator[int]:
-    """``fieldbus serve`` on 3 emulated CiA 402 joints at 1 kHz; yields its DDS domain."""
-    domain = _domain(len(request.node.name))
-    net = tmp_path / "robot.yaml"
-    net.write_text(
-        "name: robot\ncycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n  - name: joints\n"
-        f"    type: ethercat\n    interface: sim\n    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, "
-        "count: 3}]\n"
+def _network(path: Path, interface: str, receive_timeout_us: int, drive_map: Path = DEMO_JOINT) -> Path:
+    """3 CiA 402 joints of ``drive_map`` (the demo's) at 1 kHz on one EtherCAT bus at ``interface``."""
+    path.write_text(
+        f"name: robot\ncycle_time_us: 1000\nreceive_timeout_us: {receive_timeout_us}\nbuses:\n"
+        f"  - name: joints\n    type: ethercat\n    interface: {interface}\n"
+        f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(drive_map))}, count: 3}}]\n"
     )
+    return path
+
+
+@contextlib.contextmanager
+def _serve(
+    net: Path,
+    domain: int,
+    env: dict[str, str],
+    *extra: str,
+    hold_after: int = HOLD_AFTER,
+    stop_after: int = STOP_AFTER,
+) -> Iterator[subprocess.Popen[str]]:
+    """``fieldbus serve NET`` in its own process until the block ends; yields it once it is ready."""
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -85,17 +97,16 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
             "fieldbus",
             "serve",
             str(net),
-            "--backend",
-            "sim",
             "--domain",
             str(domain),
             "--interface",
             "lo",
             "--hold-after",
-            str(HOLD_AFTER),
+            str(hold_after),
             "--stop-after",
-            str(STOP_AFTER),
+            str(stop_after),
             "--json",
+            *extra,
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -105,14 +116,22 @@ def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) 
     try:
         ready = _read_line(proc, 60)
         assert ready["ready"] is True and ready["domain"] == domain
-        yield domain
+        yield proc
     finally:
         _stop(proc)
 
 
-def _client(domain: int, client: str, cycles: int, env: dict[str, str]) -> subprocess.Popen[str]:
+@pytest.fixture
+def served(tmp_path: Path, env: dict[str, str], request: pytest.FixtureRequest) -> Iterator[int]:
+    """``fieldbus serve`` on 3 emulated CiA 402 joints (sim backend) at 1 kHz; yields its DDS domain."""
+    domain = _domain(len(request.node.name))
+    with _serve(_network(tmp_path / "robot.yaml", "sim", 500), domain, env, "--backend", "sim"):
+        yield domain
+
+
+def _client(domain: int, client: str, cycles: int, env: dict[str, str], *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, str(HERE / "remote_client.py"), "robot", str(domain), client, str(cycles)],
+        [sys.executable, str(HERE / "remote_client.py"), "robot", str(domain), client, str(cycles), *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -149,6 +168,54 @@ def test_trajectory_from_another_process_and_a_second_controller_is_refused(
     assert float(summary["max_error_rad"]) < 0.05
 
 
+def _kill_and_see_hold_then_safe_stop(op: fieldbus.remote.Remote, proc: subprocess.Popen[str]) -> None:
+    """Kill the commanding client ``proc``; from ``op``'s states (a watcher), in the bus's cycles: the
+    gate stays COMMANDED until ``HOLD_AFTER`` cycles after the last command, HOLD until ``STOP_AFTER``,
+    then SAFE_STOP (latched, the drives leave OPERATION ENABLED)."""
+    for _ in range(50):
+        op.exchange(deadline_s=1.0)
+    proc.kill()  # no goodbye: the controller is gone
+    proc.wait()
+    seen: list[tuple[int, GateState, int, list[int]]] = []
+    for _ in range(20 * STOP_AFTER):
+        op.exchange(deadline_s=1.0)
+        seen.append(_gate_of(op))
+        if seen[-1][1] is GateState.SAFE_STOP and seen[-1][0] > seen[0][0] + STOP_AFTER + 200:
+            break
+    _assert_hold_then_safe_stop(seen, HOLD_AFTER, STOP_AFTER)
+
+
+def _gate_of(op: fieldbus.remote.Remote) -> tuple[int, GateState, int, list[int]]:
+    """The newest state's (cycle, gate, command age, drive states)."""
+    st = op["joints"].state
+    return int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)
+
+
+def _assert_hold_then_safe_stop(
+    seen: list[tuple[int, GateState, int, list[int]]], hold_after: int, stop_after: int
+) -> None:
+    """From states seen after the owner's last command (cycle, gate, age, drive states), in bus cycles:
+    COMMANDED until ``hold_after`` cycles after it, HOLD until ``stop_after``, then SAFE_STOP, latched
+    with the drives out of OPERATION ENABLED."""
+    # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
+    after = [s for s in seen if s[1] is not GateState.COMMANDED]
+    assert after, "the gate never left COMMANDED"
+    last = {c - a for c, g, a, _ in after if g is not GateState.SAFE_STOP}
+    assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
+    (last_cmd,) = last
+    for cycle, gate, age, _ in after:
+        if cycle - last_cmd < hold_after:
+            assert gate is GateState.COMMANDED
+        elif cycle - last_cmd < stop_after:
+            assert gate is GateState.HOLD, (cycle, gate, age)
+        else:
+            assert gate is GateState.SAFE_STOP, (cycle, gate, age)
+            assert age == stop_after  # latched: the age stops where the deadline fired
+    assert any(g is GateState.HOLD for _, g, _, _ in after)
+    assert seen[-1][1] is GateState.SAFE_STOP
+    assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
+
+
 def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
     served: int, env: dict[str, str]
 ) -> None:
@@ -156,34 +223,7 @@ def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
     try:
         assert _read_line(proc, 60) == {"commanding": True}
         with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="watcher") as op:
-            for _ in range(50):
-                op.exchange(deadline_s=1.0)
-            proc.kill()  # no goodbye: the controller is gone
-            proc.wait()
-            seen: list[tuple[int, GateState, int, list[int]]] = []
-            for _ in range(20 * STOP_AFTER):
-                op.exchange(deadline_s=1.0)
-                st = op["joints"].state
-                seen.append((int(st.cycle), GateState(st.gate), int(st.command_age), list(st.drive_state)))
-                if seen[-1][1] is GateState.SAFE_STOP and st.cycle > seen[0][0] + STOP_AFTER + 200:
-                    break
-            # the cycle of the last command, from every state after it: cycle - age (ages count bus cycles)
-            after = [s for s in seen if s[1] is not GateState.COMMANDED]
-            assert after, "the gate never left COMMANDED"
-            last = {c - a for c, g, a, _ in after if g is not GateState.SAFE_STOP}
-            assert len(last) == 1, f"inconsistent ages: {sorted(last)}"
-            (last_cmd,) = last
-            for cycle, gate, age, _ in after:
-                if cycle - last_cmd < HOLD_AFTER:
-                    assert gate is GateState.COMMANDED
-                elif cycle - last_cmd < STOP_AFTER:
-                    assert gate is GateState.HOLD, (cycle, gate, age)
-                else:
-                    assert gate is GateState.SAFE_STOP, (cycle, gate, age)
-                    assert age == STOP_AFTER  # latched: the age stops where the deadline fired
-            assert any(g is GateState.HOLD for _, g, _, _ in after)
-            assert seen[-1][1] is GateState.SAFE_STOP
-            assert all(s != 4 for s in seen[-1][3]), "the safe stop left an axis in OPERATION ENABLED"
+            _kill_and_see_hold_then_safe_stop(op, proc)
             # a restarted controller: may claim (the owner's deadline fired), must clear before enabling
             op.claim("joints")
             with pytest.raises(fieldbus.remote.RemoteError, match="clear_safe_stop"):
@@ -201,6 +241,76 @@ def test_killed_controller_hold_then_safe_stop_in_cycles_then_explicit_clear(
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.veth
+def test_over_veth_a_client_process_runs_the_trajectory_then_killed_hold_then_safe_stop(
+    ethercat_emulator: Any, tmp_path: Path, env: dict[str, str]
+) -> None:
+    """The same service on EtherCAT: real pysoem frames over a veth pair to the emulated slaves."""
+    emu = ethercat_emulator([DEMO_JOINT], count=3)
+    domain = _domain(101)
+    # a 15 ms receive time-out: the emulator shares a loaded machine (timing is not the point here)
+    with _serve(_network(tmp_path / "robot.yaml", emu.iface, 15_000), domain, env) as server:
+        proc = _client(domain, "controller-a", 1500, env, "--keep-going")
+        try:
+            assert _read_line(proc, 60) == {"commanding": True}
+            summary = _read_line(proc, 180)
+            assert summary["cycles"] == 1500 and summary["drive_state"] == [4, 4, 4], summary
+            assert "SAFE_STOP" not in summary["gates"], summary
+            assert float(summary["span_rad"]) > 0.9, summary
+            assert float(summary["max_error_rad"]) < 0.05, summary
+            with fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="watcher") as op:
+                assert op["joints"].state.owner == "controller-a"
+                _kill_and_see_hold_then_safe_stop(op, proc)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        _stop(server)
+        report = _read_line(server, 30)
+    assert report["groups"]["joints"]["gate"] == "SAFE_STOP", report
+    assert report["buses"][0]["type"] == "ethercat", report  # pysoem's frames, not the sim backend
+
+
+def test_a_stalled_controller_hold_then_safe_stop_on_the_deadline_and_no_command_after_it(
+    tmp_path: Path, env: dict[str, str]
+) -> None:
+    """A controller process frozen for >= 200 ms (SIGSTOP: a stall of the whole process, as a long gc
+    pause or a slow policy step) while a watcher reads the states: in the bus's cycles the gate holds at
+    hold_after and safe-stops at stop_after, the bus keeps counting cycles throughout, and the commands
+    the controller sends once it wakes are not applied (the latch stays until an explicit clear)."""
+    hold_after, stop_after = 20, 100
+    domain = _domain(202)
+    net = _network(tmp_path / "robot.yaml", "sim", 500)
+    with _serve(net, domain, env, "--backend", "sim", hold_after=hold_after, stop_after=stop_after):
+        proc = _client(domain, "controller-a", 0, env)
+        try:
+            assert _read_line(proc, 60) == {"commanding": True}
+            with fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="watcher") as op:
+                for _ in range(50):
+                    assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+                os.kill(proc.pid, signal.SIGSTOP)
+                stalled_at = time.monotonic()
+                seen = [_gate_of(op)]
+                # frozen for at least 200 ms and until the bus has counted past the deadline (cycles)
+                while time.monotonic() - stalled_at < 0.2 or seen[-1][0] < seen[0][0] + stop_after + 50:
+                    op.exchange(deadline_s=1.0)
+                    seen.append(_gate_of(op))
+                os.kill(proc.pid, signal.SIGCONT)
+                _assert_hold_then_safe_stop(seen, hold_after, stop_after)
+                applied = int(op["joints"].state.command_sequence)
+                woke = [op.exchange(deadline_s=1.0) for _ in range(200)]
+                st = op["joints"].state
+                # the controller runs again (its sequence numbers reach the gate), but nothing is applied
+                assert st.owner == "controller-a" and st.gate == GateState.SAFE_STOP
+                assert int(st.command_sequence) == applied
+                assert all(r.gate["joints"] is GateState.SAFE_STOP for r in woke)
+                assert int(st.cycle) > seen[-1][0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
@@ -221,3 +331,69 @@ def test_a_ros2_peer_without_fieldbus_reads_joint_states_and_commands(
     # the joints went to position + 0.2 rad (within the encoder's resolution)
     assert np.allclose(out["after"], out["goal"], atol=1e-3), out
     assert not np.allclose(out["before"], out["goal"], atol=0.1)
+
+
+@contextlib.contextmanager
+def _served_with_homing(tmp_path: Path, env: dict[str, str], method: int) -> Iterator[fieldbus.remote.Remote]:
+    """A served bus whose drives' map sets homing method ``method`` (0x6098); a claimed, enabled client."""
+    drive_map = tmp_path / "joint_homing.yaml"
+    drive_map.write_text(DEMO_JOINT.read_text() + f"\nhoming:\n  method: {method}\n  timeout_ms: 2000\n")
+    domain = _domain(300 + method)
+    with (
+        _serve(_network(tmp_path / "robot.yaml", "sim", 500, drive_map), domain, env, "--backend", "sim"),
+        fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="homer") as op,
+    ):
+        op.claim("joints")
+        op.enable("joints")
+        yield op
+
+
+@pytest.mark.parametrize("method", [37, 1])
+def test_home_request_answered_when_homing_ends_with_success_or_the_failed_axes(
+    tmp_path: Path, env: dict[str, str], method: int
+) -> None:
+    """37 (home on the current position) the emulated drives implement; 1 they refuse (bit 13)."""
+    with _served_with_homing(tmp_path, env, method) as op:
+        legs = op["joints"]
+        if method == 37:
+            done = op.home("joints")
+            assert done["phases"] == ["DONE"] * 3 and min(done["cycles"]) >= 2
+        else:
+            with pytest.raises(fieldbus.remote.RemoteError, match=r"did not end: j0: FAILED, j1: FAILED"):
+                op.home("joints")
+        # back in CSP, still enabled, and commands count again (the deadline was paused while homing)
+        assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+        assert legs.inputs["modes_of_operation_display"].tolist() == [8, 8, 8]
+        assert legs.drive_state.tolist() == [4, 4, 4]
+        with (
+            fieldbus.remote.connect("robot", domain=op.participant.domain_id, interface="lo") as other,
+            pytest.raises(ClaimError, match="homer"),
+        ):
+            other.home("joints")
+
+
+def test_mode_and_sdo_requests_answered_with_success_or_the_error(
+    tmp_path: Path, env: dict[str, str]
+) -> None:
+    with _served_with_homing(tmp_path, env, 37) as op:
+        legs = op["joints"]
+        assert [op.sdo_read("joints", a, 0x6098, 0) for a in legs.axes] == [bytes([37])] * 3  # from bring-up
+        op.sdo_write("joints", "j1", 0x6098, 0, bytes([35]))
+        assert [op.sdo_read("joints", a, 0x6098, 0) for a in legs.axes] == [bytes([n]) for n in (37, 35, 37)]
+        with pytest.raises(fieldbus.remote.RemoteError, match="0x06020000"):  # no such object: the abort
+            op.sdo_read("joints", "j1", 0x2FFF, 0)
+        with pytest.raises(fieldbus.remote.RemoteError, match="no axis 'j9'"):
+            op.sdo_read("joints", "j9", 0x6098, 0)
+        op.set_mode("joints", "CSV")
+        assert legs.inputs["modes_of_operation_display"].tolist() == [9, 9, 9]
+        op.set_mode("joints", 8)
+        assert legs.inputs["modes_of_operation_display"].tolist() == [8, 8, 8]
+        assert op.exchange(deadline_s=1.0).gate["joints"] is GateState.COMMANDED
+        with pytest.raises(fieldbus.remote.RemoteError, match="unknown mode 'bogus'"):
+            op.set_mode("joints", "bogus")
+        with fieldbus.remote.connect("robot", domain=op.participant.domain_id, interface="lo") as other:
+            assert other.sdo_read("joints", "j2", 0x6098, 0) == bytes([37])  # reading needs no claim
+            with pytest.raises(ClaimError, match="homer"):
+                other.sdo_write("joints", "j2", 0x6098, 0, bytes([35]))
+            with pytest.raises(ClaimError, match="homer"):
+                other.set_mode("joints", "CSV")

@@ -1,6 +1,6 @@
 """An independent master of our own against the wire emulator: raw AF_PACKET frames over a veth pair.
 
-Not SOEM: :class:`~fieldbus.backends.framemaster.FrameMaster` (the sim
+Not SOEM: :class:`~fieldbus.wire.framemaster.FrameMaster` (the sim
 backend's frame-level master) behind a raw socket on the master's end, whose
 source MAC has the locally administered bit (0x02 in the first byte) set, as
 any master may choose. A real ESC processes every EtherCAT frame reaching
@@ -29,11 +29,11 @@ from dataclasses import dataclass
 
 import pytest
 
-from fieldbus.backends.framemaster import STATION_BASE, FrameMaster, Mapping, SlaveInfo, layout_image
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.al import AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP
 from fieldbus.core.ecat import BROADCAST_MAC, Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import load_drive_map
+from fieldbus.wire.framemaster import STATION_BASE, FrameMaster, Mapping, SlaveInfo, layout_image
 from sim_slaves.ethercat.veth import Emulator
 
 pytestmark = [pytest.mark.veth, pytest.mark.timeout(120)]
@@ -70,7 +70,7 @@ def _tagged(frame: bytes, tci: int) -> bytes:
 class RawPort:
     """The master's end of the veth pair: EtherCAT frames out, frames in with their VLAN tag.
 
-    Called with a frame, it is a :data:`~fieldbus.backends.framemaster.Transport`:
+    Called with a frame, it is a :data:`~fieldbus.wire.framemaster.Transport`:
     the source MAC replaced by ``src``, a VLAN tag ``vlan`` (TCI) inserted when
     given, and the reply is the next arriving frame of the same length whose
     first datagram has the request's command and index (late replies to

@@ -48,10 +48,16 @@ def _net_file(tmp_path: Path, *, axes: int = 2, safe_stop_after: int = 5, extra:
 
 @pytest.fixture
 def enabled(tmp_path: Path) -> Iterator[tuple[fieldbus.Network, fieldbus.Operational, Cia402Controller]]:
-    """A 2-axis arm on the in-process emulator, every axis in OPERATION ENABLED (CSP)."""
-    net = fieldbus.open_network(_net_file(tmp_path), backend="sim")
+    """A 2-axis arm on the in-process emulator, every axis in OPERATION ENABLED (CSP).
+
+    The emulator runs on a virtual clock that advances 1 ms at the end of every exchange() (an
+    observer), so the drives see the same time line on a busy machine as on a quiet one.
+    """
+    clock = VirtualClock()
+    net = fieldbus.open_network(_net_file(tmp_path), backend="sim", clock=clock)
     try:
         op = net.bring_up()
+        op.add_observer(_Tick(clock))
         ctrl = Cia402Controller(2, mode=Mode.CSP)
         ctrl.set_goal(Goal.ENABLE)
         img = op["arm"]
@@ -65,6 +71,22 @@ def enabled(tmp_path: Path) -> Iterator[tuple[fieldbus.Network, fieldbus.Operati
         yield net, op, ctrl
     finally:
         net.close()
+
+
+class _Tick:
+    """An observer that lets one cycle time pass on a virtual clock after every exchange()."""
+
+    def __init__(self, clock: VirtualClock, cycle_ns: int = 1_000_000) -> None:
+        self.clock, self.cycle_ns = clock, cycle_ns
+
+    def capture(self, res: fieldbus.CycleResult, t0_ns: int) -> None:
+        self.clock.advance(self.cycle_ns)
+
+    def note_events(self, events: list[Any]) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 def _chain(net: fieldbus.Network) -> Any:

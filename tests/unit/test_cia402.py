@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import re
 from pathlib import Path
 
 import numpy as np
@@ -420,11 +419,8 @@ def test_bad_arguments() -> None:
         Cia402Controller(2, timeout_cycles=0)
 
 
-def test_docs_page_is_drawn_from_the_table_and_its_examples_run() -> None:
+def test_docs_page_is_drawn_from_the_table() -> None:
+    """The page's table and diagram are the generated ones; its code runs in tests/unit/test_docs.py."""
     text = (Path(__file__).resolve().parents[2] / "docs" / "cia402.md").read_text()
     assert transition_table_markdown() in text
     assert f"```mermaid\n{mermaid_diagram()}\n```" in text
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 2
-    for block in blocks:
-        exec(compile(block, "docs/cia402.md", "exec"), {})

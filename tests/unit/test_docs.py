@@ -12,7 +12,9 @@ saves: it is written under that name when the page reaches it. Comments right be
   contributors): it still runs, and may import it.
 
 A page-wide ``<!-- doc-test: files from: PAGE.md -->`` (not right before a block) first saves the named YAML files of that page
-(a page that continues another's example). Public API: ``fieldbus`` and its names,
+(a page that continues another's example); ``<!-- doc-test: checkout: FOLDER -->`` first copies a
+folder of the repository (e.g. ``examples/testing_your_controller``) to the same place, as a
+reader with the checkout has it. Public API: ``fieldbus`` and its names,
 ``fieldbus.testing``, ``fieldbus.recording``; never ``sim_slaves``.
 """
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import ast
 import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,6 +121,9 @@ def test_every_python_block_runs_as_written(
     source = page_markers(page).get("files from")
     if source:
         _save_files(DOCS / source, tmp_path)
+    checkout = page_markers(page).get("checkout")
+    if checkout:
+        shutil.copytree(REPO / checkout, tmp_path / checkout)
     namespace: dict[str, object] = {"__name__": f"doc_{page.stem.replace('-', '_')}"}
     ran = 0
     skipped = []

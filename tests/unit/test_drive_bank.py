@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
@@ -15,6 +16,15 @@ from sim_slaves.drive_bank import DriveBank
 
 DT = 1e-3
 S = State402
+GEARED = DriveParams(
+    counts_per_rev=1 << 20,
+    gear_ratio=50.0,
+    velocity_units_per_count_s=0.5,
+    rated_torque_nm=0.5,
+    max_motor_speed_rpm=10.0,
+    software_position_limit=(-15_000, 15_000),
+    following_error_window_counts=500_000,  # the max speed makes it lag: no following-error fault
+)
 
 MIXED = (
     (DriveParams(), 8),
@@ -23,6 +33,12 @@ MIXED = (
     (DriveParams(command_delay_cycles=3, current_loop_bandwidth_hz=400.0, coulomb_friction_nm=0.05), 8),
     (DriveParams(thermal=True, thermal_capacitance_j_per_k=0.05, fault_temperature_c=60.0), 8),
     (DriveParams(quick_stop_option=6, inertia_kg_m2=5e-4, friction_nm_s_per_rad=0.0), 8),
+    # geared, 2^20 counts per motor revolution, velocity units of 2 counts/s, 0.5 N·m rated, held within
+    # software position limits (the sine's 20,000 counts reach past them) and a max speed (CSP: 1.5 rad/s
+    # wanted, 10 rpm allowed)
+    (GEARED, 8),
+    # the same in CSV: 50,000 units = 0.6 rad/s wanted, 5 rpm allowed
+    (replace(GEARED, max_motor_speed_rpm=5.0), 9),
 )
 
 
@@ -70,6 +86,7 @@ def test_a_bank_stepped_together_matches_scalar_drives_step_for_step(per_drive: 
             od.values[(Obj.MODES_OF_OPERATION, 0)] = mode
     bank.drives[4].load_torque_nm = scalar[4].load_torque_nm = 0.8
     states_seen: set[State402] = set()
+    limits_hit = [False, False]
     for k in range(900):
         if k == 600:
             scalar[2].inject_fault(0x5000)
@@ -97,10 +114,52 @@ def test_a_bank_stepped_together_matches_scalar_drives_step_for_step(per_drive: 
             for obj in (Obj.POSITION_ACTUAL, Obj.VELOCITY_ACTUAL, Obj.FOLLOWING_ERROR_ACTUAL):
                 assert abs(int(b_ods[i].values[(obj, 0)]) - int(s_ods[i].values[(obj, 0)])) <= 1, (k, i, obj)
             states_seen.add(d.state)
+        limits_hit[0] |= (
+            abs(scalar[6].position_rad) * scalar[6].counts_per_rad > 14_990
+        )  # at a position limit
+        limits_hit[1] |= abs(scalar[7].velocity_rad_s) > 0.99 * 5.0 * 2 * math.pi / 60  # at the max speed
     # the scenario went through the interesting states (else it proves little)
     assert {S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.FAULT, S.SWITCHED_ON} <= states_seen
     assert scalar[4].state is S.FAULT and scalar[4].error_code == 0x4310  # overheated
     assert scalar[2].state is S.OPERATION_ENABLED  # reset and enabled again
+    assert limits_hit == [True, True]  # the geared drives met their limits, and never passed them:
+    assert abs(scalar[6].position_rad) * scalar[6].counts_per_rad < 15_100
+    assert max(abs(d.velocity_rad_s) for d in scalar[6:]) < 1.1 * 10.0 * 2 * math.pi / 60
+
+
+def test_a_geared_limited_bank_on_the_plain_csp_path_matches_scalar_drives() -> None:
+    """The lean CSP path (every drive enabled in CSP) with velocity units, a max speed and position limits."""
+    params = [GEARED, replace(GEARED, max_motor_speed_rpm=0.0, software_position_limit=(-40_000, 12_000))]
+    scalar: list[Cia402Drive] = [Cia402Drive(p) for p in params]
+    s_ods = [DictObjectStore(default_objects(p)) for p in params]
+    bank = DriveBank(params)
+    for bd, p in zip(bank.drives, params, strict=True):
+        bd.bind(DictObjectStore(default_objects(p)))
+    bank.mode_request[:] = 8
+    peak_position, peak_speed = 0, 0.0
+    for k in range(1500):
+        cw = (0x00, 0x06, 0x07, 0x0F)[min(k, 3)]
+        tp = round(30_000 * math.sin(2 * math.pi * 2 * k * DT))
+        for drive, od in zip(scalar, s_ods, strict=True):
+            od.values[(Obj.CONTROLWORD, 0)] = cw
+            od.values[(Obj.TARGET_POSITION, 0)] = tp
+            drive.step(od, DT)
+        bank.controlword[:] = cw
+        bank.target_position[:] = tp
+        bank.step(0, 2, DT)
+        for i, sd in enumerate(scalar):
+            assert bank.drives[i].position_rad == pytest.approx(sd.position_rad, abs=1e-9), (k, i)
+            assert bank.statusword[i] == s_ods[i].values[(Obj.STATUSWORD, 0)], (k, i)
+            assert abs(bank.velocity_counts[i] - s_ods[i].values[(Obj.VELOCITY_ACTUAL, 0)]) <= 1, (k, i)
+        peak_position = max(peak_position, int(bank.position_counts[1]))
+        peak_speed = max(peak_speed, abs(float(bank.vel[0])))
+    assert bank._uniform[(0, 2)] == "csp"  # the lean path ran
+    assert 11_900 < peak_position < 13_000  # held at the upper limit, a small overshoot (the sine: 30,000)
+    limit = 10.0 * 2 * math.pi / 60  # 10 rpm [rad/s]; the sine wants 2.3 rad/s
+    assert (
+        0.99 * limit < peak_speed < 1.25 * limit
+    )  # the velocity loop overshoots its clipped demand a little
+    assert all(sd.state is S.OPERATION_ENABLED for sd in scalar)
 
 
 def _enabled_bank(n: int, params: DriveParams | None = None) -> DriveBank:

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from fieldbus.backends.framemaster import FrameMaster, SlaveInfo
 from fieldbus.core.al import AL_PREOP
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.core.sdo import info
 from fieldbus.errors import SdoAbortError
+from fieldbus.wire.framemaster import FrameMaster, SlaveInfo
 from sim_slaves.ethercat.chain import EscChain
 from sim_slaves.od import ObjectDictionary
 

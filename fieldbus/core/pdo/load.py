@@ -23,6 +23,7 @@ from fieldbus.core.pdo.model import (
     Direction,
     DriveMap,
     EthercatConfig,
+    HomingConfig,
     Pdo,
     SdoWrite,
     SyncManager,
@@ -43,7 +44,7 @@ DEFAULT_COB_IDS = {
 
 _TOP_KEYS = (
     "name", "description", "vendor_id", "product_id", "revision", "profile",
-    "assign_activate", "auto_fault_reset", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
+    "assign_activate", "auto_fault_reset", "homing", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
 )  # fmt: skip
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
 _CHANNEL_KEYS = (
@@ -51,6 +52,8 @@ _CHANNEL_KEYS = (
     "default", "mask", "factor", "offset", "unit", "description", "safe_value",
 )  # fmt: skip
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
+_HOMING_KEYS = ("method", "offset", "speeds", "acceleration", "timeout_ms")
+_HOMING_SPEED_KEYS = ("switch", "zero")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
 _ETHERCAT_KEYS = (
     "coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes", "pdo_assign",
@@ -123,7 +126,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if "rawcan" in top:
         from fieldbus.core.rawcan import parse_rawcan
 
-        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat"):
+        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing"):
             if key in top:
                 raise r.err(
                     (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
@@ -155,6 +158,10 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         if not any(p.index == index for p in (*rpdo, *tpdo)):
             raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
 
+    sdos = _sdos(r, top.get("sdo"))
+    homing = _homing(r, top["homing"], sdos) if "homing" in top else None
+    if homing is not None:
+        sdos = (*sdos, *homing_sdos(homing))
     drive = DriveMap(
         name=name,
         vendor_id=r.integer(top.get("vendor_id", 0), ("vendor_id",), 0, 0xFFFFFFFF),
@@ -164,7 +171,8 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         profile=profile,
         assign_activate=r.integer(top.get("assign_activate", 0), ("assign_activate",), 0, 0xFFFF),
         auto_fault_reset=r.boolean(top.get("auto_fault_reset", False), ("auto_fault_reset",)),
-        sdo=_sdos(r, top.get("sdo")),
+        sdo=sdos,
+        homing=homing,
         rpdo=rpdo,
         tpdo=tpdo,
         sm=_sync_managers(r, top.get("sm")),
@@ -500,6 +508,64 @@ def _sdos(r: Reader, raw: Any) -> tuple[SdoWrite, ...]:
                 description=r.string(m.get("description", ""), (*path, "description")),
             )
         )
+    return tuple(out)
+
+
+# -- homing: section ------------------------------------------------------------------------------
+
+# CiA 402-2 (IEC 61800-7-201) homing methods: 1-14 and 17-30 with switches and/or index pulse, 33/34 index
+# pulse only, 35 and 37 the current position (35 is 37's older number); 15, 16, 31, 32, 36 are reserved,
+# negative numbers are the manufacturer's, 0 is "no homing"
+HOMING_METHODS_STANDARD = frozenset((*range(1, 15), *range(17, 31), 33, 34, 35, 37))
+HOMING_OBJECTS = (  # (index, sub, type, field) of the start-up SDOs, in the order bring-up writes them
+    (0x6098, 0, "int8", "method"),
+    (0x607C, 0, "int32", "offset"),
+    (0x6099, 1, "uint32", "speeds.switch"),
+    (0x6099, 2, "uint32", "speeds.zero"),
+    (0x609A, 0, "uint32", "acceleration"),
+)
+U32_MAX = 0xFFFFFFFF
+
+
+def _homing(r: Reader, raw: Any, sdos: tuple[SdoWrite, ...]) -> HomingConfig:
+    path: PathT = ("homing",)
+    m = r.mapping(raw, path, _HOMING_KEYS, required=("method",))
+    method = r.integer(m["method"], (*path, "method"), -128, 127)
+    if method >= 0 and method not in HOMING_METHODS_STANDARD:
+        raise r.err(
+            (*path, "method"),
+            f"{method} is not a CiA 402 homing method (1-14, 17-30, 33, 34, 35, 37; negative numbers are "
+            "the manufacturer's)",
+        )
+    speeds: Mapping[Any, Any] = {}
+    if "speeds" in m:
+        speeds = r.mapping(m["speeds"], (*path, "speeds"), _HOMING_SPEED_KEYS)
+    cfg = HomingConfig(
+        method=method,
+        offset=r.integer(m.get("offset", 0), (*path, "offset"), -(2**31), 2**31 - 1),
+        speed_switch=r.integer(speeds.get("switch", 0), (*path, "speeds", "switch"), 0, U32_MAX),
+        speed_zero=r.integer(speeds.get("zero", 0), (*path, "speeds", "zero"), 0, U32_MAX),
+        acceleration=r.integer(m.get("acceleration", 0), (*path, "acceleration"), 0, U32_MAX),
+        timeout_ms=r.integer(m.get("timeout_ms", 30_000), (*path, "timeout_ms"), 1, 3_600_000),
+    )
+    for i, sdo in enumerate(sdos):
+        for index, sub, _, field in HOMING_OBJECTS:
+            if (sdo.index, sdo.sub_index) == (index, sub):
+                raise r.err(
+                    ("sdo", i, "index"),
+                    f"0x{index:04X}:{sub:02X} is homing.{field}: set it in the homing section only",
+                )
+    return cfg
+
+
+def homing_sdos(cfg: HomingConfig) -> tuple[SdoWrite, ...]:
+    """The start-up SDO writes of a ``homing:`` section (0x6098, 0x607C, 0x6099:01/02, 0x609A)."""
+    values = (cfg.method, cfg.offset, cfg.speed_switch, cfg.speed_zero, cfg.acceleration)
+    out = []
+    for (index, sub, tname, field), value in zip(HOMING_OBJECTS, values, strict=True):
+        dt = datatypes.lookup(tname)
+        assert dt is not None
+        out.append(SdoWrite(index, sub, dt, float(value), description=f"homing.{field}"))
     return tuple(out)
 
 

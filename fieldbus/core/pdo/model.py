@@ -136,6 +136,22 @@ class SdoWrite:
 
 
 @dataclass(frozen=True)
+class HomingConfig:
+    """A drive map's ``homing:`` section (CiA 402-2 homing mode); bring-up writes it as start-up SDOs.
+
+    ``method`` 0x6098, ``offset`` 0x607C [position units], ``speed_switch``/``speed_zero`` 0x6099:01/02
+    [velocity units], ``acceleration`` 0x609A [acceleration units]; ``timeout_ms`` bounds the procedure.
+    """
+
+    method: int
+    offset: int = 0
+    speed_switch: int = 0
+    speed_zero: int = 0
+    acceleration: int = 0
+    timeout_ms: int = 30_000
+
+
+@dataclass(frozen=True)
 class SyncManager:
     """An EtherCAT SyncManager as in ethercat_driver_ros2's ``sm`` list."""
 
@@ -212,6 +228,7 @@ class DriveMap:
     ethercat: EthercatConfig = field(default_factory=EthercatConfig)
     canopen: CanopenConfig | None = None
     rawcan: RawCanConfig | None = None  # raw-CAN motor frames (MIT mode); see fieldbus.core.rawcan
+    homing: HomingConfig | None = None  # its SDOs are in ``sdo`` too (appended, in 0x6098..0x609A order)
     source: str = "<string>"
 
     def pdos(self, direction: Direction) -> tuple[Pdo, ...]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from functools import cache
 
 from fieldbus.core.pdo.load import DEFAULT_COB_IDS
 from fieldbus.core.pdo.model import Direction, DriveMap, Pdo
@@ -114,8 +115,12 @@ def _startup_steps(drive: DriveMap) -> list[SdoStep]:
     ]
 
 
+@cache
 def coe_plan(drive: DriveMap) -> SdoPlan:
     """The CoE (EtherCAT) plan: PDO assignment and mapping, then start-up SDOs.
+
+    Computed once per map (maps and plans are frozen): a recovery that configures a
+    power-cycled slave again reuses it.
 
     With ``ethercat.pdo_assign: false`` the assignment is the device's own and
     is not written; each PDO's mapping is still written (or, ``fixed``, verified).

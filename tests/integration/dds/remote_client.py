@@ -1,8 +1,9 @@
 """A controller in its own process: the demo's sine through fieldbus.remote (run by test_dds_serve.py).
 
-    python remote_client.py NAMESPACE DOMAIN CLIENT_ID CYCLES    (CYCLES 0: until killed)
+    python remote_client.py NAMESPACE DOMAIN CLIENT_ID CYCLES [--keep-going]   (CYCLES 0: until killed)
 
 Prints one JSON line when commanding starts and one with the summary at the end.
+``--keep-going``: after the summary, keep commanding the last target until killed.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ AMPLITUDE_RAD, FREQUENCY_HZ = 0.5, 0.5
 
 def main() -> int:
     namespace, domain, client, cycles = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+    keep_going = "--keep-going" in sys.argv[5:]
     op = fieldbus.remote.connect(namespace, domain=domain, client_id=client, deadline_s=0.5)
     legs = op["joints"]
     op.claim("joints")
@@ -51,6 +53,8 @@ def main() -> int:
         "drive_state": legs.drive_state.tolist(),
     }
     print(json.dumps(summary), flush=True)
+    while keep_going:  # hold the last target until killed
+        op.exchange()
     op.close()
     return 0
 

@@ -1,0 +1,257 @@
+"""ODrive controllers on CAN (CANSimple): the family's protocol as data (a drive map's ``rawcan.odrive``) and its codec.
+
+Pure: no I/O. The facts the maps declare (cited in ``docs/can-actuators.md``; the DBC files
+``odrive-cansimple-0.5.6.dbc`` / ``-0.6.10.dbc`` odriverobotics publishes, shipped in the ``odrive-can``
+package, are the reference the tests decode with):
+
+- an 11-bit arbitration id is ``node << 5 | command``; every number is little-endian;
+- the master asks for a message with a remote (RTR) frame on its id; the controller answers on the same id;
+- the heartbeat (command 0x01, at the controller's own rate): axis error (uint32 bit flags), axis state
+  (uint8; 1 IDLE, 8 CLOSED_LOOP_CONTROL);
+- Set_Axis_State 0x07 (uint32), Set_Controller_Mode 0x0B (uint32 control mode, uint32 input mode),
+  Set_Input_Pos 0x0C (float32 turns, int16 velocity feed-forward x 0.001 turn/s, int16 torque
+  feed-forward x 0.001 N·m), Set_Input_Vel 0x0D (float32 turn/s, float32 N·m), Set_Input_Torque 0x0E
+  (float32 N·m), Get_Encoder_Estimates 0x09 (float32 turns, float32 turn/s), Reboot 0x16, Clear_Errors 0x18;
+- firmware 0.6 (Pro, S1, Micro) adds Get_Error 0x03 (uint32 active errors, uint32 disarm reason),
+  RxSdo 0x04 / TxSdo 0x05 (endpoint access: opcode, uint16 endpoint, reserved, 4 value bytes) and
+  Address 0x06, where 0.5 (ODrive 3.6) has Get_Motor_Error 0x03, Get_Encoder_Error 0x04,
+  Get_Sensorless_Error 0x05 and Set_Axis_Node_ID 0x06.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from fieldbus.core.damiao import MODE_FIELD_KEYS, MODE_TYPES, ModeField
+from fieldbus.core.yamlsrc import PathT
+
+ODRIVE_KEYS = (
+    "protocol", "commands", "mode", "modes", "states", "errors", "watchdog_ms", "heartbeat_ms", "config",
+    "state_field", "error_field", "request_field", "clear",
+)  # fmt: skip
+MODE_KEYS = ("name", "command", "control_mode", "input_mode", "fields")
+CONFIG_KEYS = ("name", "endpoint", "type", "value")
+CONFIG_TYPES = {"float32": "<f", "uint32": "<I", "int32": "<i", "bool": "<I"}
+STATE_KEYS = ("idle", "closed_loop")
+# the commands every table has, and those only one firmware line has (odriverobotics' DBC files)
+COMMON = (
+    "heartbeat", "set_axis_state", "get_encoder_estimates", "set_controller_mode", "set_input_pos",
+    "set_input_vel", "set_input_torque", "reboot", "clear_errors",
+)  # fmt: skip
+ONLY = {
+    "0.5": ("get_motor_error", "get_encoder_error", "get_sensorless_error", "set_axis_node_id"),
+    "0.6": ("get_error", "rxsdo", "txsdo", "address"),
+}
+SDO_READ, SDO_WRITE = 0, 1  # RxSdo opcodes
+
+
+@dataclass(frozen=True)
+class OdriveMode:
+    """A controller mode: Set_Controller_Mode values and the set-point command whose frame carries it."""
+
+    name: str
+    command: int  # the command id of the set-point (0x0C, 0x0D, 0x0E)
+    control_mode: int
+    input_mode: int
+    fields: tuple[ModeField, ...]
+
+
+@dataclass(frozen=True)
+class ConfigItem:
+    """An endpoint written at bring-up through RxSdo and read back (firmware 0.6)."""
+
+    name: str
+    endpoint: int
+    type: str
+    value: float
+
+
+@dataclass(frozen=True)
+class OdriveProtocol:
+    """An ODrive map's family section."""
+
+    protocol: str  # "0.5" | "0.6"
+    commands: Mapping[str, int]
+    modes: tuple[OdriveMode, ...]
+    mode: str
+    idle: int
+    closed_loop: int
+    errors: tuple[tuple[int, str], ...]  # (bit mask, name) of the heartbeat's axis error
+    watchdog_ms: float  # what the map's config sets (0: not set over CAN; see the docs)
+    heartbeat_ms: float
+    config: tuple[ConfigItem, ...]
+    request_field: str  # command channel whose value is the requested axis state (0: none)
+    state_field: str  # reply channel holding the heartbeat's axis state
+    error_field: str  # reply channel holding the heartbeat's axis error
+    clear: bytes
+
+    def can_id(self, node: int, command: str) -> int:
+        return node << 5 | self.commands[command]
+
+    def mode_named(self, name: str) -> OdriveMode:
+        for m in self.modes:
+            if m.name == name:
+                return m
+        raise KeyError(name)
+
+    def error_names(self, flags: int) -> str:
+        """The names of the bits set in ``flags`` ("none" for 0), unknown bits as hex."""
+        names = [n for bit, n in self.errors if flags & bit]
+        rest = flags & ~sum(bit for bit, _ in self.errors)
+        if rest:
+            names.append(f"0x{rest:X}")
+        return ", ".join(names) or "none"
+
+
+def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> OdriveProtocol:
+    """Validate ``rawcan.odrive`` (``command``/``reply``: the image's fields)."""
+    m: Mapping[Any, Any] = r.mapping(
+        raw, path, ODRIVE_KEYS, required=("protocol", "commands", "modes", "states", "errors")
+    )
+    version = r.choice(str(m["protocol"]), (*path, "protocol"), tuple(ONLY))
+    cp: PathT = (*path, "commands")
+    cm = r.mapping(m["commands"], cp, (*COMMON, *ONLY["0.5"], *ONLY["0.6"]))
+    other = next(v for v in ONLY if v != version)
+    for name in ONLY[other]:
+        if name in cm:
+            raise r.err((*cp, name), f"{name} is a command of firmware {other}, not {version}", key=True)
+    for name in (*COMMON, *ONLY[version]):
+        if name not in cm:
+            raise r.err(cp, f"firmware {version} has command '{name}': give its id")
+    commands = {k: r.integer(v, (*cp, k), 0, 0x1F) for k, v in cm.items()}
+    if len(set(commands.values())) != len(commands):
+        raise r.err(cp, "two commands share an id")
+    by_name = {f.name: f for f in command}
+    modes: list[OdriveMode] = []
+    for i, item in enumerate(r.sequence(m["modes"], (*path, "modes"))):
+        mp: PathT = (*path, "modes", i)
+        mm = r.mapping(item, mp, MODE_KEYS, required=MODE_KEYS)
+        cmd = r.choice(
+            mm["command"], (*mp, "command"), ("set_input_pos", "set_input_vel", "set_input_torque")
+        )
+        fields: list[ModeField] = []
+        size = 0
+        for j, fraw in enumerate(r.sequence(mm["fields"], (*mp, "fields"))):
+            fp: PathT = (*mp, "fields", j)
+            fm = r.mapping(
+                fraw, fp, tuple(k for k in MODE_FIELD_KEYS if k != "per_unit"), required=("from", "type")
+            )
+            src = r.string(fm["from"], (*fp, "from"))
+            if src not in by_name:
+                raise r.err((*fp, "from"), f"'{src}' is not a command field ({', '.join(by_name)})")
+            kind = r.choice(fm["type"], (*fp, "type"), ("float32", "int16"))
+            size += MODE_TYPES[kind][1]
+            fields.append(ModeField(src, kind, r.number(fm.get("scale", 1.0), (*fp, "scale"))))
+        if size > 8:
+            raise r.err((*mp, "fields"), f"the fields take {size} bytes; a classic CAN frame has 8")
+        modes.append(
+            OdriveMode(
+                r.name(mm["name"], (*mp, "name")),
+                commands[cmd],
+                r.integer(mm["control_mode"], (*mp, "control_mode"), 0, 0xFFFFFFFF),
+                r.integer(mm["input_mode"], (*mp, "input_mode"), 0, 0xFFFFFFFF),
+                tuple(fields),
+            )
+        )
+    names = [md.name for md in modes]
+    if not names or len(set(names)) != len(names):
+        raise r.err((*path, "modes"), "name the modes, each once")
+    sm = r.mapping(m["states"], (*path, "states"), STATE_KEYS, required=STATE_KEYS)
+    errors = []
+    for i, item in enumerate(r.sequence(m["errors"], (*path, "errors"))):
+        ep: PathT = (*path, "errors", i)
+        em = r.mapping(item, ep, ("bit", "name"), required=("bit", "name"))
+        errors.append(
+            (r.integer(em["bit"], (*ep, "bit"), 1, 0xFFFFFFFF), r.string(em["name"], (*ep, "name")))
+        )
+    config: list[ConfigItem] = []
+    for i, item in enumerate(r.sequence(m.get("config", []), (*path, "config"))):
+        gp: PathT = (*path, "config", i)
+        if version != "0.6":
+            raise r.err(gp, "firmware 0.5 has no endpoint access over CAN (RxSdo): configure it over USB")
+        gm = r.mapping(item, gp, CONFIG_KEYS, required=CONFIG_KEYS)
+        config.append(
+            ConfigItem(
+                r.string(gm["name"], (*gp, "name")),
+                r.integer(gm["endpoint"], (*gp, "endpoint"), 0, 0xFFFF),
+                r.choice(gm["type"], (*gp, "type"), tuple(CONFIG_TYPES)),
+                r.number(gm["value"], (*gp, "value")),
+            )
+        )
+    replies = {f.name for f in reply}
+    fields_named: dict[str, str] = {}
+    for key, default, pool in (
+        ("request_field", "requested_state", by_name),
+        ("state_field", "axis_state", replies),
+        ("error_field", "axis_error", replies),
+    ):
+        name = r.string(m.get(key, default), (*path, key))
+        if name not in pool:
+            raise r.err((*path, key), f"'{name}' is not a {'command' if pool is by_name else 'reply'} field")
+        fields_named[key] = name
+    clear = bytes(
+        r.integer(v, (*path, "clear", i), 0, 255)
+        for i, v in enumerate(r.sequence(m.get("clear", []), (*path, "clear")))
+    )
+    return OdriveProtocol(
+        protocol=version,
+        commands=commands,
+        modes=tuple(modes),
+        mode=r.choice(m.get("mode", names[0]), (*path, "mode"), names),
+        idle=r.integer(sm["idle"], (*path, "states", "idle"), 0, 255),
+        closed_loop=r.integer(sm["closed_loop"], (*path, "states", "closed_loop"), 0, 255),
+        errors=tuple(errors),
+        watchdog_ms=r.number(m.get("watchdog_ms", 0.0), (*path, "watchdog_ms")),
+        heartbeat_ms=r.number(m.get("heartbeat_ms", 100.0), (*path, "heartbeat_ms")),
+        config=tuple(config),
+        request_field=fields_named["request_field"],
+        state_field=fields_named["state_field"],
+        error_field=fields_named["error_field"],
+        clear=clear,
+    )
+
+
+# -- codec -----------------------------------------------------------------------------------------------
+def axis_state_frame(state: int) -> bytes:
+    """Set_Axis_State data: the requested state, uint32, in an 8-byte frame (the DBC's length)."""
+    return struct.pack("<I4x", state)
+
+
+def controller_mode_frame(mode: OdriveMode) -> bytes:
+    """Set_Controller_Mode data: control mode, input mode (uint32 each)."""
+    return struct.pack("<II", mode.control_mode, mode.input_mode)
+
+
+def heartbeat(data: bytes) -> tuple[int, int]:
+    """``(axis error, axis state)`` of a heartbeat frame."""
+    return struct.unpack_from("<I", data)[0], data[4]
+
+
+def heartbeat_frame(error: int, state: int, procedure_result: int = 0, done: bool = True) -> bytes:
+    """A heartbeat (firmware 0.6 layout: error, state, procedure result, trajectory done flag)."""
+    return struct.pack("<IBBBx", error, state, procedure_result, 1 if done else 0)
+
+
+def sdo_request(opcode: int, endpoint: int, value: bytes = bytes(4)) -> bytes:
+    """RxSdo data: opcode (0 read, 1 write), uint16 endpoint id, reserved, 4 value bytes."""
+    return struct.pack("<BHB", opcode, endpoint, 0) + value
+
+
+def sdo_reply(data: bytes) -> tuple[int, bytes] | None:
+    """``(endpoint, value bytes)`` of a TxSdo frame, None when it is not one."""
+    if len(data) != 8:
+        return None
+    return struct.unpack_from("<H", data, 1)[0], bytes(data[4:8])
+
+
+def pack_config(item: ConfigItem, value: float | None = None) -> bytes:
+    v = item.value if value is None else value
+    fmt = CONFIG_TYPES[item.type]
+    return struct.pack(fmt, v if fmt == "<f" else int(v))
+
+
+def unpack_config(item: ConfigItem, data: bytes) -> float:
+    return float(struct.unpack(CONFIG_TYPES[item.type], data)[0])

@@ -1,0 +1,183 @@
+"""ODrive controllers (family odrive, CANSimple) through the public API against the ODrive emulator.
+
+The master's frames are read by a listener on the virtual bus and decoded here with struct from the
+published layouts (id = node << 5 | command; little-endian), not with fieldbus's codec. The emulator is
+our own code: tests/interop/test_odrive_oracle.py decodes with odriverobotics' DBC (odrive-can package).
+"""
+
+from __future__ import annotations
+
+import gc
+import itertools
+import os
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+can = pytest.importorskip("can")
+
+from fieldbus import PDO_MAPS, open_network  # noqa: E402
+from fieldbus.core.pdo import load_drive_map  # noqa: E402
+from sim_slaves.odrive import OdriveSimulator  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+NODES = (1, 2, 3)
+_channels = itertools.count()
+
+
+class VirtualClock:
+    """Seconds that pass only when a test says so (heartbeats and the watchdog run on it)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def drain(bus: can.BusABC) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(timeout=0)) is not None:
+        out.append(msg)
+    return out
+
+
+def net_file(tmp_path: Path, name: str) -> tuple[Path, str]:
+    channel = f"fb-od-{os.getpid()}-{next(_channels)}"
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 1000\nreceive_timeout_us: 20000\nsafe_stop_after: 4\nbuses:\n"
+        f"  - {{name: legs, type: rawcan, interface: {channel}, can_interface: virtual,\n"
+        f"     slaves: [{{name: 'a{{i}}', map: {Path(PDO_MAPS) / name}, node_id: 1, count: {len(NODES)}}}]}}\n"
+    )
+    return net, channel
+
+
+@pytest.fixture(params=["odrive_s1.yaml", "odrive_3_6.yaml"])
+def setup(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[Path, str, str]]:
+    net, channel = net_file(tmp_path, request.param)
+    yield net, channel, request.param
+
+
+def test_bring_up_trajectory_mode_switch_fault_and_safe_stop(setup: tuple[Path, str, str]) -> None:
+    net, channel, name = setup
+    drive = load_drive_map(Path(PDO_MAPS) / name)
+    clock = VirtualClock()
+    with (
+        can.Bus(interface="virtual", channel=channel) as listener,
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        OdriveSimulator(
+            sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock, heartbeat_ms=10
+        ) as sim,
+        open_network(net) as network,
+    ):
+        op = network.bring_up()
+        frames = drain(listener)
+        for n in NODES:  # Set_Controller_Mode (3 position, 1 passthrough), then Set_Axis_State 8
+            mode = [bytes(m.data) for m in frames if m.arbitration_id == n << 5 | 0x0B]
+            state = [bytes(m.data) for m in frames if m.arbitration_id == n << 5 | 0x07]
+            assert [struct.unpack("<II", d) for d in mode] == [(3, 1)], n
+            assert [struct.unpack("<I", d[:4])[0] for d in state] == [8], n
+            assert sim.axes[n].state == 8
+        backend = network.backends[0]
+        out, inp = op["legs"].outputs, op["legs"].inputs
+        target = np.array([0.5, -0.25, 1.0])  # turns
+        errors = []
+        sent = []
+        gc.collect()  # the earlier tests' garbage: a full collection inside a cycle outlasts its time-out
+        for k in range(1000):  # 1 s of 1 kHz cycles
+            clock.t += 0.001
+            out["position"][:] = target * min(1.0, k / 400)
+            res = op.exchange()
+            assert res.fresh, (k, res.buses[0])
+            errors.append(float(np.abs(inp["position"] - out["position"]).max()))
+            if k % 100 == 99:
+                sent += drain(listener)
+        assert max(errors[-100:]) < 0.01, max(errors[-100:])
+        assert list(inp["axis_state"]) == [8, 8, 8] and list(inp["axis_error"]) == [0, 0, 0]
+        pos = [struct.unpack("<fhh", bytes(m.data)) for m in sent if m.arbitration_id == 3 << 5 | 0x0C]
+        rtr = [m for m in sent if m.arbitration_id == 3 << 5 | 0x09 and m.is_remote_frame]
+        assert len(pos) == 1000 and len(rtr) == 1000 and pos[-1][0] == pytest.approx(1.0)
+
+        # position -> velocity at run time: Set_Controller_Mode (2, 1), then Set_Input_Vel frames
+        backend.set_mode("a0", "velocity")
+        out["velocity"][:] = 2.0
+        for _ in range(300):
+            clock.t += 0.001
+            assert op.exchange().fresh
+        sent = drain(listener)
+        assert [struct.unpack("<II", bytes(m.data)) for m in sent if m.arbitration_id == 1 << 5 | 0x0B] == [
+            (2, 1)
+        ]
+        vel = [struct.unpack("<ff", bytes(m.data)) for m in sent if m.arbitration_id == 1 << 5 | 0x0D]
+        assert len(vel) == 300 and vel[-1] == (2.0, 0.0)
+        assert float(inp["velocity"][0]) == pytest.approx(2.0, abs=0.05)
+
+        # a fault named from the heartbeat's bits
+        bit = 0x00040000 if name == "odrive_3_6.yaml" else 0x00002000
+        sim.inject_error(3, bit)
+        for _ in range(3):
+            clock.t += 0.001
+            op.exchange()
+        assert (
+            backend.motor_faults == 1 and int(inp["axis_error"][2]) == bit and int(inp["axis_state"][2]) == 1
+        )
+        assert str(backend.faults[-1]) == f"a2: motor error 0x{bit:X} " + (
+            "OVER_TEMP" if name == "odrive_3_6.yaml" else "MOTOR_OVER_TEMP"
+        )
+        assert backend.clear_errors() == []
+        clock.t += 0.001
+        op.exchange()
+        assert sim.axes[3].error == 0
+
+        # safe stop: replies missing for safe_stop_after (4) cycles; then IDLE requested, no set-point
+        for n in NODES:
+            sim.drop_replies(n, 4)
+        stops = []
+        for _ in range(4):
+            clock.t += 0.001
+            stops.append(op.exchange().safe_stop)
+        assert stops == [False, False, False, True]
+        drain(listener)
+        for _ in range(3):
+            clock.t += 0.001
+            op.exchange()
+        seen = drain(listener)
+        for n in NODES:
+            idle = [
+                struct.unpack("<I", bytes(m.data)[:4])[0] for m in seen if m.arbitration_id == n << 5 | 0x07
+            ]
+            setpoints = [
+                m for m in seen if m.arbitration_id >> 5 == n and (m.arbitration_id & 0x1F) in (0xC, 0xD, 0xE)
+            ]
+            assert idle == [1] and setpoints == [], n
+            assert sim.axes[n].state == 1
+        assert not sim.errors
+
+
+def test_the_watchdog_idles_an_axis_whose_master_died(tmp_path: Path) -> None:
+    net, channel = net_file(tmp_path, "odrive_s1.yaml")
+    drive = load_drive_map(Path(PDO_MAPS) / "odrive_s1.yaml")
+    clock = VirtualClock()
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        OdriveSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock, watchdog_ms=50) as sim,
+        open_network(net) as network,
+    ):
+        op = network.bring_up()
+        for _ in range(10):
+            clock.t += 0.001
+            assert op.exchange().fresh
+        clock.t += 0.049
+        sim.idle()
+        assert all(sim.axes[n].state == 8 for n in NODES)
+        clock.t += 0.002
+        sim.idle()
+        assert [sim.axes[n].state for n in NODES] == [1, 1, 1]
+        assert all(sim.axes[n].error == 0x01000000 for n in NODES)
+        op.exchange()
+        backend = network.backends[0]
+        assert backend.motor_faults == 3 and {f.name for f in backend.faults} == {"WATCHDOG_TIMER_EXPIRED"}

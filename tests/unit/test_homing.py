@@ -1,0 +1,80 @@
+"""fieldbus.core.cia402.Homing against emulated drives (our own emulator: the canopen oracle is not done)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode
+from sim_slaves.drive402 import Cia402Drive, DictObjectStore, DriveParams, Obj, default_objects
+
+
+def _drive(method: int, speed: int) -> tuple[Cia402Drive, DictObjectStore]:
+    p = DriveParams(negative_switch_rad=-0.5)
+    od = DictObjectStore(default_objects(p))
+    od.values.update({(0x6098, 0): method, (0x607C, 0): 0, (0x6099, 1): speed, (0x6099, 2): speed})
+    return Cia402Drive(p), od
+
+
+def test_axes_home_in_order_then_return_to_their_mode_with_errors_and_timeouts_per_axis() -> None:
+    setup = [(35, 0), (17, 100_000), (1, 0), (17, 0)]  # here; switch; unsupported; never reaches the switch
+    drives = [_drive(m, v) for m, v in setup]
+    n = len(drives)
+    ctrl = Cia402Controller(n, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl, timeout_cycles=500)
+    sw = np.zeros(n, dtype=np.uint16)
+    md = np.zeros(n, dtype=np.int8)
+    cw = np.zeros(n, dtype=np.uint16)
+    mo = np.zeros(n, dtype=np.int8)
+    homing.start(order=[[1], [0, 2, 3]])  # axis 1 first (a hip before its knee), then the others
+    started_second = None
+    for k in range(2000):
+        for i, (d, od) in enumerate(drives):
+            od.values[(Obj.CONTROLWORD, 0)] = int(cw[i])
+            od.values[(Obj.MODES_OF_OPERATION, 0)] = int(mo[i])
+            d.step(od, 1e-3)
+            sw[i] = od.values[(Obj.STATUSWORD, 0)]
+            md[i] = od.values[(Obj.MODES_DISPLAY, 0)]
+        ctrl.step(sw, cw, md, mo)
+        homing.step(sw, cw)
+        if started_second is None and homing.phase[0] != HomingPhase.IDLE:
+            started_second = k
+            assert homing.phase[1] == HomingPhase.DONE  # the second stage waits for the first
+        if homing.done and ctrl.all_reached:
+            break
+    assert homing.done
+    assert list(homing.phase) == [
+        HomingPhase.DONE,
+        HomingPhase.DONE,
+        HomingPhase.FAILED,
+        HomingPhase.TIMED_OUT,
+    ]
+    assert list(md) == [Mode.CSP] * n and ctrl.all_reached  # every axis back in CSP, enabled
+    assert started_second is not None and started_second > 50  # the switch search took time
+    assert abs(drives[1][0].position_rad) < 0.05  # home offset 0 at the switch; it stopped just past it
+    assert homing.cycles[3] == 501
+
+
+def test_a_second_homing_does_not_believe_the_bits_left_from_the_first() -> None:
+    """Bits 10/12 of a finished homing are still set when the next edge goes out: not a new 'attained'."""
+    from fieldbus.core.cia402 import SETTLE_CYCLES, Cia402Controller, Goal, Homing, HomingPhase
+
+    ctrl = Cia402Controller(1)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl)
+    homing.start()
+    stale = np.array([0x0237 | 0x1400], dtype=np.uint16)  # OPERATION ENABLED, attained + target reached
+    cw = np.zeros(1, dtype=np.uint16)
+    phases = []
+    for _ in range(1 + SETTLE_CYCLES):  # armed, then the edge and SETTLE_CYCLES - 1 more
+        ctrl.step(stale, cw)
+        homing.step(stale, cw)
+        phases.append(int(homing.phase[0]))
+    assert phases[-1] == HomingPhase.RUNNING, phases  # the edge is out; the old bits are not believed
+    busy = np.array([0x0237], dtype=np.uint16)  # the drive answered the edge: homing in progress
+    ctrl.step(busy, cw)
+    homing.step(busy, cw)
+    assert homing.phase[0] == HomingPhase.RUNNING
+    ctrl.step(stale, cw)
+    homing.step(stale, cw)
+    assert homing.phase[0] == HomingPhase.DONE
