@@ -81,16 +81,20 @@ def test_the_checker_catches_a_cycle_longer_than_its_budget() -> None:
 
 def test_the_checker_catches_a_loss_that_never_happened(monkeypatch: pytest.MonkeyPatch) -> None:
     """A harness whose 'drop' does nothing must report violations: the invariants can fail."""
+    from fieldbus.commands import demo
     from sim_slaves.ethercat import runner
-
-    real = runner.handle_control
 
     def no_drop(chain: object, msg: dict[str, object]) -> dict[str, object]:
         if msg.get("cmd") == "drop":
             return {"ok": True}
-        return real(chain, msg)  # type: ignore[arg-type]
+        return runner.handle_control(chain, msg)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(runner, "handle_control", no_drop)
+    # the demo's soak finds the emulator's control through fieldbus.emulators.emulator_part (cached once
+    # loaded): hand it this one instead
+    real_part = demo.emulator_part
+    monkeypatch.setattr(
+        demo, "emulator_part", lambda name: no_drop if name == "ethercat_control" else real_part(name)
+    )
     r = soak(_args("sim", cycles=2000, faults="loss=0.02", **NO_TIMING), FaultSpec.parse("loss=0.02"))
     assert r["violation_count"] >= r["injected"]["loss"] > 0
     assert "reported fresh" in r["violations"][0]
