@@ -3,6 +3,11 @@
 The master (the real CANopen and raw-CAN backends) runs here; the emulated nodes
 run in child processes (``sim_slaves.can_process``), so the two no longer share
 one interpreter lock. The seed's layout: 4 CAN buses with 3 MIT-mode motors each.
+
+The emulators answer on the wall clock in their own processes: on a loaded
+machine a reply may come later than the receive timeout (a counted miss). The
+tests are about the layout across processes, not its timing: they run until
+what they assert has happened, with bounds in cycles for a loaded machine.
 """
 
 from __future__ import annotations
@@ -48,25 +53,27 @@ def test_four_buses_of_three_mit_motors_each_in_their_own_processes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     buses = [udp_bus(i) for i in range(4)]
-    # 5 ms: python-can's udp_multicast (msgpack per frame) with 4 emulator processes on 2 CPUs answers a
-    # back-to-back exchange in 1.5-3.7 ms; a reply later than the timeout is a counted miss (never taken
-    # for the next cycle's), and this test is about the layout across processes, not its timing
-    net_file = _seed_network(tmp_path, buses, timeout_us=5000)
+    # 20 ms: python-can's udp_multicast (msgpack per frame) with 4 emulator processes on 2 CPUs answers a
+    # back-to-back exchange in 1.5-3.7 ms on a quiet machine; a reply later than the timeout is a counted
+    # miss (never taken for the next cycle's)
+    net_file = _seed_network(tmp_path, buses, timeout_us=20_000)
     with ExitStack() as stack:
         for b in buses:
             stack.enter_context(can_emulator_process("mit", MIT_MAP, [1, 2, 3], b, dt_s=0.001))
         with open_network(net_file) as net:
             op = net.bring_up()
             fresh = [0] * 4
-            for _ in range(500):
+            for _ in range(10_000):  # until every bus had 200 cycles with a reply from each of its motors
                 res = op.exchange()
                 for i, st in enumerate(res.buses):
                     fresh[i] += st.verdict.name == "OK"
+                if min(fresh) >= 200:
+                    break
             for i in range(4):
                 group = op[f"leg{i}"]
                 # every motor answers with its own position, the emulator in its process keeps it near 0
                 assert group.inputs["position"].shape == (3,)
-    assert all(f >= 450 for f in fresh), fresh  # a reply from every motor in at least 90 % of cycles
+    assert min(fresh) >= 200, fresh  # on a quiet machine: within about 210 cycles
     # the seed's bus load: 4 buses at 1 kHz, 3 motors each (command + reply per motor and cycle)
     assert main(["bandwidth", str(net_file), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
@@ -88,10 +95,12 @@ def test_canopen_nodes_in_another_process_are_configured_and_enabled(tmp_path: P
         ctrl = Cia402Controller(3, mode=Mode.CSP)
         ctrl.set_goal(Goal.ENABLE)
         fresh = 0
-        for _ in range(300):
+        for _ in range(5000):  # until enabled and 200 cycles in (on a quiet machine: 300 cycles, 270 fresh)
             fresh += op.exchange().fresh
             ctrl.step(img.inputs["statusword"], img.outputs["controlword"])
-        assert fresh >= 270
+            if ctrl.all_reached and fresh >= 200:
+                break
+        assert fresh >= 200
         assert ctrl.all_reached  # the goal, read from the statuswords the nodes sent
         assert [decode_state(int(w)) for w in img.inputs["statusword"]] == [State402.OPERATION_ENABLED] * 3
 
@@ -125,10 +134,12 @@ def test_one_process_serves_canopen_nodes_on_two_buses(tmp_path: Path) -> None:
             ctrls = {name: Cia402Controller(2, mode=Mode.CSP) for name in ("arm0", "arm1")}
             for c in ctrls.values():
                 c.set_goal(Goal.ENABLE)
-            for _ in range(300):
+            for _ in range(5000):  # until both arms are enabled (on a quiet machine within 300 cycles)
                 op.exchange()
                 for name, c in ctrls.items():
                     c.step(op[name].inputs["statusword"], op[name].outputs["controlword"])
+                if all(c.all_reached for c in ctrls.values()):
+                    break
             for name in ctrls:
                 words = op[name].inputs["statusword"]
                 assert [decode_state(int(w)) for w in words] == [State402.OPERATION_ENABLED] * 2, name
