@@ -63,7 +63,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         f"the rawcan backend needs python-can ({exc}): pip install 'fieldbus[can]'"
     ) from None
 
-ENTER_TIMEOUT_S = 0.5
+ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 

@@ -18,6 +18,7 @@ from types import FrameType
 from typing import Any
 
 from fieldbus.commands import cycleopts
+from fieldbus.commands.usage import epilog
 
 HELP_EPILOG = """DDS domain and network interface:
   --domain N      the DDS domain id; default $ROS_DOMAIN_ID (as ROS 2 does), else 0
@@ -31,11 +32,12 @@ command safety (cycles of this bus):
   for --stop-after cycles: SAFE STOP (the group's safe outputs), latched until the owner sends
   clear_safe_stop. One client owns a group (claim); others are refused. A sequence number that does
   not increase is dropped and counted.
-
-exit codes:
-  0  stopped by SIGTERM or after --cycles
-  1  bring-up, file or argument error (the message names file, drive, object)
-  130 interrupted (Ctrl-C); the drives were stopped and the buses closed"""
+"""
+EXIT_CODES = [
+    (0, "stopped by SIGTERM (a served bus's normal end) or after --cycles; the drives were stopped"),
+    (1, "bring-up, file or argument error (the message names file, drive, object)"),
+    (143, "not used: SIGTERM is serve's normal end (exit 0)"),
+]
 
 
 def register(sub: Any) -> None:
@@ -43,10 +45,10 @@ def register(sub: Any) -> None:
         "serve",
         help="run a network's cycle and serve it over DDS (ROS 2 compatible)",
         description="Run a network's cycle and serve it over Cyclone DDS, with ROS 2 type and topic names.",
-        epilog=HELP_EPILOG,
+        epilog=HELP_EPILOG + "\n" + epilog(EXIT_CODES, live_bus=True, json=False),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("network", metavar="NETWORK.yaml")
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file to serve")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
     p.add_argument("--namespace", help="topic namespace (default: the network's name)")
     p.add_argument("--domain", type=int, metavar="N", help="DDS domain id (see below)")

@@ -34,9 +34,11 @@ LIVE_BUS_INTERRUPTED = "interrupted (Ctrl-C); the drives were stopped and the bu
 def epilog(
     codes: list[tuple[int, str]], *, live_bus: bool = False, json: bool = False, interrupted: str = ""
 ) -> str:
-    """``exit codes:`` and one line per code: ``codes`` (the command's own), then the common ones."""
+    """``exit codes:`` and one line per code: ``codes`` (the command's own), then the common ones
+    (a common code the command gives a meaning of its own is not repeated)."""
     why = interrupted or (LIVE_BUS_INTERRUPTED if live_bus else "interrupted (Ctrl-C)")
-    rows = sorted([*codes, *COMMON_EXITS, (INTERRUPTED, why)])
+    own = {code for code, _ in codes}
+    rows = sorted([*codes, *(c for c in COMMON_EXITS if c[0] not in own), (INTERRUPTED, why)])
     lines = ["exit codes:"]
     for code, text in rows:
         first, *rest = text.split("\n")

@@ -61,11 +61,11 @@ def token(value: object, limit: int = TOKEN_CHARS) -> str:
     return clean if len(clean) <= limit else clean[: limit - 3] + "..."
 
 
-_KEY_CHARS = re.compile(r"[A-Za-z0-9_.\-]{0,24}")
+_KEY_CHARS = re.compile(r"[A-Za-z0-9_.\-]{0,32}")
 
 
 def key_token(key: object) -> str:
-    """A mapping key for a message: its leading name characters (at most 24), ``...`` if it has more.
+    """A mapping key for a message: its leading name characters (at most 32: the longest key of our own files is 27), ``...`` if it has more.
 
     Keys of drive maps and network files are short names; a key that is not (a line of some other
     file read as YAML) is not quoted beyond its first name characters.

@@ -33,7 +33,7 @@ CORPUS = REPO / "tests" / "data" / "hostile"
 SECRET = "FAKE-SECRET-d41d8cd98f00b204e9800998ecf8427e"
 SECRET_PART = SECRET[12:20]  # no 8 characters of the secret's hex, where a file is no map of ours
 # Files that look like a drive map or network file and hold the secret in a key: there a key may be
-# quoted up to its first 24 name characters (never the whole secret).
+# quoted up to its first 32 name characters (never the whole secret).
 MAP_LIKE_SECRETS = {"secret_key_in_map.yaml", "secret_key_in_network.yaml", "net_map_secret_key.yaml"}
 DEMO_CAN = REPO / "examples" / "demo_canopen.yaml"
 
@@ -44,7 +44,7 @@ COMMANDS: dict[str, Argv] = {
     "bandwidth": lambda f, out: ["bandwidth", f],
     "run": lambda f, out: ["run", f, "--cycles", "1", "--backend", "sim"],
     "soak": lambda f, out: ["soak", f, "--cycles", "1", "--rate", "0"],
-    "latency": lambda f, out: ["latency", f, "--backend", "sim", "--steps", "1", "--hold", "1"],
+    "latency": lambda f, out: ["latency", f, "--backend", "sim", "--steps", "1", "--hold", "4"],
     "decode-network": lambda f, out: ["decode", str(CORPUS / "decode.log"), "--network", f],
     "decode-log": lambda f, out: ["decode", f, "--network", str(DEMO_CAN)],
     "import-esi": lambda f, out: ["import", "esi", f, "-o", str(out / "esi.yaml")],
@@ -62,14 +62,14 @@ def corpus_files() -> list[str]:
 
 
 def _check(name: str, code: object, out: str, err: str) -> None:
-    """The rule: exit 0, or non-zero with one ``error:`` line (``--json``: or one JSON object saying
+    """The rule: exit 0 or 3, or another code with one ``error:`` line (``--json``: or one JSON object saying
     ``ok: false``); no traceback; no secret."""
     text = out + err
     assert SECRET not in text, (name, text[:500])
     if name not in MAP_LIKE_SECRETS:
         assert SECRET_PART not in text, (name, text[:500])
     assert "Traceback" not in text, (name, text[:500])
-    if code != 0:
+    if code not in (0, 3):  # 3: the command ran and its own check failed (e.g. latency's measurement)
         lines = [line for line in err.splitlines() if line.strip() and not line.startswith("warning: ")]
         if not lines and out.startswith("{"):
             assert out.count("\n") == 1 and json.loads(out)["ok"] is False, (name, out[:800])
