@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import select
 import socket
-import statistics
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack
@@ -116,6 +115,9 @@ def test_own_frames_are_dropped_in_the_kernel_before_they_queue(channel: CanChan
 
 
 def test_recv_honours_its_timeout(pair: tuple[UdpCanBus, UdpCanBus]) -> None:
+    """A wait is never shorter than its timeout; it is longer by what the machine adds (a loaded machine
+    wakes a sleeper late), by what the code adds on every try: so the upper bounds hold the fastest of
+    several tries, which only the code, not the load, can make late."""
     a, _ = pair
     took = []
     for _ in range(7):
@@ -123,19 +125,25 @@ def test_recv_honours_its_timeout(pair: tuple[UdpCanBus, UdpCanBus]) -> None:
         assert a.recv(timeout=0.005) is None
         took.append(time.perf_counter() - t0)
     assert min(took) >= 0.005, took  # never gives up early
-    assert statistics.median(took) < 0.005 + 0.002, took
+    assert min(took) < 0.005 + 0.002, took
     c0 = time.process_time()
     assert a.recv(timeout=0.05) is None
     assert time.process_time() - c0 < 0.02  # it sleeps until the deadline, it does not spin
-    t0 = time.perf_counter()
-    assert a.recv(timeout=0) is None
-    assert time.perf_counter() - t0 < 0.002
+    took = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        assert a.recv(timeout=0) is None
+        took.append(time.perf_counter() - t0)
+    assert min(took) < 0.002, took
     # its own frames coming back through the loopback do not stretch the wait either
-    for _ in range(50):
-        a.send(can.Message(arbitration_id=0x55, is_extended_id=False, data=b"x" * 8))
-    t0 = time.perf_counter()
-    assert a.recv(timeout=0.005) is None
-    assert 0.005 <= time.perf_counter() - t0 < 0.005 + 0.004
+    took = []
+    for _ in range(5):
+        for _ in range(50):
+            a.send(can.Message(arbitration_id=0x55, is_extended_id=False, data=b"x" * 8))
+        t0 = time.perf_counter()
+        assert a.recv(timeout=0.005) is None
+        took.append(time.perf_counter() - t0)
+    assert min(took) >= 0.005 and min(took) < 0.005 + 0.004, took
 
 
 def test_fileno_is_readable_when_a_frame_waits(pair: tuple[UdpCanBus, UdpCanBus]) -> None:
