@@ -129,6 +129,8 @@ SPIN_NS = 300_000  # after a frame, poll the socket this long before sleeping in
 RT_SPIN_NS = 50_000  # the same at SCHED_FIFO: shorter, the spin would keep a plain master off its CPU
 YIELD_NS = 50_000  # at SCHED_FIFO, sleep this long after a reply before the work after it (AfterReply)
 YIELD_GAP_NS = 300_000  # ... when at least this long passed since the frame before (a paced master)
+ANTICIPATE_NS = 200_000  # at SCHED_FIFO, wake this long before a paced master's next frame is due
+ANTICIPATE_LATE_NS = 100_000  # ... and poll until this long after it is due before sleeping again
 DEFAULT_RT_PRIORITY = 40  # SCHED_FIFO priority where CAP_SYS_NICE allows it
 CAP_SYS_NICE = 23  # capability numbers (linux/capability.h)
 CAP_IPC_LOCK = 14
@@ -227,6 +229,52 @@ class AfterReply:
                 select.select([self.sock], [], [], YIELD_NS / 1e9)
             else:
                 time.sleep(YIELD_NS / 1e9)
+
+
+class Anticipator:
+    """Learns a paced master's cycle and says when its next frame is due, so that the runner is
+    already polling the socket when it comes (a wake-up from sleep is the tail of the reply time).
+
+    A cycle starts with a frame that arrives at least :data:`YIELD_GAP_NS` after the one before;
+    the period is a running mean of the starts' spacing, trusted after :data:`STEADY` starts in a
+    row within an eighth of it. Times are the kernel's receive stamps [ns, CLOCK_REALTIME].
+    ``lead_ns`` 0 turns it off.
+    """
+
+    STEADY = 8
+
+    def __init__(self, lead_ns: int, late_ns: int = ANTICIPATE_LATE_NS) -> None:
+        self.lead_ns = lead_ns
+        self.late_ns = late_ns
+        self.last_ns = 0  # the frame before
+        self.start_ns = 0  # the current cycle's first frame
+        self.period_ns = 0
+        self.steady = 0
+
+    def arrived(self, at_ns: int) -> None:
+        """A frame arrived at ``at_ns``."""
+        gap, self.last_ns = at_ns - self.last_ns, at_ns
+        if gap < YIELD_GAP_NS:
+            return
+        if self.start_ns:
+            period = at_ns - self.start_ns
+            if self.period_ns and abs(period - self.period_ns) * 8 < self.period_ns:
+                self.steady = min(self.steady + 1, self.STEADY)
+                self.period_ns += (period - self.period_ns) // 8
+            else:
+                self.steady = 0
+                self.period_ns = period
+        self.start_ns = at_ns
+
+    def due_ns(self, now_ns: int) -> int:
+        """When the next cycle's first frame is due [ns], or 0: not steady, off, or already overdue
+        by more than ``late_ns`` (the master paused: sleep until it sends)."""
+        if not self.lead_ns or self.steady < self.STEADY:
+            return 0
+        due = self.start_ns + self.period_ns
+        if now_ns > due + self.late_ns:
+            return 0
+        return due
 
 
 def reply_timing(priority: str, cpu: int | None, lock_memory: str) -> RtConfig:
@@ -525,9 +573,12 @@ def serve(
     timing: RtConfig | None = None,
     spin_ns: int | None = None,
     after_reply: str = "yield",
+    anticipate_ns: int | None = None,
 ) -> None:
     """Answer frames on ``iface`` until SIGTERM/SIGINT; ``timing``: real-time settings (None: none);
-    ``spin_ns``: how long to poll the socket after a reply before sleeping (default :data:`SPIN_NS`)."""
+    ``spin_ns``: how long to poll the socket after a reply before sleeping (default :data:`SPIN_NS`);
+    ``anticipate_ns``: wake this long before a paced master's next frame (default
+    :data:`ANTICIPATE_NS` at SCHED_FIFO, else 0: off, the spin would take a plain master's CPU)."""
     with realtime(timing or RtConfig(), warn=_note) as applied:
         for line in applied.applied:
             _note(f"real-time: {line}")
@@ -544,6 +595,9 @@ def serve(
                 spin_ns=(RT_SPIN_NS if fifo else SPIN_NS) if spin_ns is None else spin_ns,
                 times=ReplyTimes({"realtime": applied.to_json(), "sched_fifo": fifo}),
                 after=AfterReply(after_reply),
+                anticipate=Anticipator(
+                    (ANTICIPATE_NS if fifo else 0) if anticipate_ns is None else anticipate_ns
+                ),
             )
         finally:
             collector.stop()
@@ -563,6 +617,7 @@ def _serve(
     spin_ns: int,
     times: ReplyTimes,
     after: AfterReply,
+    anticipate: Anticipator,
 ) -> None:
     sock = open_port0(iface)
     after.sock = sock
@@ -597,14 +652,21 @@ def _serve(
     print(f"ready {iface} {len(chain)} slaves", flush=True)
     try:
         while not stop:
-            events = poller.poll(20)
-            if not events:
-                chain.tick(clock())
-                collector.quiet()
-                continue
+            spin_until = 0
+            due = anticipate.due_ns(wall())
+            if due:  # a paced master: sleep until shortly before its frame, then poll for it
+                ahead = due - anticipate.lead_ns - wall()
+                if ahead > 0:
+                    select.select([sock], [], [], ahead / 1e9)
+                spin_until = clock() + max(0, due + anticipate.late_ns - wall())
+            else:
+                events = poller.poll(20)
+                if not events:
+                    chain.tick(clock())
+                    collector.quiet()
+                    continue
             if ctl is not None:
                 _serve_control(chain, ctl, times)
-            spin_until = 0
             while True:
                 try:
                     n, anc, _flags, addr = recv_into(into, _AUX_SPACE)
@@ -634,6 +696,7 @@ def _serve(
                         n = insert_vlan_tag(buf, n, tci)
                     arrived = received_ns(anc)
                     picked = wall()
+                    anticipate.arrived(arrived)
                 now = clock()
                 if writer is not None:
                     writer.write(bytes(view[:n]), time.time())
@@ -721,6 +784,12 @@ def main(argv: list[str] | None = None) -> int:
         help="after a reply, poll the socket this long before sleeping (default 300, 50 at SCHED_FIFO)",
     )
     p.add_argument(
+        "--anticipate-us",
+        type=float,
+        help="wake this long before a paced master's next frame is due and poll for it "
+        f"(default {ANTICIPATE_NS // 1000} at SCHED_FIFO, else 0: off)",
+    )
+    p.add_argument(
         "--lock-memory",
         choices=("auto", "on", "off"),
         default="auto",
@@ -774,5 +843,6 @@ def main(argv: list[str] | None = None) -> int:
         timing=reply_timing(args.rt_priority, args.cpu, args.lock_memory),
         spin_ns=None if args.spin_us is None else round(args.spin_us * 1000),
         after_reply=args.after_reply,
+        anticipate_ns=None if args.anticipate_us is None else round(args.anticipate_us * 1000),
     )
     return 0

@@ -13,11 +13,13 @@ from collections.abc import Iterator
 import pytest
 
 from sim_slaves.ethercat.runner import (
+    ANTICIPATE_LATE_NS,
     CAP_IPC_LOCK,
     CAP_SYS_NICE,
     DEFAULT_RT_PRIORITY,
     GC_GEN0,
     AfterReply,
+    Anticipator,
     IdleCollector,
     ReplyTimes,
     has_capability,
@@ -116,3 +118,45 @@ def test_reply_times_count_the_emulator_s_own_part() -> None:
     assert (got["cycles"], got["over_1ms"], got["max"], got["pickup"]["max"]) == (2, 1, 1500.0, 1400.0)
     t.reset()
     assert t.to_json()["cycles"] == 0
+
+
+def _cycles(a: Anticipator, start_ns: int, period_ns: int, n: int, frames: int = 2) -> int:
+    """``n`` cycles of ``frames`` frames 20 µs apart from ``start_ns``; returns the next cycle's start."""
+    t = start_ns
+    for _ in range(n):
+        for k in range(frames):
+            a.arrived(t + k * 20_000)
+        t += period_ns
+    return t
+
+
+def test_the_runner_expects_a_paced_masters_next_frame_after_steady_cycles() -> None:
+    a = Anticipator(200_000)
+    t0 = 10**12
+    nxt = _cycles(a, t0, 500_000, Anticipator.STEADY + 1)  # the first spacing sets the period
+    assert a.due_ns(nxt - 300_000) == 0  # not steady yet
+    nxt = _cycles(a, nxt, 500_000, 1)
+    assert a.due_ns(nxt - 300_000) == nxt  # the frames of one cycle are one start
+    assert a.due_ns(nxt + ANTICIPATE_LATE_NS) == nxt  # still polling for a slightly late master
+    assert a.due_ns(nxt + ANTICIPATE_LATE_NS + 1) == 0  # a master that paused: sleep until it sends
+
+
+def test_a_changed_period_is_learned_again_and_lead_zero_is_off() -> None:
+    a = Anticipator(200_000)
+    nxt = _cycles(a, 10**12, 500_000, 20)
+    nxt = _cycles(a, nxt, 1_000_000, 3)  # the master slowed to 1 kHz
+    assert a.due_ns(nxt - 500_000) == 0
+    nxt = _cycles(a, nxt, 1_000_000, Anticipator.STEADY)
+    assert a.due_ns(nxt - 500_000) == nxt
+    off = Anticipator(0)
+    nxt = _cycles(off, 10**12, 500_000, 20)
+    assert off.due_ns(nxt - 300_000) == 0
+
+
+def test_a_master_sending_flat_out_is_never_anticipated() -> None:
+    a = Anticipator(200_000)
+    t = 10**12
+    for _ in range(100):  # frames 100 µs apart: one endless cycle
+        a.arrived(t)
+        t += 100_000
+    assert a.due_ns(t) == 0
