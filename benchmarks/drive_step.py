@@ -1,6 +1,6 @@
 """Cost of one 1 kHz step of the emulated CiA 402 drives: scalar drives one by one, and the drive bank.
 
-    python benchmarks/drive_step.py [--axes 64] [--rounds 10] [--batch-s 0.2]
+    python benchmarks/drive_step.py [--axes 64] [--small 4] [--large 128] [--rounds 10] [--batch-s 0.2]
 
 Contenders, each ``--axes`` enabled drives following a sine in CSP at 1 kHz:
 ``scalar`` (one :class:`sim_slaves.drive402.Cia402Drive` per axis, each
@@ -8,9 +8,12 @@ stepped through its object dictionary, as a chain without a bank does) and
 ``bank`` (one :class:`sim_slaves.drive_bank.DriveBank` stepped as a whole).
 Interleaved rounds (benchmarks/_common.py); reported: µs per 1 kHz cycle for
 all axes, per axis, and the share of the 1 ms cycle, with the ratio
-scalar/bank within each round. This was a unit test's wall-clock bound
-(64 scalar axes under 1 ms per cycle); on a loaded machine it measured the
-load, so the figure lives here.
+scalar/bank within each round. Then the bank's cost against its size: a bank
+of ``--small`` and one of ``--large`` drives side by side, and their ratio
+(nearly flat: one set of array operations per step, whatever the number of
+drives). Both were unit tests' wall-clock bounds (64 scalar axes under 1 ms
+per cycle; 128 drives within 2x of 4); on a loaded machine they measured the
+load, so the figures live here.
 """
 
 from __future__ import annotations
@@ -77,25 +80,41 @@ def bank(n: int) -> Callable[[], None]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--axes", type=int, default=64, help="drives (default 64)")
+    p.add_argument("--axes", type=int, default=64, help="drives, scalar against the bank (default 64)")
+    p.add_argument("--small", type=int, default=4, help="the small bank (default 4)")
+    p.add_argument("--large", type=int, default=128, help="the large bank (default 128)")
     p.add_argument("--rounds", type=int, default=10, help="interleaved rounds (default 10)")
     p.add_argument("--batch-s", type=float, default=0.2, help="seconds per batch (default 0.2)")
     args = p.parse_args(argv)
-    group = f"{args.axes} axes"
-    samples = interleaved(
-        {group: {"scalar": scalar(args.axes), "bank": bank(args.axes)}}, args.rounds, args.batch_s
-    )[group]
+    axes, size = f"{args.axes} axes", "bank size"
+    small, large = f"bank of {args.small}", f"bank of {args.large}"
+    found = interleaved(
+        {
+            axes: {"scalar": scalar(args.axes), "bank": bank(args.axes)},
+            size: {small: bank(args.small), large: bank(args.large)},
+        },
+        args.rounds,
+        args.batch_s,
+    )
     rows = []
-    for name in ("scalar", "bank"):
-        us = samples.median_us(name)
-        lo, hi = samples.quartiles_us(name)
-        rows.append([name, f"{us:.0f} ({lo:.0f}-{hi:.0f})", f"{us / args.axes:.2f}", f"{us / 10:.0f} %"])
+    for group, name, n in (
+        (axes, "scalar", args.axes),
+        (axes, "bank", args.axes),
+        (size, small, args.small),
+        (size, large, args.large),
+    ):
+        us = found[group].median_us(name)
+        lo, hi = found[group].quartiles_us(name)
+        rows.append(
+            [f"{name} ({n} drives)", f"{us:.0f} ({lo:.0f}-{hi:.0f})", f"{us / n:.2f}", f"{us / 10:.0f} %"]
+        )
     print(machine_note())
     print(table(["drives", "us per cycle (IQR)", "us per axis", "of a 1 ms cycle"], rows))
-    lo, hi = samples.ratio_quartiles("scalar", "bank")
-    print(
-        f"scalar / bank, median of {args.rounds} rounds: {samples.ratio('scalar', 'bank'):.1f} ({lo:.1f}-{hi:.1f})"
-    )
+    for group, a, b in ((axes, "scalar", "bank"), (size, large, small)):
+        lo, hi = found[group].ratio_quartiles(a, b)
+        print(
+            f"{a} / {b}, median of {args.rounds} rounds: {found[group].ratio(a, b):.1f} ({lo:.1f}-{hi:.1f})"
+        )
     return 0
 
 

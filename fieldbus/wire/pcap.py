@@ -29,6 +29,7 @@ PCAP_LINKTYPE_ETHERNET = 1
 _PCAP_HEADER = struct.Struct("<IHHiIII")
 _PCAP_RECORD = struct.Struct("<IIII")
 _SNAPLEN = 65535
+DRAIN_S = 1.0  # at close, the capture thread writes the frames still queued for at most this long
 
 
 class PcapWriter:
@@ -94,13 +95,21 @@ class EthercatCapture:
         assert self._sock is not None
         buf = bytearray(_SNAPLEN)
         view = memoryview(buf)
-        while not self._stop.is_set():
+        drain_until = 0.0  # closing: the frames still queued are written, for at most DRAIN_S
+        while True:
             try:
                 n = self._sock.recv_into(buf)
             except TimeoutError:
+                if self._stop.is_set():
+                    return  # closing, and the socket read empty: every frame before close() is written
                 continue
             except OSError:
                 return  # closed
+            if self._stop.is_set():
+                if not drain_until:
+                    drain_until = time.monotonic() + DRAIN_S
+                elif time.monotonic() > drain_until:
+                    return  # frames keep coming (another master on the card): stop anyway
             if n < 14 or (buf[12] << 8 | buf[13]) != ETH_P_ECAT:
                 continue
             try:

@@ -209,3 +209,40 @@ def test_ethercat_pcap_of_the_master_decodes_in_tshark(
     assert tshark(pcap, "_ws.malformed || _ws.expert.severity >= error") == 0
     assert tshark(pcap, "ecat.cmd == 12") >= 2 * CYCLES  # LRW: every cycle's request and its reply
     assert tshark(pcap, "ecat_mailbox.coe") > 0  # the bring-up's SDOs are in it too
+
+
+def test_a_capture_closed_right_after_the_last_frames_keeps_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, tshark: Callable[[Path, str], int]
+) -> None:
+    """Frames already on the card when the bus closes are in the pcap: the capture thread, behind by many
+    frames (a loaded machine, here a writer that takes 2 ms per frame), reads its socket empty first."""
+    import socket
+
+    from fieldbus.wire import pcap as wire_pcap
+
+    try:
+        sender = socket.socket(socket.AF_PACKET, socket.SOCK_RAW)
+        sender.bind(("lo", 0))
+    except OSError as exc:
+        pytest.skip(f"a packet socket on lo needs root or CAP_NET_RAW: {exc}")
+    write = wire_pcap.PcapWriter.write
+
+    def slow_write(self: Any, frame: Any, t_s: float) -> None:
+        time.sleep(0.002)
+        write(self, frame, t_s)
+
+    monkeypatch.setattr(wire_pcap.PcapWriter, "write", slow_write)
+    pcap = tmp_path / "close.pcap"
+    capture = wire_pcap.EthercatCapture(pcap, "lo")
+    capture.start()
+    # an EtherCAT frame (EtherType 0x88A4) with one BRD datagram, 50 times
+    frame = bytes(6) + bytes.fromhex("020000000001") + b"\x88\xa4" + bytes.fromhex("0e10")
+    frame += bytes([7, 0]) + bytes(4) + bytes.fromhex("0200") + bytes(2) + bytes(2) + bytes(2)
+    with sender:
+        for _ in range(50):
+            sender.send(frame)
+    capture.close()
+    assert capture.error is None
+    # lo hands a packet socket each frame twice, as sent and as received (a card: requests out, replies in)
+    assert capture.frames == 100, capture.frames
+    assert tshark(pcap, "ecat") == 100
