@@ -76,6 +76,7 @@ class Run:
     late_starts: int  # round trips the master began more than one period late (the master's own lateness)
     emulator: dict[str, Any] | None  # the emulator's own reply times ({"cmd": "timing"}), if it has them
     left_op: int  # slaves not in OP at the end (a process-data watchdog tripped: the master was away)
+    runner_cpu: float  # the emulator's CPU time over the round trips' wall time (1.0: one CPU busy)
 
 
 def _start_runner(
@@ -135,6 +136,12 @@ def _sleep_until(t_ns: int) -> None:
         pass
 
 
+def _cpu_s(pid: int) -> float:
+    """User + system CPU time of process ``pid`` so far [s] (/proc/PID/stat fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def measure(name: str, src: Path, args: argparse.Namespace) -> Run:
     """One run: an emulator from ``src`` on a fresh veth pair, ``args.round_trips`` timed round trips."""
     import pysoem
@@ -152,6 +159,7 @@ def measure(name: str, src: Path, args: argparse.Namespace) -> Run:
         try:
             _bring_up(m, args.slaves)
             send_control(control, {"cmd": "timing", "reset": True})
+            cpu0, wall0 = _cpu_s(proc.pid), time.monotonic()
             expected = m.expected_wkc
             n = args.round_trips
             rtt = np.zeros(n, dtype=np.int64)
@@ -176,6 +184,7 @@ def measure(name: str, src: Path, args: argparse.Namespace) -> Run:
                         lost += 1
             finally:
                 os.sched_setscheduler(0, *old)
+            runner_cpu = (_cpu_s(proc.pid) - cpu0) / (time.monotonic() - wall0)
             answer = send_control(control, {"cmd": "timing"})
             emulator = answer.get("reply_us") if answer.get("ok") else None
             m.read_state()
@@ -202,6 +211,7 @@ def measure(name: str, src: Path, args: argparse.Namespace) -> Run:
         late,
         emulator,
         left_op,
+        runner_cpu,
     )
 
 
@@ -264,7 +274,8 @@ def main() -> int:
             print(
                 f"round {r + 1} {name:>6}: p50 {run.p50_us:.0f} p99 {run.p99_us:.0f} "
                 f"p99.9 {run.p999_us:.0f} max {run.max_us:.0f} us, over 1 ms {run.over_1ms}, "
-                f"lost {run.lost}, master late {run.late_starts}, left OP {run.left_op}"
+                f"lost {run.lost}, master late {run.late_starts}, left OP {run.left_op}, "
+                f"emulator CPU {100 * run.runner_cpu:.0f}%"
                 + (
                     f"; in the emulator p50 {run.emulator['p50']:.0f} p99.9 {run.emulator['p99.9']:.0f} "
                     f"max {run.emulator['max']:.0f} us, over 1 ms {run.emulator['over_1ms']:.0f} "
@@ -285,10 +296,13 @@ def main() -> int:
                 _span([x.max_us for x in rs]),
                 _span([float(x.over_1ms) for x in rs]),
                 str(sum(x.lost for x in rs)),
+                _span([100 * x.runner_cpu for x in rs]),
             ]
         )
     print()
-    print(table(["emulator", "p50 [µs]", "p99", "p99.9", "max", "over 1 ms", "lost"], rows))
+    print(
+        table(["emulator", "p50 [µs]", "p99", "p99.9", "max", "over 1 ms", "lost", "emulator CPU [%]"], rows)
+    )
     print("(median of the rounds, range in brackets)")
     if args.json is not None:
         args.json.write_text(json.dumps({c: [asdict(x) for x in rs] for c, rs in runs.items()}, indent=1))
