@@ -468,6 +468,13 @@ class RawCanBackend(CanFaults, Backend):
             seen = hb[i]
             return seen is not None and (state is None or seen[1] == state)
 
+        # ask for one now (RTR) rather than only wait for the next cyclic one: a heartbeat sent before this
+        # bus listened, or drained at configure, is not repeated by a controller whose heartbeat timer is
+        # slow or stopped; a firmware that ignores the request still sends its cyclic heartbeats
+        try:
+            self._od_frame(i, "heartbeat", remote=True)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
         if not self._await(reached, timeout):
             slave = self.areas[i].slave
             seen = hb[i]

@@ -187,3 +187,28 @@ def _fresh_or_held(res: object) -> bool:
     """Fresh, or a miss the policy held (the threaded virtual bus can stall past a cycle's time-out on a
     loaded host): never a safe stop, which takes safe_stop_after misses in a row."""
     return bool(res.fresh) or not res.safe_stop  # type: ignore[attr-defined]
+
+
+def test_bring_up_asks_for_the_heartbeat_it_did_not_hear(tmp_path: Path) -> None:
+    """Every emulated axis sends its first heartbeat before the master's bus exists and its heartbeat timer
+    is stopped (a virtual clock that does not run): the bring-up asks for one by RTR and goes on."""
+    net, channel = net_file(tmp_path, "odrive_s1.yaml")
+    drive = load_drive_map(Path(PDO_MAPS) / "odrive_s1.yaml")
+    clock = VirtualClock()
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        can.Bus(interface="virtual", channel=channel) as listener,
+        OdriveSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock) as sim,
+    ):
+        heard: set[int] = set()
+        for _ in range(200):  # the emulator's first idle pass sends one heartbeat per axis
+            msg = listener.recv(timeout=0.05)
+            if msg is not None and msg.arbitration_id & 0x1F == 0x01:
+                heard.add(msg.arbitration_id >> 5)
+            if heard == set(NODES):
+                break
+        assert heard == set(NODES)
+        with open_network(net) as network:
+            op = network.bring_up()
+            assert [sim.axes[n].state for n in NODES] == [8, 8, 8]
+            assert _fresh_or_held(op.exchange())
