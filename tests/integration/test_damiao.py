@@ -119,7 +119,10 @@ def test_trajectory_at_1khz_mode_switch_fault_and_safe_stop(net_file: tuple[Path
     with (
         can.Bus(interface="virtual", channel=channel) as listener,
         can.Bus(interface="virtual", channel=channel) as sim_bus,
-        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001) as sim,
+        # the motors' CAN timeout (TIMEOUT, 50 ms) on a clock that does not run: a loaded host that keeps
+        # this test's master away for 50 ms would otherwise disable them, as it should (that is
+        # test_the_motor_timeout_stops_a_motor_whose_master_died's subject, not this test's)
+        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=VirtualClock()) as sim,
         open_network(net) as network,
     ):
         op = network.bring_up()
