@@ -165,7 +165,7 @@ def draw_histogram(ax: Any, name: str, hist: LatencyHistogram) -> None:
 
     nz = np.flatnonzero(hist.counts)
     if nz.size:
-        hi = int(nz[-1]) + 2
+        hi = min(int(nz[-1]) + 2, hist.counts.size)  # the last bin counts everything from max_us on
         edges = np.arange(hi + 1) + 1.0  # bin k covers [k, k+1) µs; shifted by 1 for the log axis
         ax.stairs(hist.counts[:hi], edges, fill=True, color="tab:blue")
         ax.set_xscale("log")

@@ -106,3 +106,13 @@ def test_an_empty_latency_histogram_says_not_measured() -> None:
     ax2 = fig.add_subplot()
     draw_histogram(ax2, "wake-up latency", measured)
     assert ax2.get_title().startswith("wake-up latency: p50 ") and not ax2.texts
+
+
+def test_a_histogram_with_a_duration_beyond_its_last_bin_draws() -> None:
+    """A 140 ms exchange on a loaded host lands in the last bin (max_us and over): drawn, not a size error."""
+    hist = LatencyHistogram(100)
+    hist.add(50_000)
+    hist.add(140_000_000)
+    ax = Figure().add_subplot()
+    draw_histogram(ax, "exchange() time", hist)
+    assert ax.get_title().startswith("exchange() time: p50 ") and len(ax.patches) == 1
