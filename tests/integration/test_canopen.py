@@ -29,7 +29,9 @@ from fieldbus.commands.demo import DEMO_MAP  # noqa: E402
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
 from fieldbus.errors import SdoAbortError, StateTransitionError  # noqa: E402
-from fieldbus.network import open_network  # noqa: E402
+from fieldbus.network import Network, open_network  # noqa: E402
+from fieldbus.runtime.clock import VirtualClock  # noqa: E402
+from fieldbus.testing.lockstep import LockstepCanBus  # noqa: E402
 from sim_slaves.canopen import CanopenNode, CanopenSimulator, NmtState  # noqa: E402
 from sim_slaves.canopen.eds import to_canopen_od  # noqa: E402
 
@@ -62,14 +64,43 @@ def _net(
 
 
 @pytest.fixture
-def nodes(channel: str) -> Iterator[CanopenSimulator]:
+def nodes() -> Iterator[CanopenSimulator]:
+    """12 emulated drives in lockstep with the master on a virtual clock (fieldbus.testing's lockstep bus):
+    what these tests assert (misses, time-outs, heartbeat times) is in cycles and virtual time, the same on
+    a loaded machine; :func:`_open` opens a network on them."""
     drive = load_drive_map(DEMO_MAP)
-    with (
-        can.Bus(interface="virtual", channel=channel) as bus,
-        CanopenSimulator(bus, [(drive, n) for n in range(1, 13)], dt_s=CYCLE_S) as sim,
-    ):
+    clock = VirtualClock()
+    lockstep = LockstepCanBus(clock, "bus")
+    sim = CanopenSimulator(lockstep.peer, [(drive, n) for n in range(1, 13)], dt_s=CYCLE_S, clock=clock)
+    lockstep.handlers.append(sim.deliver)
+    clock.watch(lambda _t: sim.deliver(None))  # heartbeats and timers run as virtual time passes
+    sim.boot()
+    _LOCKSTEP[id(sim)] = lockstep
+    try:
         yield sim
+    finally:
+        del _LOCKSTEP[id(sim)]
     assert not sim.errors
+
+
+_LOCKSTEP: dict[int, LockstepCanBus] = {}
+
+
+def _open(nodes: CanopenSimulator, net_file: Path, **options: object) -> Network:
+    """The network of ``net_file`` on the lockstep bus of ``nodes`` (its clock is the network's)."""
+    lockstep = _LOCKSTEP[id(nodes)]
+    return open_network(net_file, bus_options={"bus": {"can_bus": lockstep}}, clock=lockstep.clock, **options)
+
+
+def _cycle(nodes: CanopenSimulator, op: Any) -> Any:
+    """One cycle at the networks' rate: the cycle time passes on the virtual clock, then ``exchange()``."""
+    _LOCKSTEP[id(nodes)].clock.advance(round(CYCLE_S * 1e9))
+    return op.exchange()
+
+
+def _now_s(nodes: CanopenSimulator) -> float:
+    """The virtual time of ``nodes`` [s]."""
+    return _LOCKSTEP[id(nodes)].clock.now_ns() / 1e9
 
 
 def test_mapping_changed_by_sdo_is_what_the_nodes_send(
@@ -82,7 +113,7 @@ def test_mapping_changed_by_sdo_is_what_the_nodes_send(
     assert text != DEMO_MAP.read_text()
     variant = tmp_path / "demo_joint_small.yaml"
     variant.write_text(text)
-    with open_network(_net(tmp_path, channel, variant, 12)) as net:
+    with _open(nodes, _net(tmp_path, channel, variant, 12)) as net:
         op = net.bring_up()
         for n in range(1, 13):
             node = nodes.node(n)
@@ -96,7 +127,7 @@ def test_mapping_changed_by_sdo_is_what_the_nodes_send(
         # read back through the backend too
         assert net.backends[0].sdo_read(4, 0x1A01, 0) == b"\x02"
         for _ in range(10):
-            res = op.exchange()
+            res = _cycle(nodes, op)
         assert res.fresh and res.buses[0].wkc == 24  # 12 nodes x 2 TPDOs
         img = op["bus"]
         assert "velocity_actual_value" not in img.inputs.values.dtype.names
@@ -113,20 +144,20 @@ def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
     The RPDO is applied at the SYNC that follows it and the drive's CSP interpolation reaches it
     within that cycle, so the TPDO of the same SYNC reports it (measured: 0.45 mrad worst).
     """
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12)) as net:
         op = net.bring_up()
         img = op["bus"]
         sw, cw = img.inputs["statusword"], img.outputs["controlword"]
         display, mode = img.inputs["modes_of_operation_display"], img.outputs["modes_of_operation"]
         pos, target = img.inputs["position_actual_value"], img.outputs["target_position"]
-        ctrl = _enable_csp(op, 12)
+        ctrl = _enable_csp(nodes, op, 12)
         assert [nodes.node(n).app.state for n in range(1, 13)] == [State402.OPERATION_ENABLED] * 12
         start = pos.copy()
         amplitude = 0.5 * (1 + 0.1 * np.arange(12))
         worst = 0.0
         for k in range(1, 401):  # one period: up and back
             target[:] = start + amplitude * (1 - np.cos(2 * np.pi * 0.5 * k * CYCLE_S)) / 2
-            res = op.exchange()
+            res = _cycle(nodes, op)
             assert res.fresh and not res.safe_stop
             ctrl.step(sw, cw, display, mode)
             worst = max(worst, float(np.abs(pos - target).max()))
@@ -136,7 +167,7 @@ def test_twelve_nodes_enable_through_cia402_and_track_a_sine_in_csp(
         assert ctrl.all_reached and np.all(np.abs(pos - start) < 2e-3)
 
 
-def _enable_csp(op: Any, n: int) -> Cia402Controller:
+def _enable_csp(nodes: CanopenSimulator, op: Any, n: int) -> Cia402Controller:
     """Bring the ``n`` drives of bus ``bus`` to OPERATION ENABLED in CSP, targets following the joints."""
     img = op["bus"]
     sw, cw = img.inputs["statusword"], img.outputs["controlword"]
@@ -145,7 +176,7 @@ def _enable_csp(op: Any, n: int) -> Cia402Controller:
     ctrl = Cia402Controller(n, mode=Mode.CSP)
     ctrl.set_goal(Goal.ENABLE)
     for _ in range(100):
-        if op.exchange().fresh:  # the virtual bus is threads: a stall of > 20 ms is a counted miss
+        if _cycle(nodes, op).fresh:
             ctrl.step(sw, cw, display, mode)
             target[:] = pos  # follow the joint while enabling: no jump on enable
             if ctrl.all_reached:
@@ -159,15 +190,15 @@ def test_one_drive_of_the_bank_faults_while_the_others_keep_tracking(
 ) -> None:
     """The 12 emulated drives are one DriveBank stepped together on SYNC; a fault in one stops only it."""
     assert nodes.bank.n == 12 and all(nodes.node(n).app is nodes.bank.drives[n - 1] for n in range(1, 13))
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=1000)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=1000)) as net:
         op = net.bring_up()
         pos, target = op["bus"].inputs["position_actual_value"], op["bus"].outputs["target_position"]
-        _enable_csp(op, 12)
+        _enable_csp(nodes, op, 12)
         start = pos.copy()
         nodes.node(5).app.inject_fault(0x2310)  # over-current in node 5's drive
         for k in range(1, 101):
             target[:] = start + 0.002 * k  # 0.4 rad/s ramp
-            op.exchange()
+            _cycle(nodes, op)
         states = [nodes.node(n).app.state for n in range(1, 13)]
         assert states[4] is State402.FAULT
         assert states[:4] + states[5:] == [State402.OPERATION_ENABLED] * 11
@@ -180,13 +211,13 @@ def test_sdo_abort_at_bring_up_names_node_object_code_and_enables_nothing(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
     nodes.abort_sdo(3, 0x6060, 0, 0x06090030)  # node 3 refuses the map's start-up SDO (modes of operation)
-    with pytest.raises(SdoAbortError) as exc, open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+    with pytest.raises(SdoAbortError) as exc, _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12)) as net:
         net.bring_up()
     err = exc.value
     assert (err.code, err.index, err.sub_index, err.slave) == (0x06090030, 0x6060, 0, "j2")
     text = str(err)
     assert "node 3" in text and "0x6060:00" in text and "0x06090030" in text and "j2" in text
-    time.sleep(0.15)  # a heartbeat period: every node has reported its state since
+    _LOCKSTEP[id(nodes)].clock.advance(150_000_000)  # a heartbeat period: every node has reported since
     assert {nodes.node(n).state for n in range(1, 13)} == {NmtState.PRE_OPERATIONAL}  # nobody started
     assert all(nodes.node(n).app.state != State402.OPERATION_ENABLED for n in range(1, 13))
     assert nodes.syncs == 0  # no cycle ran
@@ -216,17 +247,17 @@ def test_identity_mismatch_lists_node_expected_and_found(channel: str, tmp_path:
 def test_heartbeat_loss_is_seen_within_consumer_time_plus_a_cycle(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12)) as net:
         op = net.bring_up()
         backend = net.backends[0]
         for _ in range(5):
-            op.exchange()
+            _cycle(nodes, op)
         nodes.silence_heartbeat(7)
-        t0 = time.monotonic()
+        t0 = _now_s(nodes)
         while not backend.heartbeat_lost[6]:
-            res = op.exchange()
-            assert time.monotonic() - t0 < 1.0
-        seen = time.monotonic() - t0
+            res = _cycle(nodes, op)
+            assert _now_s(nodes) - t0 < 1.0
+        seen = _now_s(nodes) - t0
         consumer = 1.5 * HEARTBEAT_MS / 1000
         # the last heartbeat came up to one period before the silence, and one cycle may pass unseen
         assert consumer - HEARTBEAT_MS / 1000 <= seen <= consumer + 0.05, seen
@@ -235,7 +266,7 @@ def test_heartbeat_loss_is_seen_within_consumer_time_plus_a_cycle(
         # the heartbeat comes back saying OPERATIONAL: fresh again, nothing to reconfigure
         nodes.silence_heartbeat(7, False)
         for _ in range(100):
-            if op.exchange().fresh:
+            if _cycle(nodes, op).fresh:
                 break
         assert op.result.fresh and not backend.heartbeat_lost.any() and backend.recoveries == 0
 
@@ -243,45 +274,45 @@ def test_heartbeat_loss_is_seen_within_consumer_time_plus_a_cycle(
 def test_heartbeat_consumer_time_from_the_backend_option(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12), heartbeat_consumer_ms=400) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12), heartbeat_consumer_ms=400) as net:
         op = net.bring_up()
         backend = net.backends[0]
         nodes.silence_heartbeat(2)
-        t0 = time.monotonic()
+        t0 = _now_s(nodes)
         while not backend.heartbeat_lost[1]:
-            op.exchange()
-            assert time.monotonic() - t0 < 2.0
-        assert 0.4 - HEARTBEAT_MS / 1000 <= time.monotonic() - t0 <= 0.4 + 0.05
+            _cycle(nodes, op)
+            assert _now_s(nodes) - t0 < 2.0
+        assert 0.4 - HEARTBEAT_MS / 1000 <= _now_s(nodes) - t0 <= 0.4 + 0.05
 
 
 def test_emergency_reported_with_its_name(nodes: CanopenSimulator, channel: str, tmp_path: Path) -> None:
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12)) as net:
         op = net.bring_up()
         backend = net.backends[0]
         nodes.send_emergency(3, 0x2310, register=0x03)
         for _ in range(5):
-            op.exchange()
+            _cycle(nodes, op)
         (emcy,) = [e for e in backend.emergencies if e.node_id == 3]
         assert (emcy.code, emcy.register, emcy.name) == (0x2310, 0x03, "continuous over-current")
         assert "node 3: EMCY 0x2310 continuous over-current" in str(emcy)
         assert backend.last_emergency[3] is emcy and set(backend.last_emergency) == {3}
         nodes.send_emergency(3, 0x8611, register=0x21)
         for _ in range(5):
-            op.exchange()
+            _cycle(nodes, op)
         assert backend.last_emergency[3].name == "following error"
 
 
 def test_a_dropped_tpdo_makes_only_that_node_stale(
     nodes: CanopenSimulator, channel: str, tmp_path: Path
 ) -> None:
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, timeout_us=50_000)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12, timeout_us=50_000)) as net:
         op = net.bring_up()
         img = op["bus"].inputs
         for _ in range(5):
-            op.exchange()
+            _cycle(nodes, op)
         held = img.values[4].copy()
         nodes.drop_tpdos(5, 1)
-        res = op.exchange()
+        res = _cycle(nodes, op)
         fresh = res.buses[0].fresh
         assert not fresh[4] and fresh.sum() == 11 and res.buses[0].wkc == 23
         assert img.values[4] == held  # node 5's row held as it was
@@ -293,21 +324,21 @@ def test_recovery_never_holds_the_cycle_when_a_rebooted_node_stops_answering(
     """A node boots, then goes bus-off in the middle of being configured again: its SDO answer never
     comes. Recovery waits for it without holding a single cycle (its SDO timeout is 0.5 s), records the
     timeout, and configures the node when it boots again."""
-    with open_network(_net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=100_000)) as net:
+    with _open(nodes, _net(tmp_path, channel, DEMO_MAP, 12, safe_stop_after=100_000)) as net:
         op = net.bring_up()
         backend = net.backends[0]
         for _ in range(5):
-            op.exchange()
+            _cycle(nodes, op)
         nodes.power_cycle(4)
         while 4 not in backend.boots:
-            op.exchange()
+            _cycle(nodes, op)
         nodes.bus_off(4)  # gone while the recovery talks to it
         longest = 0
-        t0 = time.monotonic()
+        t0 = _now_s(nodes)
         while not backend.recovery_errors:
-            res = op.exchange()
+            res = _cycle(nodes, op)
             longest = max(longest, res.exchange_ns)
-            assert time.monotonic() - t0 < 3.0, "the SDO timeout never came"
+            assert _now_s(nodes) - t0 < 3.0, "the SDO timeout never came"
             assert res.buses[0].fresh[[0, 1, 2, 4, 11]].all() and not res.buses[0].fresh[3]
         assert "node 4: no SDO answer within 500 ms" in backend.recovery_errors[0]
         # each cycle waited at most its receive timeout (node 4's TPDOs are missing), never for the SDO
@@ -315,7 +346,7 @@ def test_recovery_never_holds_the_cycle_when_a_rebooted_node_stops_answering(
         nodes.bus_off(4, False)  # back: it boots
         streak = 0
         for _ in range(1000):
-            streak = streak + 1 if op.exchange().fresh else 0
+            streak = streak + 1 if _cycle(nodes, op).fresh else 0
             if streak == 20:
                 break
         assert streak == 20 and backend.recoveries == 1
