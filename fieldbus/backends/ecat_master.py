@@ -36,7 +36,7 @@ from fieldbus.errors import (
 )
 
 try:
-    import pysoem
+    import pysoem as pysoem  # the backend takes it from here: one check that pysoem is installed
 except ImportError as exc:  # pragma: no cover - depends on the install
     raise BackendUnavailableError(
         f"EtherCAT needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"

@@ -37,12 +37,13 @@ from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
 from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
-from fieldbus.backends.ecat_master import (
+from fieldbus.backends.ecat_master import (  # raises BackendUnavailableError without pysoem
     SoemPort,
     check_state,
     describe,
     find_slaves,
     open_card,
+    pysoem,
     read_register,
     request_state,
     sdo,
@@ -58,7 +59,6 @@ from fieldbus.core.network import Bus
 from fieldbus.core.sdo import StepKind, coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import (
-    BackendUnavailableError,
     BusTimeoutError,
     FieldbusError,
     SdoAbortError,
@@ -66,13 +66,6 @@ from fieldbus.errors import (
     StateTransitionError,
 )
 from fieldbus.wire.pcap import EthercatCapture
-
-try:
-    import pysoem
-except ImportError as exc:  # pragma: no cover - depends on the install
-    raise BackendUnavailableError(
-        f"the ethercat backend needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"
-    ) from None
 
 STATE_TIMEOUT_US = 2_000_000
 RECONFIG_TIMEOUT_US = 500
