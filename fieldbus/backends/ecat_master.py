@@ -12,6 +12,8 @@ wherever it appears:
   instead of the answer: handed to the caller, the transfer tried again;
 - a state not reached: :class:`~fieldbus.errors.StateTransitionError` with
   each slave's state and AL status code;
+- SDO Information (pysoem's ``slave.od``) that fails: FieldbusError, and SOEM's
+  queue of SDO Information errors emptied either way;
 - a register read or write without answer: ``None`` / ``False`` (one frame;
   the caller decides whether to try again).
 
@@ -23,7 +25,7 @@ through :class:`SoemPort`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from typing import Any, Protocol
 
 from fieldbus.core.al import AL_ERROR, al_status_name, state_name
@@ -145,6 +147,43 @@ def write_register(slave: Any, ado: int, data: bytes, timeout_us: int) -> bool:
     except NO_FRAME_ANSWER:
         return False
     return True
+
+
+SOEM_ERROR_LIST = 64  # EC_MAXELIST: SOEM's error queue holds at most this many
+
+
+def object_dictionary(slave: Any, indices: Collection[int] | None = None) -> Iterator[tuple[Any, list[Any]]]:
+    """(object, its entries) of ``slave``'s object dictionary by SDO Information (pysoem's ``slave.od``; each
+    object's entries are read when reached), only objects in ``indices`` when given.
+
+    A failed SDO Information exchange raises FieldbusError ("SDO Information: ...")
+    where it happens, after the objects already yielded. At the end, failed or not,
+    SOEM's error queue is emptied (:func:`drop_queued_errors`).
+    """
+    try:
+        for obj in slave.od:
+            if indices is None or obj.index in indices:
+                yield obj, list(obj.entries)
+    except Exception as exc:  # pysoem raises SdoInfoError, or a bare Exception for a queued error
+        raise FieldbusError(f"SDO Information: {getattr(exc, 'message', None) or exc}") from None
+    finally:
+        drop_queued_errors(slave)
+
+
+def drop_queued_errors(slave: Any) -> None:
+    """Empty SOEM's error queue after reading SDO Information.
+
+    SOEM asks for every sub-index up to an object's highest; a device with gaps in an object
+    (0x6000:11 without 0x6000:01) answers an SDO Information error for each, which SOEM queues
+    and pysoem's ``od`` leaves there. The next SDO call on *another* slave would pop it and fail
+    pysoem's assertion that the error is its own. ``mbx_receive`` pops one queued error a call.
+    """
+    for _ in range(SOEM_ERROR_LIST + 1):
+        try:
+            slave.mbx_receive()
+            return
+        except Exception:  # an error popped (pysoem raises a bare Exception for SDO Information errors)
+            continue
 
 
 class _FrameBudget(Protocol):

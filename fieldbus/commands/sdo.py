@@ -191,16 +191,10 @@ def _ethercat_locked(args: argparse.Namespace) -> int:
 
 
 def _od_entries(slave: Any, index: int | None = None) -> list[tuple[Any, list[Any]]]:
-    """(object, its entries) from pysoem's ``slave.od`` (SOEM's SDO Information client)."""
-    try:
-        objects = slave.od
-    except Exception as exc:
-        raise FieldbusError(f"SDO Information: {getattr(exc, 'message', exc)}") from None
-    out = []
-    for obj in objects:
-        if index is None or obj.index == index:
-            out.append((obj, obj.entries))
-    return out
+    """(object, its entries) by SDO Information (the EtherCAT adapter's ``object_dictionary``)."""
+    from fieldbus.backends.ecat_master import object_dictionary
+
+    return list(object_dictionary(slave, None if index is None else (index,)))
 
 
 def _info_type(slave: Any, index: int, sub: int) -> str | None:

@@ -285,45 +285,23 @@ def _describe(
     s: Any, wanted: set[tuple[int, int]], out: EthercatSlave
 ) -> dict[tuple[int, int], tuple[int, str, int | None]]:
     """(CoE data type, name, access bits or None) of objects from SDO Information (pysoem's ``slave.od``)."""
+    from fieldbus.backends.ecat_master import object_dictionary
+
     if not out.sdo_info or not wanted:
         return {}
     indices = {i for i, _ in wanted if i > 0x0007}
     found: dict[tuple[int, int], tuple[int, str, int | None]] = {}
     try:
-        for obj in s.od:
-            if obj.index not in indices:
-                continue
-            entries = obj.entries
+        for obj, entries in object_dictionary(s, indices):
             if not entries:
                 found[(obj.index, 0)] = (int(obj.data_type), c_string(obj.name), None)
                 continue
             for sub, e in enumerate(entries):
                 if (obj.index, sub) in wanted:
                     found[(obj.index, sub)] = (int(e.data_type), c_string(e.name), int(e.obj_access))
-    except Exception as exc:  # pysoem raises SdoInfoError with a message only
-        out.errors.append(f"SDO Information: {getattr(exc, 'message', exc)}")
-    finally:
-        _drop_queued_errors(s)
+    except FieldbusError as exc:
+        out.errors.append(str(exc))
     return found
-
-
-SOEM_ERROR_LIST = 64  # EC_MAXELIST: SOEM's error queue holds at most this many
-
-
-def _drop_queued_errors(s: Any) -> None:
-    """Empty SOEM's error queue after reading SDO Information.
-
-    SOEM asks for every sub-index up to an object's highest; a device with gaps in an object
-    (0x6000:11 without 0x6000:01) answers an SDO Information error for each, which SOEM queues
-    and pysoem's ``od`` leaves there. The next SDO call on *another* slave would pop it and fail
-    pysoem's assertion that the error is its own. ``mbx_receive`` pops one queued error a call.
-    """
-    for _ in range(SOEM_ERROR_LIST + 1):
-        try:
-            s.mbx_receive()
-            return
-        except Exception:  # an error popped (pysoem raises a bare Exception for SDO Information errors)
-            continue
 
 
 def c_string(raw: Any) -> str:

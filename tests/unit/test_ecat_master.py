@@ -112,3 +112,49 @@ def test_a_card_that_cannot_be_opened_names_it_and_the_capability() -> None:
         ecat_master.open_card(pysoem.Master(), "no-such-card0", where="bus 'b': ")
     assert str(err.value).startswith("bus 'b': cannot open interface 'no-such-card0'")
     assert "CAP_NET_RAW" in str(err.value)
+
+
+class _Object:
+    def __init__(self, index: int, entries: list[str] | Exception) -> None:
+        self.index = index
+        self._entries = entries
+
+    @property
+    def entries(self) -> list[str]:
+        if isinstance(self._entries, Exception):
+            raise self._entries
+        return self._entries
+
+
+class _Slave:
+    """pysoem's slave as SDO Information sees it: ``od`` (entries read when reached), ``mbx_receive``."""
+
+    def __init__(self, objects: list[_Object], queued: int) -> None:
+        self.od = objects
+        self.queued = queued  # SDO Information errors SOEM keeps queued
+        self.receives = 0
+
+    def mbx_receive(self) -> int:
+        self.receives += 1
+        if self.queued:
+            self.queued -= 1
+            raise Exception("queued SDO Information error")  # what pysoem raises for one
+        return 0
+
+
+def test_sdo_information_failing_on_an_entry_is_a_fieldbus_error_and_the_queue_is_emptied() -> None:
+    slave = _Slave(
+        [_Object(0x1000, []), _Object(0x6000, pysoem.SdoInfoError("no entry 0x6000:01"))], queued=3
+    )
+    seen = []
+    with pytest.raises(FieldbusError, match=r"SDO Information: no entry 0x6000:01"):
+        for obj, entries in ecat_master.object_dictionary(slave):
+            seen.append((obj.index, entries))
+    assert seen == [(0x1000, [])]  # what came before the failure was handed over
+    assert (slave.queued, slave.receives) == (0, 4)  # three queued errors popped, then an empty receive
+
+
+def test_sdo_information_of_chosen_objects_only() -> None:
+    slave = _Slave([_Object(0x1000, ["a"]), _Object(0x6000, Exception("not read"))], queued=0)
+    assert [(o.index, e) for o, e in ecat_master.object_dictionary(slave, {0x1000})] == [(0x1000, ["a"])]
+    assert slave.receives == 1
