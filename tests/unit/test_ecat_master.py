@@ -4,8 +4,8 @@ The mapping is checked against pysoem's own exception classes (raised by a
 stand-in call: a mock for this one function; the transfers themselves run over
 veth against the emulator in tests/integration/test_sdo_cli.py, test_scan.py and
 test_pysoem_emulator.py). The structural test reads the package with ast: any
-module but the adapter that catches a pysoem error or reaches SOEM's register,
-open or config_init calls is a second mapping.
+module but the adapter that catches a pysoem error or makes SOEM's register,
+config_init or mailbox-receive calls is a second mapping.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError  # noq
 ROOT = Path(__file__).resolve().parents[2]
 ADAPTER = ROOT / "fieldbus" / "backends" / "ecat_master.py"
 PYSOEM_ERRORS = {"SdoError", "Emergency", "WkcError", "MailboxError", "PacketError"}
-SOEM_CALLS = {"_fprd", "_fpwr", "config_init"}
+SOEM_CALLS = {"_fprd", "_fpwr", "config_init", "mbx_receive"}
 
 
 def pysoem_error_uses(source: str) -> list[str]:
