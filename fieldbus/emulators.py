@@ -10,11 +10,14 @@ Parts: ``ethercat_chain`` (an in-process ESC chain from drive maps),
 ``ethercat_control`` (fault and status commands on a chain), ``veth_segment``
 (emulated EtherCAT slaves on a veth pair, in their own process),
 ``canopen_simulator``, ``canopen_control``, ``mit_simulator`` (CAN emulators on
-a python-can bus).
+a python-can bus), ``emulator_options`` (validates a network file's ``emulator:``
+section, :class:`~fieldbus.core.emulator_opts.EmulatorSection`, and returns the
+drive options it gives; see :func:`emulator_options_check`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from importlib.metadata import entry_points
 from typing import Any
@@ -43,3 +46,13 @@ def emulator_part(name: str) -> Any:
         raise EmulatorsUnavailable(
             f"the emulator part '{name}' needs the Python package '{exc.name}': pip install 'fieldbus[all]'"
         ) from None
+
+
+def emulator_options_check() -> Callable[[Any], Any] | None:
+    """The emulators' check of a network file's ``emulator:`` section (raises a located error on a bad
+    option); None when no emulator is installed: the section is then accepted and ignored."""
+    try:
+        check: Callable[[Any], Any] = emulator_part("emulator_options")
+    except EmulatorsUnavailable:
+        return None
+    return check

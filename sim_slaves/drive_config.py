@@ -34,7 +34,7 @@ scale with the position units per motor revolution (and the velocity unit).
 So a 2^20-count, 50:1 drive's following-error window is 80,000 counts, the
 same 0.48 rad at the motor as 10,000 counts of the 17-bit default.
 
-Emulator options (``fieldbus.core.emulator_opts``; SI unless named) override
+Emulator options (``sim_slaves.emulator_options``; SI unless named) override
 what the map implies: ``position_encoder_resolution`` (0x608F, increments per
 motor revolution), ``gear_ratio`` (0x6091), ``motor_rated_torque_nm``
 (0x6076), ``max_torque_permille`` (0x6072), ``max_motor_speed_rpm``

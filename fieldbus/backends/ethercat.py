@@ -37,9 +37,21 @@ from fieldbus.backends import soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
 from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
+from fieldbus.backends.ecat_master import (  # raises BackendUnavailableError without pysoem
+    SoemPort,
+    check_state,
+    describe,
+    find_slaves,
+    open_card,
+    pysoem,
+    read_register,
+    request_state,
+    sdo,
+    state_error,
+)
 from fieldbus.backends.ecat_raw import RawDatagrams
 from fieldbus.backends.sdo_exec import apply_plan
-from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, al_status_name, state_name
+from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, state_name
 from fieldbus.core.coe_mailbox import SdoTransfer
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.ecat import Command, Datagram
@@ -47,7 +59,6 @@ from fieldbus.core.network import Bus
 from fieldbus.core.sdo import StepKind, coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
 from fieldbus.errors import (
-    BackendUnavailableError,
     BusTimeoutError,
     FieldbusError,
     SdoAbortError,
@@ -55,13 +66,6 @@ from fieldbus.errors import (
     StateTransitionError,
 )
 from fieldbus.wire.pcap import EthercatCapture
-
-try:
-    import pysoem
-except ImportError as exc:  # pragma: no cover - depends on the install
-    raise BackendUnavailableError(
-        f"the ethercat backend needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"
-    ) from None
 
 STATE_TIMEOUT_US = 2_000_000
 RECONFIG_TIMEOUT_US = 500
@@ -183,14 +187,12 @@ class EthercatBackend(Backend):
         if self.capture is not None:
             self.capture.start()
         before = soem_socket.open_sockets()
-        try:
-            self.master.open(self.bus.interface, self.bus.redundant_interface)
-        except Exception as exc:
-            cards = " and ".join(f"'{p}'" for p in (self.bus.interface, self.bus.redundant_interface) if p)
-            raise FieldbusError(
-                f"bus '{self.bus.name}': cannot open interface {cards} ({exc}); "
-                "raw sockets need root (or CAP_NET_RAW) and the link must be up"
-            ) from exc
+        open_card(
+            self.master,
+            self.bus.interface or "",
+            self.bus.redundant_interface,
+            where=f"bus '{self.bus.name}': ",
+        )
         self._open = True
         self.sockets = soem_socket.packet_sockets(soem_socket.open_sockets() - before)
         ports = 2 if self.bus.redundant_interface else 1  # one packet socket per port
@@ -200,9 +202,8 @@ class EthercatBackend(Backend):
                 f"'{self.bus.interface}', SOEM opens {ports}; "
                 "pass exact_timeout=False to keep SOEM's own receive wait (a lost frame then costs 4-10 ms)"
             )
-        found = self.master.config_init()
-        self._slaves = list(self.master.slaves) if found > 0 else []
-        self._check_identity(found)
+        self._slaves = find_slaves(self.master)
+        self._check_identity(len(self._slaves))
 
     def _check_identity(self, found: int) -> None:
         self.check_identities(
@@ -210,7 +211,7 @@ class EthercatBackend(Backend):
         )
 
     def configure(self) -> None:
-        state = self.master.state_check(pysoem.PREOP_STATE, STATE_TIMEOUT_US)
+        state = check_state(self.master, pysoem.PREOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.PREOP_STATE:
             self._raise_state("PRE-OP", state)
         for i, area in enumerate(self.areas):
@@ -248,7 +249,7 @@ class EthercatBackend(Backend):
             (s, self.in_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].in_size
         ]
         self._configure_dc()
-        state = self.master.state_check(pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
+        state = check_state(self.master, pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
         self._snapshot_registers()
@@ -293,7 +294,7 @@ class EthercatBackend(Backend):
             self._mailboxes.append(
                 None
                 if layout is None
-                else SlaveMailbox(layout, _SoemPort(self, s), functools.partial(self._emcy, i))
+                else SlaveMailbox(layout, SoemPort(self, s), functools.partial(self._emcy, i))
             )
             self._sm_regs.append(
                 [
@@ -313,11 +314,9 @@ class EthercatBackend(Backend):
     def _snapshot_read(self, i: int, ado: int, size: int) -> bytes:
         """``size`` bytes of slave ``i``'s registers at ``ado`` (bring-up: SOEM's waits, tried 3 times)."""
         for _ in range(SNAPSHOT_TRIES):
-            try:
-                data: bytes = self._slaves[i]._fprd(ado, size, SNAPSHOT_TIMEOUT_US)
-            except (pysoem.WkcError, pysoem.PacketError):
-                continue
-            return data
+            data = read_register(self._slaves[i], ado, size, SNAPSHOT_TIMEOUT_US)
+            if data is not None:
+                return data
         raise StateTransitionError(
             f"bus '{self.bus.name}': position {i} ({self.areas[i].slave.name}) did not answer a read of "
             f"register 0x{ado:04X} in {SNAPSHOT_TRIES} tries of {SNAPSHOT_TIMEOUT_US / 1000:g} ms"
@@ -383,10 +382,10 @@ class EthercatBackend(Backend):
         except Exception as exc:
             self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
             yield  # the step that failed had its datagram; the INIT request gets a step of its own
-            _SoemPort(self, self._slaves[i]).write(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
+            SoemPort(self, self._slaves[i]).write(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
             raise StateTransitionError(
                 f"bus '{self.bus.name}': position {i} ({area.slave.name}) could not be configured again after "
-                f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {step}: {_describe(exc)}"
+                f"falling out of OP, left in INIT (next try in {PLAN_RETRY_S:g} s): {step}: {describe(exc)}"
             ) from exc
 
     def _plan_steps(self, i: int) -> Generator[None, None, int]:
@@ -462,7 +461,7 @@ class EthercatBackend(Backend):
         owner, SM and FMMU entries), so a repeat is safe, as in SOEM's own
         ``ecx_FPWRw``, which repeats a frame until its (longer) timeout.
         """
-        port = _SoemPort(self, self._slaves[i])
+        port = SoemPort(self, self._slaves[i])
         for _ in range(RECOVERY_FRAME_TRIES):
             if port.write(address, data):
                 yield
@@ -513,22 +512,8 @@ class EthercatBackend(Backend):
         self._confirm_wkc()
 
     def _raise_state(self, target: str, lowest: int) -> None:
-        self.master.read_state()
-        lines = []
-        first_code: int | None = None
-        for i, s in enumerate(self._slaves):
-            if (s.state & 0x0F) != {"PRE-OP": 2, "SAFE-OP": 4, "OP": 8}[target] or s.state & AL_ERROR:
-                code = s.al_status
-                first_code = code if first_code is None else first_code
-                lines.append(
-                    f"  position {i} ({self.areas[i].slave.name if i < len(self.areas) else '?'}): "
-                    f"{state_name(s.state)}, AL status code 0x{code:04X} {al_status_name(code)}"
-                )
-        raise StateTransitionError(
-            f"bus '{self.bus.name}': not all slaves reached {target} (lowest {state_name(lowest)}):\n"
-            + "\n".join(lines),
-            al_status=first_code,
-        )
+        names = [a.slave.name for a in self.areas]
+        raise state_error(self.master, self._slaves, names, target, lowest, where=f"bus '{self.bus.name}': ")
 
     def slave_state(self, i: int) -> str:
         """Slave ``i``'s AL state as SOEM last read it (bring-up and recovery read it, the cycle does not)."""
@@ -619,7 +604,7 @@ class EthercatBackend(Backend):
 
     def _al_status(self, i: int) -> int | None:
         """Slave ``i``'s AL status register (one FPRD), None when it does not answer at its address."""
-        raw = _SoemPort(self, self._slaves[i]).read(REG_AL_STATUS, 2)
+        raw = SoemPort(self, self._slaves[i]).read(REG_AL_STATUS, 2)
         return None if raw is None else int.from_bytes(raw, "little")
 
     def _raw_channel(self) -> RawDatagrams | None:
@@ -709,8 +694,7 @@ class EthercatBackend(Backend):
             self._raw.close()
             self._raw = None
         if self._open and self._slaves:
-            self.master.state = pysoem.INIT_STATE
-            self.master.write_state()
+            request_state(self.master, pysoem.INIT_STATE)
 
     def close(self) -> None:
         try:
@@ -776,7 +760,7 @@ class EthercatBackend(Backend):
             request.finish(error=exc)
         except Exception as exc:  # a fault of ours or of the bus: that request's, not the cycle's
             request.finish(
-                error=FieldbusError(f"bus '{self.bus.name}': SDO transfer failed: {_describe(exc)}")
+                error=FieldbusError(f"bus '{self.bus.name}': SDO transfer failed: {describe(exc)}")
             )
         self._acyclic = None
         return True
@@ -784,65 +768,16 @@ class EthercatBackend(Backend):
     def _sdo(
         self, slave: int, index: int, sub_index: int, what: str, call: Any, tries: int | None = None
     ) -> Any:
-        """One SDO transfer with pysoem's errors turned into ours.
-
-        An abort raises :class:`SdoAbortError` at once. No answer (pysoem
-        ``WkcError``, a mailbox or packet error) is retried ``SDO_RETRIES``
-        times - SDO transfers here are idempotent - then raised as
-        :class:`BusTimeoutError`. An emergency that arrives in the mailbox
-        instead of the answer is kept in :attr:`emergencies` and the transfer
-        retried.
-        """
-        name = self.areas[slave].slave.name
-        last = ""
-        tries = self._sdo_tries if tries is None else tries
-        for _ in range(tries):
-            try:
-                return call(self._slaves[slave])
-            except pysoem.SdoError as exc:
-                raise SdoAbortError(exc.abort_code, index=index, sub_index=sub_index, slave=name) from None
-            except pysoem.Emergency as exc:
-                self.emergencies.append((slave, exc.error_code, exc.error_reg))
-                self.emcy_count += 1
-                last = f"emergency 0x{exc.error_code:04X}"
-            except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
-                last = f"{type(exc).__name__}: {getattr(exc, 'message', None) or exc}"
-        raise BusTimeoutError(
-            f"bus '{self.bus.name}' slave {name}: no answer to SDO {what} 0x{index:04X}:{sub_index:02X} "
-            f"after {tries} {'try' if tries == 1 else 'tries'} ({last})"
+        """One blocking SDO transfer (bring-up) with pysoem's errors as ours (:func:`.ecat_master.sdo`): an
+        abort raises at once, no answer is tried ``SDO_RETRIES`` more times, an emergency that came instead
+        of the answer is kept in :attr:`emergencies` and the transfer tried again."""
+        return sdo(
+            lambda: call(self._slaves[slave]),
+            index=index,
+            sub_index=sub_index,
+            slave=self.areas[slave].slave.name,
+            what=what,
+            who=f"bus '{self.bus.name}' slave {self.areas[slave].slave.name}",
+            tries=self._sdo_tries if tries is None else tries,
+            on_emergency=functools.partial(self._emcy, slave),
         )
-
-
-def _describe(exc: BaseException) -> str:
-    """An exception as a reason: its message, or its type when it has none (pysoem's WkcError)."""
-    text = str(exc)
-    return (
-        f"{type(exc).__name__}: {text}"
-        if text
-        else f"{type(exc).__name__} (no answer at the slave's address)"
-    )
-
-
-class _SoemPort:
-    """Slave registers through pysoem's ``_fprd`` / ``_fpwr``: one frame each, waiting the backend's frame
-    timeout (below SOEM's EC_TIMEOUTRET, so SOEM sends it once); marks the cycle's datagram as spent."""
-
-    def __init__(self, backend: EthercatBackend, slave: Any) -> None:
-        self.backend = backend
-        self.slave = slave
-
-    def read(self, ado: int, size: int) -> bytes | None:
-        self.backend._frame_sent = True
-        try:
-            data: bytes = self.slave._fprd(ado, size, self.backend.frame_timeout_us)
-        except (pysoem.WkcError, pysoem.PacketError):
-            return None
-        return data
-
-    def write(self, ado: int, data: bytes) -> bool:
-        self.backend._frame_sent = True
-        try:
-            self.slave._fpwr(ado, data, self.backend.frame_timeout_us)
-        except (pysoem.WkcError, pysoem.PacketError):
-            return False
-        return True

@@ -87,7 +87,9 @@ class SimBackend(Backend):
 
         maps = options.get("chain_maps")
         chain_maps: Sequence[DriveMap] = maps if isinstance(maps, Sequence) else [s.map for s in bus.slaves]
-        emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
+        # the emulator reads the network file's emulator: sections (opaque to fieldbus)
+        emulator_options = emulator_part("emulator_options")
+        emulated = [emulator_options(s.emulator) if s.emulator else None for s in bus.slaves]
         self.chain = EscChain.from_maps(
             list(chain_maps), drive_params=emulated if len(emulated) == len(chain_maps) else None
         )

@@ -155,9 +155,10 @@ def _ethercat(args: argparse.Namespace) -> int:
 
 
 def _ethercat_locked(args: argparse.Namespace) -> int:
-    from fieldbus.scan.ethercat import c_string, open_master, sdo_call
+    from fieldbus.backends.ecat_master import open_segment, sdo
+    from fieldbus.scan.ethercat import c_string
 
-    pysoem, master = open_master(args.target)
+    master = open_segment(args.target)
     try:
         if not 0 <= args.slave < len(master.slaves):
             raise FieldbusError(
@@ -170,33 +171,19 @@ def _ethercat_locked(args: argparse.Namespace) -> int:
         type_name = (
             check_type(args.type_name) if args.type_name else _info_type(s, args.index, args.sub_index)
         )
+        index, sub = args.index, args.sub_index
         if args.verb == "read":
             raw = bytes(
-                sdo_call(
-                    pysoem,
-                    s,
-                    args.slave,
-                    args.index,
-                    args.sub_index,
-                    lambda: s.sdo_read(args.index, args.sub_index),
-                )
+                sdo(lambda: s.sdo_read(index, sub), index=index, sub_index=sub, slave=where, what="read")
             )
             _print_value(args, raw, type_name, where)
             return 0
         if type_name is None:
             raise FieldbusError(
-                f"{where}: the type of 0x{args.index:04X}:{args.sub_index:02X} is unknown (no SDO Information); "
-                "give --type"
+                f"{where}: the type of 0x{index:04X}:{sub:02X} is unknown (no SDO Information); give --type"
             )
         data = encode(args.value, type_name)
-        sdo_call(
-            pysoem,
-            s,
-            args.slave,
-            args.index,
-            args.sub_index,
-            lambda: s.sdo_write(args.index, args.sub_index, data),
-        )
+        sdo(lambda: s.sdo_write(index, sub, data), index=index, sub_index=sub, slave=where, what="write")
         _print_written(args, where, type_name, data)
         return 0
     finally:
@@ -204,16 +191,10 @@ def _ethercat_locked(args: argparse.Namespace) -> int:
 
 
 def _od_entries(slave: Any, index: int | None = None) -> list[tuple[Any, list[Any]]]:
-    """(object, its entries) from pysoem's ``slave.od`` (SOEM's SDO Information client)."""
-    try:
-        objects = slave.od
-    except Exception as exc:
-        raise FieldbusError(f"SDO Information: {getattr(exc, 'message', exc)}") from None
-    out = []
-    for obj in objects:
-        if index is None or obj.index == index:
-            out.append((obj, obj.entries))
-    return out
+    """(object, its entries) by SDO Information (the EtherCAT adapter's ``object_dictionary``)."""
+    from fieldbus.backends.ecat_master import object_dictionary
+
+    return list(object_dictionary(slave, None if index is None else (index,)))
 
 
 def _info_type(slave: Any, index: int, sub: int) -> str | None:

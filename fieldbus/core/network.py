@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fieldbus.core.emulator_opts import EmulatorOptions, parse_emulator
+from fieldbus.core.emulator_opts import EmulatorSection, emulator_section
 from fieldbus.core.liveness import unwatched_reason
 from fieldbus.core.pdo.load import (
     CLASSIC_CAN_PDO_BYTES,
@@ -66,7 +66,7 @@ class Slave:
     map: DriveMap
     position: int
     node_id: int | None = None
-    emulator: EmulatorOptions | None = None  # delays and imperfections of the emulated drive
+    emulator: EmulatorSection | None = None  # the emulated drive's options, opaque (the emulator reads them)
 
 
 @dataclass(frozen=True)
@@ -237,7 +237,8 @@ def _bus(
         emu = None
         if "emulator" in s:
             bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
-            emu = parse_emulator(r, s["emulator"], (*spath, "emulator"), bus_cycle)
+            emu = emulator_section(r, s["emulator"], (*spath, "emulator"), bus_cycle)
+            _check_emulator(emu)
         if is_can:
             if "node_id" not in s:
                 raise r.err(spath, "a CAN slave needs 'node_id'")
@@ -308,6 +309,15 @@ def _bus(
         bitrate=bitrate,
         data_bitrate=data_bitrate,
     )
+
+
+def _check_emulator(section: EmulatorSection) -> None:
+    """The emulators' check of an ``emulator:`` section (fieldbus.emulators); none installed: accepted."""
+    from fieldbus.emulators import emulator_options_check
+
+    check = emulator_options_check()
+    if check is not None:
+        check(section)
 
 
 def _check_canopen_liveness(r: Reader, drive: DriveMap, path: PathT) -> None:

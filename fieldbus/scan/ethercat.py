@@ -14,7 +14,6 @@ Information service when the slave offers it.
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,7 +21,7 @@ from fieldbus.core.al import AL_ERROR, al_status_name, state_name
 from fieldbus.core.pdo.load import COE_RANGES
 from fieldbus.core.pdo.model import Direction
 from fieldbus.core.sdo.info import ACCESS_WRITE_PREOP
-from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, SdoAbortError
+from fieldbus.errors import FieldbusError
 from fieldbus.scan.model import Device, Identity, PdoEntry, ScannedPdo, entry_name, entry_type, mapping_entry
 
 SII_ALIAS, SII_SERIAL, SII_PROTOCOLS, SII_CATEGORIES = 0x04, 0x0E, 0x1C, 0x40
@@ -77,55 +76,25 @@ class EthercatScan:
     slaves: list[EthercatSlave]
 
 
-def _pysoem() -> Any:
-    try:
-        import pysoem
-    except ImportError as exc:
-        raise BackendUnavailableError(
-            f"scanning EtherCAT needs pysoem ({exc}): pip install 'fieldbus[ethercat]'"
-        ) from None
-    return pysoem
+def sdo_read(s: Any, position: int, index: int, sub: int) -> bytes:
+    """One SDO upload from slave ``s`` at ``position`` through the EtherCAT adapter (its error mapping)."""
+    from fieldbus.backends import ecat_master
 
-
-def open_master(interface: str) -> tuple[Any, Any]:
-    """(pysoem module, a Master on ``interface`` with its slaves in PRE-OP). Close it when done."""
-    pysoem = _pysoem()
-    master = pysoem.Master()
-    try:
-        master.open(interface)
-    except Exception as exc:
-        raise FieldbusError(
-            f"cannot open interface '{interface}' ({exc}); raw sockets need root (or CAP_NET_RAW) and the link up"
-        ) from exc
-    found = master.config_init()
-    if found <= 0:
-        master.close()
-        raise FieldbusError(f"no EtherCAT slave answers on '{interface}' (is the cable in and the link up?)")
-    master.read_state()
-    return pysoem, master
-
-
-def sdo_call(pysoem: Any, slave: Any, position: int, index: int, sub: int, call: Callable[[], Any]) -> Any:
-    """One pysoem SDO transfer; pysoem's errors as ours, naming slave, object and abort code."""
-    who = f"slave {position} ({slave.name})"
-    try:
-        return call()
-    except pysoem.SdoError as exc:
-        raise SdoAbortError(exc.abort_code, index=index, sub_index=sub, slave=who) from None
-    except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
-        raise BusTimeoutError(
-            f"{who}: no SDO answer for 0x{index:04X}:{sub:02X} ({type(exc).__name__})"
-        ) from None
+    who = f"slave {position} ({s.name})"
+    return bytes(
+        ecat_master.sdo(lambda: s.sdo_read(index, sub), index=index, sub_index=sub, slave=who, what="read")
+    )
 
 
 def scan(interface: str, *, sdo_information: bool = True) -> EthercatScan:
     """Scan the segment on ``interface`` (see the module docstring); refused while a master runs on it."""
     from fieldbus.backends.buslock import lock_network_card
+    from fieldbus.backends.ecat_master import open_segment
 
     with lock_network_card(interface):  # a scan knocks a running master's slaves out of OP
-        pysoem, master = open_master(interface)
+        master = open_segment(interface)
         try:
-            slaves = [_slave(pysoem, s, i, sdo_information) for i, s in enumerate(master.slaves)]
+            slaves = [_slave(s, i, sdo_information) for i, s in enumerate(master.slaves)]
         finally:
             master.close()
     _topology(slaves)
@@ -171,7 +140,7 @@ def _strings(data: bytes) -> list[str]:
     return sii_strings(data)
 
 
-def _slave(pysoem: Any, s: Any, position: int, use_info: bool) -> EthercatSlave:
+def _slave(s: Any, position: int, use_info: bool) -> EthercatSlave:
     sii = _Sii(s)
     errors: list[str] = []
     station = _reg(s, REG_STATION, 2, errors)
@@ -203,7 +172,7 @@ def _slave(pysoem: Any, s: Any, position: int, use_info: bool) -> EthercatSlave:
         sync_managers=_sync_managers(cats.get(CAT_SM, b"")),
     )
     if protocols & 0x04:
-        _coe(pysoem, s, out, use_info and out.sdo_info)
+        _coe(s, out, use_info and out.sdo_info)
     else:
         out.rpdo = _sii_pdos(cats.get(CAT_RXPDO, b""), strings)
         out.tpdo = _sii_pdos(cats.get(CAT_TXPDO, b""), strings)
@@ -212,10 +181,11 @@ def _slave(pysoem: Any, s: Any, position: int, use_info: bool) -> EthercatSlave:
 
 
 def _reg(s: Any, address: int, n: int, errors: list[str], *, full: bool = False) -> int | None:
-    try:
-        raw = bytes(s._fprd(address, n))
-    except Exception as exc:  # pysoem raises WkcError without a reason
-        errors.append(f"register 0x{address:04X}: no answer ({type(exc).__name__})")
+    from fieldbus.backends.ecat_master import read_register
+
+    raw = read_register(s, address, n)
+    if raw is None:
+        errors.append(f"register 0x{address:04X}: no answer")
         return None
     return int.from_bytes(raw, "little") if full or n <= 4 else int.from_bytes(raw[:4], "little")
 
@@ -250,9 +220,9 @@ def _sii_pdos(data: bytes, strings: list[str]) -> list[ScannedPdo]:
     return pdos
 
 
-def _coe(pysoem: Any, s: Any, out: EthercatSlave, use_info: bool) -> None:
+def _coe(s: Any, out: EthercatSlave, use_info: bool) -> None:
     def read(index: int, sub: int) -> bytes:
-        return bytes(sdo_call(pysoem, s, out.position, index, sub, lambda: s.sdo_read(index, sub)))
+        return sdo_read(s, out.position, index, sub)
 
     def u(index: int, sub: int) -> int:
         return int.from_bytes(read(index, sub), "little")
@@ -315,45 +285,23 @@ def _describe(
     s: Any, wanted: set[tuple[int, int]], out: EthercatSlave
 ) -> dict[tuple[int, int], tuple[int, str, int | None]]:
     """(CoE data type, name, access bits or None) of objects from SDO Information (pysoem's ``slave.od``)."""
+    from fieldbus.backends.ecat_master import object_dictionary
+
     if not out.sdo_info or not wanted:
         return {}
     indices = {i for i, _ in wanted if i > 0x0007}
     found: dict[tuple[int, int], tuple[int, str, int | None]] = {}
     try:
-        for obj in s.od:
-            if obj.index not in indices:
-                continue
-            entries = obj.entries
+        for obj, entries in object_dictionary(s, indices):
             if not entries:
                 found[(obj.index, 0)] = (int(obj.data_type), c_string(obj.name), None)
                 continue
             for sub, e in enumerate(entries):
                 if (obj.index, sub) in wanted:
                     found[(obj.index, sub)] = (int(e.data_type), c_string(e.name), int(e.obj_access))
-    except Exception as exc:  # pysoem raises SdoInfoError with a message only
-        out.errors.append(f"SDO Information: {getattr(exc, 'message', exc)}")
-    finally:
-        _drop_queued_errors(s)
+    except FieldbusError as exc:
+        out.errors.append(str(exc))
     return found
-
-
-SOEM_ERROR_LIST = 64  # EC_MAXELIST: SOEM's error queue holds at most this many
-
-
-def _drop_queued_errors(s: Any) -> None:
-    """Empty SOEM's error queue after reading SDO Information.
-
-    SOEM asks for every sub-index up to an object's highest; a device with gaps in an object
-    (0x6000:11 without 0x6000:01) answers an SDO Information error for each, which SOEM queues
-    and pysoem's ``od`` leaves there. The next SDO call on *another* slave would pop it and fail
-    pysoem's assertion that the error is its own. ``mbx_receive`` pops one queued error a call.
-    """
-    for _ in range(SOEM_ERROR_LIST + 1):
-        try:
-            s.mbx_receive()
-            return
-        except Exception:  # an error popped (pysoem raises a bare Exception for SDO Information errors)
-            continue
 
 
 def c_string(raw: Any) -> str:

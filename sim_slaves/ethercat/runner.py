@@ -10,7 +10,7 @@ Slaves are the maps in the order given, the whole list repeated ``--count``
 times; or, with ``--network``, the slaves of one EtherCAT bus of a network
 file (``--bus``, default its only one), each with its ``emulator:`` options
 (command delay, current loop, encoder, friction, thermal: see
-:mod:`fieldbus.core.emulator_opts`) - the same drives the ``sim`` backend
+:mod:`sim_slaves.emulator_options`) - the same drives the ``sim`` backend
 builds from that file. The process prints ``ready <iface> <n> slaves`` on stdout once it
 listens and runs until SIGTERM/SIGINT.
 
@@ -309,6 +309,7 @@ def loopback_app(drive: DriveMap, od: ObjectDictionary) -> App:
 def network_slaves(path: str, bus_name: str | None) -> tuple[list[DriveMap], list[dict[str, Any] | None]]:
     """The drive maps and emulator options (``DriveParams`` keywords) of one EtherCAT bus of a network file."""
     from fieldbus.core.network import load_network
+    from sim_slaves.emulator_options import drive_options
 
     net = load_network(path)
     buses = [b for b in net.buses if b.type == "ethercat"]
@@ -321,7 +322,7 @@ def network_slaves(path: str, bus_name: str | None) -> tuple[list[DriveMap], lis
         )
         raise FieldbusError(f"{path}: {which} (EtherCAT buses: {names})")
     slaves = buses[0].slaves
-    return [s.map for s in slaves], [s.emulator.drive_params() if s.emulator else None for s in slaves]
+    return [s.map for s in slaves], [drive_options(s.emulator) for s in slaves]
 
 
 def build_chain(

@@ -12,6 +12,7 @@ from fieldbus.commands import demo
 from fieldbus.commands.demo import DEMO_MAP, run_demo
 from fieldbus.core.network import load_network
 from fieldbus.errors import FieldbusError
+from sim_slaves.emulator_options import drive_options
 
 
 def _network(tmp_path: Path, emulator: str, axes: int = 3) -> Path:
@@ -50,7 +51,8 @@ def test_delay_in_microseconds_is_rounded_to_cycles(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     net = _network(tmp_path, ", emulator: {command_delay_us: 2000, current_loop_bandwidth_hz: 2000}", axes=2)
-    assert load_network(net).buses[0].slaves[1].emulator.command_delay_cycles == 2  # type: ignore[union-attr]
+    options = drive_options(load_network(net).buses[0].slaves[1].emulator)
+    assert options is not None and options["command_delay_cycles"] == 2
     report = _latency(net, capsys)
     assert all(1 <= a["drive_delay_cycles"] <= 3 for a in report["axes"]), report["axes"]
 

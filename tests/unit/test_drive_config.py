@@ -12,6 +12,7 @@ from fieldbus.core.pdo.load import drive_map_from_text, load_drive_map
 from fieldbus.errors import FieldbusError
 from sim_slaves.drive402 import Cia402Drive, DictObjectStore, DriveParams, Obj, default_objects
 from sim_slaves.drive_config import drive_params
+from sim_slaves.emulator_options import drive_options
 from sim_slaves.od import ObjectDictionary
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -209,5 +210,5 @@ def test_the_network_options_reach_the_drive() -> None:
     )
     slave = network_from_text(text, "net.yaml").buses[0].slaves[0]
     assert slave.emulator is not None
-    p = drive_params(slave.map, slave.emulator.drive_params())
+    p = drive_params(slave.map, drive_options(slave.emulator))
     assert (p.counts_per_rev, p.gear_ratio, p.max_motor_speed_rpm) == (2**20, 50.0, 3000.0)
