@@ -50,6 +50,7 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import damiao, odrive
+from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
@@ -79,6 +80,27 @@ class MotorFault:
 
     def __str__(self) -> str:
         return f"{self.slave}: motor error 0x{self.code:X} {self.name}"
+
+
+@dataclass(frozen=True)
+class MotorFaultEvent(DriveFault):
+    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a Damiao
+    error code outside ``ok_codes`` or of a new ODrive axis error, with the family's name for it.
+
+    ``code`` is the family's own code (Damiao error nibble, ODrive axis error bits), not a CiA 402 0x603F.
+    """
+
+    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP, ...")
+
+    @property
+    def name(self) -> str:
+        return self.reason
+
+    def __str__(self) -> str:
+        return f"{self.slave} ({self.group}[{self.axis}]): motor fault 0x{self.code or 0:X} {self.reason}"
+
+
+_NO_EVENTS: tuple[MotorFaultEvent, ...] = ()
 
 
 class RawCanBackend(CanFaults, Backend):
@@ -115,6 +137,9 @@ class RawCanBackend(CanFaults, Backend):
         self._codes = np.zeros(self.n_slaves, dtype=np.int16)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
+        self._onsets: deque[tuple[int, int, str]] = deque(
+            maxlen=FAULT_LOG
+        )  # (motor, code, name) not yet taken
         self._cycles = 0
         # family odrive: protocol, mode, set-point frames by command id, the RTR, heartbeat routing
         self._od: list[odrive.OdriveProtocol | None] = [self._od_of(i) for i in range(self.n_slaves)]
@@ -358,11 +383,26 @@ class RawCanBackend(CanFaults, Backend):
             if code != self._codes[i]:
                 proto = self._proto(i)
                 if code not in proto.ok_codes:
-                    self.motor_faults += 1
-                    self.faults.append(
-                        MotorFault(self._cycles, self.areas[i].slave.name, code, proto.error_name(code))
-                    )
+                    self._fault(i, code, proto.error_name(code))
                 self._codes[i] = code
+
+    def _fault(self, i: int, code: int, name: str) -> None:
+        """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
+        self.motor_faults += 1
+        self.faults.append(MotorFault(self._cycles, self.areas[i].slave.name, code, name))
+        self._onsets.append((i, code, name))
+
+    def take_motor_events(self, cycle: int) -> tuple[MotorFaultEvent, ...]:
+        """The fault onsets since the last call as events of cycle ``cycle`` (the network's cycle index), each
+        once; onsets seen during bring-up come with the first cycle. An empty tuple (no allocation) mostly."""
+        if not self._onsets:
+            return _NO_EVENTS
+        out = []
+        while self._onsets:
+            i, code, name = self._onsets.popleft()
+            a = self.areas[i]
+            out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
+        return tuple(out)
 
     # -- family odrive -------------------------------------------------------------------
     def _little(self, i: int) -> bool:
@@ -430,9 +470,7 @@ class RawCanBackend(CanFaults, Backend):
             last = self._od_hb[i]
             self._od_hb[i] = (error, state)
             if error and (last is None or last[0] != error):
-                self.motor_faults += 1
-                name = self.areas[i].slave.name
-                self.faults.append(MotorFault(self._cycles, name, error, proto.error_names(error)))
+                self._fault(i, error, proto.error_names(error))
                 if proto.protocol == "0.6":  # the detail: active errors and the disarm reason
                     self._od_frame(i, "get_error", remote=True)
         elif kind == "get_error" and len(data) == 8:
