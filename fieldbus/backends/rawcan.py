@@ -26,6 +26,10 @@ switches a motor's mode between cycles; the reply's error code is watched
 sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
 the disable frame.
 
+A fault's onset (either family) is also queued for :meth:`RawCanBackend.take_motor_events`, which the
+network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
+with the family's name) in ``CycleResult.events`` and recordings, once per onset.
+
 Family ``odrive`` (:mod:`fieldbus.core.odrive`, CANSimple): each cycle a motor gets its mode's
 set-point frame (``node << 5 | 0x0C/0x0D/0x0E``) and a remote frame asking for Get_Encoder_Estimates,
 whose answer is the cycle's reply; heartbeats (and, firmware 0.6, Get_Error answers) update the
