@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,13 +30,22 @@ _channels = itertools.count()
 
 
 class VirtualClock:
-    """Seconds that pass only when the test says so (the ODrive emulator's heartbeats run on it)."""
+    """The emulators' seconds. ``live``: they pass with the wall clock (the bring-up: an ODrive's heartbeats
+    keep coming however late the master opens its bus); else only when the test says so (the cycles: a
+    loaded machine never trips a motor's CAN timeout)."""
 
     def __init__(self) -> None:
         self.t = 0.0
+        self.live = True
+        self._t0 = time.monotonic()
 
     def __call__(self) -> float:
-        return self.t
+        return time.monotonic() - self._t0 if self.live else self.t
+
+    def freeze(self) -> None:
+        """From now on, time passes only by ``t +=``."""
+        self.t = self()
+        self.live = False
 
 
 def _net(tmp_path: Path, bus: str, prefix: str, map_name: str) -> tuple[Path, str]:
@@ -59,12 +69,14 @@ def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> No
 
     net, channel = _net(tmp_path, "arm", "j", "damiao_dm_j4310.yaml")
     drive = load_drive_map(Path(PDO_MAPS) / "damiao_dm_j4310.yaml")
+    clock = VirtualClock()
     with (
         can.Bus(interface="virtual", channel=channel) as sim_bus,
-        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001) as sim,
+        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock) as sim,
         open_network(net) as network,
     ):
         op = network.bring_up()
+        clock.freeze()  # the motors' TIMEOUT (50 ms) runs on it: never reached here
         rec = op.record(tmp_path / "run.mcap")
         for _ in range(10):
             assert _faults(op.exchange().events) == []
@@ -104,6 +116,7 @@ def test_odrive_axis_error_is_one_named_event(tmp_path: Path, map_name: str) -> 
         open_network(net) as network,
     ):
         op = network.bring_up()
+        clock.freeze()
         for _ in range(10):
             clock.t += 0.001
             assert _faults(op.exchange().events) == []
