@@ -70,6 +70,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
+SAVE_REGISTER = 1  # the register byte of a Damiao save request (the damiao-motor package's store_parameters)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -256,12 +257,27 @@ class RawCanBackend(CanFaults, Backend):
         when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
-        regs = proto.registers
+        regs = self._proto(i).registers
         if value is None:
             op, data = regs.read, bytes(4)
         else:
             op, data = regs.write, damiao.pack_register(value, is_float)
+        what = f"{'read' if value is None else 'write'} of register {register}"
+        return damiao.unpack_register(self._register_request(i, op, register, data, what), is_float)
+
+    def save_registers(self, slave: int | str) -> None:
+        """Store a Damiao motor's registers to its flash (op save); the motor answers only while disabled.
+
+        Blocking, outside the cycle. Raises :class:`~fieldbus.errors.BusTimeoutError` without an answer.
+        """
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        what = "save to flash (a motor saves only while disabled)"
+        self._register_request(i, self._proto(i).registers.save, SAVE_REGISTER, bytes(4), what)
+
+    def _register_request(self, i: int, op: int, register: int, data: bytes, what: str) -> bytes:
+        """One register request to motor ``i`` on the register id; the 4 value bytes of its answer."""
+        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
+        regs = proto.registers
         self._drain()
         try:
             self._bus.send(
@@ -281,13 +297,12 @@ class RawCanBackend(CanFaults, Backend):
                     continue
                 got = damiao.register_reply(node, bytes(msg.data), (op,))
                 if got is not None and got[1] == register:
-                    return damiao.unpack_register(got[2], is_float)
+                    return got[2]
         except (can.CanError, OSError) as exc:
             raise self._io_failed("register access", exc) from exc
-        what = "read" if value is None else "write"
         raise BusTimeoutError(
-            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} of "
-            f"register {register} within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
+            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} "
+            f"within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
         )
 
     def _write_checked(self, i: int, name: str, register: int, value: float, is_float: bool = False) -> None:

@@ -3,6 +3,7 @@
     fieldbus register robot.yaml arm j0 PMAX
     fieldbus register robot.yaml arm j0 TIMEOUT 1000
     fieldbus register robot.yaml arm j0 10 3
+    fieldbus register robot.yaml arm j0 PMAX 12.5 --save
     fieldbus register robot.yaml legs a1 0x1234 --type float32
     fieldbus register robot.yaml legs a1 watchdog_timeout 0.2
 
@@ -16,7 +17,8 @@ uint32, int32 or bool. A write is confirmed by reading the register back.
 
 The bus is opened alone, outside any cycle: no motor is enabled or commanded, and the command is
 refused while a master runs on the CAN channel. Writes go to the motor's RAM (a Damiao motor keeps
-them until power-off; saving to flash is the vendor tool's job).
+them until power-off); --save then stores every register of a Damiao motor to its flash, which the
+motor does only while disabled (it does not answer otherwise: exit 1).
 """
 
 from __future__ import annotations
@@ -34,11 +36,11 @@ from fieldbus.errors import FieldbusError
 
 EXAMPLES = __doc__.split("\n\n")[1].strip("\n")
 CODES = [
-    (0, "the register was read, or written and read back with the value written"),
+    (0, "the register was read, or written and read back with the value written (and saved: --save)"),
     (
         1,
         "the network file, the bus, the motor or the register is unknown or refused, the value does not\n"
-        "fit, a master holds the channel, or the motor did not answer",
+        "fit, a master holds the channel, or the motor did not answer (--save: an enabled motor)",
     ),
     (FAILED, "the write was answered but the register reads back another value (printed)"),
 ]
@@ -61,6 +63,9 @@ def register(sub: Any) -> None:
     )
     p.add_argument("value", metavar="VALUE", nargs="?", help="the value to write (omit to read)")
     p.add_argument("--type", dest="type_name", choices=tuple(TYPES), help="value type where REG does not say")
+    p.add_argument(
+        "--save", action="store_true", help="Damiao: then store the registers to flash (motor disabled)"
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -81,6 +86,11 @@ def parse_value(text: str, type_name: str, where: str) -> float:
         return float(n)
     except (ValueError, OverflowError):
         raise FieldbusError(f"{where}: {text!r} is not a {type_name} value") from None
+
+
+def _as_written(value: float, type_name: str) -> float:
+    """``value`` as the register holds it (a float32 register rounds)."""
+    return float(struct.unpack("<f", struct.pack("<f", value))[0]) if type_name == "float32" else value
 
 
 def _show(value: float, type_name: str) -> str:
@@ -122,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     value = None if args.value is None else parse_value(args.value, type_name, f"{where} {reg_name}")
     if value is not None and read_only:
         raise FieldbusError(f"{where}: register {reg_name} ({reg_no}) is read-only")
+    if args.save and cfg.damiao is None:
+        raise FieldbusError(f"{where}: --save stores a Damiao motor's registers; an ODrive saves over USB")
     backend = RawCanBackend(bus)
     backend.open()
     try:
@@ -131,14 +143,16 @@ def run(args: argparse.Namespace) -> int:
             if value is not None:
                 backend.register(i, reg_no, value, is_float=is_float)
             got = backend.register(i, reg_no, is_float=is_float)
+            if args.save and (value is None or got == _as_written(value, type_name)):
+                backend.save_registers(i)
         else:
             fmt = TYPES[type_name]
             data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
             got = float(struct.unpack(fmt, backend.sdo(i, reg_no, data))[0])
     finally:
         backend.close()
-    if type_name == "float32" and value is not None:
-        value = float(struct.unpack("<f", struct.pack("<f", value))[0])  # what a float32 register can hold
+    if value is not None:
+        value = _as_written(value, type_name)
     same = value is None or got == value
     label = reg_name if reg_name.endswith(f" {reg_no}") else f"{reg_name} ({reg_no})"
     if args.json:
@@ -148,12 +162,15 @@ def run(args: argparse.Namespace) -> int:
             "node": slave.node_id,
             "register": reg_no,
         }
-        out.update(name=reg_name, type=type_name, value=got, written=value, ok=same)
+        out.update(name=reg_name, type=type_name, value=got, written=value, saved=args.save and same, ok=same)
         print(json.dumps(out))
     elif value is None:
-        print(f"{where} {label} = {_show(got, type_name)}  [{type_name}]")
+        saved = ", saved to flash" if args.save else ""
+        print(f"{where} {label} = {_show(got, type_name)}  [{type_name}]{saved}")
     else:
-        back = "" if same else f", reads back {_show(got, type_name)}"
+        back = (
+            f", reads back {_show(got, type_name)}" if not same else (", saved to flash" if args.save else "")
+        )
         print(f"{where} {label} <- {_show(value, type_name)}  [{type_name}]{back}")
     if not same:
         print(

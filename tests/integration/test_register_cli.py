@@ -12,6 +12,7 @@ import itertools
 import json
 import os
 import struct
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -107,6 +108,23 @@ def test_damiao_registers_by_name_and_number(
     assert _requests(listener)[-2] == bytes([2, 0, 0x55, 27]) + struct.pack("<f", 12.5)
     code, out, _ = _run(capsys, "register", str(net), "arm", "j1", "MST_ID")
     assert code == 0 and "MST_ID (7) = 18 (0x12)" in out
+    _requests(listener)
+
+    # --save: write, read back, then the save request [id, 0xAA, 0x01]; a disabled motor answers
+    code, out, _ = _run(capsys, "register", str(net), "arm", "j0", "TIMEOUT", "2000", "--save")
+    assert (
+        code == 0 and out.strip() == "arm j0 (node 1) TIMEOUT (9) <- 2000 (0x7D0)  [uint32], saved to flash"
+    )
+    assert _requests(listener)[-1] == bytes([1, 0, 0xAA, 1, 0, 0, 0, 0])
+    assert sim.state[1].saves == 1
+    # an enabled motor does not save (nor answer): exit 1, the reason named
+    listener.send(can.Message(arbitration_id=2, data=bytes([0xFF] * 7 + [0xFC]), is_extended_id=False))
+    deadline = time.monotonic() + 5
+    while sim.state[2].error != 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    code, _, err = _run(capsys, "register", str(net), "arm", "j1", "KP_APR", "5", "--save")
+    assert code == 1 and "did not answer the save to flash (a motor saves only while disabled)" in err
+    assert sim.state[2].saves == 0 and sim.state[2].reg(27) == 5.0  # written to RAM, not saved
 
 
 def test_damiao_errors_and_exit_codes(
@@ -178,6 +196,8 @@ def test_odrive_endpoints_and_firmware_0_5(tmp_path: Path, capsys: pytest.Captur
         assert code == 1 and "give --type float32, uint32, int32 or bool" in err
         code, _, err = _run(capsys, "register", str(net), "legs", "a0", "watchdog")
         assert code == 1 and "neither an endpoint id" in err
+        code, _, err = _run(capsys, "register", str(net), "legs", "a0", "0x1B0", "--save")
+        assert code == 1 and "--save stores a Damiao motor's registers" in err
     old, _ = _net(tmp_path, "legs", "a", Path(PDO_MAPS) / "odrive_3_6.yaml", 1)
     code, _, err = _run(capsys, "register", str(old), "legs", "a0", "0x1B0")
     assert code == 1 and "ODrive firmware 0.5 has no endpoint access over CAN" in err
