@@ -19,13 +19,19 @@ b) the seed's layout, 4 buses x 3 motors, paced at 1 kHz (``run_cycles``, as
    that ended after their deadline), counted misses (bus cycles without every
    reply), safe stops (10 misses in a row on a bus, the seed's rule).
 
+``--families mit,damiao`` (the default) runs both actuator families on each
+transport: the MIT motors above and Damiao DM-J4310 motors
+(``damiao_dm_j4310.yaml``, ``sim_slaves.damiao``: bring-up with register
+read-back, MIT mode, replies on MST_ID), and gives the ratio damiao / mit of the
+p50s per transport within each round.
+
 Both transports' emulator processes are started once and idle while the other
 transport runs. Percentiles are per round; the table shows their median over
 rounds (max: over all rounds), counts summed over rounds, and the ratio
 udp_multicast / fieldbus_udp of the p50s taken within each round (median).
 
     python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000]
-        [--emulators one|per-bus] [--json]
+        [--emulators one|per-bus] [--families mit,damiao] [--json]
 """
 
 from __future__ import annotations
@@ -53,21 +59,26 @@ from fieldbus.runtime.loop import gc_held, run_cycles
 from fieldbus.runtime.report import run_report
 from fieldbus.runtime.timing import CycleTimer
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
+from sim_slaves.damiao import DamiaoSimulator
 from sim_slaves.mit_motor import MitMotorSimulator
 
 MIT_MAP = Path(PDO_MAPS) / "cubemars_ak80_9_mit.yaml"
+DAMIAO_MAP = Path(PDO_MAPS) / "damiao_dm_j4310.yaml"
+FAMILIES = {"mit": MIT_MAP, "damiao": DAMIAO_MAP}  # family (also the emulator process's --kind) -> map
 TRANSPORTS = ("udp_multicast", "fieldbus_udp")
 BUSES, MOTORS = 4, 3
 BACK_TO_BACK_TIMEOUT_US = 20_000  # (a): a round trip, never a timeout
 
 
-def network_text(buses: list[CanChannel], timeout_us: int, safe_stop_after: int = 10) -> str:
-    """A network file: one rawcan bus of MOTORS MIT motors per channel, 1 kHz."""
+def network_text(
+    buses: list[CanChannel], timeout_us: int, safe_stop_after: int = 10, drive_map: Path = MIT_MAP
+) -> str:
+    """A network file: one rawcan bus of MOTORS motors of ``drive_map`` (MIT by default) per channel, 1 kHz."""
     return (
         f"cycle_time_us: 1000\nreceive_timeout_us: {timeout_us}\nsafe_stop_after: {safe_stop_after}\nbuses:\n"
         + "".join(
             f"  - {{name: leg{i}, type: rawcan, {b.network_keys()},\n"
-            f"     slaves: [{{name: 'leg{i}_m{{i}}', map: {json.dumps(str(MIT_MAP))}, node_id: 1, count: {MOTORS}}}]}}\n"
+            f"     slaves: [{{name: 'leg{i}_m{{i}}', map: {json.dumps(str(drive_map))}, node_id: 1, count: {MOTORS}}}]}}\n"
             for i, b in enumerate(buses)
         )
     )
@@ -120,11 +131,14 @@ def paced(net_file: Path, cycles: int) -> dict[str, float]:
     }
 
 
-def emulator_frame_us(frames: int = 500, batches: int = 5) -> float:
-    """The MIT emulator's own work per command frame (µs, median of ``batches``), here on a virtual bus."""
-    drive = load_drive_map(MIT_MAP)
+def emulator_frame_us(family: str = "mit", frames: int = 500, batches: int = 5) -> float:
+    """An emulator's own work per MIT command frame (µs, median of ``batches``), here on a virtual bus
+    (``family`` damiao: the Damiao emulator, its motors enabled first)."""
+    drive = load_drive_map(FAMILIES[family])
+    kind = DamiaoSimulator if family == "damiao" else MitMotorSimulator
     with can.Bus(interface="virtual", channel=f"frame-cost-{time.monotonic_ns()}") as bus:
-        sim = MitMotorSimulator(bus, [(drive, n) for n in range(1, MOTORS + 1)], dt_s=0.001)
+        sim = kind(bus, [(drive, n) for n in range(1, MOTORS + 1)], dt_s=0.001)
+        sim.handle(can.Message(arbitration_id=1, data=bytes([0xFF] * 7 + [0xFC]), is_extended_id=False))
         msg = can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False)
         for _ in range(100):
             sim.handle(msg)
@@ -138,6 +152,7 @@ def emulator_frame_us(frames: int = 500, batches: int = 5) -> float:
 
 
 def summary(rounds: list[dict[str, dict[str, Any]]], who: str, scenario: str) -> dict[str, float]:
+    """Medians over ``rounds`` of one contender (``who``: a transport, or "damiao/fieldbus_udp") in ``scenario``."""
     rows = [r[who][scenario] for r in rounds]
     out: dict[str, float] = {
         "p50_us": statistics.median(x["p50_us"] for x in rows),
@@ -165,25 +180,42 @@ def main() -> int:
         default="one",
         help="one emulator process serving every bus (default) or one process per bus",
     )
+    p.add_argument(
+        "--families",
+        default="mit,damiao",
+        help="actuator families, comma-separated: mit (CubeMars AK80-9), damiao (DM-J4310); default both",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = p.parse_args()
+    families = [f.strip() for f in args.families.split(",") if f.strip()]
+    if not families or any(f not in FAMILIES for f in families):
+        p.error(f"--families: a comma-separated list of {', '.join(FAMILIES)}")
+    who_all = [_who(f, t) for f in families for t in TRANSPORTS]
     rounds: list[dict[str, dict[str, Any]]] = []
-    frame_us = emulator_frame_us()  # before any emulator process runs
+    frame_us = {f: emulator_frame_us(f) for f in families}  # before any emulator process runs
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
         files: dict[str, tuple[Path, Path]] = {}
-        for t, who in enumerate(TRANSPORTS):
-            buses = [udp_bus(10 * t + i, interface=who) for i in range(BUSES)]
-            groups = [buses] if args.emulators == "one" else [[b] for b in buses]
-            for g in groups:
-                stack.enter_context(can_emulator_process("mit", MIT_MAP, range(1, MOTORS + 1), g, dt_s=0.001))
-            one, four = Path(tmp) / f"{who}-1.yaml", Path(tmp) / f"{who}-4.yaml"
-            one.write_text(network_text(buses[:1], BACK_TO_BACK_TIMEOUT_US))
-            four.write_text(network_text(buses, args.timeout_us))
-            files[who] = (one, four)
+        for f_no, family in enumerate(families):
+            drive_map = FAMILIES[family]
+            for t, transport in enumerate(TRANSPORTS):
+                who = _who(family, transport)
+                buses = [udp_bus(20 * f_no + 10 * t + i, interface=transport) for i in range(BUSES)]
+                groups = [buses] if args.emulators == "one" else [[b] for b in buses]
+                for g in groups:
+                    stack.enter_context(
+                        can_emulator_process(family, drive_map, range(1, MOTORS + 1), g, dt_s=0.001)
+                    )
+                one, four = (
+                    Path(tmp) / f"{family}-{transport}-1.yaml",
+                    Path(tmp) / f"{family}-{transport}-4.yaml",
+                )
+                one.write_text(network_text(buses[:1], BACK_TO_BACK_TIMEOUT_US, drive_map=drive_map))
+                four.write_text(network_text(buses, args.timeout_us, drive_map=drive_map))
+                files[who] = (one, four)
         shown = RoundProgress(args.rounds)
         for k in range(args.rounds):
-            order = TRANSPORTS if k % 2 == 0 else TRANSPORTS[::-1]
-            got: dict[str, dict[str, Any]] = {who: {} for who in TRANSPORTS}
+            order = who_all if k % 2 == 0 else who_all[::-1]
+            got: dict[str, dict[str, Any]] = {who: {} for who in who_all}
             for who in order:
                 got[who]["back_to_back"] = back_to_back(files[who][0], args.exchanges)
             for who in order:
@@ -197,15 +229,31 @@ def main() -> int:
         "cycles": args.cycles,
         "timeout_us": args.timeout_us,
         "emulators": args.emulators,
+        "families": families,
         "emulator_frame_us": frame_us,
-        "summary": {
-            who: {s: summary(rounds, who, s) for s in ("back_to_back", "paced")} for who in TRANSPORTS
-        },
+        "summary": {who: {s: summary(rounds, who, s) for s in ("back_to_back", "paced")} for who in who_all},
+        # udp_multicast / fieldbus_udp per family (the MIT family under its old key)
         "ratio_p50": {
-            s: statistics.median(
-                r["udp_multicast"][s]["p50_us"] / r["fieldbus_udp"][s]["p50_us"] for r in rounds
-            )
+            s: _ratio(rounds, _who(families[0], "udp_multicast"), _who(families[0], "fieldbus_udp"), s)
             for s in ("back_to_back", "paced")
+        },
+        "ratio_transport_p50": {
+            family: {
+                s: _ratio(rounds, _who(family, "udp_multicast"), _who(family, "fieldbus_udp"), s)
+                for s in ("back_to_back", "paced")
+            }
+            for family in families
+        },
+        # the other families against the first (damiao / mit), per transport
+        "ratio_family_p50": {
+            f"{family}/{families[0]}": {
+                t: {
+                    s: _ratio(rounds, _who(family, t), _who(families[0], t), s)
+                    for s in ("back_to_back", "paced")
+                }
+                for t in TRANSPORTS
+            }
+            for family in families[1:]
         },
         "per_round": rounds,
     }
@@ -215,11 +263,11 @@ def main() -> int:
     print(f"# CAN between processes: udp_multicast vs fieldbus_udp ({machine_note()})\n")
     s = result["summary"]
     print(
-        f"(a) 1 bus x {MOTORS} MIT motors, exchange() back to back, {args.exchanges} per round, {args.rounds} rounds\n"
+        f"(a) 1 bus x {MOTORS} motors, exchange() back to back, {args.exchanges} per round, {args.rounds} rounds\n"
     )
     print(
         table(
-            ["transport", "p50 [µs]", "p99 [µs]", "missed"],
+            ["family / transport", "p50 [µs]", "p99 [µs]", "missed"],
             [
                 [
                     who,
@@ -227,21 +275,20 @@ def main() -> int:
                     f"{s[who]['back_to_back']['p99_us']:.0f}",
                     str(s[who]["back_to_back"]["missed"]),
                 ]
-                for who in TRANSPORTS
+                for who in who_all
             ],
         )
     )
-    print(f"\nratio of p50 (udp_multicast / fieldbus_udp): {result['ratio_p50']['back_to_back']:.2f}\n")
     total = args.cycles * args.rounds
     print(
-        f"(b) {BUSES} buses x {MOTORS} MIT motors, paced at 1 kHz, receive timeout {args.timeout_us} µs, "
+        f"\n(b) {BUSES} buses x {MOTORS} motors, paced at 1 kHz, receive timeout {args.timeout_us} µs, "
         f"{args.cycles} cycles per round ({total} in all), emulators: "
         f"{'one process for every bus' if args.emulators == 'one' else 'one process per bus'}\n"
     )
     print(
         table(
             [
-                "transport",
+                "family / transport",
                 "p50 [µs]",
                 "p99 [µs]",
                 "max [µs]",
@@ -259,17 +306,34 @@ def main() -> int:
                     f"{s[who]['paced']['missed']} / {total * BUSES}",
                     str(s[who]["paced"]["safe_stops"]),
                 ]
-                for who in TRANSPORTS
+                for who in who_all
             ],
         )
     )
-    print(f"\nratio of p50 (udp_multicast / fieldbus_udp): {result['ratio_p50']['paced']:.2f}")
-    print(
-        f"\nthe MIT emulator's own work: {frame_us:.0f} µs per command frame "
-        f"({BUSES * MOTORS} frames per cycle: {BUSES * MOTORS * frame_us / 1000:.2f} ms of CPU per 1 ms cycle "
-        "in the emulator processes)"
-    )
+    print("\nratios of the p50s within a round (median over rounds):")
+    for family, r in result["ratio_transport_p50"].items():
+        print(
+            f"  {family}: udp_multicast / fieldbus_udp {r['back_to_back']:.2f} back to back, {r['paced']:.2f} paced"
+        )
+    for pair, per in result["ratio_family_p50"].items():
+        for t, r in per.items():
+            print(f"  {pair} on {t}: {r['back_to_back']:.2f} back to back, {r['paced']:.2f} paced")
+    for family, us in frame_us.items():
+        print(
+            f"\nthe {family} emulator's own work: {us:.0f} µs per command frame ({BUSES * MOTORS} frames per "
+            f"cycle: {BUSES * MOTORS * us / 1000:.2f} ms of CPU per 1 ms cycle in the emulator processes)"
+        )
     return 0
+
+
+def _who(family: str, transport: str) -> str:
+    """A contender's key: the family and the transport, e.g. ``damiao/fieldbus_udp``."""
+    return f"{family}/{transport}"
+
+
+def _ratio(rounds: list[dict[str, dict[str, Any]]], top: str, bottom: str, scenario: str) -> float:
+    """Median over rounds of ``top`` p50 / ``bottom`` p50, each pair from one round."""
+    return statistics.median(r[top][scenario]["p50_us"] / r[bottom][scenario]["p50_us"] for r in rounds)
 
 
 if __name__ == "__main__":

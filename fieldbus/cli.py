@@ -41,6 +41,7 @@ COMMANDS = (
     "decode",
     "scan",
     "sdo",
+    "register",
     "plot",
     "report",
     "import_",

@@ -489,6 +489,10 @@ class Operational(_Phase):
                     self.result.drive_faults[g.name] = w.faults
             self._faults.append(watches)
         self._code_reads: list[tuple[DriveFault, Future[bytes | None]]] = []  # 0x603F read when not in a PDO
+        # raw-CAN motor faults (Damiao error codes, ODrive axis errors): the backend's onsets, as events
+        self._motor_events: list[Any] = [  # Callable[[int], tuple[DriveFault, ...]] | None
+            getattr(b, "take_motor_events", None) for b in net.backends
+        ]
 
     @property
     def groups(self) -> dict[str, AxisGroup]:
@@ -604,6 +608,9 @@ class Operational(_Phase):
                     events.append(fault)
                     if fault.code is None:
                         self._read_code(b, fault)
+        take = self._motor_events[k]
+        if take is not None:
+            events.extend(take(cycle))
         if st.error is None and (verdict is not Verdict.OK or b.recovering):
             try:
                 b.recover_step()

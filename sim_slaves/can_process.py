@@ -3,7 +3,8 @@
 In one process the emulated nodes and the master share one interpreter lock: the
 nodes' work lands inside the master's cycle. Here a child process runs
 :class:`~sim_slaves.canopen.CanopenSimulator` (``--kind canopen``) or
-:class:`~sim_slaves.mit_motor.MitMotorSimulator` (``--kind mit``) on a python-can
+:class:`~sim_slaves.mit_motor.MitMotorSimulator` (``--kind mit``) or
+:class:`~sim_slaves.damiao.DamiaoSimulator` (``--kind damiao``) on a python-can
 bus that crosses processes: ``fieldbus_udp`` (:mod:`fieldbus.backends.udpcan`,
 fixed-size datagrams on the loopback, the lean one), python-can's
 ``udp_multicast`` (msgpack per frame, needs msgpack), one group and port per
@@ -129,7 +130,7 @@ class _OptionAction(argparse.Action):
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """The command line (see the module)."""
     p = argparse.ArgumentParser(prog="python -m sim_slaves.can_process", description=__doc__.splitlines()[0])
-    p.add_argument("--kind", choices=("canopen", "mit"), required=True)
+    p.add_argument("--kind", choices=("canopen", "mit", "damiao"), required=True)
     p.add_argument("--map", required=True, help="drive map of every node")
     p.add_argument("--nodes", required=True, help="node ids, e.g. 1,2,3")
     p.add_argument(
@@ -182,6 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     emulator: Any
     if args.kind == "canopen":
         from sim_slaves.canopen import CanopenSimulator as emulator
+    elif args.kind == "damiao":
+        from sim_slaves.damiao import DamiaoSimulator as emulator
     else:
         from sim_slaves.mit_motor import MitMotorSimulator as emulator
     with ExitStack() as stack:

@@ -26,6 +26,10 @@ switches a motor's mode between cycles; the reply's error code is watched
 sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
 the disable frame.
 
+A fault's onset (either family) is also queued for :meth:`RawCanBackend.take_motor_events`, which the
+network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
+with the family's name) in ``CycleResult.events`` and recordings, once per onset.
+
 Family ``odrive`` (:mod:`fieldbus.core.odrive`, CANSimple): each cycle a motor gets its mode's
 set-point frame (``node << 5 | 0x0C/0x0D/0x0E``) and a remote frame asking for Get_Encoder_Estimates,
 whose answer is the cycle's reply; heartbeats (and, firmware 0.6, Get_Error answers) update the
@@ -50,6 +54,7 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import damiao, odrive
+from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
@@ -65,6 +70,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
+SAVE_REGISTER = 1  # the register byte of a Damiao save request (the damiao-motor package's store_parameters)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -79,6 +85,27 @@ class MotorFault:
 
     def __str__(self) -> str:
         return f"{self.slave}: motor error 0x{self.code:X} {self.name}"
+
+
+@dataclass(frozen=True)
+class MotorFaultEvent(DriveFault):
+    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a Damiao
+    error code outside ``ok_codes`` or of a new ODrive axis error, with the family's name for it.
+
+    ``code`` is the family's own code (Damiao error nibble, ODrive axis error bits), not a CiA 402 0x603F.
+    """
+
+    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP, ...")
+
+    @property
+    def name(self) -> str:
+        return self.reason
+
+    def __str__(self) -> str:
+        return f"{self.slave} ({self.group}[{self.axis}]): motor fault 0x{self.code or 0:X} {self.reason}"
+
+
+_NO_EVENTS: tuple[MotorFaultEvent, ...] = ()
 
 
 class RawCanBackend(CanFaults, Backend):
@@ -115,6 +142,9 @@ class RawCanBackend(CanFaults, Backend):
         self._codes = np.zeros(self.n_slaves, dtype=np.int16)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
+        self._onsets: deque[tuple[int, int, str]] = deque(
+            maxlen=FAULT_LOG
+        )  # (motor, code, name) not yet taken
         self._cycles = 0
         # family odrive: protocol, mode, set-point frames by command id, the RTR, heartbeat routing
         self._od: list[odrive.OdriveProtocol | None] = [self._od_of(i) for i in range(self.n_slaves)]
@@ -227,12 +257,27 @@ class RawCanBackend(CanFaults, Backend):
         when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
-        regs = proto.registers
+        regs = self._proto(i).registers
         if value is None:
             op, data = regs.read, bytes(4)
         else:
             op, data = regs.write, damiao.pack_register(value, is_float)
+        what = f"{'read' if value is None else 'write'} of register {register}"
+        return damiao.unpack_register(self._register_request(i, op, register, data, what), is_float)
+
+    def save_registers(self, slave: int | str) -> None:
+        """Store a Damiao motor's registers to its flash (op save); the motor answers only while disabled.
+
+        Blocking, outside the cycle. Raises :class:`~fieldbus.errors.BusTimeoutError` without an answer.
+        """
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        what = "save to flash (a motor saves only while disabled)"
+        self._register_request(i, self._proto(i).registers.save, SAVE_REGISTER, bytes(4), what)
+
+    def _register_request(self, i: int, op: int, register: int, data: bytes, what: str) -> bytes:
+        """One register request to motor ``i`` on the register id; the 4 value bytes of its answer."""
+        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
+        regs = proto.registers
         self._drain()
         try:
             self._bus.send(
@@ -252,13 +297,12 @@ class RawCanBackend(CanFaults, Backend):
                     continue
                 got = damiao.register_reply(node, bytes(msg.data), (op,))
                 if got is not None and got[1] == register:
-                    return damiao.unpack_register(got[2], is_float)
+                    return got[2]
         except (can.CanError, OSError) as exc:
             raise self._io_failed("register access", exc) from exc
-        what = "read" if value is None else "write"
         raise BusTimeoutError(
-            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} of "
-            f"register {register} within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
+            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} "
+            f"within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
         )
 
     def _write_checked(self, i: int, name: str, register: int, value: float, is_float: bool = False) -> None:
@@ -358,11 +402,26 @@ class RawCanBackend(CanFaults, Backend):
             if code != self._codes[i]:
                 proto = self._proto(i)
                 if code not in proto.ok_codes:
-                    self.motor_faults += 1
-                    self.faults.append(
-                        MotorFault(self._cycles, self.areas[i].slave.name, code, proto.error_name(code))
-                    )
+                    self._fault(i, code, proto.error_name(code))
                 self._codes[i] = code
+
+    def _fault(self, i: int, code: int, name: str) -> None:
+        """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
+        self.motor_faults += 1
+        self.faults.append(MotorFault(self._cycles, self.areas[i].slave.name, code, name))
+        self._onsets.append((i, code, name))
+
+    def take_motor_events(self, cycle: int) -> tuple[MotorFaultEvent, ...]:
+        """The fault onsets since the last call as events of cycle ``cycle`` (the network's cycle index), each
+        once; onsets seen during bring-up come with the first cycle. An empty tuple (no allocation) mostly."""
+        if not self._onsets:
+            return _NO_EVENTS
+        out = []
+        while self._onsets:
+            i, code, name = self._onsets.popleft()
+            a = self.areas[i]
+            out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
+        return tuple(out)
 
     # -- family odrive -------------------------------------------------------------------
     def _little(self, i: int) -> bool:
@@ -430,9 +489,7 @@ class RawCanBackend(CanFaults, Backend):
             last = self._od_hb[i]
             self._od_hb[i] = (error, state)
             if error and (last is None or last[0] != error):
-                self.motor_faults += 1
-                name = self.areas[i].slave.name
-                self.faults.append(MotorFault(self._cycles, name, error, proto.error_names(error)))
+                self._fault(i, error, proto.error_names(error))
                 if proto.protocol == "0.6":  # the detail: active errors and the disarm reason
                     self._od_frame(i, "get_error", remote=True)
         elif kind == "get_error" and len(data) == 8:

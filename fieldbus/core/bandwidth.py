@@ -768,6 +768,8 @@ def _motor_frames(
 ) -> list[CanFrame]:
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
     (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them."""
+    if cfg.damiao is not None or cfg.odrive is not None:
+        return family_frames(name, cfg, node, frame_bits)
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
     command = CanFrame(command_id, sum(p.size for p in rpdo), f"{name} command", frame_bits=frame_bits)
@@ -775,6 +777,60 @@ def _motor_frames(
         reply_id, sum(p.size for p in tpdo), f"{name} reply", frame_bits=frame_bits, after=command.label
     )
     return [command, reply]
+
+
+#: Data bytes the master puts in every Damiao mode frame and ODrive set-point: the rawcan backend
+#: zero-pads them to 8 (Damiao velocity mode and ODrive Set_Input_Torque carry 4 bytes of numbers).
+RAWCAN_COMMAND_BYTES = 8
+#: ODrive replies on classic CAN: Get_Encoder_Estimates (2 x float32) and the heartbeat (8-byte DBC length).
+ODRIVE_REPLY_BYTES = 8
+
+
+def family_frames(
+    name: str, cfg: RawCanConfig, node: int, frame_bits: int | None = None, mode: str | None = None
+) -> list[CanFrame]:
+    """One cycle of a Damiao or ODrive motor as the rawcan backend runs it, from its map's family section.
+
+    Damiao: the command of ``mode`` (default: the map's, written to CTRL_MODE at bring-up) on
+    ``node + id_offset`` (MIT +0x000, position-velocity +0x100, velocity +0x200, position-force +0x300),
+    8 bytes, and its 8-byte reply on MST_ID. ODrive (CANSimple, ``node << 5 | command``): the mode's
+    set-point (8 bytes), the Get_Encoder_Estimates remote frame (no data field: counted as 0 data bytes)
+    and its 8-byte answer; the heartbeat (8 bytes every ``heartbeat_ms``) as a background frame.
+    """
+    if cfg.damiao is not None:
+        dm = cfg.damiao
+        m = dm.mode_named(mode or dm.mode)
+        command = CanFrame(
+            node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", frame_bits=frame_bits
+        )
+        reply = CanFrame(
+            cfg.reply_can_id(node), 8, f"{name} reply", frame_bits=frame_bits, after=command.label
+        )
+        return [command, reply]
+    od = cfg.odrive
+    if od is None:
+        raise ValueError(f"{name}: not a Damiao or ODrive map")
+    om = od.mode_named(mode or od.mode)
+    setpoint = CanFrame(
+        node << 5 | om.command, RAWCAN_COMMAND_BYTES, f"{name} {om.name} set-point", frame_bits=frame_bits
+    )
+    estimates_id = od.can_id(node, "get_encoder_estimates")
+    rtr = CanFrame(estimates_id, 0, f"{name} encoder RTR", frame_bits=frame_bits)
+    estimates = CanFrame(
+        estimates_id, ODRIVE_REPLY_BYTES, f"{name} encoder estimates", frame_bits=frame_bits, after=rtr.label
+    )
+    out = [setpoint, rtr, estimates]
+    if od.heartbeat_ms > 0:
+        out.append(
+            CanFrame(
+                od.can_id(node, "heartbeat"),
+                ODRIVE_REPLY_BYTES,
+                f"{name} heartbeat",
+                period_us=od.heartbeat_ms * 1000.0,
+                frame_bits=frame_bits,
+            )
+        )
+    return out
 
 
 def bus_bandwidth(

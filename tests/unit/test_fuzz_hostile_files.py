@@ -42,6 +42,7 @@ COMMANDS: dict[str, Argv] = {
     "validate": lambda f, out: ["validate", f],
     "validate-json": lambda f, out: ["validate", "--json", f],
     "bandwidth": lambda f, out: ["bandwidth", f],
+    "register": lambda f, out: ["register", f, "arm", "j0", "PMAX"],
     "run": lambda f, out: ["run", f, "--cycles", "1", "--backend", "sim"],
     "soak": lambda f, out: ["soak", f, "--cycles", "1", "--rate", "0"],
     "latency": lambda f, out: ["latency", f, "--backend", "sim", "--steps", "1", "--hold", "4"],

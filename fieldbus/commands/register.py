@@ -1,0 +1,219 @@
+"""``fieldbus register NETWORK.yaml BUS MOTOR REG [VALUE]``: read or write one register of a raw-CAN motor.
+
+    fieldbus register robot.yaml arm j0 PMAX
+    fieldbus register robot.yaml arm j0 TIMEOUT 1000
+    fieldbus register robot.yaml arm j0 10 3
+    fieldbus register robot.yaml arm j0 PMAX 12.5 --save
+    fieldbus register robot.yaml legs a1 0x1234 --type float32
+    fieldbus register robot.yaml legs a1 watchdog_timeout 0.2
+
+Damiao motors (family damiao): REG is a register name of the Damiao manual (PMAX, VMAX, TMAX,
+CTRL_MODE, TIMEOUT, MST_ID, ESC_ID, KP_ASR..., any case) or its number 0..255; the value is a
+float32 or uint32 by the register table (--type for a number outside it). The request goes on
+CAN id 0x7FF, the answer comes on the motor's MST_ID (the map's). ODrive controllers (family
+odrive, firmware 0.6): REG is an endpoint id (RxSdo / TxSdo; ids depend on the firmware build,
+its flat_endpoints.json) or the name of an endpoint in the map's odrive.config; --type float32,
+uint32, int32 or bool. A write is confirmed by reading the register back.
+
+The bus is opened alone, outside any cycle: no motor is enabled or commanded, and the command is
+refused while a master runs on the CAN channel. Writes go to the motor's RAM (a Damiao motor keeps
+them until power-off); --save then stores every register of a Damiao motor to its flash, which the
+motor does only while disabled (it does not answer otherwise: exit 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+import sys
+from typing import Any
+
+from fieldbus.commands.usage import FAILED, add_command
+from fieldbus.core import damiao_registers
+from fieldbus.core.damiao_registers import Register
+from fieldbus.errors import FieldbusError
+
+EXAMPLES = __doc__.split("\n\n")[1].strip("\n")
+CODES = [
+    (0, "the register was read, or written and read back with the value written (and saved: --save)"),
+    (
+        1,
+        "the network file, the bus, the motor or the register is unknown or refused, the value does not\n"
+        "fit, a master holds the channel, or the motor did not answer (--save: an enabled motor)",
+    ),
+    (FAILED, "the write was answered but the register reads back another value (printed)"),
+]
+TYPES = {"float32": "<f", "uint32": "<I", "int32": "<i", "bool": "<I"}
+
+
+def register(sub: Any) -> None:
+    p = add_command(
+        sub,
+        "register",
+        help="read or write one register of a Damiao motor or endpoint of an ODrive on a live bus",
+        doc=__doc__,
+        codes=CODES,
+    )
+    p.add_argument("network", metavar="NETWORK.yaml", help="network file naming the bus and its motors")
+    p.add_argument("bus", metavar="BUS", help="a rawcan bus of the network")
+    p.add_argument("motor", metavar="MOTOR", help="a motor (slave name) on that bus, e.g. j0")
+    p.add_argument(
+        "reg", metavar="REG", help="register name or number (Damiao), endpoint id or name (ODrive)"
+    )
+    p.add_argument("value", metavar="VALUE", nargs="?", help="the value to write (omit to read)")
+    p.add_argument("--type", dest="type_name", choices=tuple(TYPES), help="value type where REG does not say")
+    p.add_argument(
+        "--save", action="store_true", help="Damiao: then store the registers to flash (motor disabled)"
+    )
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.set_defaults(func=run)
+
+
+def parse_value(text: str, type_name: str, where: str) -> float:
+    """``text`` as a value of ``type_name`` (float32, uint32, int32, bool); :class:`FieldbusError` if it does not fit."""
+    try:
+        if type_name == "float32":
+            v = float(text)
+            struct.pack("<f", v)
+            return v
+        if type_name == "bool" and text.lower() in ("true", "false"):
+            return 1.0 if text.lower() == "true" else 0.0
+        n = int(text, 0)
+        lo, hi = {"uint32": (0, 0xFFFFFFFF), "int32": (-(1 << 31), (1 << 31) - 1), "bool": (0, 1)}[type_name]
+        if not lo <= n <= hi:
+            raise ValueError
+        return float(n)
+    except (ValueError, OverflowError):
+        raise FieldbusError(f"{where}: {text!r} is not a {type_name} value") from None
+
+
+def _as_written(value: float, type_name: str) -> float:
+    """``value`` as the register holds it (a float32 register rounds)."""
+    return float(struct.unpack("<f", struct.pack("<f", value))[0]) if type_name == "float32" else value
+
+
+def _show(value: float, type_name: str) -> str:
+    return f"{value:g}" if type_name == "float32" else f"{int(value)} (0x{int(value) & 0xFFFFFFFF:X})"
+
+
+def run(args: argparse.Namespace) -> int:
+    from fieldbus.backends.rawcan import RawCanBackend
+    from fieldbus.core.network import load_network
+
+    net = load_network(args.network)
+    bus = next((b for b in net.buses if b.name == args.bus), None)
+    if bus is None:
+        names = ", ".join(b.name for b in net.buses)
+        raise FieldbusError(f"{args.network}: no bus '{args.bus}' (buses: {names})")
+    if bus.type != "rawcan":
+        raise FieldbusError(f"{args.network}: bus '{bus.name}' is {bus.type}; registers are on rawcan buses")
+    slave = next((s for s in bus.slaves if s.name == args.motor), None)
+    if slave is None:
+        names = ", ".join(s.name for s in bus.slaves)
+        raise FieldbusError(f"{args.network}: bus '{bus.name}' has no motor '{args.motor}' (motors: {names})")
+    cfg = slave.map.rawcan
+    family = cfg.family if cfg is not None else "none"
+    if cfg is not None and cfg.odrive is not None and cfg.odrive.protocol != "0.6":
+        raise FieldbusError(
+            f"{slave.name} (map {slave.map.name}): ODrive firmware {cfg.odrive.protocol} has no endpoint access "
+            "over CAN (RxSdo is firmware 0.6): configure it over USB (odrivetool)"
+        )
+    if cfg is None or (cfg.damiao is None and cfg.odrive is None):
+        raise FieldbusError(
+            f"{slave.name} (map {slave.map.name}, family {family}): no registers over CAN; "
+            "Damiao (family damiao) and ODrive 0.6 (family odrive) motors have them"
+        )
+    where = f"{bus.name} {slave.name} (node {slave.node_id})"
+    if cfg.damiao is not None:
+        reg_no, reg_name, type_name, read_only = _damiao_register(args, where)
+    else:
+        reg_no, reg_name, type_name, read_only = _odrive_endpoint(args, cfg.odrive, where)
+    value = None if args.value is None else parse_value(args.value, type_name, f"{where} {reg_name}")
+    if value is not None and read_only:
+        raise FieldbusError(f"{where}: register {reg_name} ({reg_no}) is read-only")
+    if args.save and cfg.damiao is None:
+        raise FieldbusError(f"{where}: --save stores a Damiao motor's registers; an ODrive saves over USB")
+    backend = RawCanBackend(bus)
+    backend.open()
+    try:
+        i = backend.slave_index(slave.name)
+        if cfg.damiao is not None:
+            is_float = type_name == "float32"
+            if value is not None:
+                backend.register(i, reg_no, value, is_float=is_float)
+            got = backend.register(i, reg_no, is_float=is_float)
+            if args.save and (value is None or got == _as_written(value, type_name)):
+                backend.save_registers(i)
+        else:
+            fmt = TYPES[type_name]
+            data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
+            got = float(struct.unpack(fmt, backend.sdo(i, reg_no, data))[0])
+    finally:
+        backend.close()
+    if value is not None:
+        value = _as_written(value, type_name)
+    same = value is None or got == value
+    label = reg_name if reg_name.endswith(f" {reg_no}") else f"{reg_name} ({reg_no})"
+    if args.json:
+        out: dict[str, Any] = {
+            "bus": bus.name,
+            "motor": slave.name,
+            "node": slave.node_id,
+            "register": reg_no,
+        }
+        out.update(name=reg_name, type=type_name, value=got, written=value, saved=args.save and same, ok=same)
+        print(json.dumps(out))
+    elif value is None:
+        saved = ", saved to flash" if args.save else ""
+        print(f"{where} {label} = {_show(got, type_name)}  [{type_name}]{saved}")
+    else:
+        back = (
+            f", reads back {_show(got, type_name)}" if not same else (", saved to flash" if args.save else "")
+        )
+        print(f"{where} {label} <- {_show(value, type_name)}  [{type_name}]{back}")
+    if not same:
+        print(
+            f"error: {where}: {label} reads back {_show(got, type_name)} "
+            f"after writing {_show(value or 0.0, type_name)}",
+            file=sys.stderr,
+        )
+        return FAILED
+    return 0
+
+
+def _damiao_register(args: argparse.Namespace, where: str) -> tuple[int, str, str, bool]:
+    found = damiao_registers.lookup(args.reg)
+    if found is None:
+        known = ", ".join(r.name for r in damiao_registers.REGISTERS if not r.read_only)
+        raise FieldbusError(f"{where}: no register '{args.reg}': a number 0..255 or a name ({known}...)")
+    if isinstance(found, Register):
+        type_name = "float32" if found.is_float else "uint32"
+        if args.type_name not in (None, type_name):
+            raise FieldbusError(f"{where}: register {found.name} ({found.number}) is a {type_name}")
+        return found.number, found.name, type_name, found.read_only
+    if args.type_name not in (None, "float32", "uint32"):
+        raise FieldbusError(f"{where}: Damiao registers are float32 or uint32, not {args.type_name}")
+    if args.type_name is None and args.value is not None:
+        raise FieldbusError(f"{where}: register {found} is not in the table: give --type float32 or uint32")
+    return found, f"register {found}", args.type_name or "uint32", False
+
+
+def _odrive_endpoint(args: argparse.Namespace, proto: Any, where: str) -> tuple[int, str, str, bool]:
+    item = next((c for c in proto.config if c.name == args.reg), None)
+    if item is not None:
+        type_name = "float32" if item.type == "float32" else item.type
+        return item.endpoint, item.name, args.type_name or type_name, False
+    try:
+        endpoint = int(args.reg, 0)
+    except ValueError:
+        named = ", ".join(c.name for c in proto.config) or "none"
+        raise FieldbusError(
+            f"{where}: '{args.reg}' is neither an endpoint id (0..65535) nor an endpoint of the map's "
+            f"odrive.config (named there: {named})"
+        ) from None
+    if not 0 <= endpoint <= 0xFFFF:
+        raise FieldbusError(f"{where}: endpoint ids are 0..65535, not {endpoint}")
+    if args.type_name is None and args.value is not None:
+        raise FieldbusError(f"{where}: endpoint {endpoint}: give --type float32, uint32, int32 or bool")
+    return endpoint, f"endpoint {endpoint}", args.type_name or "uint32", False
