@@ -45,6 +45,7 @@ COMMANDS = (
     "report",
     "import_",
     "serve",
+    "monitor",
 )
 
 DESCRIPTION = """\
