@@ -7,7 +7,8 @@ Lays the calls out as rmw_cyclonedds does (rmw_cyclonedds_cpp/src: topics
 ``<pkg>::srv::dds_::<Srv>_Request_`` / ``_Response_``, each sample starting
 with the request header: the client's 64-bit id and a 64-bit sequence number,
 echoed by the reply). Calls, in order: Trigger ``enable`` before claiming
-(refused), SetBool ``claim`` true, Trigger ``enable``, fieldbus_msgs SdoRead of
+(refused), SetBool ``claim`` true, Trigger ``enable``, fieldbus_msgs SdoRead of 0x6041
+(statusword) until it shows OPERATION ENABLED, SdoRead of
 0x6060 (modes of operation) on the first joint, Trigger ``disable``, SetBool ``claim`` false. Prints
 one JSON line: each call's (success, message) and what fieldbus it imported.
 """
@@ -95,13 +96,19 @@ class Client:
     def call(self, timeout_s: float = 20.0, **fields: object) -> list[object]:
         # like rclpy's wait_for_service: wait until the server's reader and writer are matched
         end = time.monotonic() + timeout_s
-        while time.monotonic() < end and not (self.writer.get_matched_subscriptions() and self.reader.matched_pub):
+        while time.monotonic() < end and not (
+            self.writer.get_matched_subscriptions() and self.reader.matched_pub
+        ):
             time.sleep(0.01)
         self.seq += 1
         self.writer.write(self.req_type(client_guid=self.guid, sequence_number=self.seq, **fields))
         while time.monotonic() < end:
             for r in self.reader.take(N=16):
-                if isinstance(r, self.rep_type) and r.client_guid == self.guid and r.sequence_number == self.seq:
+                if (
+                    isinstance(r, self.rep_type)
+                    and r.client_guid == self.guid
+                    and r.sequence_number == self.seq
+                ):
                     return [r.success, r.message] + ([list(r.data)] if hasattr(r, "data") else [])
             time.sleep(0.005)
         raise SystemExit(f"no reply from {self.writer}")
@@ -119,6 +126,14 @@ def main() -> int:
         "enable_unclaimed": enable.call(),
         "claim": claim.call(data=True),
         "enable": enable.call(),
+    }
+    # the drives enable over a few cycles: read the first one's statusword (0x6041) until it shows it
+    for _ in range(100):
+        calls["statusword"] = sdo.call(axis="j0", index=0x6041, sub_index=0)
+        if calls["statusword"][0] and calls["statusword"][2][0] & 0x6F == 0x27:  # operation enabled
+            break
+        time.sleep(0.02)
+    calls |= {
         "sdo_read": sdo.call(axis="j0", index=0x6060, sub_index=0),
         "sdo_read_bad": sdo.call(axis="j9", index=0x6098, sub_index=0),
         "disable": disable.call(),
