@@ -428,7 +428,8 @@ def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_re
 ) -> None:
     """ROS 2 services as rmw_cyclonedds lays them out (rq/rr topics, request header echoed), called by a
     client that imports cyclonedds only: Trigger refused before the claim, then SetBool claim, Trigger
-    enable (the drive's own statusword, read by the SdoRead service, shows OPERATION ENABLED)."""
+    enable (the drive's own statusword, read by the SdoRead service, shows OPERATION ENABLED), SetMode
+    (the drive's 0x6061 shows it; an unknown mode is refused)."""
     peer = subprocess.run(
         [sys.executable, str(HERE / "ros2_service_client.py"), "robot", "joints", str(served)],
         capture_output=True,
@@ -450,6 +451,11 @@ def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_re
     assert calls["sdo_read"] == [True, "", [8]]  # 0x6060: CSP
     ok, message, _ = calls["sdo_read_bad"]
     assert not ok and "no axis 'j9'" in message
+    assert calls["set_mode_csv"] == [True, '{"mode": "CSV"}']
+    assert calls["mode_display_csv"] == [True, "", [9]]  # the drive shows CSV (0x6061)
+    ok, message = calls["set_mode_bad"]
+    assert not ok and "unknown mode 'bogus'" in message
+    assert calls["set_mode_8"] == [True, '{"mode": "CSP"}']
     assert calls["disable"] == [True, ""] and calls["release"] == [True, ""]
     with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="watcher") as op:
         assert op["joints"].state.owner == ""  # released

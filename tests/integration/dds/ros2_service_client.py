@@ -9,7 +9,8 @@ with the request header: the client's 64-bit id and a 64-bit sequence number,
 echoed by the reply). Calls, in order: Trigger ``enable`` before claiming
 (refused), SetBool ``claim`` true, Trigger ``enable``, fieldbus_msgs SdoRead of 0x6041
 (statusword) until it shows OPERATION ENABLED, SdoRead of
-0x6060 (modes of operation) on the first joint, Trigger ``disable``, SetBool ``claim`` false. Prints
+0x6060 (modes of operation) on the first joint, fieldbus_msgs SetMode to CSV (then
+SdoRead 0x6061 of the last joint), to "bogus" (refused) and to 8, Trigger ``disable``, SetBool ``claim`` false. Prints
 one JSON line: each call's (success, message) and what fieldbus it imported.
 """
 
@@ -79,6 +80,21 @@ class SdoRead_Response_(IdlStruct, typename="fieldbus_msgs::srv::dds_::SdoRead_R
     data: t.sequence[t.uint8] = field(default_factory=list)
 
 
+@dataclass
+class SetMode_Request_(IdlStruct, typename="fieldbus_msgs::srv::dds_::SetMode_Request_"):
+    client_guid: t.uint64 = 0
+    sequence_number: t.int64 = 0
+    mode: str = ""
+
+
+@dataclass
+class SetMode_Response_(IdlStruct, typename="fieldbus_msgs::srv::dds_::SetMode_Response_"):
+    client_guid: t.uint64 = 0
+    sequence_number: t.int64 = 0
+    success: bool = False
+    message: str = ""
+
+
 # ROS 2's default service QoS: reliable, keep last 10, volatile
 SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10))
 
@@ -122,6 +138,7 @@ def main() -> int:
     disable = Client(dp, f"{base}/disable", Trigger_Request_, Trigger_Response_)
     claim = Client(dp, f"{base}/claim", SetBool_Request_, SetBool_Response_)
     sdo = Client(dp, f"{base}/sdo_read", SdoRead_Request_, SdoRead_Response_)
+    set_mode = Client(dp, f"{base}/set_mode", SetMode_Request_, SetMode_Response_)
     calls = {
         "enable_unclaimed": enable.call(),
         "claim": claim.call(data=True),
@@ -136,6 +153,10 @@ def main() -> int:
     calls |= {
         "sdo_read": sdo.call(axis="j0", index=0x6060, sub_index=0),
         "sdo_read_bad": sdo.call(axis="j9", index=0x6098, sub_index=0),
+        "set_mode_csv": set_mode.call(mode="CSV"),
+        "mode_display_csv": sdo.call(axis="j2", index=0x6061, sub_index=0),
+        "set_mode_bad": set_mode.call(mode="bogus"),
+        "set_mode_8": set_mode.call(mode="8"),
         "disable": disable.call(),
         "release": claim.call(data=False),
     }
