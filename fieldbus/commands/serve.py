@@ -143,6 +143,10 @@ def run(args: argparse.Namespace) -> int:
         for n, g in server.groups.items()
     }
     report["requests"] = server.requests
+    w = server.stalls
+    report["stalls"] = {"count": w.count, "longest_us": w.longest_ns // 1000, "note": w.note}
+    if w.note:
+        print(f"fieldbus serve: {w.note}", file=sys.stderr)
     if args.json:
         print(json.dumps(report))
     else:

@@ -38,6 +38,7 @@ from fieldbus.dds.participant import (
     topic_names,
 )
 from fieldbus.dds.service_host import ServiceHost
+from fieldbus.dds.stalls import StallWatch
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
 
@@ -223,8 +224,17 @@ class BusServer:
     """Serve a network over DDS: create it before bring-up (topics take a while to create: the slaves'
     watchdogs would expire), :meth:`attach` the running phase, then call :meth:`step` once per cycle."""
 
-    def __init__(self, net: Network, participant: Participant, options: ServeOptions) -> None:
+    def __init__(
+        self,
+        net: Network,
+        participant: Participant,
+        options: ServeOptions,
+        *,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self._op: Operational | None = None
+        self._clock = clock  # when each cycle starts (ns): the gaps between cycles, for the stall watch
+        self.stalls = StallWatch(1_000_000)
         self.participant = participant
         self.options = options
         self.groups: dict[str, ServedGroup] = {
@@ -252,6 +262,7 @@ class BusServer:
                 served.fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
                 served.bus = bv.name
                 served.writer = op.safe_stops[g.name]
+        self.stalls = StallWatch(int(op.cycle_time_us * 1000))
         self._op = op
 
     @property
@@ -273,6 +284,7 @@ class BusServer:
 
     def step(self, k: int) -> bool:
         """One cycle: requests, commands, gates, ``exchange()``, publish (every n-th cycle). Never stops early."""
+        self.stalls.tick(self._clock(), self.op.result.cycle)
         for req in self.req_reader.take(N=16):
             if isinstance(req, m.Request):
                 self._answer(req)
@@ -284,6 +296,7 @@ class BusServer:
             g.take_commands()
             g.before_exchange()
         res = self.op.exchange()
+        self.stalls.result(res.cycle, res.safe_stop)
         if res.events:
             self._note_faults(res)
         o = self.options
@@ -492,8 +505,21 @@ class BusServer:
         return g.ctrl
 
     def diagnostics(self) -> m.DiagnosticArray:
-        """Per bus its verdict and counters, per group its gate, owner and drive states."""
-        status = []
+        """Per bus its verdict and counters, per group its gate, owner and drive states; the cycle's stalls."""
+        w = self.stalls
+        status = [
+            m.DiagnosticStatus(
+                level=LEVEL_ERROR if w.note else LEVEL_WARN if w.count else LEVEL_OK,
+                name="fieldbus/cycle",
+                message=w.note or (f"{w.count} stall(s)" if w.count else "OK"),
+                hardware_id="cycle",
+                values=[
+                    m.KeyValue("stalls", str(w.count)),
+                    m.KeyValue("longest_stall_us", str(w.longest_ns // 1000)),
+                    m.KeyValue("last_stall_cycle", str(w.last_cycle) if w.last_cycle >= 0 else ""),
+                ],
+            )
+        ]
         for bv in self.op.buses:
             st = bv.status
             level = LEVEL_ERROR if st.safe_stop else LEVEL_OK if st.verdict.name == "OK" else LEVEL_WARN
