@@ -2,8 +2,8 @@
 
 Needs no bus access: it reads what ``fieldbus serve`` publishes (per group the
 joints, their freshness and drive states, the command gate and its counters;
-per bus the verdict and counters, drive errors by name) and never claims a
-group. For the live view of a cycle in this process, use ``--monitor`` on
+per bus the verdict and counters; per axis its newest drive fault by name)
+and never claims a group. For the live view of a cycle in this process, use ``--monitor`` on
 ``fieldbus run``, ``demo`` or ``soak``.
 """
 
@@ -27,7 +27,7 @@ def register(sub: Any) -> None:
         help="show a served robot (fieldbus serve) live from its DDS topics",
         doc=__doc__,
         codes=[
-            (0, "the view was shown (--once, --refreshes) or stopped with Ctrl-C"),
+            (0, "the view was shown (once with --once, N times with --refreshes N)"),
             (1, "no served bus answered in that namespace and domain, or cyclonedds is missing"),
         ],
     )

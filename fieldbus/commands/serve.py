@@ -4,8 +4,11 @@ Per axis group, every cycle (or every n-th): ``sensor_msgs/JointState`` on
 ``rt/<namespace>/<group>/joint_states`` and ``fieldbus_msgs/AxisState`` on
 ``.../axis_state``; commands (``fieldbus_msgs/JointCommand``) from ``.../command``.
 Requests (claim, release, enable, disable, clear_safe_stop, describe) on
-``rt/<namespace>/request``, answers on ``rt/<namespace>/reply``; diagnostics
+``rt/<namespace>/request``, answers on ``rt/<namespace>/reply``; the same requests
+as ROS 2 services ``/<namespace>/<group>/<name>`` (std_srvs Trigger / SetBool,
+fieldbus_msgs SetMode / SdoRead / SdoWrite); diagnostics
 (``diagnostic_msgs/DiagnosticArray``) on ``rt/<namespace>/diagnostics``.
+``fieldbus monitor --dds`` shows a served bus live.
 """
 
 from __future__ import annotations
@@ -32,6 +35,10 @@ command safety (cycles of this bus):
   for --stop-after cycles: SAFE STOP (the group's safe outputs), latched until the owner sends
   clear_safe_stop. One client owns a group (claim); others are refused. A sequence number that does
   not increase is dropped and counted.
+
+ROS 2 services, per group: /NS/GROUP/claim (std_srvs/SetBool), enable, disable, clear_safe_stop,
+  home (std_srvs/Trigger), set_mode, sdo_read, sdo_write (fieldbus_msgs); see docs/dds.md.
+  'fieldbus monitor --dds --namespace NS' shows the served bus live.
 
 real time: on a loaded machine run the cycle at --rt-priority N (SCHED_FIFO, needs CAP_SYS_NICE). A
   cycle thread starved for longer than the drives' SyncManager watchdog (100 ms by default) drops them
