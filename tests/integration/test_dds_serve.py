@@ -428,7 +428,8 @@ def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_re
 ) -> None:
     """ROS 2 services as rmw_cyclonedds lays them out (rq/rr topics, request header echoed), called by a
     client that imports cyclonedds only: Trigger refused before the claim, then SetBool claim, Trigger
-    enable (the drive's own statusword, read by the SdoRead service, shows OPERATION ENABLED), SetMode
+    enable (the drive's own statusword, read by the SdoRead service, shows OPERATION ENABLED), commands
+    under the client id the claim named (the joints go there), SetMode
     (the drive's 0x6061 shows it; an unknown mode is refused)."""
     peer = subprocess.run(
         [sys.executable, str(HERE / "ros2_service_client.py"), "robot", "joints", str(served)],
@@ -448,6 +449,9 @@ def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_re
     assert calls["enable"] == [True, ""]
     ok, _, statusword = calls["statusword"]
     assert ok and statusword[0] & 0x6F == 0x27, statusword  # OPERATION ENABLED, as the drive reports it
+    moved = out["moved"]  # commanded under the client id the claim named: the joints went there
+    assert np.allclose(moved["after"], moved["goal"], atol=1e-3), moved
+    assert not np.allclose(moved["before"], moved["goal"], atol=0.1)
     assert calls["sdo_read"] == [True, "", [8]]  # 0x6060: CSP
     ok, message, _ = calls["sdo_read_bad"]
     assert not ok and "no axis 'j9'" in message

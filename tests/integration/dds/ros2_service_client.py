@@ -8,9 +8,11 @@ Lays the calls out as rmw_cyclonedds does (rmw_cyclonedds_cpp/src: topics
 with the request header: the client's 64-bit id and a 64-bit sequence number,
 echoed by the reply). Calls, in order: Trigger ``enable`` before claiming
 (refused), SetBool ``claim`` true, Trigger ``enable``, fieldbus_msgs SdoRead of 0x6041
-(statusword) until it shows OPERATION ENABLED, SdoRead of
-0x6060 (modes of operation) on the first joint, fieldbus_msgs SetMode to CSV (then
-SdoRead 0x6061 of the last joint), to "bogus" (refused) and to 8, Trigger ``disable``, SetBool ``claim`` false. Prints
+(statusword) until it shows OPERATION ENABLED, SdoRead of 0x6060 (modes of
+operation) on the first joint, fieldbus_msgs SetMode to CSV (then SdoRead 0x6061
+of the last joint), to "bogus" (refused) and to 8, JointCommands under the client
+id the claim's reply names (every joint to its position + 0.2 rad), Trigger
+``disable``, SetBool ``claim`` false. Prints
 one JSON line: each call's (success, message) and what fieldbus it imported.
 """
 
@@ -24,6 +26,7 @@ from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl import types as t
+from cyclonedds.idl.annotations import key
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -95,6 +98,42 @@ class SetMode_Response_(IdlStruct, typename="fieldbus_msgs::srv::dds_::SetMode_R
     message: str = ""
 
 
+# the topics' messages (builtin_interfaces/Time, std_msgs/Header, sensor_msgs/JointState; fieldbus_msgs/JointCommand)
+@dataclass
+class Time_(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: t.int32 = 0
+    nanosec: t.uint32 = 0
+
+
+@dataclass
+class Header_(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time_ = field(default_factory=Time_)
+    frame_id: str = ""
+
+
+@dataclass
+class JointState_(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
+    header: Header_ = field(default_factory=Header_)
+    name: t.sequence[str] = field(default_factory=list)
+    position: t.sequence[t.float64] = field(default_factory=list)
+    velocity: t.sequence[t.float64] = field(default_factory=list)
+    effort: t.sequence[t.float64] = field(default_factory=list)
+
+
+@dataclass
+class JointCommand_(IdlStruct, typename="fieldbus_msgs::msg::dds_::JointCommand_"):
+    header: Header_ = field(default_factory=Header_)
+    client_id: str = ""
+    key("client_id")
+    sequence: t.uint64 = 0
+    position: t.sequence[t.float64] = field(default_factory=list)
+    velocity: t.sequence[t.float64] = field(default_factory=list)
+    torque: t.sequence[t.float64] = field(default_factory=list)
+    kp: t.sequence[t.float64] = field(default_factory=list)
+    kd: t.sequence[t.float64] = field(default_factory=list)
+
+
+BEST_EFFORT = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(1), Policy.Durability.Volatile)
 # ROS 2's default service QoS: reliable, keep last 10, volatile
 SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10))
 
@@ -130,6 +169,16 @@ class Client:
         raise SystemExit(f"no reply from {self.writer}")
 
 
+def newest(states: DataReader, timeout_s: float = 10.0) -> JointState_:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        got = [s for s in states.take(N=16) if isinstance(s, JointState_)]
+        if got:
+            return got[-1]
+        time.sleep(0.002)
+    raise SystemExit("no joint states")
+
+
 def main() -> int:
     ns, group, domain = sys.argv[1], sys.argv[2], int(sys.argv[3])
     dp = DomainParticipant(domain)
@@ -157,11 +206,23 @@ def main() -> int:
         "mode_display_csv": sdo.call(axis="j2", index=0x6061, sub_index=0),
         "set_mode_bad": set_mode.call(mode="bogus"),
         "set_mode_8": set_mode.call(mode="8"),
-        "disable": disable.call(),
-        "release": claim.call(data=False),
     }
+    # command as the claim's reply says: the client id it names, every joint to its position + 0.2 rad
+    states = DataReader(dp, Topic(dp, f"rt/{ns}/{group}/joint_states", JointState_), qos=BEST_EFFORT)
+    commands = DataWriter(dp, Topic(dp, f"rt/{ns}/{group}/command", JointCommand_), qos=BEST_EFFORT)
+    me = calls["claim"][1].split("'")[1]
+    before = newest(states).position
+    goal = [p + 0.2 for p in before]
+    end, seq = time.monotonic() + 2.0, 0
+    while time.monotonic() < end:
+        seq += 1
+        commands.write(JointCommand_(client_id=me, sequence=seq, position=goal))
+        time.sleep(0.002)
+    moved = {"before": list(before), "goal": goal, "after": list(newest(states).position)}
+    calls |= {"disable": disable.call(), "release": claim.call(data=False)}
     out = {
         "calls": calls,
+        "moved": moved,
         "fieldbus_imported": sorted(n for n in sys.modules if n.split(".")[0] == "fieldbus"),
     }
     print(json.dumps(out), flush=True)
