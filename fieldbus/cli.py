@@ -46,6 +46,7 @@ COMMANDS = (
     "report",
     "import_",
     "serve",
+    "monitor",
 )
 
 DESCRIPTION = """\

@@ -34,6 +34,13 @@ RELIABLE = Qos(
     Policy.History.KeepLast(32),
     Policy.Durability.Volatile,
 )
+# diagnostics: the newest kept for late joiners (a monitor that starts sees it at once); a ROS 2
+# subscriber with the default VOLATILE durability still matches
+DIAGNOSTICS = Qos(
+    Policy.Reliability.Reliable(duration(seconds=1)),
+    Policy.History.KeepLast(1),
+    Policy.Durability.TransientLocal,
+)
 
 
 def domain_id(domain: int | None) -> int:

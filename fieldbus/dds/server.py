@@ -23,12 +23,22 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
+from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
-from fieldbus.dds.participant import REALTIME, RELIABLE, Participant, service_names, topic_names
+from fieldbus.dds.participant import (
+    DIAGNOSTICS,
+    REALTIME,
+    RELIABLE,
+    Participant,
+    service_names,
+    topic_names,
+)
+from fieldbus.dds.service_host import ServiceHost
+from fieldbus.dds.stalls import StallWatch
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
 
@@ -42,6 +52,8 @@ INPUT_ROLES = {
 }
 MODES_OUT, MODES_DISPLAY = 0x6060, 0x6061
 ENABLE_TIMEOUT_CYCLES = 3000
+SERVICE_POLL_EVERY = 10  # cycles between looks at the ROS 2 service requests (10 ms at 1 kHz)
+Respond = Callable[["dict[str, Any] | FieldbusError | None"], None]  # a service call's answer
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
 
 
@@ -125,6 +137,7 @@ class ServedGroup:
                 out.values[mo] if mo is not None else None,
             )
         self.no_state = np.full(self.n, -1, dtype=np.int8)
+        self.drive_errors: list[str] = [""] * self.n  # per axis its newest drive fault, by name
         topics = topic_names(server.options.namespace, name)
         dp = server.participant.dp
         self.js_writer = DataWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
@@ -211,8 +224,17 @@ class BusServer:
     """Serve a network over DDS: create it before bring-up (topics take a while to create: the slaves'
     watchdogs would expire), :meth:`attach` the running phase, then call :meth:`step` once per cycle."""
 
-    def __init__(self, net: Network, participant: Participant, options: ServeOptions) -> None:
+    def __init__(
+        self,
+        net: Network,
+        participant: Participant,
+        options: ServeOptions,
+        *,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self._op: Operational | None = None
+        self._clock = clock  # when each cycle starts (ns): the gaps between cycles, for the stall watch
+        self.stalls = StallWatch(1_000_000)
         self.participant = participant
         self.options = options
         self.groups: dict[str, ServedGroup] = {
@@ -222,14 +244,15 @@ class BusServer:
             for name, g in net.groups.items()
         }
         # requests answered in a later cycle: (request, a check returning the detail or None while under way)
-        self._pending: list[tuple[m.Request, Callable[[], dict[str, Any] | None]]] = []
+        self._pending: list[tuple[m.Request, Callable[[], dict[str, Any] | None], Respond | None]] = []
         self._answered: dict[str, tuple[int, m.Reply]] = {}  # per client its newest reply (a resend)
         dp = participant.dp
         names = service_names(options.namespace)
         self.req_reader = DataReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
         self.reply_writer = DataWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
-        self.diag_writer = DataWriter(dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=RELIABLE)
+        self.diag_writer = DataWriter(dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=DIAGNOSTICS)
         self.requests = 0
+        self.services = ServiceHost(participant, options.namespace, list(self.groups), self._answer)
 
     def attach(self, op: Operational) -> None:
         """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
@@ -239,6 +262,7 @@ class BusServer:
                 served.fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
                 served.bus = bv.name
                 served.writer = op.safe_stops[g.name]
+        self.stalls = StallWatch(int(op.cycle_time_us * 1000))
         self._op = op
 
     @property
@@ -260,15 +284,21 @@ class BusServer:
 
     def step(self, k: int) -> bool:
         """One cycle: requests, commands, gates, ``exchange()``, publish (every n-th cycle). Never stops early."""
+        self.stalls.tick(self._clock(), self.op.result.cycle)
         for req in self.req_reader.take(N=16):
             if isinstance(req, m.Request):
                 self._answer(req)
+        if k % SERVICE_POLL_EVERY == 0:
+            self.services.poll()
         if self._pending:
             self._advance_pending()
         for g in self.groups.values():
             g.take_commands()
             g.before_exchange()
         res = self.op.exchange()
+        self.stalls.result(res.cycle, res.safe_stop)
+        if res.events:
+            self._note_faults(res)
         o = self.options
         if k % o.publish_every == 0:
             now = time.time_ns()
@@ -278,40 +308,58 @@ class BusServer:
             self.diag_writer.write(self.diagnostics())
         return False
 
-    def _answer(self, req: m.Request) -> None:
-        done = self._answered.get(req.client_id)
-        if done is not None and done[0] == req.request_id:  # a resend of an answered request
-            self.reply_writer.write(done[1])
-            return
-        if any(p.client_id == req.client_id and p.request_id == req.request_id for p, _ in self._pending):
-            return  # a resend of a request under way: answered when it ends
+    def _note_faults(self, res: CycleResult) -> None:
+        """Keep each axis's newest drive fault (0x603F by name) for the diagnostics."""
+        for ev in res.events:
+            if isinstance(ev, DriveFault) and ev.group in self.groups:
+                g = self.groups[ev.group]
+                code = f"0x{ev.code:04X} " if ev.code is not None else ""
+                g.drive_errors[ev.axis] = f"{code}{ev.name} (cycle {ev.cycle})"
+
+    def _answer(self, req: m.Request, respond: Respond | None = None) -> None:
+        """Carry out ``req``; its outcome goes to ``respond`` (a ROS 2 service call), else as a Reply."""
+        if respond is None:
+            done = self._answered.get(req.client_id)
+            if done is not None and done[0] == req.request_id:  # a resend of an answered request
+                self.reply_writer.write(done[1])
+                return
+            if any(
+                p.client_id == req.client_id and p.request_id == req.request_id and r is None
+                for p, _, r in self._pending
+            ):
+                return  # a resend of a request under way: answered when it ends
         self.requests += 1
         try:
             detail = self._do(req)
         except FieldbusError as exc:
-            self._reply(req, exc)
+            self._reply(req, exc, respond)
             return
         if callable(detail):
-            self._pending.append((req, detail))
+            self._pending.append((req, detail, respond))
         else:
-            self._reply(req, detail)
+            self._reply(req, detail, respond)
 
     def _advance_pending(self) -> None:
         """Once a cycle: the requests under way that have ended are answered."""
         still = []
-        for req, check in self._pending:
+        for req, check, respond in self._pending:
             try:
                 detail = check()
             except FieldbusError as exc:
-                self._reply(req, exc)
+                self._reply(req, exc, respond)
                 continue
             if detail is None:
-                still.append((req, check))
+                still.append((req, check, respond))
             else:
-                self._reply(req, detail)
+                self._reply(req, detail, respond)
         self._pending = still
 
-    def _reply(self, req: m.Request, outcome: dict[str, Any] | FieldbusError | None) -> None:
+    def _reply(
+        self, req: m.Request, outcome: dict[str, Any] | FieldbusError | None, respond: Respond | None = None
+    ) -> None:
+        if respond is not None:
+            respond(outcome)
+            return
         reply = m.Reply(client_id=req.client_id, request_id=req.request_id, ok=True)
         if isinstance(outcome, FieldbusError):
             reply.ok = False
@@ -457,8 +505,21 @@ class BusServer:
         return g.ctrl
 
     def diagnostics(self) -> m.DiagnosticArray:
-        """Per bus its verdict and counters, per group its gate, owner and drive states."""
-        status = []
+        """Per bus its verdict and counters, per group its gate, owner and drive states; the cycle's stalls."""
+        w = self.stalls
+        status = [
+            m.DiagnosticStatus(
+                level=LEVEL_ERROR if w.note else LEVEL_WARN if w.count else LEVEL_OK,
+                name="fieldbus/cycle",
+                message=w.note or (f"{w.count} stall(s)" if w.count else "OK"),
+                hardware_id="cycle",
+                values=[
+                    m.KeyValue("stalls", str(w.count)),
+                    m.KeyValue("longest_stall_us", str(w.longest_ns // 1000)),
+                    m.KeyValue("last_stall_cycle", str(w.last_cycle) if w.last_cycle >= 0 else ""),
+                ],
+            )
+        ]
         for bv in self.op.buses:
             st = bv.status
             level = LEVEL_ERROR if st.safe_stop else LEVEL_OK if st.verdict.name == "OK" else LEVEL_WARN
@@ -488,6 +549,11 @@ class BusServer:
                 m.KeyValue(f"{axis}/drive_state", _state_name(s))
                 for axis, s in zip(g.axes, states, strict=False)
             ]
+            faults = self.op.result.drive_faults.get(g.name)
+            for i, axis in enumerate(g.axes):
+                if g.drive_errors[i]:
+                    n = int(faults[i]) if faults is not None else 1
+                    values.append(m.KeyValue(f"{axis}/drive_error", f"{g.drive_errors[i]}, {n} fault(s)"))
             status.append(
                 m.DiagnosticStatus(
                     level=level,

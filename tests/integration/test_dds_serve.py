@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import select
 import signal
 import subprocess
@@ -31,8 +32,10 @@ import numpy as np
 import pytest
 
 import fieldbus.remote
+from fieldbus.cli import main
 from fieldbus.dds.gate import ClaimError, GateState
 from fieldbus.dds.participant import interface_config
+from fieldbus.runtime.capabilities import fifo_refused
 
 HERE = Path(__file__).resolve().parent / "dds"
 DEMO_JOINT = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"
@@ -40,6 +43,10 @@ HOLD_AFTER, STOP_AFTER = 500, 2000
 NO_DEADLINE = {"hold_after": 60_000, "stop_after": 120_000}  # a minute: requests between commands take time
 LOOPBACK = interface_config("lo")
 assert LOOPBACK is not None
+# the served cycle at SCHED_FIFO where the machine allows it: at normal priority a loaded machine starves
+# it past the emulated drives' 100 ms SyncManager watchdog now and then, and the bus latches its safe stop
+RT_PRIORITY = 20
+REALTIME = [] if fifo_refused(RT_PRIORITY) else ["--rt-priority", str(RT_PRIORITY)]
 
 
 def _domain(salt: int) -> int:
@@ -114,6 +121,7 @@ def _serve(
             "--stop-after",
             str(stop_after),
             "--json",
+            *REALTIME,
             *extra,
         ],
         stdout=subprocess.PIPE,
@@ -124,6 +132,7 @@ def _serve(
     try:
         ready = _read_line(proc, 60)
         assert ready["ready"] is True and ready["domain"] == domain
+        assert ready["realtime"]["refused"] == [], ready  # only asked for where the machine allows it
         yield proc
     finally:
         _stop(proc)
@@ -412,3 +421,89 @@ def test_mode_and_sdo_requests_answered_with_success_or_the_error(
                 other.sdo_write("joints", "j2", 0x6098, 0, bytes([35]))
             with pytest.raises(ClaimError, match="homer"):
                 other.set_mode("joints", "CSV")
+
+
+def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_read(
+    served: int, env: dict[str, str]
+) -> None:
+    """ROS 2 services as rmw_cyclonedds lays them out (rq/rr topics, request header echoed), called by a
+    client that imports cyclonedds only: Trigger refused before the claim, then SetBool claim, Trigger
+    enable (the drive's own statusword, read by the SdoRead service, shows OPERATION ENABLED), commands
+    under the client id the claim named (the joints go there), SetMode
+    (the drive's 0x6061 shows it; an unknown mode is refused)."""
+    peer = subprocess.run(
+        [sys.executable, str(HERE / "ros2_service_client.py"), "robot", "joints", str(served)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=180,
+    )
+    assert peer.returncode == 0, peer.stderr
+    out = json.loads(peer.stdout.strip().splitlines()[-1])
+    assert out["fieldbus_imported"] == []
+    calls = out["calls"]
+    ok, message = calls["enable_unclaimed"]
+    assert not ok and message.startswith("ClaimError: ") and "not claimed" in message
+    ok, message = calls["claim"]
+    assert ok and re.search(r"claimed as client 'ros2-[0-9a-f]+'", message), message
+    assert calls["enable"] == [True, ""]
+    ok, _, statusword = calls["statusword"]
+    assert ok and statusword[0] & 0x6F == 0x27, statusword  # OPERATION ENABLED, as the drive reports it
+    moved = out["moved"]  # commanded under the client id the claim named: the joints went there
+    assert np.allclose(moved["after"], moved["goal"], atol=1e-3), moved
+    assert not np.allclose(moved["before"], moved["goal"], atol=0.1)
+    assert calls["sdo_read"] == [True, "", [8]]  # 0x6060: CSP
+    ok, message, _ = calls["sdo_read_bad"]
+    assert not ok and "no axis 'j9'" in message
+    assert calls["set_mode_csv"] == [True, '{"mode": "CSV"}']
+    assert calls["mode_display_csv"] == [True, "", [9]]  # the drive shows CSV (0x6061)
+    ok, message = calls["set_mode_bad"]
+    assert not ok and "unknown mode 'bogus'" in message
+    assert calls["set_mode_8"] == [True, '{"mode": "CSP"}']
+    assert calls["disable"] == [True, ""] and calls["release"] == [True, ""]
+    with fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="watcher") as op:
+        assert op["joints"].state.owner == ""  # released
+        assert all(s != 4 for s in op["joints"].drive_state.tolist())  # disabled
+
+
+def _monitor(domain: int, *extra: str) -> list[str]:
+    return ["monitor", "--dds", "--namespace", "robot", "--domain", str(domain), "--interface", "lo", *extra]
+
+
+def test_monitor_dds_shows_the_served_joints_drive_states_gate_and_verdicts(
+    tmp_path: Path, env: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    served = _domain(505)
+    net = _network(tmp_path / "robot.yaml", "sim", 500)
+    with (
+        _serve(net, served, env, "--backend", "sim", **NO_DEADLINE),  # the client waits for the monitor
+        fieldbus.remote.connect("robot", domain=served, interface="lo", client_id="mover") as op,
+    ):
+        op.claim("joints")
+        op.enable("joints")
+        for _ in range(20):
+            op.exchange(deadline_s=1.0)
+        assert main(_monitor(served, "--once", "--json")) == 0
+        snap = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert main(_monitor(served, "--refreshes", "2", "--rate", "10")) == 0
+        text = capsys.readouterr().out
+    (group,) = snap["groups"]
+    assert group["name"] == "joints" and group["owner"] == "mover" and not group["safe_stop"]
+    assert group["gate"] in ("COMMANDED", "HOLD") and group["command_sequence"] > 0
+    assert [a["name"] for a in group["axes"]] == ["j0", "j1", "j2"]
+    assert [a["drive_state"] for a in group["axes"]] == ["operation enabled"] * 3
+    assert all(a["fresh"] and a["position"] is not None for a in group["axes"])
+    bus = next(s for s in snap["diagnostics"] if s["hardware_id"] == "sim")
+    assert (bus["name"], bus["level"], bus["message"]) == ("fieldbus/joints", "OK", "OK")
+    assert bus["values"]["misses"] == "0" and "safe_stops" in bus["values"]
+    # the text view, refreshed twice: the joints with their drive states, the gate, the bus's verdict
+    assert text.count("group joints: cycle") == 2 and text.count("owner mover") == 2
+    assert text.count("operation enabled") == 6 and "fieldbus/joints [OK] OK" in text
+
+
+def test_monitor_dds_without_a_served_bus_is_one_clear_error(
+    env: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(_monitor(_domain(404), "--once", "--timeout", "1")) == 1
+    err = capsys.readouterr().err
+    assert "no reply to 'describe' from namespace 'robot'" in err and "Traceback" not in err
