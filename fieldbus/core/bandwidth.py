@@ -24,6 +24,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
+from fieldbus.core import cubemars
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
@@ -739,7 +740,7 @@ def can_frames(
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
         if s.map.rawcan is not None:  # one command frame and its reply per motor, not PDOs
-            frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb)
+            frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb, fd_bus)
             continue
         for tx, pdos in ((False, s.map.rpdo), (True, s.map.tpdo)):
             for pdo in pdos:
@@ -764,15 +765,32 @@ def can_frames(
 
 
 def _motor_frames(
-    name: str, cfg: RawCanConfig, node: int, rpdo: Sequence[Pdo], tpdo: Sequence[Pdo], frame_bits: int | None
+    name: str,
+    cfg: RawCanConfig,
+    node: int,
+    rpdo: Sequence[Pdo],
+    tpdo: Sequence[Pdo],
+    frame_bits: int | None,
+    fd: bool = False,
 ) -> list[CanFrame]:
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
-    (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them."""
+    (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them;
+    CAN FD frames on an FD bus (the backend sends every data frame as FD there)."""
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
-    command = CanFrame(command_id, sum(p.size for p in rpdo), f"{name} command", frame_bits=frame_bits)
+    out_bytes, in_bytes, extended = sum(p.size for p in rpdo), sum(p.size for p in tpdo), False
+    cm = cfg.cubemars
+    if cm is not None and cm.protocol == "servo":  # 29-bit ids; the map's packet and its status frame
+        mode = cm.mode_named(cm.mode)
+        extended = True
+        out_bytes = sum(cubemars.TYPES[f.type][1] for f in mode.fields)
+        in_bytes = sum(cubemars.TYPES[f.type][1] for f in cm.status)
+        command_id, reply_id = cubemars.servo_id(mode.packet, node), cubemars.servo_id(cm.status_packet, node)
+    elif cm is not None and cm.unwrap is not None:
+        in_bytes -= 4  # the multi-turn position is the image's, not on the wire
+    command = CanFrame(command_id, out_bytes, f"{name} command", extended, fd, frame_bits=frame_bits)
     reply = CanFrame(
-        reply_id, sum(p.size for p in tpdo), f"{name} reply", frame_bits=frame_bits, after=command.label
+        reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label
     )
     return [command, reply]
 
