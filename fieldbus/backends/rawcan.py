@@ -918,18 +918,19 @@ class RawCanBackend(CanFaults, Backend):
         return [self.areas[i].slave.name for i in self._special("zero")]
 
     def _zero_commands(self) -> None:
-        """Family damiao: each motor's zero command in its mode (MIT kp = kd = torque = 0; velocity 0; position
-        modes hold the last position read with no speed and no current)."""
+        """Families damiao and cubemars (MIT): each motor's zero command in its mode (MIT kp = kd = torque
+        = 0; velocity 0; position modes hold the last position read with no speed and no current)."""
         for i, mode in enumerate(self._mode):
-            if mode is None:
-                continue
+            cm = self._cm[i]
+            if mode is None and (cm is None or cm.protocol != "mit"):
+                continue  # cubemars MIT: a zero-gain MIT command too
             cfg = self.areas[i].slave.map.rawcan
             assert cfg is not None
             a = self.areas[i]
             inputs = self.groups[a.group].image.inputs.values[a.row]
             here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
             values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
-            if mode.mit:
+            if mode is None or mode.mit:
                 msg = self._cmd[i][0]
                 data = encode_frame(cfg.command, cfg.span, values)
             else:
@@ -938,7 +939,8 @@ class RawCanBackend(CanFaults, Backend):
             self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
 
     def stop(self) -> None:
-        """Exit motor mode on every motor (Damiao: a zero command in its mode first, then disable).
+        """Exit motor mode on every motor (Damiao, CubeMars MIT: a zero command in its mode first, then
+        disable / exit; CubeMars servo: a current of 0).
         Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:
