@@ -202,7 +202,10 @@ def test_mit_mode_short_replies_fault_and_close(tmp_path: Path, channel: str) ->
         op.exchange()
         assert str(backend.faults[-1]) == "j1: motor error 0x1 over-temperature" and backend.motor_faults == 1
         drain(listener)
-        network.close()  # a zero-gain MIT command, then exit motor mode, to every motor
+        assert sim.motor(1).command is not None and sim.motor(1).command[2] == pytest.approx(
+            50.0, abs=0.2
+        )  # kp 50 till now
+        backend.stop()  # without the network's wind-down: a zero-gain MIT command, then exit, to every motor
         seen = drain(listener)
         for n in NODES:
             # commands and replies share the CAN id: the emulator tells which command came last
