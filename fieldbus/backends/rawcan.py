@@ -125,7 +125,7 @@ class RawCanBackend(CanFaults, Backend):
             self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
         ]
         self._reply_len = [
-            8 if self._od_of(i) or self._cm[i] is not None else row.size
+            8 if self._od_of(i) else (cm.reply_bytes if (cm := self._cm[i]) is not None else row.size)
             for i, row in enumerate(self._reply_rows)
         ]
         self._timeout_s = bus.receive_timeout_us / 1e6

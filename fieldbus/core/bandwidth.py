@@ -786,8 +786,8 @@ def _motor_frames(
         out_bytes = sum(cubemars.TYPES[f.type][1] for f in mode.fields)
         in_bytes = sum(cubemars.TYPES[f.type][1] for f in cm.status)
         command_id, reply_id = cubemars.servo_id(mode.packet, node), cubemars.servo_id(cm.status_packet, node)
-    elif cm is not None and cm.unwrap is not None:
-        in_bytes -= 4  # the multi-turn position is the image's, not on the wire
+    elif cm is not None:
+        in_bytes = cm.reply_bytes  # an unwrapped multi-turn position is the image's, not on the wire
     command = CanFrame(command_id, out_bytes, f"{name} command", extended, fd, frame_bits=frame_bits)
     reply = CanFrame(
         reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label

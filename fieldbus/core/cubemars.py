@@ -72,6 +72,7 @@ class CubemarsProtocol:
     status: tuple[ServoField, ...] = ()
     unwrap: tuple[str, str] | None = None  # mit: (wrapped reply field, multi-turn reply field)
     short_reply: int | None = None  # mit: a reply length older firmware sends (the first bytes of the frame)
+    reply_bytes: int = 8  # mit: the reply frame's length (the reply fields but the unwrapped one)
 
     def mode_named(self, name: str) -> ServoMode:
         for m in self.modes:
@@ -125,10 +126,20 @@ def parse_cubemars(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> C
             if into not in replies or replies[into].type != "float32" or reply[-1].name != into:
                 raise r.err((*path, "unwrap", "into"), f"'{into}' is not the last reply field, float32")
             unwrap = (src, into)
+        wire = [f for f in reply if unwrap is None or f.name != unwrap[1]]
+        bits = sum(f.bits for f in wire)
+        if any(f.type != "uint" for f in wire) or bits > 64:
+            raise r.err(
+                (*path, "unwrap"),
+                f"the MIT reply on the wire is {bits} bits of unsigned fields; a classic frame has at most 64 "
+                "(only the unwrap.into field is not on the wire)",
+            )
         short = None
         if "short_reply" in m:
-            short = r.integer(m["short_reply"], (*path, "short_reply"), 1, 8)
-        return CubemarsProtocol("mit", error_field, tuple(errors), unwrap=unwrap, short_reply=short)
+            short = r.integer(m["short_reply"], (*path, "short_reply"), 1, bits // 8)
+        return CubemarsProtocol(
+            "mit", error_field, tuple(errors), unwrap=unwrap, short_reply=short, reply_bytes=bits // 8
+        )
     for key in ("unwrap", "short_reply"):
         if key in m:
             raise r.err((*path, key), f"'{key}' is for protocol mit", key=True)

@@ -67,6 +67,7 @@ def _mit_text(**changes: str) -> str:
         ("into: position_total", "into: temperature", "not the last reply field, float32"),
         ("from: position,", "from: motor_id,", "not a scaled reply field"),
         ("error_field: error", "error_field: position", "not an unscaled reply field"),
+        ("{name: error, bits: 8}", "{name: error, bits: 32, type: float32}", "unsigned fields"),
         ("  cubemars:\n", "  damiao_x: 1\n  cubemars:\n", "damiao_x"),
     ],
 )
