@@ -144,6 +144,7 @@ class DamiaoSimulator(MitMotorSimulator):
     def handle(self, msg: can.Message) -> can.Message | None:
         """One frame: a register request, a special frame or a command of some mode; returns the reply sent."""
         can_id, data = msg.arbitration_id, bytes(msg.data)
+        self._fd = (bool(msg.is_fd), bool(msg.bitrate_switch))  # a CAN FD variant answers in FD
         any_proto = next(iter(self._proto.values()))[0]
         if can_id == any_proto.registers.can_id:
             return self._register(data)
@@ -156,7 +157,10 @@ class DamiaoSimulator(MitMotorSimulator):
 
     def _reply(self, node: int, data: bytes) -> can.Message:
         ds = self.state[node]
-        reply = can.Message(arbitration_id=int(ds.reg(7)), data=data, is_extended_id=False)
+        fd, brs = getattr(self, "_fd", (False, False))
+        reply = can.Message(
+            arbitration_id=int(ds.reg(7)), data=data, is_extended_id=False, is_fd=fd, bitrate_switch=brs
+        )
         self.bus.send(reply)
         return reply
 

@@ -11,7 +11,8 @@ Fault hooks: ``drop_replies(node, n)``, ``corrupt_replies(node, n)``,
 ``silence(node)`` and ``power_cycle(node)``. ``clock``: the time the motors
 read when a frame has no timestamp (a :class:`~fieldbus.runtime.clock.Clock`;
 default the machine's); without a thread, :meth:`MitMotorSimulator.deliver`
-takes each frame (virtual time, :mod:`fieldbus.testing`).
+takes each frame (virtual time, :mod:`fieldbus.testing`). A motor answers a CAN FD command with
+a CAN FD reply (bit-rate switched as the command was): the FD variants of these motors.
 """
 
 from __future__ import annotations
@@ -207,19 +208,29 @@ class MitMotorSimulator(BusThread):
         if st.drop:
             st.drop -= 1
         elif not st.silent:
-            values = {"position": st.position, "velocity": st.velocity, "torque": st.torque}
-            if cfg.node_field:
-                values[cfg.node_field] = st.node_id
             reply_id = cfg.reply_id if cfg.reply_id is not None else msg.arbitration_id
-            data = reply_frame.encode(values)
+            data = self._reply_data(st, cfg, reply_frame)
             if st.corrupt:
                 st.corrupt -= 1
                 data = bytes(b ^ 0xFF for b in data)
-            reply = can.Message(arbitration_id=reply_id, data=data, is_extended_id=False)
+            reply = can.Message(
+                arbitration_id=reply_id,
+                data=data,
+                is_extended_id=False,
+                is_fd=msg.is_fd,
+                bitrate_switch=msg.bitrate_switch,
+            )
             self.bus.send(reply)
         if new is not None:
             self._step(st, *new, dt)
         return reply
+
+    def _reply_data(self, st: MotorState, cfg: Any, frame: MitFrame) -> bytes:
+        """The reply's data for motor ``st`` (a family's emulator adds its fields)."""
+        values = {"position": st.position, "velocity": st.velocity, "torque": st.torque}
+        if cfg.node_field:
+            values[cfg.node_field] = st.node_id
+        return frame.encode(values)
 
     @staticmethod
     def _step(

@@ -18,6 +18,9 @@ def open_can_bus(bus: Bus, default_interface: str = "socketcan") -> Any:
 
     interface = bus.can_interface or default_interface
     extra: dict[str, Any] = dict(bus.can_options)
+    if bus.data_bitrate is not None:  # CAN FD: python-can's interfaces take fd and the data-phase rate
+        extra.setdefault("fd", True)
+        extra.setdefault("data_bitrate", bus.data_bitrate)
     try:
         return can.Bus(interface=interface, channel=bus.interface, bitrate=bus.bitrate, **extra)
     except Exception as exc:

@@ -38,10 +38,22 @@ its bits; the image's ``requested_state`` is sent as Set_Axis_State when it chan
 IDLE no set-point goes out (the safe stop writes IDLE); ``op()`` requests CLOSED_LOOP_CONTROL and waits
 for the heartbeats to say so; ``stop()`` requests IDLE. ``configure()`` waits for a heartbeat, sends
 Set_Controller_Mode and writes the map's endpoints (RxSdo, 0.6) and reads them back (TxSdo).
+
+Family ``cubemars`` (:mod:`fieldbus.core.cubemars`): in servo mode each cycle a motor gets the packet the
+image's ``mode`` field names (29-bit id ``packet << 8 | id``, big-endian numbers at the map's scales) and
+its status frame (``0x29 << 8 | id``) is decoded into the image; :meth:`RawCanBackend.set_mode` picks the
+packet by name; the safe stop's ``mode`` 1 with current 0 takes the torque off, and ``stop()`` sends a
+current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` length are taken, and the
+reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
+outside 0 are counted, named faults as for Damiao.
+
+CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
+with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
 """
 
 from __future__ import annotations
 
+import struct
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -53,7 +65,7 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core import damiao, odrive
+from fieldbus.core import cubemars, damiao, odrive
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -71,6 +83,7 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
 SAVE_REGISTER = 1  # the register byte of a Damiao save request (the damiao-motor package's store_parameters)
+SERVO_CURRENT = 1  # CubeMars servo packet: current loop (the stop sends 0 A)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -117,6 +130,18 @@ class RawCanBackend(CanFaults, Backend):
     def __init__(self, bus: Bus, **options: Any) -> None:
         super().__init__(bus, **options)
         self._bus: Any = options.get("can_bus")  # tests may hand in a bus instance
+        fd_option = dict(bus.can_options).get("fd") is True
+        self._fd = bus.data_bitrate is not None or fd_option  # CAN FD data frames
+        self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
+        # family cubemars: protocol per motor, status routing (29-bit id -> motor), MIT unwrapping
+        self._cm: list[cubemars.CubemarsProtocol | None] = [
+            (c.cubemars if (c := a.slave.map.rawcan) is not None else None) for a in self.areas
+        ]
+        self._cm_status: dict[int, int] = {}
+        self._cm_unwrap: list[tuple[cubemars.Unwrapper, int, int, float, float] | None] = [
+            None
+        ] * self.n_slaves
+        self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
         self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
@@ -126,7 +151,10 @@ class RawCanBackend(CanFaults, Backend):
         self._reply_rows = [
             self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
         ]
-        self._reply_len = [8 if self._od_of(i) else row.size for i, row in enumerate(self._reply_rows)]
+        self._reply_len = [
+            8 if self._od_of(i) else (cm.reply_bytes if (cm := self._cm[i]) is not None else row.size)
+            for i, row in enumerate(self._reply_rows)
+        ]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
@@ -171,7 +199,7 @@ class RawCanBackend(CanFaults, Backend):
                 )
             node = area.slave.node_id or 0
             out_row = self.out_row(i)
-            msg = can.Message(
+            msg = self._message(
                 arbitration_id=cfg.command_id + node, data=bytearray(out_row.size), is_extended_id=False
             )
             # the frame's data bytearray seen as a numpy array: encoding writes straight into it
@@ -181,6 +209,10 @@ class RawCanBackend(CanFaults, Backend):
                 self._family_init(i, cfg, node)
             if cfg.odrive is not None:
                 reply_id = self._odrive_init(i, cfg, node)
+            if cfg.cubemars is not None:
+                self._cubemars_init(i, cfg, node)
+                if cfg.cubemars.protocol == "servo":
+                    continue  # routed by its 29-bit status id
             byte = -1
             if cfg.node_field:
                 bit = 0
@@ -200,7 +232,7 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
-        self._families = any(m is not None for m in self._mode)
+        self._families = any(at is not None for at in self._error_at)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -226,7 +258,7 @@ class RawCanBackend(CanFaults, Backend):
         proto: damiao.DamiaoProtocol = cfg.damiao
         self._mode[i] = proto.mode_named(proto.mode)
         for m in proto.modes:
-            self._mode_msgs[i][m.name] = can.Message(
+            self._mode_msgs[i][m.name] = self._message(
                 arbitration_id=node + m.id_offset, data=bytearray(8), is_extended_id=False
             )
         self._max[i] = {f.name: f.max for f in cfg.command if f.max is not None}
@@ -239,6 +271,107 @@ class RawCanBackend(CanFaults, Backend):
         if bit // 8 != (bit + width - 1) // 8:
             raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
         self._error_at[i] = (bit // 8, 8 - (bit % 8) - width, (1 << width) - 1)
+
+    # -- family cubemars -------------------------------------------------------------------
+    def _message(self, **kw: Any) -> Any:
+        """A python-can frame; on a CAN FD bus a data frame is FD (bit-rate switched when the rates differ)."""
+        if self._fd and not kw.get("is_remote_frame"):
+            kw.update(is_fd=True, bitrate_switch=self._brs)
+        return can.Message(**kw)
+
+    def _cubemars_init(self, i: int, cfg: Any, node: int) -> None:
+        proto: cubemars.CubemarsProtocol = cfg.cubemars
+        if proto.protocol == "servo":
+            if not 0 <= node <= 0xFF:
+                raise FieldbusError(f"{self.areas[i].slave.name}: a CubeMars motor id is 0..255")
+            self._cm_status[cubemars.servo_id(proto.status_packet, node)] = i
+            at = 0
+            for f in cfg.reply:  # the image row is little-endian, fields in order
+                if f.name == proto.error_field:
+                    break
+                at += f.bits // 8
+            self._error_at[i] = (at, 0, 0xFF)
+            return
+        bit = 0
+        offsets: dict[str, int] = {}
+        for f in cfg.reply:  # frame order, most significant first
+            offsets[f.name] = bit
+            bit += f.bits
+        wire = self._reply_len[i] * 8
+        e_at, e_bits = (
+            offsets[proto.error_field],
+            next(f.bits for f in cfg.reply if f.name == proto.error_field),
+        )
+        if e_at // 8 != (e_at + e_bits - 1) // 8:
+            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
+        self._error_at[i] = (e_at // 8, 8 - (e_at % 8) - e_bits, (1 << e_bits) - 1)
+        if proto.unwrap is not None:
+            f = next(f for f in cfg.reply if f.name == proto.unwrap[0])
+            assert f.min is not None and f.max is not None
+            steps = (1 << f.bits) - (1 if cfg.span == "full" else 0)
+            shift = wire - offsets[f.name] - f.bits
+            self._cm_unwrap[i] = (
+                cubemars.Unwrapper(f.min, f.max),
+                shift,
+                (1 << f.bits) - 1,
+                f.min,
+                (f.max - f.min) / steps,
+            )
+
+    def _cm_servo_in(self, i: int, data: bytes) -> bool:
+        """A servo status frame decoded into motor ``i``'s input row (little-endian image fields)."""
+        proto = self._cm[i]
+        assert proto is not None
+        if len(data) < sum(cubemars.TYPES[f.type][1] for f in proto.status):
+            return False
+        cfg = self.areas[i].slave.map.rawcan
+        assert cfg is not None
+        values = cubemars.decode_servo(proto.status, data)
+        row, at = self._in_rows[i], 0
+        for f in cfg.reply:
+            size = f.bits // 8
+            if f.name in values:
+                x = values[f.name]
+                if f.type == "float32":
+                    raw = struct.pack("<f", x)
+                else:
+                    raw = round(x).to_bytes(size, "little", signed=f.type == "int")
+                row[at : at + size] = np.frombuffer(raw, dtype=np.uint8)
+            at += size
+        return True
+
+    def _cm_unwrap_in(self, i: int, data: bytes) -> None:
+        """The multi-turn position of motor ``i`` from this reply's wrapped one, into its float32 field."""
+        got = self._cm_unwrap[i]
+        assert got is not None
+        unwrap, shift, mask, lo, per_raw = got
+        x = int.from_bytes(bytes(data).ljust(8, b"\0"), "big")
+        total = unwrap(((x >> shift) & mask) * per_raw + lo)
+        self._in_rows[i][:4] = np.frombuffer(struct.pack("<f", total), dtype=np.uint8)
+
+    def _send_servo(self, i: int, proto: cubemars.CubemarsProtocol) -> None:
+        """One servo-mode motor's cycle: the packet the image's mode field names (none when it names none)."""
+        values = self._mode_values(i)
+        mode = proto.mode_of_packet(int(values[proto.mode_field]))
+        if mode is None:
+            return  # no such packet in the map: nothing sent, the missing status counts as a miss
+        self._servo_packet(i, mode.packet, cubemars.encode_servo(mode.fields, values))
+
+    def _servo_packet(self, i: int, packet: int, data: bytes) -> None:
+        node = self.areas[i].slave.node_id or 0
+        self._bus.send(
+            self._message(arbitration_id=cubemars.servo_id(packet, node), data=data, is_extended_id=True)
+        )
+
+    def _set_servo_mode(self, i: int, proto: cubemars.CubemarsProtocol, name: str) -> None:
+        try:
+            mode = proto.mode_named(name)
+        except KeyError:
+            raise FieldbusError(
+                f"{self.areas[i].slave.name}: no mode '{name}' (have: {', '.join(m.name for m in proto.modes)})"
+            ) from None
+        a = self.areas[i]
+        self.groups[a.group].image.outputs.values[a.row][proto.mode_field] = mode.packet
 
     def _proto(self, i: int) -> damiao.DamiaoProtocol:
         cfg = self.areas[i].slave.map.rawcan
@@ -281,7 +414,7 @@ class RawCanBackend(CanFaults, Backend):
         self._drain()
         try:
             self._bus.send(
-                can.Message(
+                self._message(
                     arbitration_id=regs.can_id,
                     data=damiao.register_frame(node, op, register, data),
                     is_extended_id=False,
@@ -362,6 +495,15 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("send", exc) from exc
             self._od_mode[i] = new_od
             return
+        cm = self._cm[i]
+        if cm is not None:
+            if cm.protocol != "servo":
+                raise FieldbusError(
+                    f"{self.areas[i].slave.name}: a CubeMars motor in MIT mode has no other mode over CAN "
+                    "(servo or MIT is chosen in CubeMars' tool)"
+                )
+            self._set_servo_mode(i, cm, mode)
+            return
         proto = self._proto(i)
         try:
             new = proto.mode_named(mode)
@@ -375,6 +517,10 @@ class RawCanBackend(CanFaults, Backend):
     def mode(self, slave: int | str) -> str | None:
         """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
+        cm = self._cm[i]
+        if cm is not None and cm.protocol == "servo":
+            found = cm.mode_of_packet(int(self._mode_values(i)[cm.mode_field]))
+            return found.name if found is not None else None
         m = self._mode[i] or self._od_mode[i]
         return m.name if m is not None else None
 
@@ -400,8 +546,12 @@ class RawCanBackend(CanFaults, Backend):
             byte, shift, mask = at
             code = (int(self._reply_rows[i][byte]) >> shift) & mask
             if code != self._codes[i]:
-                proto = self._proto(i)
-                if code not in proto.ok_codes:
+                cm = self._cm[i]
+                proto: damiao.DamiaoProtocol | cubemars.CubemarsProtocol = (
+                    cm if cm is not None else self._proto(i)
+                )
+                ok = proto.ok_codes if isinstance(proto, damiao.DamiaoProtocol) else frozenset({0})
+                if code not in ok:
                     self._fault(i, code, proto.error_name(code))
                 self._codes[i] = code
 
@@ -441,11 +591,11 @@ class RawCanBackend(CanFaults, Backend):
             )
         self._od_mode[i] = proto.mode_named(proto.mode)
         for m in proto.modes:
-            self._od_msgs[i][m.command] = can.Message(
+            self._od_msgs[i][m.command] = self._message(
                 arbitration_id=node << 5 | m.command, data=bytearray(8), is_extended_id=False
             )
         reply_id = proto.can_id(node, "get_encoder_estimates")
-        self._od_rtr[i] = can.Message(
+        self._od_rtr[i] = self._message(
             arbitration_id=reply_id, is_remote_frame=True, dlc=8, is_extended_id=False
         )
         self._od_side[proto.can_id(node, "heartbeat")] = (i, "heartbeat")
@@ -463,7 +613,7 @@ class RawCanBackend(CanFaults, Backend):
         proto = self._od[i]
         assert proto is not None
         node = self.areas[i].slave.node_id or 0
-        msg = can.Message(
+        msg = self._message(
             arbitration_id=proto.can_id(node, command),
             data=data,
             is_remote_frame=remote,
@@ -639,6 +789,9 @@ class RawCanBackend(CanFaults, Backend):
         """Nothing: motors stay out of motor mode until :meth:`op`."""
 
     def op(self) -> None:
+        for i, cm in enumerate(self._cm):
+            if cm is not None and cm.protocol == "servo":
+                self._set_servo_mode(i, cm, cm.mode)  # the map's packet, from the first cycle
         if self._odrives:
             self._op_odrive()
         missing = self._special("enter")
@@ -659,6 +812,13 @@ class RawCanBackend(CanFaults, Backend):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
                 msg, _, _ = self._cmd[i]
+                cm = cfg.cubemars
+                if cm is not None and cm.protocol == "servo":
+                    if which == "zero":  # set origin: 0 = temporary (until power-off), no answer
+                        self._servo_packet(i, cm.origin_packet, b"\0")
+                    elif which == "exit" and (off := cm.mode_of_packet(SERVO_CURRENT)) is not None:
+                        self._servo_packet(i, off.packet, cubemars.encode_servo(off.fields, {}))  # no current
+                    continue
                 if cfg.odrive is not None:
                     if which == "clear":
                         self._od_frame(i, "clear_errors", cfg.odrive.clear)
@@ -672,13 +832,14 @@ class RawCanBackend(CanFaults, Backend):
                 else:
                     frame = getattr(cfg, which)
                 self._bus.send(
-                    can.Message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
+                    self._message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
                 )
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
         for i, proto in enumerate(self._od):
-            self._arrived[i] = proto is not None
+            cm = self._cm[i]
+            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo")
         if which == "clear":
             for i, area in enumerate(self.areas):
                 self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
@@ -700,6 +861,10 @@ class RawCanBackend(CanFaults, Backend):
                 proto = self._od[i]
                 if proto is not None:
                     self._send_odrive(i, proto)
+                    continue
+                cm = self._cm[i]
+                if cm is not None and cm.protocol == "servo":
+                    self._send_servo(i, cm)
                     continue
                 mode = self._mode[i]
                 if mode is None or mode.mit:
@@ -744,6 +909,8 @@ class RawCanBackend(CanFaults, Backend):
             return -1
         if self._odrives and self._side_frame(msg):
             return -1
+        if msg.is_extended_id and not msg.is_remote_frame:
+            return self._cm_status.get(msg.arbitration_id, -1)
         if msg.is_extended_id or msg.is_remote_frame:
             return -1
         can_id = msg.arbitration_id
@@ -766,9 +933,28 @@ class RawCanBackend(CanFaults, Backend):
             row = self._reply_rows[i]
             data = msg.data
             n = self._reply_len[i]
+            cm = self._cm[i]
+            if cm is not None:
+                return self._accept_cubemars(i, cm, bytes(data))
             if len(data) != n:
                 return False
             row[:n] = np.frombuffer(data, dtype=np.uint8)
+        self._arrived[i] = True
+        return True
+
+    def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
+        """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
+        ``short_reply``) bytes copied and its position unwrapped."""
+        if cm.protocol == "servo":
+            if not self._cm_servo_in(i, data):
+                return False
+        else:
+            n = len(data)
+            if n != self._reply_len[i] and n != cm.short_reply:
+                return False
+            self._reply_rows[i][:n] = np.frombuffer(data, dtype=np.uint8)
+            if self._cm_unwrap[i] is not None:
+                self._cm_unwrap_in(i, data)
         self._arrived[i] = True
         return True
 
@@ -790,30 +976,35 @@ class RawCanBackend(CanFaults, Backend):
 
     def zero_position(self) -> list[str]:
         """Set the current position of every motor as zero; returns the motors that did not answer."""
+        for got in self._cm_unwrap:
+            if got is not None:
+                got[0].reset()
         return [self.areas[i].slave.name for i in self._special("zero")]
 
     def _zero_commands(self) -> None:
-        """Family damiao: each motor's zero command in its mode (MIT kp = kd = torque = 0; velocity 0; position
-        modes hold the last position read with no speed and no current)."""
+        """Families damiao and cubemars (MIT): each motor's zero command in its mode (MIT kp = kd = torque
+        = 0; velocity 0; position modes hold the last position read with no speed and no current)."""
         for i, mode in enumerate(self._mode):
-            if mode is None:
-                continue
+            cm = self._cm[i]
+            if mode is None and (cm is None or cm.protocol != "mit"):
+                continue  # cubemars MIT: a zero-gain MIT command too
             cfg = self.areas[i].slave.map.rawcan
             assert cfg is not None
             a = self.areas[i]
             inputs = self.groups[a.group].image.inputs.values[a.row]
             here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
             values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
-            if mode.mit:
+            if mode is None or mode.mit:
                 msg = self._cmd[i][0]
                 data = encode_frame(cfg.command, cfg.span, values)
             else:
                 msg = self._mode_msgs[i][mode.name]
                 data = damiao.encode_mode(mode, values, self._max[i])
-            self._bus.send(can.Message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
+            self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
 
     def stop(self) -> None:
-        """Exit motor mode on every motor (Damiao: a zero command in its mode first, then disable).
+        """Exit motor mode on every motor (Damiao, CubeMars MIT: a zero command in its mode first, then
+        disable / exit; CubeMars servo: a current of 0).
         Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:

@@ -24,6 +24,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
+from fieldbus.core import cubemars
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
@@ -739,7 +740,7 @@ def can_frames(
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
         if s.map.rawcan is not None:  # one command frame and its reply per motor, not PDOs
-            frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb)
+            frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb, fd_bus)
             continue
         for tx, pdos in ((False, s.map.rpdo), (True, s.map.tpdo)):
             for pdo in pdos:
@@ -764,17 +765,34 @@ def can_frames(
 
 
 def _motor_frames(
-    name: str, cfg: RawCanConfig, node: int, rpdo: Sequence[Pdo], tpdo: Sequence[Pdo], frame_bits: int | None
+    name: str,
+    cfg: RawCanConfig,
+    node: int,
+    rpdo: Sequence[Pdo],
+    tpdo: Sequence[Pdo],
+    frame_bits: int | None,
+    fd: bool = False,
 ) -> list[CanFrame]:
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
-    (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them."""
+    (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them;
+    CAN FD frames on an FD bus (the backend sends every data frame as FD there)."""
     if cfg.damiao is not None or cfg.odrive is not None:
-        return family_frames(name, cfg, node, frame_bits)
+        return family_frames(name, cfg, node, frame_bits, fd=fd)
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
-    command = CanFrame(command_id, sum(p.size for p in rpdo), f"{name} command", frame_bits=frame_bits)
+    out_bytes, in_bytes, extended = sum(p.size for p in rpdo), sum(p.size for p in tpdo), False
+    cm = cfg.cubemars
+    if cm is not None and cm.protocol == "servo":  # 29-bit ids; the map's packet and its status frame
+        mode = cm.mode_named(cm.mode)
+        extended = True
+        out_bytes = sum(cubemars.TYPES[f.type][1] for f in mode.fields)
+        in_bytes = sum(cubemars.TYPES[f.type][1] for f in cm.status)
+        command_id, reply_id = cubemars.servo_id(mode.packet, node), cubemars.servo_id(cm.status_packet, node)
+    elif cm is not None:
+        in_bytes = cm.reply_bytes  # an unwrapped multi-turn position is the image's, not on the wire
+    command = CanFrame(command_id, out_bytes, f"{name} command", extended, fd, frame_bits=frame_bits)
     reply = CanFrame(
-        reply_id, sum(p.size for p in tpdo), f"{name} reply", frame_bits=frame_bits, after=command.label
+        reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label
     )
     return [command, reply]
 
@@ -787,7 +805,12 @@ ODRIVE_REPLY_BYTES = 8
 
 
 def family_frames(
-    name: str, cfg: RawCanConfig, node: int, frame_bits: int | None = None, mode: str | None = None
+    name: str,
+    cfg: RawCanConfig,
+    node: int,
+    frame_bits: int | None = None,
+    mode: str | None = None,
+    fd: bool = False,
 ) -> list[CanFrame]:
     """One cycle of a Damiao or ODrive motor as the rawcan backend runs it, from its map's family section.
 
@@ -796,15 +819,16 @@ def family_frames(
     8 bytes, and its 8-byte reply on MST_ID. ODrive (CANSimple, ``node << 5 | command``): the mode's
     set-point (8 bytes), the Get_Encoder_Estimates remote frame (no data field: counted as 0 data bytes)
     and its 8-byte answer; the heartbeat (8 bytes every ``heartbeat_ms``) as a background frame.
+    ``fd``: the data frames as CAN FD (an FD bus); a remote frame stays classic (CAN FD has none).
     """
     if cfg.damiao is not None:
         dm = cfg.damiao
         m = dm.mode_named(mode or dm.mode)
         command = CanFrame(
-            node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", frame_bits=frame_bits
+            node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", fd=fd, frame_bits=frame_bits
         )
         reply = CanFrame(
-            cfg.reply_can_id(node), 8, f"{name} reply", frame_bits=frame_bits, after=command.label
+            cfg.reply_can_id(node), 8, f"{name} reply", fd=fd, frame_bits=frame_bits, after=command.label
         )
         return [command, reply]
     od = cfg.odrive
@@ -812,12 +836,21 @@ def family_frames(
         raise ValueError(f"{name}: not a Damiao or ODrive map")
     om = od.mode_named(mode or od.mode)
     setpoint = CanFrame(
-        node << 5 | om.command, RAWCAN_COMMAND_BYTES, f"{name} {om.name} set-point", frame_bits=frame_bits
+        node << 5 | om.command,
+        RAWCAN_COMMAND_BYTES,
+        f"{name} {om.name} set-point",
+        fd=fd,
+        frame_bits=frame_bits,
     )
     estimates_id = od.can_id(node, "get_encoder_estimates")
     rtr = CanFrame(estimates_id, 0, f"{name} encoder RTR", frame_bits=frame_bits)
     estimates = CanFrame(
-        estimates_id, ODRIVE_REPLY_BYTES, f"{name} encoder estimates", frame_bits=frame_bits, after=rtr.label
+        estimates_id,
+        ODRIVE_REPLY_BYTES,
+        f"{name} encoder estimates",
+        fd=fd,
+        frame_bits=frame_bits,
+        after=rtr.label,
     )
     out = [setpoint, rtr, estimates]
     if od.heartbeat_ms > 0:
@@ -826,6 +859,7 @@ def family_frames(
                 od.can_id(node, "heartbeat"),
                 ODRIVE_REPLY_BYTES,
                 f"{name} heartbeat",
+                fd=fd,
                 period_us=od.heartbeat_ms * 1000.0,
                 frame_bits=frame_bits,
             )

@@ -26,18 +26,21 @@ from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
 if TYPE_CHECKING:
+    from fieldbus.core.cubemars import CubemarsProtocol
     from fieldbus.core.damiao import DamiaoProtocol
     from fieldbus.core.odrive import OdriveProtocol
 
 RAWCAN_KEYS = (
     "family", "command_id", "reply_id", "reply_id_offset", "node_field", "span", "enter", "exit", "zero",
-    "command", "reply", "damiao", "odrive", "byte_order",
+    "command", "reply", "damiao", "odrive", "byte_order", "cubemars",
 )  # fmt: skip
 FAMILIES = (
     "mit",
     "damiao",
     "odrive",
-)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple
+    "cubemars",
+)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple;
+# cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars)
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
 FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
@@ -87,6 +90,7 @@ class RawCanConfig:
     damiao: DamiaoProtocol | None = None  # family "damiao": modes, registers, errors
     odrive: OdriveProtocol | None = None  # family "odrive": CANSimple commands, modes, states, errors
     byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
+    cubemars: CubemarsProtocol | None = None  # family "cubemars": servo packets or MIT unwrapping
 
     def reply_can_id(self, node: int) -> int:
         """The CAN id motor ``node`` answers on."""
@@ -105,9 +109,10 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
     family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
     order = r.choice(m.get("byte_order", "big"), (*path, "byte_order"), ("big", "little"))
     # an ODrive's image is not one frame: its set-points are built per mode, its reply plus the heartbeat
-    max_bits = 128 if family == "odrive" else 64
+    max_bits = {"odrive": 128, "cubemars": 256}.get(family, 64)
+    # cubemars MIT: a float32 reply field after the frame holds the multi-turn position (not on the wire)
     command = _fields(r, m["command"], (*path, "command"), order, max_bits)
-    reply = _fields(r, m["reply"], (*path, "reply"), order, max_bits)
+    reply = _fields(r, m["reply"], (*path, "reply"), order, max_bits, family == "cubemars")
     for i, f in enumerate(reply):
         if f.safe_value is not None:
             raise r.err((*path, "reply", i, "safe_value"), "safe_value belongs to command fields (outputs)")
@@ -134,6 +139,23 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         odrive = parse_odrive(r, m["odrive"], (*path, "odrive"), command, reply)
     elif "odrive" in m:
         raise r.err((*path, "odrive"), "an 'odrive' section needs family: odrive", key=True)
+    cubemars = None
+    if family == "cubemars":
+        from fieldbus.core.cubemars import parse_cubemars
+
+        if "cubemars" not in m:
+            raise r.err(path, "family cubemars needs its 'cubemars' section (protocol servo or mit)")
+        cubemars = parse_cubemars(r, m["cubemars"], (*path, "cubemars"), command, reply)
+        if cubemars.protocol == "servo" and order != "little":
+            raise r.err(path, "a CubeMars servo map's image is little-endian: give byte_order: little")
+    elif "cubemars" in m:
+        raise r.err((*path, "cubemars"), "a 'cubemars' section needs family: cubemars", key=True)
+    if cubemars is not None and cubemars.protocol == "mit":
+        wire = sum(f.bits for f in command)
+        if wire > 64:
+            raise r.err(
+                (*path, "command"), f"fields add up to {wire} bits; a classic CAN frame is 8..64 bits"
+            )
     if "reply_id" in m and "reply_id_offset" in m:
         raise r.err((*path, "reply_id_offset"), "give reply_id or reply_id_offset, not both", key=True)
     cfg = RawCanConfig(
@@ -155,6 +177,7 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
         damiao=damiao,
         odrive=odrive,
         byte_order=order,
+        cubemars=cubemars,
     )
     little = order == "little"
     rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True, little=little)),)
@@ -201,7 +224,9 @@ def _frame(r: Any, raw: Any, path: PathT, default: bytes) -> bytes:
     return bytes(r.integer(v, (*path, i), 0, 255) for i, v in enumerate(items))
 
 
-def _fields(r: Any, raw: Any, path: PathT, order: str = "big", max_bits: int = 64) -> tuple[RawCanField, ...]:
+def _fields(
+    r: Any, raw: Any, path: PathT, order: str = "big", max_bits: int = 64, float_big: bool = False
+) -> tuple[RawCanField, ...]:
     out: list[RawCanField] = []
     seen: set[str] = set()
     for i, item in enumerate(r.sequence(raw, path)):
@@ -221,7 +246,10 @@ def _fields(r: Any, raw: Any, path: PathT, order: str = "big", max_bits: int = 6
         unit = r.string(f["unit"], (*fp, "unit")) if "unit" in f else None
         safe = r.number(f["safe_value"], (*fp, "safe_value")) if "safe_value" in f else None
         kind = r.choice(f.get("type", "uint"), (*fp, "type"), FIELD_TYPES)
-        if kind != "uint" and (order != "little" or bits not in (8, 16, 32) or lo is not None):
+        big_ok = float_big and kind == "float32"  # cubemars: the unwrapped position, after the frame
+        if kind != "uint" and (
+            (order != "little" and not big_ok) or bits not in (8, 16, 32) or lo is not None
+        ):
             raise r.err(
                 (*fp, "type"), f"a {kind} field needs byte_order: little, 8/16/32 bits and no min/max"
             )
