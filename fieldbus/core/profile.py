@@ -43,6 +43,7 @@ SETPOINT_ACK = 0x1000  # statusword bit 12 in PP (master input); in PV "speed = 
 _MANAGED = NEW_SETPOINT | CHANGE_IMMEDIATELY | RELATIVE | HALT
 _REACHED = int(StatusBit.TARGET_REACHED)  # statusword bit 10
 _PP, _PV = np.int8(Mode.PROFILE_POSITION), np.int8(Mode.PROFILE_VELOCITY)
+SETTLE_CYCLES = 2  # PV: cycles in MOVING before bit 10 is believed (an earlier target's is stale until then)
 
 
 class ProfileMove:
@@ -72,6 +73,7 @@ class ProfileMove:
         self.mode: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)  # 1 PP, 3 PV, 0 none yet
         self.target: npt.NDArray[np.float64] = np.zeros(n, dtype=np.float64)  # image units
         self.halted: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)
+        self._moving = np.zeros(n, dtype=np.int32)  # cycles in MOVING
         self._bits = np.zeros(n, dtype=np.uint16)  # bits 5, 6 of each axis's set-point
         self._sw = np.zeros(n, dtype=np.uint16)
         self._m = np.zeros(n, dtype=bool)
@@ -115,6 +117,7 @@ class ProfileMove:
         self.mode[axes] = mode
         self.phase[axes] = ProfilePhase.WAIT
         self.cycles[axes] = 0
+        self._moving[axes] = 0
         self.ctrl.request_mode(int(mode), axes)
 
     # -- the cycle --
@@ -126,12 +129,18 @@ class ProfileMove:
         for d, name in ((inp, "statusword"), (out, "controlword")):
             if name not in d.names:
                 raise ChannelNameError(f"ProfileMove needs a {name} channel (channels: {', '.join(d.names)})")
-        self.step(
-            inp["statusword"],
-            out["controlword"],
-            out["target_position"] if "target_position" in out.names else None,
-            out["target_velocity"] if "target_velocity" in out.names else None,
-        )
+        tp = out["target_position"] if "target_position" in out.names else None
+        tv = out["target_velocity"] if "target_velocity" in out.names else None
+        for mode, channel, obj, have in (
+            (_PP, "target_position", "0x607A", tp),
+            (_PV, "target_velocity", "0x60FF", tv),
+        ):
+            if have is None and ((self.mode == mode) & (self.phase != ProfilePhase.IDLE)).any():
+                raise ChannelNameError(
+                    f"{'PP' if mode == _PP else 'PV'} needs a {channel} channel ({obj} in an rpdo of the map; "
+                    f"channels: {', '.join(out.names)})"
+                )
+        self.step(inp["statusword"], out["controlword"], tp, tv)
 
     def step(
         self,
@@ -165,9 +174,11 @@ class ProfileMove:
         np.copyto(ph, np.int8(ProfilePhase.ARMED), where=m2)
         m &= pv
         np.copyto(ph, np.int8(ProfilePhase.MOVING), where=m)
-        # MOVING -> DONE on bit 10 (PP: with bit 12 down, the acknowledge of this set-point handed back)
+        # MOVING -> DONE on bit 10 (PP: with bit 12 down, the acknowledge of this set-point handed back;
+        # PV: once the drive has answered the new 0x60FF)
         np.equal(ph, ProfilePhase.MOVING, out=m)
-        m &= reached & (pv | ~ack)
+        np.add(self._moving, m, out=self._moving)
+        m &= reached & ((pv & (self._moving > SETTLE_CYCLES)) | (pp & ~ack))
         np.copyto(ph, np.int8(ProfilePhase.DONE), where=m)
         late = ((ph >= ProfilePhase.WAIT) & (ph <= ProfilePhase.MOVING)) & (self.cycles > self.timeout_cycles)
         np.copyto(ph, np.int8(ProfilePhase.TIMED_OUT), where=late)
