@@ -58,7 +58,8 @@ class ProfileMove:
     move from :meth:`move_to`/:meth:`run_at` to bit 10; :meth:`from_maps`
     takes each axis's from its map's ``motion_profile.timeout_ms``. An axis
     stays in its profile mode when done (the drive holds the target, or keeps
-    the speed); request another mode on the controller to leave it.
+    the speed); request another mode on the controller to leave it: the axis
+    is then released (IDLE, bits 4-6 and 8 cleared, its targets the user's).
     """
 
     def __init__(self, ctrl: Cia402Controller, *, timeout_cycles: int | Sequence[int] = 30_000) -> None:
@@ -152,6 +153,13 @@ class ProfileMove:
         """One cycle, after :meth:`Cia402Controller.step`: targets and controlword bits 4-6, 8 (master
         outputs) of the axes this moves, from their statuswords (master inputs)."""
         ph, m, m2 = self.phase, self._m, self._m2
+        # an axis the controller was asked to put in another mode is released: its bits 4-6, 8 cleared
+        # once, its targets left to the user (a PP target written on would override a CSP seed)
+        np.not_equal(self.ctrl.mode_request, self.mode, out=m)
+        m &= ph != ProfilePhase.IDLE
+        if m.any():
+            np.copyto(controlword_out, np.bitwise_and(controlword_out, self._not_managed), where=m)
+            np.copyto(ph, np.int8(ProfilePhase.IDLE), where=m)
         np.copyto(self._sw, statusword, casting="unsafe")
         sw = self._sw
         ack = (sw & SETPOINT_ACK) != 0
@@ -182,10 +190,11 @@ class ProfileMove:
         np.copyto(ph, np.int8(ProfilePhase.DONE), where=m)
         late = ((ph >= ProfilePhase.WAIT) & (ph <= ProfilePhase.MOVING)) & (self.cycles > self.timeout_cycles)
         np.copyto(ph, np.int8(ProfilePhase.TIMED_OUT), where=late)
-        # outputs of the axes this moves: targets, bits 4-6 and 8
+        # outputs of the axes this moves: targets (PP: until the drive took the set-point), bits 4-6 and 8
         mine = ph != ProfilePhase.IDLE
         if target_position_out is not None:
-            np.copyto(target_position_out, self.target, where=mine & pp, casting="unsafe")
+            handing = pp & (ph >= ProfilePhase.WAIT) & (ph <= ProfilePhase.SENT)
+            np.copyto(target_position_out, self.target, where=handing, casting="unsafe")
         if target_velocity_out is not None:
             np.copyto(target_velocity_out, self.target, where=mine & pv, casting="unsafe")
         word = self._word

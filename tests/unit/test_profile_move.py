@@ -85,6 +85,25 @@ def test_each_axis_times_out_on_its_own_and_drops_bit_4() -> None:
     assert list(ax.cw & 0x100) == [0, 0x100]
 
 
+def test_an_axis_switched_to_another_mode_is_released_and_its_target_left_to_the_user() -> None:
+    ax = Axes(Mode.CSP)
+    ax.cycle(3)
+    ax.moves.move_to(0.5, relative=True)  # the target output holds the offset, not a position
+    ax.cycle(2)
+    ax.sw[:] = OE | ACK
+    ax.cycle()
+    ax.moves.halt(axes=0)
+    ax.sw[:] = OE | REACHED
+    ax.cycle()
+    assert list(ax.moves.phase) == [ProfilePhase.DONE] * 2
+    ax.ctrl.request_mode(Mode.CSP, axes=0)  # back to the user's own targets on axis 0
+    ax.tp[:] = 7.0  # the user's CSP target (or the controller's seed)
+    ax.cycle()
+    assert list(ax.moves.phase) == [ProfilePhase.IDLE, ProfilePhase.DONE]
+    assert ax.tp[0] == 7.0 and int(ax.cw[0]) & 0x170 == 0  # neither the offset nor bits 4-6, 8
+    assert int(ax.cw[1]) & 0x40 == 0x40  # axis 1 still the move's (bit 6 relative)
+
+
 class _Direction:
     def __init__(self, **arrays: np.ndarray) -> None:
         self._arrays = arrays
