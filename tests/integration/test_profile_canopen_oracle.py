@@ -7,13 +7,16 @@ start-up writes), switches the operation mode through its ``op_mode`` property
 runs the PP set-point handshake through its ``controlword``/``statusword``
 properties (bit 4 up, wait for bit 12, bit 4 down, wait for bit 10), the target
 in its RPDO (``rpdo_pointers``); then a PV move (0x60FF by SDO: the demo map
-does not map it). Timing: python-can's virtual bus is threads in one process, so
-canopen's waits are wall-clock; the checks are on positions and velocities.
+does not map it). The same emulated drive, moved by this library's ``ProfileMove``
+over our CANopen backend, must end on the same target. Timing: python-can's
+virtual bus is threads in one process, so canopen's waits are wall-clock; the
+checks are on positions and velocities.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +24,7 @@ from pathlib import Path
 import pytest
 
 import fieldbus
+from fieldbus import Cia402Controller, Goal, Mode, ProfileMove, ProfilePhase
 
 can = pytest.importorskip("can")
 canopen = pytest.importorskip("canopen")
@@ -111,3 +115,45 @@ def test_canopen_base_node_402_runs_a_pp_and_a_pv_move_on_our_emulator(tmp_path:
     assert abs(reached - TARGET) <= WINDOW, reached
     assert abs(at_speed - SPEED) <= 1000, at_speed  # 0x606D velocity window
     assert abs(stopped) <= 1000, stopped
+
+
+def test_our_profile_move_over_our_canopen_backend_ends_where_canopen_does(tmp_path: Path) -> None:
+    map_file = _map(tmp_path)
+    drive = fieldbus.load_drive_map(map_file)
+    channel = f"fb-profile-ours-{next(_channels)}-{time.monotonic_ns()}"
+    net_file = tmp_path / "net.yaml"
+    net_file.write_text(
+        "cycle_time_us: 5000\nreceive_timeout_us: 50000\nbuses:\n"
+        f"  - {{name: bus, type: canopen, interface: {channel}, can_interface: virtual,\n"
+        f"     slaves: [{{name: j, map: {json.dumps(str(map_file))}, node_id: 5}}]}}\n"
+    )
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        CanopenSimulator(bus, [(drive, 5)], dt_s=CYCLE_S) as sim,
+        fieldbus.open_network(net_file) as net,
+    ):
+        op = net.bring_up()
+        img = op["bus"]
+        ctrl = Cia402Controller(1, mode=Mode.CSP)
+        ctrl.set_goal(Goal.ENABLE)
+        moves = ProfileMove.from_maps(ctrl, [drive], op.cycle_time_us)
+        for _ in range(3000):
+            if op.exchange().fresh:
+                ctrl.step_image(img)
+                moves.step_image(img)
+                if ctrl.all_reached:
+                    break
+        start = int(sim.node(5).od.get_value(0x6064, 0))
+        moves.move_to(TARGET / 20860.7568)  # the map's factor: rad
+        for _ in range(3000):
+            if op.exchange().fresh:
+                ctrl.step_image(img)
+                moves.step_image(img)
+                if moves.done:
+                    break
+        assert moves.phase[0] == ProfilePhase.DONE
+        reached = int(sim.node(5).od.get_value(0x6064, 0))
+        assert int(img.inputs["modes_of_operation_display"][0]) == Mode.PROFILE_POSITION
+    assert not sim.errors
+    assert abs(start) < WINDOW
+    assert abs(reached - TARGET) <= WINDOW, reached  # where canopen's BaseNode402 took it (test above)
