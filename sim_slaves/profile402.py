@@ -29,7 +29,9 @@ def position_step(
     ``accel``/``decel`` > 0 [rad/s²]. Returns the new position, velocity and
     whether the move is done (``p == target``, ``v == 0``). The speed is held
     within what can still stop on the target (``sqrt(2 decel |e|)``); the last
-    cycle lands on the target.
+    cycle lands on the target. Never a speed change of more than ``accel`` or
+    ``decel`` x ``dt`` per cycle: a target too close to stop on from the present
+    speed is passed, braking at ``decel``, and approached again from the far side.
     """
     e = target - p
     if e == 0.0 and v == 0.0:
@@ -45,14 +47,19 @@ def position_step(
     # the fastest speed at the end of this cycle from which a ramp at decel still stops on the target
     # (trapezoidal integration: this cycle covers (speed + new) dt / 2, the ramp new² / 2 decel)
     reach = abs(e)
+    ddt = decel * dt
+    slow = speed <= ddt * (1.0 + 1e-6)  # can stop within this cycle at decel
     left = reach - 0.5 * speed * dt
     if left <= 0.0:
-        return target, 0.0, True
-    ddt = decel * dt
-    brake = ddt * (math.sqrt(0.25 + 2.0 * left / (ddt * dt)) - 0.5)
-    speed_new = max(0.0, min(cruise, brake))
+        if slow:
+            return target, 0.0, True
+        speed_new = speed - ddt  # too fast to stop on the target: brake at decel, pass it, come back
+    else:
+        brake = ddt * (math.sqrt(0.25 + 2.0 * left / (ddt * dt)) - 0.5)
+        # never slower than braking at decel allows (closer than that: pass the target and come back)
+        speed_new = max(0.0, speed - ddt, min(cruise, brake))
     step = 0.5 * (speed + speed_new) * dt
-    if reach - step <= 1e-12 * max(1.0, reach):
+    if slow and reach - step <= 1e-12 * max(1.0, reach):
         return target, 0.0, True
     return p + s * step, s * speed_new, False
 

@@ -80,6 +80,35 @@ def test_a_target_changed_in_motion_joins_smoothly_and_a_reverse_brakes_at_the_d
     assert np.abs(dv).max() <= 20.0 * (1 + 1e-6)
 
 
+def test_from_any_motion_the_generator_lands_on_target_never_changing_speed_faster_than_its_ramps() -> None:
+    """Seeded random starts (position, velocity up to twice the limit, near and far targets) and one
+    made to fail: 5 rad/s half a cycle's travel short of the target (a snap to rest was a 5 rad/s step)."""
+    rng = np.random.default_rng(25)
+    cases = [(0.0, 5.0, 0.001, 5.0, 10.0, 10.0)]
+    for _ in range(400):
+        v_max, accel, decel = (
+            10 ** rng.uniform(-0.5, 1.5),
+            10 ** rng.uniform(0.5, 3),
+            10 ** rng.uniform(0.5, 3),
+        )
+        p = rng.uniform(-10, 10)
+        reach = float(rng.choice([0.0, 1e-9, 1e-3, 0.1, 3.0])) * rng.uniform(-1, 1)
+        cases.append((p, rng.uniform(-2, 2) * v_max, p + reach, v_max, accel, decel))
+    for p, v, target, v_max, accel, decel in cases:
+        top = max(abs(v), v_max) * (1 + 1e-9)
+        for _ in range(200_000):
+            p_new, v_new, done = position_step(p, v, target, v_max, accel, decel, DT)
+            if v * v_new >= 0.0 and abs(v_new) > abs(v):
+                assert abs(v_new) - abs(v) <= accel * DT * (1 + 1e-6), (p, v, target)
+            else:
+                assert abs(v_new - v) <= decel * DT * (1 + 1e-6), (p, v, target, v_new)
+            assert abs(v_new) <= top
+            p, v = p_new, v_new
+            if done:
+                break
+        assert done and p == target and v == 0.0
+
+
 def test_the_velocity_ramp_speeds_up_at_accel_and_slows_or_reverses_at_decel() -> None:
     v, n = 0.0, 0
     while v != 3.0:
