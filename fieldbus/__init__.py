@@ -24,6 +24,7 @@ from fieldbus.core.network import load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
+from fieldbus.core.profile import ProfileMove, ProfilePhase
 from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.core.sdo import canopen_plan, coe_plan
 from fieldbus.errors import (
@@ -66,6 +67,8 @@ __all__ = [
     "PdoMapError",
     "PhaseError",
     "ProcessImage",
+    "ProfileMove",
+    "ProfilePhase",
     "SafeStopClearError",
     "SdoAbortError",
     "SdoMismatchError",

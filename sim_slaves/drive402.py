@@ -64,6 +64,7 @@ from fieldbus.core.cia402 import (
     Trigger,
 )
 from fieldbus.errors import FieldbusError
+from sim_slaves.profile402 import position_step, stopping_distance, velocity_step
 
 TWO_PI = 2.0 * math.pi
 
@@ -135,6 +136,16 @@ _SW_HOMING_ATTAINED = 1 << 12  # statusword bit 12 in homing mode
 _SW_HOMING_ERROR = 1 << 13  # statusword bit 13 in homing mode
 _CW_HOMING_START = 1 << 4  # controlword bit 4 in homing mode: rising edge starts, 0 interrupts
 
+# profile modes (CiA 402-2 "Profile position mode", modes of operation 1; "Profile velocity mode", 3)
+_PP, _PV = 1, 3
+PROFILE_VELOCITY, PROFILE_ACCELERATION, PROFILE_DECELERATION = 0x6081, 0x6083, 0x6084
+VELOCITY_THRESHOLD = 0x606F  # PV: statusword bit 12 "speed = 0" while |velocity actual| <= it
+_CW_NEW_SETPOINT = 1 << 4  # PP: rising edge hands the target (0x607A) to the trajectory generator
+_CW_CHANGE_IMMEDIATELY = 1 << 5  # PP: 1 the new set-point replaces the one in progress, 0 it queues
+_CW_RELATIVE = 1 << 6  # PP: 1 the target is relative to the previous target, 0 absolute
+_CW_HALT = 1 << 8  # PP/PV: ramp to a stop at the profile deceleration (a move resumes when it drops)
+_SW_SETPOINT_ACK = 1 << 12  # PP: the generator took the set-point (PV: speed = 0)
+
 
 class MissingObjectError(FieldbusError, LookupError):
     """The object dictionary lacks an object the drive needs."""
@@ -194,7 +205,19 @@ class DriveParams:
     fault_reaction_cycles: int = 1  # minimum steps in FAULT_REACTION_ACTIVE (transition 14)
     mode_switch_cycles: int = 1  # steps before 0x6061 follows a new 0x6060
     initial_mode: int = Mode.CSP
-    supported_modes: tuple[int, ...] = (Mode.NO_MODE, Mode.HOMING, Mode.CSP, Mode.CSV, Mode.CST)
+    supported_modes: tuple[int, ...] = (
+        Mode.NO_MODE,
+        Mode.PROFILE_POSITION,
+        Mode.PROFILE_VELOCITY,
+        Mode.HOMING,
+        Mode.CSP,
+        Mode.CSV,
+        Mode.CST,
+    )
+    # profile modes (PP/PV): defaults of 0x6081 [velocity units], 0x6083/0x6084 [acceleration units]
+    profile_velocity: int = 200_000
+    profile_acceleration: int = 2_000_000
+    profile_deceleration: int = 2_000_000
     # homing: where the switches are on the motor shaft [rad from the power-on position] (17/18); the
     # index pulse is at every whole motor revolution from there (33/34)
     negative_switch_rad: float = -1.0
@@ -369,6 +392,19 @@ class Cia402Drive:
         self._home_method = 0
         self._home_prev_cw = 0
         self._home_found_from = 0.0  # physical position where the search began [rad]
+        # profile modes: the generator's position [rad] and velocity [rad/s] (the cascade's reference),
+        # its target [rad], a queued set-point, and the statusword bits 10/12 it reports
+        self._prof_pos = self.position_rad
+        self._prof_v = 0.0
+        self.prof_bits = 0
+        self._prof_live = False  # seeded since the last state transition or mode switch
+        self._prof_target = self.position_rad
+        self._prof_queued: float | None = None
+        self._prof_ack = False
+        self._prof_done = True
+        self._prof_halt = False
+        self._prof_target_v = 0.0  # PV: the velocity the ramp goes to [rad/s]
+        self._prof_prev_cw = 0
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
@@ -513,6 +549,14 @@ class Cia402Drive:
 
         mode = self.mode_display
         state = self.state
+        profile = state is _OE and mode in (_PP, _PV)
+        if profile:
+            self._profile(
+                cw,
+                dt_s,
+                int(get(_X_TARGET_POSITION, 0)) if has[_X_TARGET_POSITION] else None,
+                int(get(_X_TARGET_VELOCITY, 0)) if has[_X_TARGET_VELOCITY] else None,
+            )
         target_rad = self._prev_target_rad
         target_v = 0.0
         target_tau = 0.0
@@ -542,6 +586,11 @@ class Cia402Drive:
                 target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.rated_torque_nm / 1000.0
         if state is _OE and mode == _HM:
             target_v = self._home_v
+        if profile:  # PP runs the position cascade on the generator's position, PV the velocity loop
+            if mode == _PP:
+                mode, target_rad = _CSP, self._prof_pos
+            else:
+                mode, target_v = _CSV, self._prof_v
         if not self._ideal_encoder and self.params.encoder_noise_counts:
             self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
         self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
@@ -561,6 +610,7 @@ class Cia402Drive:
 
     def _take(self, t: Transition) -> None:
         src = self.state
+        self._prof_live = False
         self.state = t.target
         self.last_transition = t.number
         self.transitions_taken += 1
@@ -644,6 +694,7 @@ class Cia402Drive:
         if self._mode_steps >= self.params.mode_switch_cycles:
             self.mode_display = mode_req
             self._mode_steps = 0
+            self._prof_live = False
             # bumpless: loops restart from the present motion
             self._integral = 0.0
             self._prev_target_rad = self.position_rad
@@ -713,6 +764,112 @@ class Cia402Drive:
         ):
             self.home_bits = _SW_HOMING_ATTAINED | _SW_TARGET_REACHED
             self._home_phase = 0
+
+    # -- profile position (mode 1) and profile velocity (mode 3) --
+
+    def _profile_rates(self) -> tuple[float, float, float]:
+        """0x6081 profile velocity [rad/s], 0x6083 acceleration, 0x6084 deceleration [rad/s²] (0: default)."""
+        p = self.params
+        k = self.rad_s_per_velocity
+        v = self._home_param(PROFILE_VELOCITY, 0, p.profile_velocity) or p.profile_velocity
+        a = self._home_param(PROFILE_ACCELERATION, 0, p.profile_acceleration) or p.profile_acceleration
+        d = self._home_param(PROFILE_DECELERATION, 0, p.profile_deceleration) or p.profile_deceleration
+        return min(v * k, self.max_speed_rad_s), a * k, d * k
+
+    def _profile(self, cw: int, dt_s: float, target_counts: int | None, target_velocity: int | None) -> None:
+        """One cycle of the PP/PV trajectory generator (the drive OPERATION ENABLED in mode 1 or 3).
+
+        PP: a rising edge of controlword bit 4 takes the target 0x607A (bit 6: relative to the previous
+        target); bit 5 replaces a move in progress, else the set-point queues (one deep) and is refused
+        when the queue is full. Bit 12 acknowledges from the edge until bit 4 drops and the queue is empty.
+        PV: the ramp to 0x60FF. Bit 8 (halt) ramps to a stop at 0x6084 in both. On the first cycle after a
+        state transition or mode switch the generator starts from the present motion (no step).
+        """
+        v_max, accel, decel = self._profile_rates()
+        if not self._prof_live:
+            self._prof_live = True
+            self._prof_pos = self.position_rad
+            self._prof_v = self.velocity_rad_s
+            self._prof_target = self.position_rad + stopping_distance(self.velocity_rad_s, decel)
+            self._prof_queued = None
+            self._prof_ack = False
+            self._prof_done = False
+            self._prof_prev_cw = cw  # a bit 4 already high is not a new set-point
+        halt = bool(cw & _CW_HALT)
+        self._prof_halt = halt
+        v0 = self._prof_v
+        if self.mode_display == _PV:
+            tv = 0.0
+            if not halt and target_velocity is not None:
+                tv = self._limit_speed(target_velocity * self.rad_s_per_velocity)
+            self._prof_target_v = tv
+            self._prof_v = velocity_step(v0, tv, accel, decel, dt_s)
+            self._prof_pos = self.position_rad
+            self._prof_prev_cw = cw
+            return
+        if cw & _CW_NEW_SETPOINT and not self._prof_prev_cw & _CW_NEW_SETPOINT and target_counts is not None:
+            self._setpoint(cw, target_counts)
+        self._prof_prev_cw = cw
+        if not cw & _CW_NEW_SETPOINT and self._prof_queued is None:
+            self._prof_ack = False
+        if halt:
+            self._prof_v = velocity_step(v0, 0.0, accel, decel, dt_s)
+            self._prof_pos += 0.5 * (v0 + self._prof_v) * dt_s
+            self._prof_done = False
+            return
+        p, v, done = position_step(self._prof_pos, v0, self._prof_target, v_max, accel, decel, dt_s)
+        self._prof_pos, self._prof_v, self._prof_done = p, v, done
+        if done and self._prof_queued is not None:  # the queued set-point starts
+            self._prof_target, self._prof_queued = self._prof_queued, None
+            self._prof_done = False
+
+    def _setpoint(self, cw: int, target_counts: int) -> None:
+        """A new PP set-point (controlword bit-4 edge): take it, queue it, or refuse it (queue full)."""
+        rpc = self.rad_per_count
+        if cw & _CW_RELATIVE:
+            base = self._prof_queued if self._prof_queued is not None else self._prof_target
+            counts = base * self.counts_per_rad + target_counts
+        else:
+            counts = float(target_counts)
+        new = self._limit_position(counts) * rpc
+        busy = not self._prof_done or self._prof_halt
+        if cw & _CW_CHANGE_IMMEDIATELY or not busy:
+            self._prof_target, self._prof_queued = new, None
+            self._prof_done = False
+        elif self._prof_queued is None:
+            self._prof_queued = new
+        else:
+            return  # queue full: not acknowledged
+        self._prof_ack = True
+
+    def _profile_status(self) -> int:
+        """Statusword bits 10 and 12 of PP/PV after this cycle's motion.
+
+        PP: 10 target reached (the generator at the target and |target - actual| within 0x6067, or
+        halted at standstill), 12 set-point acknowledge. PV: 10 |actual - target velocity| within 0x606D
+        (halt: target 0), 12 speed = 0 (|actual| within 0x606F, default 0x606D).
+        """
+        vpr = self.velocity_per_rad_s
+        bits = 0
+        if self.mode_display == _PV:
+            if abs(self.velocity_rad_s - self._prof_target_v) * vpr <= self.velocity_window:
+                bits |= _SW_TARGET_REACHED
+            threshold = self._home_param(VELOCITY_THRESHOLD, 0, self.velocity_window)
+            if abs(self.velocity_rad_s) * vpr <= threshold:
+                bits |= _SW_SETPOINT_ACK
+            return bits
+        if self._prof_ack:
+            bits |= _SW_SETPOINT_ACK
+        if self._prof_halt:
+            if self._prof_v == 0.0 and abs(self.velocity_rad_s) * vpr <= self.velocity_window:
+                bits |= _SW_TARGET_REACHED
+        elif (
+            self._prof_done
+            and self._prof_queued is None
+            and abs(self._prof_target - self.position_rad) * self.counts_per_rad <= self.position_window
+        ):
+            bits |= _SW_TARGET_REACHED
+        return bits
 
     def _home_at(self, home_phys_rad: float) -> None:
         """The home point (physical position) is found: shift the reported frame so it reads the home offset."""
@@ -911,6 +1068,9 @@ class Cia402Drive:
             sw |= _SW_LIMIT
         if p.thermal and self.temperature_c > p.warning_temperature_c:
             sw |= _SW_WARNING
+        if state is _OE and (self.mode_display == _PP or self.mode_display == _PV):
+            self.prof_bits = self._profile_status()
+            sw = (sw & ~(_SW_FOLLOWS | _SW_TARGET_REACHED)) | self.prof_bits
         self.following_error_counts = fe
         put(_X_STATUSWORD, 0, sw)
         if has[_X_MODES_DISPLAY]:

@@ -61,7 +61,8 @@ B = npt.NDArray[np.bool_]
 
 _STATES = tuple(State402)
 _NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
-_HM, _CSP, _CSV, _CST = 6, 8, 9, 10
+_PP, _PV, _HM, _CSP, _CSV, _CST = 1, 3, 6, 8, 9, 10
+_NOT_FOLLOWS_REACHED = ~(_SW_FOLLOWS | _SW_TARGET_REACHED)
 _SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
 #: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
@@ -92,6 +93,8 @@ _FLOAT_SLOTS = {
     "position_limit_max": "pmax",
     "_frame_rad": "frame",
     "_home_v": "home_v",
+    "_prof_pos": "prof_pos",
+    "_prof_v": "prof_v",
 }
 _INT_SLOTS = {
     "error_code": "error_code",
@@ -107,6 +110,7 @@ _INT_SLOTS = {
     "_noise": "noise",
     "home_bits": "home_bits",
     "_home_phase": "home_phase",
+    "prof_bits": "prof_bits",
 }
 _BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
 
@@ -224,6 +228,9 @@ class DriveBank:
         self.home_v: F64 = z(n)  # homing: speed demand [rad/s]
         self.home_bits: I64 = z(n, dtype=np.int64)  # homing: statusword bits 10, 12, 13
         self.home_phase: I64 = z(n, dtype=np.int64)  # homing: 0 idle, 1 searching, 2 found
+        self.prof_pos: F64 = z(n)  # PP: the trajectory generator's position [rad]
+        self.prof_v: F64 = z(n)  # PV: the ramp's velocity [rad/s]
+        self.prof_bits: I64 = z(n, dtype=np.int64)  # PP/PV: statusword bits 10 and 12
         self.error_code: I64 = z(n, dtype=np.int64)
         self.mode_display: I64 = z(n, dtype=np.int64)
         self.following_error: I64 = z(n, dtype=np.int64)
@@ -464,6 +471,21 @@ class DriveBank:
         hm = oe & (mode == _HM)
         if hm.any():
             target_v = np.where(hm, self.home_v[sl], target_v)
+        pp = oe & (mode == _PP)
+        pv = oe & (mode == _PV)
+        prof = pp | pv
+        profiled = (np.flatnonzero(prof) + a).tolist() if prof.any() else []
+        if profiled:  # the PP/PV trajectory generator runs per drive, through the scalar drive's code
+            for i in profiled:
+                self.drives[i]._profile(
+                    int(self.controlword[i]),
+                    float(dt[i - a]),
+                    int(self.target_position[i]) if self.has_tp[i] else None,
+                    int(self.target_velocity[i]) if self.has_tv[i] else None,
+                )
+            target = np.where(pp, self.prof_pos[sl], target)
+            target_v = np.where(pv, self.prof_v[sl], target_v)
+            csp, csv = csp | pp, csv | pv
         if not self.ideal_encoder:
             sd = self.noise_sd[sl]
             self.noise[sl] = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0)
@@ -471,6 +493,9 @@ class DriveBank:
         self._outputs(sl, dt, state, oe, csp, csv, cst, target, target_v)
         if hm.any():
             self.statusword[sl] |= np.where(hm, self.home_bits[sl], 0)
+        for i in profiled:
+            self.prof_bits[i] = self.drives[i]._profile_status()
+            self.statusword[i] = (int(self.statusword[i]) & _NOT_FOLLOWS_REACHED) | int(self.prof_bits[i])
 
     def _limits(self, a: int, b: int) -> tuple[bool, bool]:
         """Whether any drive of the run has a max motor speed, and software position limits (cached)."""

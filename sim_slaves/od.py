@@ -157,7 +157,7 @@ CIA402_RECORDS: dict[int, tuple[str, str, tuple[str, str]]] = {
     0x6091: ("uint32", "Gear ratio", ("Motor revolutions", "Shaft revolutions")),
 }
 NOT_MAPPABLE_402 = frozenset({0x6076, 0x6080, 0x6502})  # configuration objects: SDO only
-SUPPORTED_MODES_HM_CSP_CSV_CST = 0x000003A0  # 0x6502 bits 5 (homing), 7, 8, 9 (CSP, CSV, CST)
+SUPPORTED_MODES_HM_CSP_CSV_CST = 0x000003A5  # 0x6502 bits 0, 2 (PP, PV), 5 (homing), 7, 8, 9 (CSP, CSV, CST)
 CIA402_OUTPUTS = frozenset({0x6040, 0x6060, 0x6071, 0x6072, 0x607A, 0x60FF})  # RxPDO-mappable
 IDENTITY_NAMES = ("Vendor ID", "Product code", "Revision number", "Serial number")
 DEFTYPE_PDO_MAPPING = 0x0021  # CiA 301 structured types (SDO Information data type of records)

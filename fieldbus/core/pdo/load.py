@@ -24,6 +24,7 @@ from fieldbus.core.pdo.model import (
     DriveMap,
     EthercatConfig,
     HomingConfig,
+    MotionProfileConfig,
     Pdo,
     SdoWrite,
     SyncManager,
@@ -45,6 +46,7 @@ DEFAULT_COB_IDS = {
 _TOP_KEYS = (
     "name", "description", "vendor_id", "product_id", "revision", "profile",
     "assign_activate", "auto_fault_reset", "homing", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
+    "motion_profile",
 )  # fmt: skip
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
 _CHANNEL_KEYS = (
@@ -126,7 +128,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if "rawcan" in top:
         from fieldbus.core.rawcan import parse_rawcan
 
-        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing"):
+        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing", "motion_profile"):
             if key in top:
                 raise r.err(
                     (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
@@ -162,6 +164,9 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     homing = _homing(r, top["homing"], sdos) if "homing" in top else None
     if homing is not None:
         sdos = (*sdos, *homing_sdos(homing))
+    motion_profile = _motion_profile(r, top["motion_profile"], sdos) if "motion_profile" in top else None
+    if motion_profile is not None:
+        sdos = (*sdos, *motion_profile_sdos(motion_profile))
     drive = DriveMap(
         name=name,
         vendor_id=r.integer(top.get("vendor_id", 0), ("vendor_id",), 0, 0xFFFFFFFF),
@@ -173,6 +178,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         auto_fault_reset=r.boolean(top.get("auto_fault_reset", False), ("auto_fault_reset",)),
         sdo=sdos,
         homing=homing,
+        motion_profile=motion_profile,
         rpdo=rpdo,
         tpdo=tpdo,
         sm=_sync_managers(r, top.get("sm")),
@@ -566,6 +572,51 @@ def homing_sdos(cfg: HomingConfig) -> tuple[SdoWrite, ...]:
         dt = datatypes.lookup(tname)
         assert dt is not None
         out.append(SdoWrite(index, sub, dt, float(value), description=f"homing.{field}"))
+    return tuple(out)
+
+
+# -- motion_profile: section (profile position / profile velocity) ------------------------------------
+
+MOTION_PROFILE_OBJECTS = (  # (index, type, field) of the start-up SDOs, in the order bring-up writes them
+    (0x6081, "uint32", "velocity"),
+    (0x6083, "uint32", "acceleration"),
+    (0x6084, "uint32", "deceleration"),
+)
+_MOTION_PROFILE_KEYS = ("velocity", "acceleration", "deceleration", "timeout_ms")
+
+
+def _motion_profile(r: Reader, raw: Any, sdos: tuple[SdoWrite, ...]) -> MotionProfileConfig:
+    path: PathT = ("motion_profile",)
+    m = r.mapping(raw, path, _MOTION_PROFILE_KEYS)
+    values = {
+        field: r.integer(m[field], (*path, field), 1, U32_MAX) if field in m else None
+        for _, _, field in MOTION_PROFILE_OBJECTS
+    }
+    for i, sdo in enumerate(sdos):
+        for index, _, field in MOTION_PROFILE_OBJECTS:
+            if (sdo.index, sdo.sub_index) == (index, 0):
+                raise r.err(
+                    ("sdo", i, "index"),
+                    f"0x{index:04X}:00 is motion_profile.{field}: set it in the motion_profile section only",
+                )
+    return MotionProfileConfig(
+        velocity=values["velocity"],
+        acceleration=values["acceleration"],
+        deceleration=values["deceleration"],
+        timeout_ms=r.integer(m.get("timeout_ms", 30_000), (*path, "timeout_ms"), 1, 3_600_000),
+    )
+
+
+def motion_profile_sdos(cfg: MotionProfileConfig) -> tuple[SdoWrite, ...]:
+    """The start-up SDO writes of a ``motion_profile:`` section (0x6081, 0x6083, 0x6084; the ones set)."""
+    values = (cfg.velocity, cfg.acceleration, cfg.deceleration)
+    out = []
+    for (index, tname, field), value in zip(MOTION_PROFILE_OBJECTS, values, strict=True):
+        if value is None:
+            continue
+        dt = datatypes.lookup(tname)
+        assert dt is not None
+        out.append(SdoWrite(index, 0, dt, float(value), description=f"motion_profile.{field}"))
     return tuple(out)
 
 

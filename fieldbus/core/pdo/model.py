@@ -152,6 +152,22 @@ class HomingConfig:
 
 
 @dataclass(frozen=True)
+class MotionProfileConfig:
+    """A drive map's ``motion_profile:`` section (CiA 402-2 profile position/velocity modes, PP/PV);
+    bring-up writes it as start-up SDOs.
+
+    ``velocity`` 0x6081 profile velocity [velocity units], ``acceleration``/``deceleration``
+    0x6083/0x6084 [acceleration units]; ``timeout_ms`` bounds one move (:class:`fieldbus.ProfileMove`).
+    None: not written (the drive keeps its own value).
+    """
+
+    velocity: int | None = None
+    acceleration: int | None = None
+    deceleration: int | None = None
+    timeout_ms: int = 30_000
+
+
+@dataclass(frozen=True)
 class SyncManager:
     """An EtherCAT SyncManager as in ethercat_driver_ros2's ``sm`` list."""
 
@@ -229,6 +245,7 @@ class DriveMap:
     canopen: CanopenConfig | None = None
     rawcan: RawCanConfig | None = None  # raw-CAN motor frames (MIT mode); see fieldbus.core.rawcan
     homing: HomingConfig | None = None  # its SDOs are in ``sdo`` too (appended, in 0x6098..0x609A order)
+    motion_profile: MotionProfileConfig | None = None  # its SDOs are in ``sdo`` too (0x6081, 0x6083, 0x6084)
     source: str = "<string>"
 
     def pdos(self, direction: Direction) -> tuple[Pdo, ...]:
