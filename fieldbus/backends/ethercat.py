@@ -5,10 +5,12 @@ each slave's CoE SDO plan is written and read back; ``config_map`` and a size
 check against our layout; SAFE-OP (each slave's SyncManager and FMMU
 registers kept for recovery); OP, confirmed by the working counter.
 
-Cycle: outputs are copied per slave from its process-image row into SOEM's IO map (pysoem exposes each
-slave's area only as ``bytes``: a transient copy, nothing kept), one LRW is
-sent, the reply is awaited for at most the bus's receive timeout with the GIL
-released, inputs are copied back into the slaves' rows of the process images.
+Cycle: outputs are copied from the process images into SOEM's IO map, one
+copy per axis group through a view of the map that :mod:`.soem_iomap` finds
+and proves at SAFE-OP (option ``iomap="bytes"``, or a layout it cannot prove:
+per slave through pysoem's ``bytes`` setters and getters), one LRW is sent,
+the reply is awaited for at most the bus's receive timeout with the GIL
+released, inputs are copied back into the groups' receive rows the same way.
 
 Recovery (like SOEM's ``ecatcheck``) is a generator advanced by the cycle one
 datagram at a time, after a miss and while a slave is known not to be in OP; a
@@ -33,7 +35,10 @@ from collections import deque
 from collections.abc import Generator
 from typing import Any
 
-from fieldbus.backends import soem_socket
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.backends import soem_iomap, soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
 from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
@@ -127,6 +132,14 @@ class EthercatBackend(Backend):
         self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
+        # process data through one view of SOEM's IO map (soem_iomap), per group: (destination, source)
+        iomap = options.get("iomap", "view")  # "bytes": pysoem's per-slave bytes in the cycle
+        if iomap not in ("view", "bytes"):
+            raise FieldbusError(f"bus '{bus.name}': iomap {iomap!r} is not one of 'view', 'bytes'")
+        self._iomap_view = iomap == "view"
+        self._out_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        self.iomap: npt.NDArray[np.uint8] | None = None  # SOEM's IO map, when soem_iomap proved where
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True))
         pcap = options.get("pcap")  # every EtherCAT frame of the card, both directions, to this pcap file
@@ -247,12 +260,35 @@ class EthercatBackend(Backend):
         self._in_views = [
             (s, self.in_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].in_size
         ]
+        self._map_iomap()
         self._configure_dc()
         state = self.master.state_check(pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
         self._snapshot_registers()
         self._prime_mailboxes()
+
+    def _map_iomap(self) -> None:
+        """One copy per axis group and direction between the images and SOEM's IO map, when
+        :func:`.soem_iomap.locate` proves where it is; otherwise the per-slave ``bytes`` path stays."""
+        self.iomap, self._out_copies, self._in_copies = None, [], []
+        if not self._iomap_view:
+            return
+        sizes = [(a.out_size, a.in_size) for a in self.areas]
+        view = soem_iomap.locate(self.master, self._slaves, sizes)
+        if view is None:
+            return
+        o_at, i_at = 0, self.out_bytes
+        for k, g in enumerate(self.groups):
+            n = len(g.slaves)
+            o, i = self.areas[g.first].out_size, self.areas[g.first].in_size
+            if o:
+                self._out_copies.append((view[o_at : o_at + n * o].reshape(n, o), g.image.outputs.wire))
+            if i:
+                self._in_copies.append((self.rx[k], view[i_at : i_at + n * i].reshape(n, i)))
+            o_at += n * o
+            i_at += n * i
+        self.iomap = view
 
     def _prime_mailboxes(self) -> None:
         """Take over each slave's mailbox counter from SOEM with a harmless upload (0x1000:0, device type).
@@ -537,8 +573,12 @@ class EthercatBackend(Backend):
     # -- cycle ----------------------------------------------------------------------
     def send(self) -> None:
         """Outputs into SOEM's IO map, frames still queued from earlier cycles discarded, the LRW sent."""
-        for s, mv in self._out_views:
-            s.output = bytes(mv)
+        if self.iomap is not None:
+            for dst, src in self._out_copies:
+                np.copyto(dst, src)
+        else:
+            for s, mv in self._out_views:
+                s.output = bytes(mv)
         if self._exact_timeout:
             self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
         self._frame_sent = False
@@ -566,8 +606,12 @@ class EthercatBackend(Backend):
             self.dc_sync_error_ns = self._host_sync.delta_ns
         if wkc < 0:
             return None
-        for s, mv in self._in_views:
-            mv[:] = s.input
+        if self.iomap is not None:
+            for dst, src in self._in_copies:
+                np.copyto(dst, src)
+        else:
+            for s, mv in self._in_views:
+                mv[:] = s.input
         return wkc
 
     def dc_correction_ns(self) -> int:
@@ -716,6 +760,7 @@ class EthercatBackend(Backend):
         try:
             if self._open:
                 self._open = False
+                self.iomap, self._out_copies, self._in_copies = None, [], []  # not past the master's life
                 self.master.close()
         finally:
             try:
