@@ -121,7 +121,19 @@ class EthercatBackend(Backend):
         super().__init__(bus, **options)
         if not bus.interface:
             raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
-        self.master: Any = pysoem.Master()
+        transport = options.get("transport", "soem")  # "in-process": the emulated chain (ecat_inprocess)
+        if transport not in ("soem", "in-process"):
+            raise FieldbusError(
+                f"bus '{bus.name}': transport {transport!r} is not one of 'soem', 'in-process'"
+            )
+        self.in_process = transport == "in-process"
+        if self.in_process:
+            from fieldbus.backends.ecat_inprocess import InProcessMaster
+
+            emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
+            self.master: Any = InProcessMaster([s.map for s in bus.slaves], drive_params=emulated)
+        else:
+            self.master = pysoem.Master()
         self._slaves: list[Any] = []
         self._open = False
         self._timeout_us = bus.receive_timeout_us
@@ -141,7 +153,7 @@ class EthercatBackend(Backend):
         self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self.iomap: npt.NDArray[np.uint8] | None = None  # SOEM's IO map, when soem_iomap proved where
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
-        self._exact_timeout = bool(options.get("exact_timeout", True))
+        self._exact_timeout = bool(options.get("exact_timeout", True)) and not self.in_process  # no socket
         pcap = options.get("pcap")  # every EtherCAT frame of the card, both directions, to this pcap file
         self.capture = EthercatCapture(str(pcap), bus.interface) if pcap else None
         # With a redundant port and the ring open (a cable cut: the usual reason to have one), SOEM
@@ -183,7 +195,7 @@ class EthercatBackend(Backend):
     def open(self) -> None:
         """Lock the NIC(s) (:class:`~fieldbus.errors.InterfaceInUseError` when another master has one),
         open them (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
-        if not self._locks:
+        if not self._locks and not self.in_process:
             locks: list[InterfaceLock] = []
             try:
                 for card in (self.bus.interface, self.bus.redundant_interface):
@@ -275,7 +287,7 @@ class EthercatBackend(Backend):
         if not self._iomap_view:
             return
         sizes = [(a.out_size, a.in_size) for a in self.areas]
-        view = soem_iomap.locate(self.master, self._slaves, sizes)
+        view = self.master.iomap if self.in_process else soem_iomap.locate(self.master, self._slaves, sizes)
         if view is None:
             return
         o_at, i_at = 0, self.out_bytes
