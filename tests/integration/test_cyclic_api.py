@@ -2,7 +2,9 @@
 
 Each test runs on the in-process ``sim`` backend (the ESC chain, real frames),
 on the ``ethercat`` backend (real pysoem over a veth pair, the emulator in its
-own process) and on ``canopen`` (the CANopen emulator). Fault injection goes
+own process), on ``canopen`` (the CANopen emulator) and on the ``ethercat``
+backend's own code over the in-process ESC chain (``ecat-inprocess``:
+``transport="in-process"``, on the wall clock, judged with the veth bounds). Fault injection goes
 through the emulator's control commands (``sim_slaves.ethercat.runner.handle_control``,
 ``sim_slaves.canopen.control.handle_control``) either way.
 
