@@ -26,13 +26,15 @@ Distributed clocks as SOEM sets them up (``config_dc``: delays and offsets
 on a line, the first slave the reference; ``dc_sync``; the cycle's FRMW of
 0x0910 gives ``dc_time``). Not (yet) offered: a redundant port, SOEM's own ``recover`` / ``reconfig`` (the backend uses its
 own, :mod:`.ecat_raw`-free steps on ``_fprd`` / ``_fpwr`` here).
-Time: the chain runs on ``clock`` (default ``time.monotonic_ns``); a lost
-reply, or one held back longer than the wait, counts as no frame (-1).
+Time: the chain runs on ``clock`` (a :class:`~fieldbus.runtime.clock.Clock`,
+default the wall clock); a lost reply, or one held back longer than the
+wait, counts as no frame (-1). On a virtual clock the master's waits pass
+there (a lost frame costs its timeout, a state poll 1 ms, as in SOEM), so
+runs are deterministic.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -46,6 +48,7 @@ from fieldbus.core.dc.model import DcRegister, SyncActivation
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError
+from fieldbus.runtime.clock import Clock, WallClock, is_virtual
 from fieldbus.wire.framemaster import (
     SII_SM_INPUTS,
     SII_SM_OUTPUTS,
@@ -56,6 +59,8 @@ from fieldbus.wire.framemaster import (
 
 MAX_LRW_DATA = 1486  # datagram data per frame (SOEM's EC_MAXLRWDATA)
 NO_FRAME = -1  # SOEM's EC_NOFRAME
+RETURN_TIMEOUT_US = 2000  # SOEM's EC_TIMEOUTRET: a bring-up frame's wait
+STATE_POLL_S = 0.001  # SOEM's statecheck polls every 1 ms
 ASSIGN_RX, ASSIGN_TX = 0x1C12, 0x1C13  # PDO assignment objects (outputs, inputs)
 _HEADER = 14 + 2 + 10  # Ethernet, EtherCAT header, datagram header: where an LRW's data start
 
@@ -89,13 +94,17 @@ class InProcessSlave:
 
     # -- registers: one frame each, no repeat (pysoem: WkcError unless exactly this slave answered) --
     def _fprd(self, address: int, size: int, timeout_us: int = 2000) -> bytes:
-        d = self._master._once(Datagram.physical(Command.FPRD, self.info.station, address, bytes(size)))
+        d = self._master._once(
+            Datagram.physical(Command.FPRD, self.info.station, address, bytes(size)), timeout_us
+        )
         if d is None or d.wkc != 1:
             raise pysoem.WkcError()
         return bytes(d.data)
 
     def _fpwr(self, address: int, data: bytes, timeout_us: int = 2000) -> None:
-        d = self._master._once(Datagram.physical(Command.FPWR, self.info.station, address, bytes(data)))
+        d = self._master._once(
+            Datagram.physical(Command.FPWR, self.info.station, address, bytes(data)), timeout_us
+        )
         if d is None or d.wkc != 1:
             raise pysoem.WkcError()
 
@@ -166,13 +175,17 @@ class InProcessMaster:
         maps: Sequence[DriveMap],
         *,
         drive_params: Sequence[Any] | None = None,
-        clock: Callable[[], int] | None = None,
+        clock: Clock | None = None,
     ) -> None:
         from fieldbus.emulators import emulator_part
 
         chain_cls = emulator_part("ethercat_chain")
         self.chain = chain_cls.from_maps(list(maps), drive_params=drive_params)
-        self.clock = clock or time.monotonic_ns
+        # a virtual clock: the master's waits (a lost or held-back reply, state polls) pass on it
+        self._waits: Clock = clock if clock is not None else WallClock()
+        self._virtual = is_virtual(self._waits)
+        self.clock: Callable[[], int] = self._waits.now_ns
+        self._held_s = 0.0  # how long the last process-data reply was held back (chain fault: delay)
         self.frames = FrameMaster(self._transport)
         self.slaves: list[InProcessSlave] = []
         self.iomap: npt.NDArray[np.uint8] | None = None  # the IO map: outputs, then inputs
@@ -187,16 +200,21 @@ class InProcessMaster:
         self._idx = 0
 
     # -- frames -------------------------------------------------------------------------------------
-    def _transport(self, frame: bytes) -> bytes | None:
+    def _transport(self, frame: bytes, timeout_us: int = RETURN_TIMEOUT_US) -> bytes | None:
+        """One frame through the chain; a reply lost or held back longer than ``timeout_us`` is None.
+        On a virtual clock the wait passes there (on the wall clock the reply is there at once)."""
         reply: bytes | None = self.chain.process(frame, self.clock())
-        self.chain.take_delay()  # a held-back reply: this master does not wait, it takes it
-        return reply
+        held = self.chain.take_delay()
+        late = reply is None or held > timeout_us / 1e6
+        if self._virtual:
+            self._waits.sleep(timeout_us / 1e6 if late else held)
+        return None if late else reply
 
-    def _once(self, datagram: Datagram) -> Datagram | None:
+    def _once(self, datagram: Datagram, timeout_us: int = RETURN_TIMEOUT_US) -> Datagram | None:
         """One frame of one datagram, not repeated; the datagram as it came back, None when lost."""
         self._idx = (self._idx + 1) & 0xFF
         frame = build_master_frame([Datagram(datagram.cmd, self._idx, datagram.address, datagram.data)])
-        reply = self._transport(frame)
+        reply = self._transport(frame, timeout_us)
         return None if reply is None else decode_frame(reply).datagrams[0]
 
     # -- bring-up -------------------------------------------------------------------------------------
@@ -331,7 +349,7 @@ class InProcessMaster:
                 lowest = min(lowest, s.state & 0x1F)
             if lowest == expected or self.clock() >= end:
                 return 0 if lowest == 0xFF else lowest
-            time.sleep(0)  # let a wall clock move on
+            self._waits.sleep(STATE_POLL_S)
 
     # -- cycle ----------------------------------------------------------------------------------------
     def send_processdata(self, *, release_gil: Any = None) -> int:
@@ -340,11 +358,12 @@ class InProcessMaster:
         if iomap is None:
             return 0
         wkc, now = 0, self.clock()
+        self._held_s = 0.0
         for frame, lo, n, wkc_off, in_lo, in_hi in self._frames:
             frame[_HEADER : _HEADER + n] = iomap[lo : lo + n].tobytes()
             frame[wkc_off] = frame[wkc_off + 1] = 0
             got = self.chain.process_into(frame, len(frame), now)
-            self.chain.take_delay()
+            self._held_s = max(self._held_s, self.chain.take_delay())
             if got == 0:
                 self._wkc = NO_FRAME
                 return len(self._frames)
@@ -358,6 +377,11 @@ class InProcessMaster:
         return len(self._frames)
 
     def receive_processdata(self, timeout: int = 2000, *, release_gil: Any = None) -> int:
-        """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost."""
+        """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost or held back
+        longer than ``timeout`` (µs); on a virtual clock the wait passes there."""
         wkc, self._wkc = self._wkc, NO_FRAME
-        return wkc
+        held, self._held_s = self._held_s, 0.0
+        late = wkc == NO_FRAME or held > timeout / 1e6
+        if self._virtual:
+            self._waits.sleep(timeout / 1e6 if late else held)
+        return NO_FRAME if late else wkc

@@ -59,6 +59,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
+from fieldbus.runtime.clock import Clock
 from fieldbus.wire.pcap import EthercatCapture
 
 try:
@@ -131,8 +132,15 @@ class EthercatBackend(Backend):
             from fieldbus.backends.ecat_inprocess import InProcessMaster
 
             emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
-            self.master: Any = InProcessMaster([s.map for s in bus.slaves], drive_params=emulated)
+            clock = options.get("clock")  # the emulated chain's time (a virtual one: deterministic runs)
+            if clock is not None and not isinstance(clock, Clock):
+                raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.runtime.clock.Clock")
+            self.master: Any = InProcessMaster(
+                [s.map for s in bus.slaves], drive_params=emulated, clock=clock
+            )
         else:
+            if options.get("clock") is not None:
+                raise FieldbusError(f"bus '{bus.name}': option clock needs transport='in-process'")
             self.master = pysoem.Master()
         self._slaves: list[Any] = []
         self._open = False
@@ -608,7 +616,8 @@ class EthercatBackend(Backend):
         """
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
         self.late_wkc = None
-        if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._late_ns:
+        # in-process the transport judges lateness on its own clock (ecat_inprocess), not the wall's
+        if wkc >= 0 and not self.in_process and time.perf_counter_ns() - self._sent_ns > self._late_ns:
             self.late_replies += 1
             self.late_wkc, wkc = wkc, -1
         if self._host_sync is not None and wkc >= 0:

@@ -4,7 +4,7 @@ Each test runs on the in-process ``sim`` backend (the ESC chain, real frames),
 on the ``ethercat`` backend (real pysoem over a veth pair, the emulator in its
 own process), on ``canopen`` (the CANopen emulator) and on the ``ethercat``
 backend's own code over the in-process ESC chain (``ecat-inprocess``:
-``transport="in-process"``, on the wall clock, judged with the veth bounds). Fault injection goes
+``transport="in-process"``, on a virtual clock like ``sim``). Fault injection goes
 through the emulator's control commands (``sim_slaves.ethercat.runner.handle_control``,
 ``sim_slaves.canopen.control.handle_control``) either way.
 
@@ -197,12 +197,19 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
                     clock=clock,
                     options={"bus_options": {"bus": {"can_bus": wire}}, "clock": clock},
                 )
-            if kind == "ecat-inprocess":  # the ethercat backend's code on the in-process chain, wall clock
+            if kind == "ecat-inprocess":  # the ethercat backend's code on the in-process chain, virtual time
                 pytest.importorskip("pysoem")
                 if chain_maps is not None:
                     pytest.skip("the in-process transport builds its chain from the network's maps")
                 _network_yaml(net_file, maps, count, "none", safe_stop_after)
-                seg = _InProcessSegment(net_file, "ethercat", "ethercat", options={"transport": "in-process"})
+                clock = VirtualClock()
+                seg = _InProcessSegment(
+                    net_file,
+                    "ethercat",
+                    "ethercat",
+                    clock=clock,
+                    options={"transport": "in-process", "clock": clock},
+                )
                 seg._control = lambda msg: _inprocess_control(seg, msg)
                 return seg
             if kind == "sim":
@@ -243,7 +250,7 @@ def _inprocess_control(seg: Segment, msg: dict[str, Any]) -> dict[str, Any]:
     from sim_slaves.ethercat.runner import handle_control
 
     chain = seg.open().backends[0].master.chain  # type: ignore[attr-defined]
-    return handle_control(chain, msg, time.monotonic_ns())
+    return handle_control(chain, msg, seg.now_ns())
 
 
 def _run_until_fresh(seg: Segment, op: Operational) -> None:

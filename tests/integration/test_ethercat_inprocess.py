@@ -72,3 +72,13 @@ def test_dc_is_set_up_as_soem_does_and_the_cycle_reads_the_reference_clock(tmp_p
 def test_a_bad_transport_option_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(FieldbusError, match="transport 'pcie' is not one of"):
         open_network(_net(tmp_path, DEMO_MAP, 1), backend="ethercat", transport="pcie")
+
+
+def test_a_clock_is_only_for_the_in_process_transport(tmp_path: Path) -> None:
+    from fieldbus.testing import VirtualClock
+
+    net_file = _net(tmp_path, DEMO_MAP, 1)
+    with pytest.raises(FieldbusError, match="option clock needs transport='in-process'"):
+        open_network(net_file, backend="ethercat", clock=VirtualClock())
+    with pytest.raises(FieldbusError, match="option clock is not a "):
+        open_network(net_file, backend="ethercat", transport="in-process", clock=12)
