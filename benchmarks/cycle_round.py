@@ -29,6 +29,12 @@ def main() -> int:
     from fieldbus.network import open_network
 
     codec = importlib.util.find_spec("fieldbus._codec") is not None
+    if importlib.util.find_spec("pysoem") is not None:
+        import pysoem
+
+        # SOEM's bring-up frames wait 20 ms, not 2: on a loaded machine the emulator may answer late and
+        # config_init then finds no slave (as the tests' generous_pysoem_timeouts); the cycle is unchanged
+        pysoem.settings.timeouts.ret = max(int(pysoem.settings.timeouts.ret), 20_000)
     with open_network(args.net, backend=args.backend) as net:
         op = net.bring_up()
         img = op["joints"]
