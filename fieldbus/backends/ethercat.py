@@ -131,16 +131,23 @@ class EthercatBackend(Backend):
         if self.in_process:
             from fieldbus.backends.ecat_inprocess import InProcessMaster
 
+            maps = options.get(
+                "chain_maps"
+            )  # what the emulated slaves are, in wire order (default: the maps)
+            chain_maps = list(maps) if isinstance(maps, (list, tuple)) else [s.map for s in bus.slaves]
             emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
             clock = options.get("clock")  # the emulated chain's time (a virtual one: deterministic runs)
             if clock is not None and not isinstance(clock, Clock):
                 raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.runtime.clock.Clock")
             self.master: Any = InProcessMaster(
-                [s.map for s in bus.slaves], drive_params=emulated, clock=clock
+                chain_maps, drive_params=emulated if len(emulated) == len(chain_maps) else None, clock=clock
             )
         else:
-            if options.get("clock") is not None:
-                raise FieldbusError(f"bus '{bus.name}': option clock needs transport='in-process'")
+            for emulator_only in ("clock", "chain_maps"):
+                if options.get(emulator_only) is not None:
+                    raise FieldbusError(
+                        f"bus '{bus.name}': option {emulator_only} needs transport='in-process'"
+                    )
             self.master = pysoem.Master()
         self._slaves: list[Any] = []
         self._open = False

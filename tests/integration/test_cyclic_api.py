@@ -199,17 +199,12 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
                 )
             if kind == "ecat-inprocess":  # the ethercat backend's code on the in-process chain, virtual time
                 pytest.importorskip("pysoem")
-                if chain_maps is not None:
-                    pytest.skip("the in-process transport builds its chain from the network's maps")
                 _network_yaml(net_file, maps, count, "none", safe_stop_after)
                 clock = VirtualClock()
-                seg = _InProcessSegment(
-                    net_file,
-                    "ethercat",
-                    "ethercat",
-                    clock=clock,
-                    options={"transport": "in-process", "clock": clock},
-                )
+                opts: dict[str, Any] = {"transport": "in-process", "clock": clock}
+                if chain_maps is not None:
+                    opts["chain_maps"] = [load_drive_map(m) for m in chain_maps]
+                seg = _InProcessSegment(net_file, "ethercat", "ethercat", clock=clock, options=opts)
                 seg._control = lambda msg: _inprocess_control(seg, msg)
                 return seg
             if kind == "sim":
