@@ -444,7 +444,7 @@ class EthercatBackend(Backend):
                 step = f"FMMU register 0x{address:04X}"
                 yield from self._write(i, address, data)
         except Exception as exc:
-            self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
+            self._retry_at[i] = self._now_s() + PLAN_RETRY_S
             yield  # the step that failed had its datagram; the INIT request gets a step of its own
             _SoemPort(self, self._slaves[i]).write(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
             raise StateTransitionError(
@@ -677,7 +677,7 @@ class EthercatBackend(Backend):
                 elif action is Recovery.REQUEST_OP:
                     yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
                 elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle
-                    if time.monotonic() < self._retry_at[i]:
+                    if self._now_s() < self._retry_at[i]:
                         continue  # its configuration failed a moment ago: not every cycle
                     yield from self._reconfigure(i)
                     yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
@@ -688,6 +688,10 @@ class EthercatBackend(Backend):
                 self.recoveries += worked
                 return True
             worked = True
+
+    def _now_s(self) -> float:
+        """Seconds for recovery's waits: the wall clock's, in-process the transport's (maybe virtual)."""
+        return self.master.clock() / 1e9 if self.in_process else time.monotonic()
 
     def _al_status(self, i: int) -> int | None:
         """Slave ``i``'s AL status register (one FPRD), None when it does not answer at its address."""
