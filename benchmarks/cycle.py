@@ -29,13 +29,17 @@ images and SOEM's IO map, in this process on one bring-up: one copy per
 group through the IO map view against pysoem's per-slave ``bytes``
 (``iomap="bytes"``, the path before), alternating.
 
+``--in-process``: instead, the ethercat backend on its in-process transport
+(``transport="in-process"``) against the sim backend on the same network, one
+process, alternating rounds, ratio within each round.
+
 ``--record``: instead, the cost of recording (``Operational.record``, docs/observability.md).
 One in-process sim network runs unpaced in alternating rounds with recording on
 (a fresh recorder per round, closed after it) and off; the ratio on/off is taken
 within each pair of rounds (target: at least 0.9), and net blocks per cycle are
 counted with recording on.
 
-    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2] [--record] [--before-src DIR]
+    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2] [--record] [--before-src DIR] [--in-process]
 """
 
 from __future__ import annotations
@@ -364,6 +368,7 @@ def main() -> int:
     p.add_argument("--alloc-cycles", type=int, default=10_000)
     p.add_argument("--record", action="store_true", help="recording on against off (sim, in-process) only")
     p.add_argument("--before-src", type=Path, help="a second checkout, timed alternately with this one")
+    p.add_argument("--in-process", action="store_true", help="ethercat backend in-process against sim only")
     args = p.parse_args()
     print(f"# cycle benchmark, {args.axes} CiA 402 axes ({machine_note()})\n")
     results: dict[str, Any] = {}
@@ -377,6 +382,8 @@ def main() -> int:
             return 0
         if args.before_src is not None:
             return run_before_after(args, tmp)
+        if args.in_process:
+            return run_in_process(args, tmp)
         # -- in-process: sim backend vs a bare LRW through the chain --
         sim_file = _net_file(tmp, "sim", args.axes)
         bare = sim_bare_step(args.axes)
@@ -444,6 +451,41 @@ def main() -> int:
     )
     if "veth_bad" in results:
         print(f"\ncycles not fresh / wrong WKC per round (fieldbus, bare): {results['veth_bad']}")
+    return 0
+
+
+def run_in_process(args: argparse.Namespace, tmp: Path) -> int:
+    """``--in-process``: ``exchange()`` of the ethercat backend on the in-process transport against the sim
+    backend, both up at once on the same network file, alternating rounds (cycles/s, ratio per round)."""
+    net_file = _net_file(tmp, "none0", args.axes)
+    steps: dict[str, Callable[[], object]] = {}
+    with (
+        open_network(net_file, backend="sim") as sim,
+        open_network(net_file, backend="ethercat", transport="in-process") as ecat,
+    ):
+        for name, net in (("sim", sim), ("ethercat in-process", ecat)):
+            op = net.bring_up()
+            steps[name] = op.exchange
+        rates: dict[str, list[float]] = {k: [] for k in steps}
+        for k in range(args.rounds):
+            for name in list(steps) if k % 2 == 0 else list(steps)[::-1]:
+                rates[name].append(_rate(steps[name], args.seconds))
+    ratio = [e / s for e, s in zip(rates["ethercat in-process"], rates["sim"], strict=True)]
+    q1, q3 = np.percentile(ratio, [25, 75])
+    print(
+        table(
+            ["path", "sim [cycles/s]", "ethercat in-process [cycles/s]", "ratio (IQR)", "min-max"],
+            [
+                [
+                    f"{args.axes} axes, unpaced",
+                    f"{statistics.median(rates['sim']):,.0f}",
+                    f"{statistics.median(rates['ethercat in-process']):,.0f}",
+                    f"{statistics.median(ratio):.2f} ({q1:.2f}-{q3:.2f})",
+                    f"{min(ratio):.2f}-{max(ratio):.2f}",
+                ]
+            ],
+        )
+    )
     return 0
 
 
