@@ -18,21 +18,39 @@ each pair of rounds (target: at least 0.8). In-process, the ``sim`` backend's
 tracemalloc: net allocated blocks per cycle over 10,000 ``exchange()`` calls
 (target 0), for the sim backend and, with root, over veth.
 
+``--before-src DIR``: a second checkout (``git worktree add --detach /tmp/before <commit>``;
+build its C codec there too, ``python setup.py build_ext --inplace``, or it runs
+numpy-only and the comparison says so). Then each round also brings up this
+checkout and that one, each in a child process (:mod:`benchmarks.cycle_round`)
+in a shuffled order, over veth beside bare pysoem and in-process on the sim
+backend; ratios after/before are taken within each round. Over veth it also
+times the part of the EtherCAT cycle that moves process data between the
+images and SOEM's IO map, in this process on one bring-up: one copy per
+group through the IO map view against pysoem's per-slave ``bytes``
+(``iomap="bytes"``, the path before), alternating.
+
+``--in-process``: instead, the ethercat backend on its in-process transport
+(``transport="in-process"``) against the sim backend on the same network, one
+process, alternating rounds, ratio within each round.
+
 ``--record``: instead, the cost of recording (``Operational.record``, docs/observability.md).
 One in-process sim network runs unpaced in alternating rounds with recording on
 (a fresh recorder per round, closed after it) and off; the ratio on/off is taken
 within each pair of rounds (target: at least 0.9), and net blocks per cycle are
 counted with recording on.
 
-    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2] [--record]
+    python benchmarks/cycle.py [--axes 12] [--rounds 5] [--seconds 2] [--record] [--before-src DIR] [--in-process]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import random
 import statistics
 import struct
+import subprocess
 import sys
 import tempfile
 import time
@@ -235,6 +253,113 @@ def print_record(axes: int, r: dict[str, Any], alloc_cycles: int) -> None:
     print(f"[{'met' if med >= 0.9 else 'MISSED'}] recording on >= 0.9x the rate with it off: {med:.3f}")
 
 
+def child_round(src: Path, net_file: Path, seconds: float, backend: str | None = None) -> dict[str, Any]:
+    """One round of ``benchmarks/cycle_round.py`` with ``src``'s fieldbus, in a child process."""
+    cmd = [sys.executable, str(Path(__file__).with_name("cycle_round.py")), "--src", str(src)]
+    cmd += ["--net", str(net_file), "--seconds", str(seconds)] + (["--backend", backend] if backend else [])
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    for _ in range(3):  # a bring-up that failed on a loaded machine (no slave found in time) is tried again
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False, timeout=300)
+        if out.returncode == 0:
+            break
+    else:
+        raise RuntimeError(f"round with {src} failed 3 times: {out.stderr.strip()[-2000:]}")
+    got: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return got
+
+
+def before_after(
+    here: Path,
+    before: Path,
+    net_file: Path,
+    rounds: int,
+    seconds: float,
+    backend: str | None,
+    bare: Any = None,
+) -> dict[str, list[float]]:
+    """Per round: this checkout and ``before`` (and ``bare()``, a rate, when given), in a shuffled order."""
+    rates: dict[str, list[float]] = {"after": [], "before": [], "bare": []}
+    codec: dict[str, bool] = {}
+    shown = RoundProgress(rounds)
+    for _ in range(rounds):
+        order = ["after", "before"] + (["bare"] if bare is not None else [])
+        random.shuffle(order)
+        for who in order:
+            if who == "bare":
+                rates["bare"].append(bare())
+                continue
+            got = child_round(here if who == "after" else before, net_file, seconds, backend)
+            rates[who].append(got["rate"])
+            codec[who] = got["codec"]
+        shown.step()
+    if not all(codec.values()):
+        print(
+            f"NOTE: C codec missing in {[k for k, v in codec.items() if not v]} (numpy path): not comparable"
+        )
+    return rates
+
+
+def copy_rounds(net_file: Path, rounds: int, seconds: float) -> dict[str, list[float]]:
+    """Process-data copies of the EtherCAT cycle alone (12 slaves): IO map view vs per-slave ``bytes``."""
+    import numpy as np
+
+    rates: dict[str, list[float]] = {"view": [], "bytes": []}
+    with open_network(net_file, backend="ethercat") as net:
+        net.bring_up()
+        b: Any = net.backends[0]
+        if b.iomap is None:
+            raise RuntimeError("the IO map view was not proven on this pysoem: nothing to compare")
+        out_views, in_views, out_copies, in_copies = b._out_views, b._in_views, b._out_copies, b._in_copies
+
+        def per_slave() -> None:  # the cycle's copies before (and with iomap="bytes")
+            for s, mv in out_views:
+                s.output = bytes(mv)
+            for s, mv in in_views:
+                mv[:] = s.input
+
+        def view() -> None:
+            for dst, src in out_copies:
+                np.copyto(dst, src)
+            for dst, src in in_copies:
+                np.copyto(dst, src)
+
+        for k in range(rounds):
+            for who in ("view", "bytes") if k % 2 == 0 else ("bytes", "view"):
+                rates[who].append(_rate(view if who == "view" else per_slave, seconds / 4))
+    return rates
+
+
+def print_before_after(results: dict[str, dict[str, list[float]]]) -> None:
+    rows = []
+    for label, r in results.items():
+        a, b = r.get("after") or r["view"], r.get("before") or r["bytes"]
+        ratio = [x / y for x, y in zip(a, b, strict=True)]
+        q1, q3 = np.percentile(ratio, [25, 75])
+        bare = r.get("bare") or []
+        vs_bare = (
+            f"{statistics.median(x / y for x, y in zip(a, bare, strict=True)):.2f} / "
+            f"{statistics.median(x / y for x, y in zip(b, bare, strict=True)):.2f}"
+            if bare
+            else "-"
+        )
+        rows.append(
+            [
+                label,
+                f"{statistics.median(b):,.0f}",
+                f"{statistics.median(a):,.0f}",
+                f"{statistics.median(ratio):.3f} ({q1:.3f}-{q3:.3f})",
+                f"{min(ratio):.3f}-{max(ratio):.3f}",
+                vs_bare,
+            ]
+        )
+    print(
+        table(
+            ["path", "before [/s]", "after [/s]", "after/before (IQR)", "min-max", "after / before vs bare"],
+            rows,
+        )
+    )
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--axes", type=int, default=12)
@@ -242,6 +367,8 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="per round and contender")
     p.add_argument("--alloc-cycles", type=int, default=10_000)
     p.add_argument("--record", action="store_true", help="recording on against off (sim, in-process) only")
+    p.add_argument("--before-src", type=Path, help="a second checkout, timed alternately with this one")
+    p.add_argument("--in-process", action="store_true", help="ethercat backend in-process against sim only")
     args = p.parse_args()
     print(f"# cycle benchmark, {args.axes} CiA 402 axes ({machine_note()})\n")
     results: dict[str, Any] = {}
@@ -253,6 +380,10 @@ def main() -> int:
             )
             print_record(args.axes, costs, args.alloc_cycles)
             return 0
+        if args.before_src is not None:
+            return run_before_after(args, tmp)
+        if args.in_process:
+            return run_in_process(args, tmp)
         # -- in-process: sim backend vs a bare LRW through the chain --
         sim_file = _net_file(tmp, "sim", args.axes)
         bare = sim_bare_step(args.axes)
@@ -320,6 +451,72 @@ def main() -> int:
     )
     if "veth_bad" in results:
         print(f"\ncycles not fresh / wrong WKC per round (fieldbus, bare): {results['veth_bad']}")
+    return 0
+
+
+def run_in_process(args: argparse.Namespace, tmp: Path) -> int:
+    """``--in-process``: ``exchange()`` of the ethercat backend on the in-process transport against the sim
+    backend, both up at once on the same network file, alternating rounds (cycles/s, ratio per round)."""
+    net_file = _net_file(tmp, "none0", args.axes)
+    steps: dict[str, Callable[[], object]] = {}
+    with (
+        open_network(net_file, backend="sim") as sim,
+        open_network(net_file, backend="ethercat", transport="in-process") as ecat,
+    ):
+        for name, net in (("sim", sim), ("ethercat in-process", ecat)):
+            op = net.bring_up()
+            steps[name] = op.exchange
+        rates: dict[str, list[float]] = {k: [] for k in steps}
+        for k in range(args.rounds):
+            for name in list(steps) if k % 2 == 0 else list(steps)[::-1]:
+                rates[name].append(_rate(steps[name], args.seconds))
+    ratio = [e / s for e, s in zip(rates["ethercat in-process"], rates["sim"], strict=True)]
+    q1, q3 = np.percentile(ratio, [25, 75])
+    print(
+        table(
+            ["path", "sim [cycles/s]", "ethercat in-process [cycles/s]", "ratio (IQR)", "min-max"],
+            [
+                [
+                    f"{args.axes} axes, unpaced",
+                    f"{statistics.median(rates['sim']):,.0f}",
+                    f"{statistics.median(rates['ethercat in-process']):,.0f}",
+                    f"{statistics.median(ratio):.2f} ({q1:.2f}-{q3:.2f})",
+                    f"{min(ratio):.2f}-{max(ratio):.2f}",
+                ]
+            ],
+        )
+    )
+    return 0
+
+
+def run_before_after(args: argparse.Namespace, tmp: Path) -> int:
+    """``--before-src``: this checkout against ``args.before_src`` in one run (see the module)."""
+    here, before = Path(__file__).resolve().parents[1], args.before_src.resolve()
+    print(f"after: {here}\nbefore: {before}\n")
+    results: dict[str, dict[str, list[float]]] = {}
+    bare = sim_bare_step(args.axes)
+    results["in-process sim backend"] = before_after(
+        here, before, _net_file(tmp, "sim", args.axes), args.rounds, args.seconds, "sim",
+        lambda: _rate(bare, args.seconds),
+    )  # fmt: skip
+    if not capabilities.missing(capabilities.CAP_NET_ADMIN, capabilities.CAP_NET_RAW):
+        import pysoem
+
+        from sim_slaves.ethercat.veth import emulated_segment
+
+        pysoem.settings.timeouts.ret = max(int(pysoem.settings.timeouts.ret), 20_000)  # as cycle_round.py
+        with emulated_segment([DEMO_MAP], count=args.axes, workdir=tmp) as emu:
+            net_file = _net_file(tmp, emu.iface, args.axes)
+            results["veth, ethercat backend"] = before_after(
+                here, before, net_file, args.rounds, args.seconds, None,
+                lambda: bare_round(emu.iface, args.axes, args.seconds)[0],
+            )  # fmt: skip
+            results["veth, process-data copies only (view vs bytes)"] = copy_rounds(
+                net_file, args.rounds, args.seconds
+            )
+    else:
+        print("(veth rounds need root)")
+    print_before_after(results)
     return 0
 
 

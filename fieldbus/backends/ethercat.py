@@ -5,10 +5,12 @@ each slave's CoE SDO plan is written and read back; ``config_map`` and a size
 check against our layout; SAFE-OP (each slave's SyncManager and FMMU
 registers kept for recovery); OP, confirmed by the working counter.
 
-Cycle: outputs are copied per slave from its process-image row into SOEM's IO map (pysoem exposes each
-slave's area only as ``bytes``: a transient copy, nothing kept), one LRW is
-sent, the reply is awaited for at most the bus's receive timeout with the GIL
-released, inputs are copied back into the slaves' rows of the process images.
+Cycle: outputs are copied from the process images into SOEM's IO map, one
+copy per axis group through a view of the map that :mod:`.soem_iomap` finds
+and proves at SAFE-OP (option ``iomap="bytes"``, or a layout it cannot prove:
+per slave through pysoem's ``bytes`` setters and getters), one LRW is sent,
+the reply is awaited for at most the bus's receive timeout with the GIL
+released, inputs are copied back into the groups' receive rows the same way.
 
 Recovery (like SOEM's ``ecatcheck``) is a generator advanced by the cycle one
 datagram at a time, after a miss and while a slave is known not to be in OP; a
@@ -33,7 +35,10 @@ from collections import deque
 from collections.abc import Generator
 from typing import Any
 
-from fieldbus.backends import soem_socket
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.backends import soem_iomap, soem_socket
 from fieldbus.backends.base import Backend, SdoRequest
 from fieldbus.backends.buslock import InterfaceLock, lock_network_card, release_all
 from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
@@ -65,6 +70,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
+from fieldbus.runtime.clock import Clock
 from fieldbus.wire.pcap import EthercatCapture
 
 STATE_TIMEOUT_US = 2_000_000
@@ -120,7 +126,33 @@ class EthercatBackend(Backend):
         super().__init__(bus, **options)
         if not bus.interface:
             raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
-        self.master: Any = pysoem.Master()
+        transport = options.get("transport", "soem")  # "in-process": the emulated chain (ecat_inprocess)
+        if transport not in ("soem", "in-process"):
+            raise FieldbusError(
+                f"bus '{bus.name}': transport {transport!r} is not one of 'soem', 'in-process'"
+            )
+        self.in_process = transport == "in-process"
+        if self.in_process:
+            from fieldbus.backends.ecat_inprocess import InProcessMaster
+
+            maps = options.get(
+                "chain_maps"
+            )  # what the emulated slaves are, in wire order (default: the maps)
+            chain_maps = list(maps) if isinstance(maps, (list, tuple)) else [s.map for s in bus.slaves]
+            emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
+            clock = options.get("clock")  # the emulated chain's time (a virtual one: deterministic runs)
+            if clock is not None and not isinstance(clock, Clock):
+                raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.runtime.clock.Clock")
+            self.master: Any = InProcessMaster(
+                chain_maps, drive_params=emulated if len(emulated) == len(chain_maps) else None, clock=clock
+            )
+        else:
+            for emulator_only in ("clock", "chain_maps"):
+                if options.get(emulator_only) is not None:
+                    raise FieldbusError(
+                        f"bus '{bus.name}': option {emulator_only} needs transport='in-process'"
+                    )
+            self.master = pysoem.Master()
         self._slaves: list[Any] = []
         self._open = False
         self._timeout_us = bus.receive_timeout_us
@@ -131,8 +163,16 @@ class EthercatBackend(Backend):
         self.late_replies = 0  # replies that came back, but later than the receive timeout
         self._out_views: list[tuple[Any, memoryview]] = []
         self._in_views: list[tuple[Any, memoryview]] = []
+        # process data through one view of SOEM's IO map (soem_iomap), per group: (destination, source)
+        iomap = options.get("iomap", "view")  # "bytes": pysoem's per-slave bytes in the cycle
+        if iomap not in ("view", "bytes"):
+            raise FieldbusError(f"bus '{bus.name}': iomap {iomap!r} is not one of 'view', 'bytes'")
+        self._iomap_view = iomap == "view"
+        self._out_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        self.iomap: npt.NDArray[np.uint8] | None = None  # SOEM's IO map, when soem_iomap proved where
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
-        self._exact_timeout = bool(options.get("exact_timeout", True))
+        self._exact_timeout = bool(options.get("exact_timeout", True)) and not self.in_process  # no socket
         pcap = options.get("pcap")  # every EtherCAT frame of the card, both directions, to this pcap file
         self.capture = EthercatCapture(str(pcap), bus.interface) if pcap else None
         # With a redundant port and the ring open (a cable cut: the usual reason to have one), SOEM
@@ -174,7 +214,7 @@ class EthercatBackend(Backend):
     def open(self) -> None:
         """Lock the NIC(s) (:class:`~fieldbus.errors.InterfaceInUseError` when another master has one),
         open them (and find SOEM's packet socket: see :mod:`.soem_socket`), find the slaves."""
-        if not self._locks:
+        if not self._locks and not self.in_process:
             locks: list[InterfaceLock] = []
             try:
                 for card in (self.bus.interface, self.bus.redundant_interface):
@@ -248,12 +288,35 @@ class EthercatBackend(Backend):
         self._in_views = [
             (s, self.in_row(i).data) for i, s in enumerate(self._slaves) if self.areas[i].in_size
         ]
+        self._map_iomap()
         self._configure_dc()
         state = check_state(self.master, pysoem.SAFEOP_STATE, STATE_TIMEOUT_US)
         if state != pysoem.SAFEOP_STATE:
             self._raise_state("SAFE-OP", state)
         self._snapshot_registers()
         self._prime_mailboxes()
+
+    def _map_iomap(self) -> None:
+        """One copy per axis group and direction between the images and SOEM's IO map, when
+        :func:`.soem_iomap.locate` proves where it is; otherwise the per-slave ``bytes`` path stays."""
+        self.iomap, self._out_copies, self._in_copies = None, [], []
+        if not self._iomap_view:
+            return
+        sizes = [(a.out_size, a.in_size) for a in self.areas]
+        view = self.master.iomap if self.in_process else soem_iomap.locate(self.master, self._slaves, sizes)
+        if view is None:
+            return
+        o_at, i_at = 0, self.out_bytes
+        for k, g in enumerate(self.groups):
+            n = len(g.slaves)
+            o, i = self.areas[g.first].out_size, self.areas[g.first].in_size
+            if o:
+                self._out_copies.append((view[o_at : o_at + n * o].reshape(n, o), g.image.outputs.wire))
+            if i:
+                self._in_copies.append((self.rx[k], view[i_at : i_at + n * i].reshape(n, i)))
+            o_at += n * o
+            i_at += n * i
+        self.iomap = view
 
     def _prime_mailboxes(self) -> None:
         """Take over each slave's mailbox counter from SOEM with a harmless upload (0x1000:0, device type).
@@ -380,7 +443,7 @@ class EthercatBackend(Backend):
                 step = f"FMMU register 0x{address:04X}"
                 yield from self._write(i, address, data)
         except Exception as exc:
-            self._retry_at[i] = time.monotonic() + PLAN_RETRY_S
+            self._retry_at[i] = self._now_s() + PLAN_RETRY_S
             yield  # the step that failed had its datagram; the INIT request gets a step of its own
             SoemPort(self, self._slaves[i]).write(REG_AL_CONTROL, bytes([AL_INIT | AL_ACK, 0]))
             raise StateTransitionError(
@@ -522,8 +585,12 @@ class EthercatBackend(Backend):
     # -- cycle ----------------------------------------------------------------------
     def send(self) -> None:
         """Outputs into SOEM's IO map, frames still queued from earlier cycles discarded, the LRW sent."""
-        for s, mv in self._out_views:
-            s.output = bytes(mv)
+        if self.iomap is not None:
+            for dst, src in self._out_copies:
+                np.copyto(dst, src)
+        else:
+            for s, mv in self._out_views:
+                s.output = bytes(mv)
         if self._exact_timeout:
             self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
         self._frame_sent = False
@@ -541,7 +608,8 @@ class EthercatBackend(Backend):
         """
         wkc: int = self.master.receive_processdata(self._timeout_us, release_gil=True)
         self.late_wkc = None
-        if wkc >= 0 and time.perf_counter_ns() - self._sent_ns > self._late_ns:
+        # in-process the transport judges lateness on its own clock (ecat_inprocess), not the wall's
+        if wkc >= 0 and not self.in_process and time.perf_counter_ns() - self._sent_ns > self._late_ns:
             self.late_replies += 1
             self.late_wkc, wkc = wkc, -1
         if self._host_sync is not None and wkc >= 0:
@@ -551,8 +619,12 @@ class EthercatBackend(Backend):
             self.dc_sync_error_ns = self._host_sync.delta_ns
         if wkc < 0:
             return None
-        for s, mv in self._in_views:
-            mv[:] = s.input
+        if self.iomap is not None:
+            for dst, src in self._in_copies:
+                np.copyto(dst, src)
+        else:
+            for s, mv in self._in_views:
+                mv[:] = s.input
         return wkc
 
     def dc_correction_ns(self) -> int:
@@ -590,7 +662,7 @@ class EthercatBackend(Backend):
                 elif action is Recovery.REQUEST_OP:
                     yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
                 elif action is Recovery.RECONFIGURE:  # INIT/PRE-OP after a power cycle
-                    if time.monotonic() < self._retry_at[i]:
+                    if self._now_s() < self._retry_at[i]:
                         continue  # its configuration failed a moment ago: not every cycle
                     yield from self._reconfigure(i)
                     yield from self._write(i, REG_AL_CONTROL, bytes([AL_OP, 0]))
@@ -601,6 +673,10 @@ class EthercatBackend(Backend):
                 self.recoveries += worked
                 return True
             worked = True
+
+    def _now_s(self) -> float:
+        """Seconds for recovery's waits: the wall clock's, in-process the transport's (maybe virtual)."""
+        return self.master.clock() / 1e9 if self.in_process else time.monotonic()
 
     def _al_status(self, i: int) -> int | None:
         """Slave ``i``'s AL status register (one FPRD), None when it does not answer at its address."""
@@ -700,6 +776,7 @@ class EthercatBackend(Backend):
         try:
             if self._open:
                 self._open = False
+                self.iomap, self._out_copies, self._in_copies = None, [], []  # not past the master's life
                 self.master.close()
         finally:
             try:

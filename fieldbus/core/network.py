@@ -52,7 +52,16 @@ PATH_CHARS = 160  # most characters of a map path (from the network file) an err
 # Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
     "sim": ("chain_maps", "clock"),
-    "ethercat": ("exact_timeout", "pcap", "frame_timeout_us", "sdo_timeout_s"),
+    "ethercat": (
+        "exact_timeout",
+        "pcap",
+        "frame_timeout_us",
+        "sdo_timeout_s",
+        "iomap",
+        "transport",
+        "clock",
+        "chain_maps",
+    ),
     "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms", "clock"),
     "rawcan": ("can_bus", "can_log", "clock"),
 }

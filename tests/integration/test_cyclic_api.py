@@ -2,7 +2,9 @@
 
 Each test runs on the in-process ``sim`` backend (the ESC chain, real frames),
 on the ``ethercat`` backend (real pysoem over a veth pair, the emulator in its
-own process) and on ``canopen`` (the CANopen emulator). Fault injection goes
+own process), on ``canopen`` (the CANopen emulator) and on the ``ethercat``
+backend's own code over the in-process ESC chain (``ecat-inprocess``:
+``transport="in-process"``, on a virtual clock like ``sim``). Fault injection goes
 through the emulator's control commands (``sim_slaves.ethercat.runner.handle_control``,
 ``sim_slaves.canopen.control.handle_control``) either way.
 
@@ -147,7 +149,7 @@ def _network_yaml(
     )
 
 
-@pytest.fixture(params=["sim", pytest.param("ethercat", marks=pytest.mark.veth), "canopen"])
+@pytest.fixture(params=["sim", pytest.param("ethercat", marks=pytest.mark.veth), "canopen", "ecat-inprocess"])
 def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable[..., Segment]]:
     """``segment(maps, count=1, chain_maps=None, safe_stop_after=10)``: emulated slaves and a network file.
 
@@ -195,6 +197,16 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
                     clock=clock,
                     options={"bus_options": {"bus": {"can_bus": wire}}, "clock": clock},
                 )
+            if kind == "ecat-inprocess":  # the ethercat backend's code on the in-process chain, virtual time
+                pytest.importorskip("pysoem")
+                _network_yaml(net_file, maps, count, "none", safe_stop_after)
+                clock = VirtualClock()
+                opts: dict[str, Any] = {"transport": "in-process", "clock": clock}
+                if chain_maps is not None:
+                    opts["chain_maps"] = [load_drive_map(m) for m in chain_maps]
+                seg = _InProcessSegment(net_file, "ethercat", "ethercat", clock=clock, options=opts)
+                seg._control = lambda msg: _inprocess_control(seg, msg)
+                return seg
             if kind == "sim":
                 _network_yaml(net_file, maps, count, "sim", safe_stop_after)
                 clock = VirtualClock()
@@ -218,6 +230,22 @@ def segment(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Callable
             return Segment(net_file, None, "ethercat", lambda msg: emu.command(**msg))
 
         yield make
+
+
+class _InProcessSegment(Segment):
+    """The ethercat backend on the in-process transport: its chain lives in the backend, so the network
+    is opened at the first command or ``open()``, whichever comes first, and once."""
+
+    def open(self) -> Network:
+        return self._net if self._net is not None else super().open()
+
+
+def _inprocess_control(seg: Segment, msg: dict[str, Any]) -> dict[str, Any]:
+    """An emulator command on the chain of an in-process ethercat backend."""
+    from sim_slaves.ethercat.runner import handle_control
+
+    chain = seg.open().backends[0].master.chain  # type: ignore[attr-defined]
+    return handle_control(chain, msg, seg.now_ns())
 
 
 def _run_until_fresh(seg: Segment, op: Operational) -> None:
@@ -246,6 +274,7 @@ def _bring_up_cases() -> list[Any]:
                 continue
             marks = [pytest.mark.veth] if kind == "ethercat" else []
             cases.append(pytest.param(kind, path, id=f"{kind}-{name}", marks=marks))
+        cases.append(pytest.param("ecat-inprocess", path, id=f"ecat-inprocess-{name}"))
     return cases
 
 
