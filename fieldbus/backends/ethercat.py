@@ -134,12 +134,15 @@ class EthercatBackend(Backend):
         self.in_process = transport == "in-process"
         if self.in_process:
             from fieldbus.backends.ecat_inprocess import InProcessMaster
+            from fieldbus.emulators import emulator_part
 
             maps = options.get(
                 "chain_maps"
             )  # what the emulated slaves are, in wire order (default: the maps)
             chain_maps = list(maps) if isinstance(maps, (list, tuple)) else [s.map for s in bus.slaves]
-            emulated = [s.emulator.drive_params() if s.emulator else None for s in bus.slaves]
+            # the emulator reads the network file's emulator: sections (opaque to fieldbus)
+            emulator_options = emulator_part("emulator_options")
+            emulated = [emulator_options(s.emulator) if s.emulator else None for s in bus.slaves]
             clock = options.get("clock")  # the emulated chain's time (a virtual one: deterministic runs)
             if clock is not None and not isinstance(clock, Clock):
                 raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.runtime.clock.Clock")
