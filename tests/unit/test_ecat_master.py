@@ -24,6 +24,9 @@ from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError  # noq
 
 ROOT = Path(__file__).resolve().parents[2]
 ADAPTER = ROOT / "fieldbus" / "backends" / "ecat_master.py"
+# pysoem's API implemented on the in-process chain: it raises pysoem's errors and defines its register calls
+# for the adapter to map, it maps nothing itself
+TRANSPORT = ROOT / "fieldbus" / "backends" / "ecat_inprocess.py"
 PYSOEM_ERRORS = {"SdoError", "Emergency", "WkcError", "MailboxError", "PacketError"}
 SOEM_CALLS = {"_fprd", "_fpwr", "config_init", "mbx_receive"}
 
@@ -47,7 +50,7 @@ def test_only_the_adapter_maps_pysoem_errors_or_calls_soem_registers() -> None:
     found = {
         str(p.relative_to(ROOT)): uses
         for p in (ROOT / "fieldbus").rglob("*.py")
-        if p != ADAPTER and (uses := pysoem_error_uses(p.read_text()))
+        if p not in (ADAPTER, TRANSPORT) and (uses := pysoem_error_uses(p.read_text()))
     }
     assert found == {}
     assert pysoem_error_uses(ADAPTER.read_text())  # the checker sees the adapter's own mapping
