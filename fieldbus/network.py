@@ -631,7 +631,7 @@ class Operational(_Phase):
         """Ask for 0x603F of a faulted drive whose map does not have it in a PDO (served by the cycle)."""
         k = self._net.backends.index(b)
         slave = b.slave_index(fault.slave)
-        req = SdoRequest(slave, 0x603F, 0, None)
+        req = SdoRequest(slave, b.areas[slave].slave.map.axis_index(0x603F, fault.slave_axis), 0, None)
         self._sdo_pending[k].append(req)
         self._code_reads.append((fault, req.future))
 
@@ -646,7 +646,9 @@ class Operational(_Phase):
             data = None if failed else fut.result()
             if data is not None and len(data) >= 2:
                 code = int.from_bytes(data[:2], "little")
-                self.result.events.append(DriveFault(cycle, fault.group, fault.axis, fault.slave, code))
+                self.result.events.append(
+                    DriveFault(cycle, fault.group, fault.axis, fault.slave, code, fault.slave_axis)
+                )
             else:  # never silent: the fault stays reported without its code, and why
                 exc = None if fut.cancelled() else fut.exception()
                 why = "cancelled" if fut.cancelled() else (_reason(exc) if exc is not None else f"{data!r}")

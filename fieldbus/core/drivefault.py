@@ -32,6 +32,7 @@ class DriveFault:
     axis: int  # row in the group's image
     slave: str
     code: int | None  # 0x603F; None: not in the PDOs (read acyclically when the bus allows)
+    slave_axis: int = 0  # axis of a multi-axis slave (0-based): its objects sit 0x800 x this higher
 
     @property
     def name(self) -> str:
@@ -39,7 +40,8 @@ class DriveFault:
 
     def __str__(self) -> str:
         code = f"0x{self.code:04X} {self.name}" if self.code is not None else self.name
-        return f"{self.slave} ({self.group}[{self.axis}]): drive fault {code}"
+        axis = f" axis {self.slave_axis + 1}" if self.slave_axis else ""
+        return f"{self.slave}{axis} ({self.group}[{self.axis}]): drive fault {code}"
 
 
 _NONE: tuple[DriveFault, ...] = ()
@@ -49,6 +51,7 @@ class DriveFaultWatch:
     """Counts fault edges per axis of one group; :meth:`step` returns the new ones (an empty tuple mostly)."""
 
     def __init__(self, group: str, image: ProcessImage, slaves: tuple[str, ...]) -> None:
+        """``slaves``: the group's slaves in row order; a slave with n axes fills n consecutive rows."""
         inputs = image.inputs.layout
         sw = inputs.find(STATUSWORD)
         ec = inputs.find(ERROR_CODE)
@@ -60,6 +63,8 @@ class DriveFaultWatch:
             image.inputs[ec.name] if ec is not None and not ec.channel.scaled else None
         )
         n = image.n_axes
+        self.axes = n // max(1, len(slaves))  # rows per slave
+        self._fresh = np.zeros(n, dtype=bool)  # per row, from the per-slave freshness of a multi-axis group
         self.faults: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # fault edges per axis since start
         self.in_fault: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)
         self._now = np.zeros(n, dtype=bool)
@@ -70,6 +75,9 @@ class DriveFaultWatch:
         """Judge the fresh rows of this cycle; the faults that began now (allocation-free when none)."""
         if self._sw is None:
             return _NONE
+        if self.axes > 1:  # ``fresh`` per slave: each of its axes' rows
+            np.copyto(self._fresh.reshape(-1, self.axes), fresh.reshape(-1, 1))
+            fresh = self._fresh
         np.bitwise_and(self._sw, FAULT_BIT, out=self._bits)
         np.not_equal(self._bits, 0, out=self._now)
         np.logical_and(self._now, fresh, out=self._edge)
@@ -84,8 +92,9 @@ class DriveFaultWatch:
                 cycle,
                 self.group,
                 int(i),
-                self.slaves[i],
+                self.slaves[i // self.axes],
                 int(self._code[i]) if self._code is not None else None,
+                int(i) % self.axes,
             )
             for i in rows
         )

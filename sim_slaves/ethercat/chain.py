@@ -41,6 +41,7 @@ from sim_slaves.drive402 import Cia402Drive
 from sim_slaves.drive_bank import DriveBank, runs, warm_up
 from sim_slaves.drive_config import drive_params as map_drive_params
 from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.axes import MultiAxisDrive, device_od
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
 from sim_slaves.ethercat.esc import DEFAULT_DT_S, MEM_SIZE, App, Esc
 from sim_slaves.ethercat.pdplan import CopyPlan, DriveLink, build_copy_plan, build_drive_link, pdo_offsets
@@ -371,13 +372,18 @@ class EscChain:
         for i, drive in enumerate(maps):
             extra = drive_params[i] if drive_params is not None else None
             params = map_drive_params(drive, extra) if is_cia402_drive(drive) else None  # the map's drive
-            od = ObjectDictionary.from_drive_map(drive, params)
-            image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive)
+            od = device_od(drive, params)  # a multi-axis device: every axis's objects
+            image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive.bus_map)
             assert image is not None
             factory = default_app if app == "auto" else app
             the_app = factory(drive, od) if callable(factory) else None
             if params is not None and (extra or factory is default_app) and isinstance(the_app, Cia402Drive):
                 the_app = Cia402Drive(params)
+            if drive.axes > 1 and isinstance(the_app, Cia402Drive):  # one drive per axis, at +0x800 each
+                the_app = MultiAxisDrive(
+                    [the_app, *(Cia402Drive(the_app.params) for _ in range(drive.axes - 1))],
+                    drive.object_offsets,
+                )
             dc = EscDc(
                 drift_ppm=0.0 if drift_ppm is None else float(drift_ppm[i]),
                 initial_local_ns=i * DC_POWER_UP_STAGGER_NS,
@@ -707,7 +713,7 @@ class EscChain:
         """
         esc = self.slaves[slave]
         if self.drive_maps is not None:
-            od = ObjectDictionary.from_drive_map(self.drive_maps[slave], getattr(esc.app, "params", None))
+            od = device_od(self.drive_maps[slave], getattr(esc.app, "params", None))
             esc.od = od
             esc.mailbox.sdo.od = od
         self._step_pending()
