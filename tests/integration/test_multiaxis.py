@@ -14,6 +14,7 @@ import pytest
 import fieldbus
 from fieldbus.core.cia402 import State402
 from fieldbus.core.drivefault import DriveFault
+from fieldbus.recording.load import load
 from fieldbus.testing import EmulationUnavailable, emulate
 
 MAPS = Path(__file__).resolve().parents[2] / "pdo_maps"
@@ -66,8 +67,17 @@ def _check_both_axes_track(emu: fieldbus.testing.Emulation) -> None:
 def test_a_two_axis_slave_runs_both_axes_on_the_sim_backend(tmp_path: Path) -> None:
     with emulate(_network(tmp_path, TWO_AXIS)) as emu:
         assert emu.drive_states("arm") == [State402.SWITCH_ON_DISABLED] * 4
+        rec = emu.op.record(tmp_path / "arm.mcap")
         _enable_and_track(emu, 1500)
+        rec.close()
         _check_both_axes_track(emu)
+        # the trace and the recording name each axis's row
+        assert emu.trace.group_fresh("arm").shape[1] == 4 and emu.trace.group_fresh("arm")[-1].all()
+    enabled = [
+        e["slave"] for e in load(tmp_path / "arm.mcap").events
+        if e["kind"] == "cia402_state" and e["new"] == "OPERATION_ENABLED"
+    ]  # fmt: skip
+    assert sorted(enabled) == ["elbow.axis1", "elbow.axis2", "shoulder.axis1", "shoulder.axis2"]
 
 
 @pytest.mark.veth
