@@ -10,13 +10,16 @@ rows are not judged: their statusword is the last accepted one.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from fieldbus.core.emcy import emcy_name
 from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.diagnosis import DiagMessage, DiagnosisReader
 
 STATUSWORD = 0x6041
 ERROR_CODE = 0x603F
@@ -33,6 +36,9 @@ class DriveFault:
     slave: str
     code: int | None  # 0x603F; None: not in the PDOs (read acyclically when the bus allows)
     slave_axis: int = 0  # axis of a multi-axis slave (0-based): its objects sit 0x800 x this higher
+    # the drive's diagnosis history (EtherCAT 0x10F3, ETG.1020), newest first, when its map asks for it
+    # (``ethercat.diagnosis_history``); None: not read
+    history: tuple[DiagMessage, ...] | None = None
 
     @property
     def name(self) -> str:
@@ -41,7 +47,10 @@ class DriveFault:
     def __str__(self) -> str:
         code = f"0x{self.code:04X} {self.name}" if self.code is not None else self.name
         axis = f" axis {self.slave_axis + 1}" if self.slave_axis else ""
-        return f"{self.slave}{axis} ({self.group}[{self.axis}]): drive fault {code}"
+        text = f"{self.slave}{axis} ({self.group}[{self.axis}]): drive fault {code}"
+        if self.history:
+            text += f"; diagnosis history: {self.history[0]}"
+        return text
 
 
 _NONE: tuple[DriveFault, ...] = ()
@@ -98,3 +107,58 @@ class DriveFaultWatch:
             )
             for i in rows
         )
+
+
+class FaultFollowUp:
+    """What a fault's event still lacks, read acyclically: 0x603F when not in a PDO, then 0x10F3.
+
+    ``submit(index, sub_index)`` starts an SDO upload from the faulted slave
+    (served by the cycle). :meth:`poll` once per cycle: None while reads are
+    pending, then the fault again with its code and history (a failed history
+    read leaves ``history`` None and says why in :attr:`error`). ``code_index``
+    is the axis's 0x603F (+0x800 per axis), None when the event has the code.
+    """
+
+    def __init__(
+        self,
+        fault: DriveFault,
+        submit: Callable[[int, int], Future[bytes | None]],
+        *,
+        code_index: int | None,
+        history: bool,
+        last: int = 8,
+    ) -> None:
+        self.fault = fault
+        self.error: str | None = None
+        self._submit = submit
+        self._history = history
+        self._last = last
+        self._code: Future[bytes | None] | None = submit(code_index, 0) if code_index is not None else None
+        self._reader: DiagnosisReader | None = None
+        if self._code is None and history:
+            self._reader = DiagnosisReader(submit, last=last)
+
+    def poll(self) -> DriveFault | None:
+        """The completed fault, or None while a read is pending. A failed 0x603F read raises."""
+        if self._code is not None:
+            if not self._code.done():
+                return None
+            data = self._code.result()  # raises when the read failed
+            if data is None or len(data) < 2:
+                raise ValueError(f"0x603F answered {data!r}")
+            self.fault = replace(self.fault, code=int.from_bytes(data[:2], "little"))
+            self._code = None
+            if self._history:
+                self._reader = DiagnosisReader(self._submit, last=self._last)
+        if self._reader is not None:
+            try:
+                messages = self._reader.poll()
+            except Exception as exc:  # no history (an abort), a time-out: the fault stands without it
+                self.error = f"0x10F3 of {self.fault.slave}: {type(exc).__name__}: {exc}"
+                self._reader = None
+                return self.fault
+            if messages is None:
+                return None
+            self.fault = replace(self.fault, history=tuple(messages))
+            self._reader = None
+        return self.fault

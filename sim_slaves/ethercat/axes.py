@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from fieldbus.core.pdo.model import DriveMap, is_axis_object
 from sim_slaves.drive402 import Cia402Drive, DriveParams
-from sim_slaves.od import ObjectDictionary
+from sim_slaves.ethercat.diaghistory import add_diag_history, record_fault
+from sim_slaves.od import ObjectDictionary, is_cia402_drive
 
 
 class AxisObjects:
@@ -54,6 +55,8 @@ def device_od(drive: DriveMap, params: DriveParams | None = None) -> ObjectDicti
             if is_axis_object(index) and index + off not in od._objects:
                 od.describe(index + off, f"{name} (axis {k + 1})", code, data_type)
     od.fix_subindex0()
+    if is_cia402_drive(drive):
+        add_diag_history(od)  # ETG.1020 0x10F3: a fault writes a message (sim_slaves.ethercat.diaghistory)
     return od
 
 
@@ -70,6 +73,7 @@ class MultiAxisDrive:
         self.offsets = offsets
         self._od: ObjectDictionary | None = None
         self._views: list[AxisObjects] = []
+        self._time_ns = 0  # local time [ns]: the sum of the steps, for the diagnosis history
 
     @property
     def params(self) -> DriveParams:
@@ -87,8 +91,12 @@ class MultiAxisDrive:
         if od is not self._od:  # a new OD (power cycle): new views, so each drive binds again
             self._od = od
             self._views = [AxisObjects(od, off) for off in self.offsets]
-        for drive, view in zip(self.drives, self._views, strict=True):
+        self._time_ns += round(dt_s * 1e9)
+        for axis, (drive, view) in enumerate(zip(self.drives, self._views, strict=True)):
+            before = drive.error_code
             drive.step(view, dt_s)
+            if drive.error_code and drive.error_code != before:  # a fault began: the history gets it
+                record_fault(od, drive.error_code, self._time_ns, axis)
 
     def inject_fault(self, code: int, *, persistent: bool = False, axis: int = 0) -> None:
         """Fault axis ``axis`` (0-based) with error code ``code`` (0x603F of that axis)."""

@@ -60,6 +60,7 @@ _AXES_KEYS = ("count", "object_offsets", "pdo_offsets")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
 _ETHERCAT_KEYS = (
     "coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes", "pdo_assign",
+    "diagnosis_history",
 )  # fmt: skip
 _DC_MODE_KEYS = (
     "name", "description", "assign_activate", "sync0_cycle_factor", "sync0_cycle_ns", "sync0_shift_ns",
@@ -692,6 +693,7 @@ def _ethercat(r: Reader, raw: Any) -> EthercatConfig:
         serial=r.integer(m.get("serial", 0), (*path, "serial"), 0, 0xFFFFFFFF),
         dc_modes=_dc_modes(r, m.get("dc_modes")),
         pdo_assign=r.boolean(m.get("pdo_assign", True), (*path, "pdo_assign")),
+        diagnosis_history=r.boolean(m.get("diagnosis_history", False), (*path, "diagnosis_history")),
     )
 
 

@@ -199,6 +199,9 @@ class EthercatConfig:
     # False: the device's PDO assignment (0x1C12/0x1C13) is fixed (ESI CoE@PdoAssign not true); bring-up
     # never writes it, and PDO indexes anywhere in 0x1600-0x1BFF are taken as the device names them
     pdo_assign: bool = True
+    # True: the device keeps an ETG.1020 diagnosis history (0x10F3); after a drive fault the network reads its
+    # newest messages and reports them in the DriveFault event (fieldbus.diagnosis)
+    diagnosis_history: bool = False
 
 
 @dataclass(frozen=True)
