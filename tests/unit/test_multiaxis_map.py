@@ -93,3 +93,17 @@ def test_a_wrong_axes_section_names_file_line_and_field(
     text = str(err.value)
     assert text.startswith(f"two.yaml:{line}:"), text
     assert field in text and words in text, text
+
+
+def test_bandwidth_and_validate_count_every_axis(tmp_path: Path) -> None:
+    from fieldbus.commands.validate import map_summary, network_summary
+    from fieldbus.core.bandwidth import bus_bandwidth
+    from fieldbus.core.network import network_from_text
+
+    net = network_from_text(
+        f"buses:\n  - {{name: arm, type: ethercat, interface: eth0, slaves: [{{name: s, map: {TWO_AXIS}}}]}}\n"
+    )
+    slave = network_summary(net)["buses"][0]["slaves"][0]
+    assert (slave["output_bytes"], slave["input_bytes"]) == (2 * 13, 2 * 15)
+    assert bus_bandwidth(net.buses[0]).bytes_per_cycle == 2 * 13 + 2 * 15
+    assert map_summary(net.buses[0].slaves[0].map)["axes"] == 2
