@@ -163,3 +163,27 @@ def _axis_2_fault(tmp_path: Path, map_path: Path, code_by: str, ethercat: str) -
         emu.run(lambda _k: op.exchange() and statusword.done(), cycles=50)
         assert int.from_bytes(statusword.result(), "little") == int(arm.inputs["statusword"][1])
         assert [bool(int(w) & 0x08) for w in arm.inputs["statusword"]] == [False, True, False, False]
+
+
+def test_both_axes_of_a_two_axis_slave_home_from_the_maps_homing_section(tmp_path: Path) -> None:
+    """The homing: section is written to each axis (0x6098 and 0x6898, ...); each axis homes by itself."""
+    homed = tmp_path / "two_axis_homed.yaml"
+    offset = 1234  # counts: what the position reads at the home point
+    homed.write_text(TWO_AXIS.read_text() + f"homing: {{method: 37, offset: {offset}, timeout_ms: 2000}}\n")
+    with emulate(_network(tmp_path, homed)) as emu:
+        op = emu.op
+        arm = op["arm"]
+        ctrl = fieldbus.Cia402Controller(arm.n_axes, mode=fieldbus.Mode.CSP)
+        homing = fieldbus.Homing.from_maps(ctrl, [s.map for s in op.groups["arm"].slaves], op.cycle_time_us)
+        ctrl.set_goal(fieldbus.Goal.ENABLE)
+        homing.start(order=[[0, 2], [1, 3]])  # every slave's axis 1, then its axis 2
+
+        def home(_k: int) -> bool:
+            if op.exchange().fresh:
+                ctrl.step_image(arm)
+                homing.step(arm.inputs["statusword"], arm.outputs["controlword"])
+            return homing.done
+
+        emu.run(home, cycles=5000)
+        assert homing.done and list(homing.phase) == [4] * 4  # HomingPhase.DONE on every axis
+        assert list(arm.inputs["position_actual_value"]) == [offset] * 4
