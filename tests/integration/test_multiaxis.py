@@ -187,3 +187,23 @@ def test_both_axes_of_a_two_axis_slave_home_from_the_maps_homing_section(tmp_pat
         emu.run(home, cycles=5000)
         assert homing.done and list(homing.phase) == [4] * 4  # HomingPhase.DONE on every axis
         assert list(arm.inputs["position_actual_value"]) == [offset] * 4
+
+
+def test_a_power_cycled_two_axis_slave_is_configured_again_and_both_axes_run(tmp_path: Path) -> None:
+    """The recovery maps both axes' PDOs again and writes both axes' start-up SDOs (0x6060, 0x6860)."""
+    with emulate(_network(tmp_path, TWO_AXIS)) as emu:
+        _enable_and_track(emu, 1000)
+        emu.power_cycle("arm", "elbow")  # the elbow's OD goes back to defaults: mapping and mode lost
+        op, bus = emu.op, emu.op.result.buses[0]
+        before = bus.recoveries
+        emu.run(lambda _k: op.exchange() and bus.recoveries > before and not bus.recovering, cycles=3000)
+        assert (
+            bus.recoveries > before and op.result.safe_stop
+        )  # back in OP; the safe stop holds until cleared
+        op.clear_safe_stop()  # opens after release_after fresh cycles
+        _enable_and_track(emu, 2000)
+        assert not op.result.safe_stop
+        _check_both_axes_track(emu)
+        modes = [emu.op.submit_sdo_read("arm", "elbow", index, 0) for index in (0x6060, 0x6860)]
+        emu.run(lambda _k: emu.op.exchange() and all(f.done() for f in modes), cycles=50)
+        assert [f.result() for f in modes] == [b"\x08", b"\x08"]  # CSP on both axes, written again
