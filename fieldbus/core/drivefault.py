@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -35,10 +35,12 @@ class DriveFault:
     axis: int  # row in the group's image
     slave: str
     code: int | None  # 0x603F; None: not in the PDOs (read acyclically when the bus allows)
-    slave_axis: int = 0  # axis of a multi-axis slave (0-based): its objects sit 0x800 x this higher
+    # keyword-only (a subclass's own fields stay positional after ``code``):
+    # axis of a multi-axis slave (0-based): its objects sit 0x800 x this higher
+    slave_axis: int = field(default=0, kw_only=True)
     # the drive's diagnosis history (EtherCAT 0x10F3, ETG.1020), newest first, when its map asks for it
     # (``ethercat.diagnosis_history``); None: not read
-    history: tuple[DiagMessage, ...] | None = None
+    history: tuple[DiagMessage, ...] | None = field(default=None, kw_only=True)
 
     @property
     def name(self) -> str:
@@ -103,7 +105,7 @@ class DriveFaultWatch:
                 int(i),
                 self.slaves[i // self.axes],
                 int(self._code[i]) if self._code is not None else None,
-                int(i) % self.axes,
+                slave_axis=int(i) % self.axes,
             )
             for i in rows
         )

@@ -112,3 +112,18 @@ def test_error_codes_by_name() -> None:
     assert error_code("Sensor error") == 0x7300
     with pytest.raises(FieldbusError, match="did you mean 'following error'"):
         error_code("folowing eror")
+
+
+def test_the_new_drive_fault_fields_are_keyword_only() -> None:
+    """A subclass's own fields (a raw-CAN motor fault's reason) stay positional right after ``code``."""
+    from dataclasses import dataclass
+
+    from fieldbus.core.drivefault import DriveFault
+
+    @dataclass(frozen=True)
+    class Reasoned(DriveFault):
+        reason: str = ""
+
+    fault = Reasoned(3, "g", 1, "s", 0x10, "overload")
+    assert (fault.reason, fault.slave_axis, fault.history) == ("overload", 0, None)
+    assert DriveFault(3, "g", 1, "s", None, slave_axis=1).slave_axis == 1
