@@ -24,8 +24,8 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Iterator, Mapping
-from concurrent.futures import Future, wait
-from dataclasses import dataclass, field
+from concurrent.futures import CancelledError, Future, wait
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol
@@ -37,7 +37,7 @@ from fieldbus.backends import backend_class
 from fieldbus.backends.base import AxisGroup, Backend, SdoRequest
 from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
-from fieldbus.core.drivefault import DriveFault, DriveFaultWatch
+from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
@@ -488,7 +488,7 @@ class Operational(_Phase):
                     watches.append((w, p.fresh[g.first : g.first + len(g.slaves)]))
                     self.result.drive_faults[g.name] = w.faults
             self._faults.append(watches)
-        self._code_reads: list[tuple[DriveFault, Future[bytes | None]]] = []  # 0x603F read when not in a PDO
+        self._code_reads: list[FaultFollowUp] = []  # 0x603F read when not in a PDO, 0x10F3 when kept
         # raw-CAN motor faults (Damiao error codes, ODrive axis errors): the backend's onsets, as events
         self._motor_events: list[Any] = [  # Callable[[int], tuple[DriveFault, ...]] | None
             getattr(b, "take_motor_events", None) for b in net.backends
@@ -606,7 +606,8 @@ class Operational(_Phase):
             for watch, rows in self._faults[k]:
                 for fault in watch.step(rows, cycle):
                     events.append(fault)
-                    if fault.code is None:
+                    drive = b.areas[b.slave_index(fault.slave)].slave.map
+                    if fault.code is None or drive.ethercat.diagnosis_history:
                         self._read_code(b, fault)
         take = self._motor_events[k]
         if take is not None:
@@ -635,32 +636,45 @@ class Operational(_Phase):
         return next(b.bus.name for b in self._net.backends if any(g.name == group for g in b.groups))
 
     def _read_code(self, b: Backend, fault: DriveFault) -> None:
-        """Ask for 0x603F of a faulted drive whose map does not have it in a PDO (served by the cycle)."""
+        """Ask for 0x603F of a faulted drive whose map does not have it in a PDO, and for its diagnosis
+        history 0x10F3 when its map says it keeps one (served by the cycle, one upload at a time)."""
         k = self._net.backends.index(b)
         slave = b.slave_index(fault.slave)
-        req = SdoRequest(slave, 0x603F, 0, None)
-        self._sdo_pending[k].append(req)
-        self._code_reads.append((fault, req.future))
+        drive = b.areas[slave].slave.map
+        pending = self._sdo_pending[k]
+
+        def submit(index: int, sub_index: int) -> Future[bytes | None]:
+            req = SdoRequest(slave, index, sub_index, None)
+            pending.append(req)
+            return req.future
+
+        code = drive.axis_index(0x603F, fault.slave_axis) if fault.code is None else None
+        self._code_reads.append(
+            FaultFollowUp(fault, submit, code_index=code, history=drive.ethercat.diagnosis_history)
+        )
 
     def _collect_codes(self, cycle: int) -> None:
-        """Drive faults whose 0x603F read finished: the fault again, with its code, as an event."""
+        """Drive faults whose follow-up reads finished: the fault again, with its code (and history), as an event."""
         keep = []
-        for fault, fut in self._code_reads:
-            if not fut.done():
-                keep.append((fault, fut))
-                continue
-            failed = fut.cancelled() or fut.exception() is not None
-            data = None if failed else fut.result()
-            if data is not None and len(data) >= 2:
-                code = int.from_bytes(data[:2], "little")
-                self.result.events.append(DriveFault(cycle, fault.group, fault.axis, fault.slave, code))
-            else:  # never silent: the fault stays reported without its code, and why
-                exc = None if fut.cancelled() else fut.exception()
-                why = "cancelled" if fut.cancelled() else (_reason(exc) if exc is not None else f"{data!r}")
+        for follow in self._code_reads:
+            try:
+                done = follow.poll()
+            except Exception as exc:  # never silent: the fault stays reported without its code, and why
+                why = "cancelled" if isinstance(exc, CancelledError) else _reason(exc)
+                fault = follow.fault
                 self.result.events.append(
                     BusEvent(
                         cycle, self._bus_of(fault.group), "acyclic_error", f"0x603F of {fault.slave}: {why}"
                     )
+                )
+                continue
+            if done is None:
+                keep.append(follow)
+                continue
+            self.result.events.append(replace(done, cycle=cycle))
+            if follow.error is not None:
+                self.result.events.append(
+                    BusEvent(cycle, self._bus_of(done.group), "acyclic_error", follow.error)
                 )
         self._code_reads = keep
 

@@ -9,7 +9,9 @@ RxPDOs (master -> drive), ``inputs`` the TxPDOs (drive -> master).
 Process data live in the axis groups' images: consecutive slaves with the same
 map form one :class:`AxisGroup` whose :class:`ProcessImage` holds one row per
 axis. A backend moves each slave's ``out_row(i)`` onto the bus and each reply
-into ``in_row(i)``; both are contiguous uint8 views of that slave's wire bytes.
+into ``in_row(i)``; both are contiguous uint8 views of that slave's wire bytes
+(a slave with several CiA 402 axes fills one row per axis: its ``out_row`` is
+then the (axes, bytes) view of those rows, each row contiguous).
 """
 
 from __future__ import annotations
@@ -39,15 +41,16 @@ class SlaveArea:
     slave: Slave
     layout: MapLayout
     group: int  # index into Backend.groups
-    row: int  # row in that group's image
+    row: int  # row in that group's image (its first axis's row)
+    axes: int = 1  # rows of the image this slave fills (a multi-axis drive: one per axis)
 
     @property
     def out_size(self) -> int:
-        return self.layout.outputs.size
+        return self.layout.outputs.size * self.axes
 
     @property
     def in_size(self) -> int:
-        return self.layout.inputs.size
+        return self.layout.inputs.size * self.axes
 
 
 @dataclass
@@ -85,6 +88,12 @@ class AxisGroup:
     first: int  # index of the first slave on its bus
 
 
+def _by_slave(rows: npt.NDArray[np.uint8], slaves: int) -> npt.NDArray[np.uint8]:
+    """``rows`` (one per axis) as (slave, axis, byte): a view, never a copy."""
+    out: npt.NDArray[np.uint8] = rows.reshape(slaves, rows.shape[0] // slaves, rows.shape[1])
+    return out
+
+
 class Backend(abc.ABC):
     """One bus. Phases: ``open`` -> ``configure`` (PRE-OP, SDO plans) -> ``safe_op`` -> ``op``.
 
@@ -117,11 +126,12 @@ class Backend(abc.ABC):
         for run in runs:
             first = bus.slaves[run[0]]
             name = bus.name if len(runs) == 1 else f"{bus.name}.{first.name}"
-            image = ProcessImage(layouts[run[0]], len(run))
+            axes = first.map.axes  # a multi-axis slave fills one row per axis, its axes' bytes in a row
+            image = ProcessImage(layouts[run[0]], len(run) * axes)
             for row, i in enumerate(run):
-                self.areas.append(SlaveArea(bus.slaves[i], layouts[i], len(self.groups), row))
+                self.areas.append(SlaveArea(bus.slaves[i], layouts[i], len(self.groups), row * axes, axes))
             self.groups.append(AxisGroup(name, tuple(bus.slaves[i] for i in run), image, run[0]))
-            self.rx.append(np.zeros_like(image.inputs.wire))
+            self.rx.append(np.zeros(image.inputs.wire.shape, dtype=np.uint8))  # C-contiguous
         self.out_bytes = sum(a.out_size for a in self.areas)
         self.in_bytes = sum(a.in_size for a in self.areas)
         # recovery bookkeeping, bounded (the cycle reports it in BusStatus)
@@ -130,7 +140,8 @@ class Backend(abc.ABC):
         self.last_recovery_error: str | None = None
         self._recovery: Generator[None, None, bool] | None = None
         self._accept_plan: (
-            list[tuple[DirectionImage, npt.NDArray[np.uint8], npt.NDArray[np.bool_]]] | None
+            list[tuple[DirectionImage, npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.bool_]]]
+            | None
         ) = None
         self._accept_src: npt.NDArray[np.bool_] | None = None
         self._expected_wkc: int | None = None
@@ -138,7 +149,9 @@ class Backend(abc.ABC):
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
         """Slave ``i``'s output (RxPDO) wire bytes: a contiguous view into its group's image."""
         a = self.areas[i]
-        row: npt.NDArray[np.uint8] = self.groups[a.group].image.outputs.wire[a.row]
+        wire = self.groups[a.group].image.outputs.wire
+        # a multi-axis slave: its axes' rows, (axes, size) - rows are contiguous, not the rows together
+        row: npt.NDArray[np.uint8] = wire[a.row] if a.axes == 1 else wire[a.row : a.row + a.axes]
         return row
 
     def in_row(self, i: int) -> npt.NDArray[np.uint8]:
@@ -148,7 +161,8 @@ class Backend(abc.ABC):
         that slave's inputs for the cycle (:meth:`accept_inputs`).
         """
         a = self.areas[i]
-        row: npt.NDArray[np.uint8] = self.rx[a.group][a.row]
+        rx = self.rx[a.group]
+        row: npt.NDArray[np.uint8] = rx[a.row] if a.axes == 1 else rx[a.row : a.row + a.axes].reshape(-1)
         return row
 
     def accept_inputs(self, fresh: npt.NDArray[np.bool_], every: bool = False) -> None:
@@ -160,15 +174,20 @@ class Backend(abc.ABC):
         """
         if self._accept_plan is None or self._accept_src is not fresh:
             self._accept_src = fresh
-            self._accept_plan = [
-                (g.image.inputs, self.rx[k], fresh[g.first : g.first + len(g.slaves)].reshape(-1, 1))
+            self._accept_plan = [  # (slave, axis, byte) views: a multi-axis slave's rows go together
+                (
+                    g.image.inputs,
+                    _by_slave(g.image.inputs.wire, len(g.slaves)),
+                    _by_slave(self.rx[k], len(g.slaves)),
+                    fresh[g.first : g.first + len(g.slaves)].reshape(-1, 1, 1),
+                )
                 for k, g in enumerate(self.groups)
             ]
-        for inputs, rx, rows in self._accept_plan:
+        for inputs, wire, rx, rows in self._accept_plan:
             if every:
-                np.copyto(inputs.wire, rx)
+                np.copyto(wire, rx)
             elif rows.any():
-                np.copyto(inputs.wire, rx, where=rows)
+                np.copyto(wire, rx, where=rows)
             else:
                 continue
             inputs.from_wire()

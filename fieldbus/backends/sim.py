@@ -216,7 +216,8 @@ class SimBackend(Backend):
                     continue
                 seg = next(s for s in self._segments if s.logical <= off < s.logical + s.wkc_off - s.data_off)
                 start = seg.data_off + off - seg.logical
-                dst.append((seg.view[start : start + n], rows))
+                # a multi-axis slave's rows are (axes, bytes): the frame's bytes as the same shape
+                dst.append((seg.view[start : start + n].reshape(rows.shape), rows))
 
     def op(self) -> None:
         for _ in range(3):  # valid outputs before OP, so no watchdog trips on the way

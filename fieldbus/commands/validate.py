@@ -51,6 +51,7 @@ def map_summary(drive: DriveMap) -> dict[str, Any]:
         "product_id": f"0x{drive.product_id:08X}",
         "profile": drive.profile,
         "sdo_writes": len(drive.sdo),
+        "axes": drive.axes,
         "canopen": drive.canopen is not None,
         "safe_stop": safe_stop_plan(drive, lay).describe(),
     }
@@ -92,8 +93,8 @@ def network_summary(net: NetworkConfig) -> dict[str, Any]:
                         "map": s.map.name,
                         "position": s.position,
                         "node_id": s.node_id,
-                        "output_bytes": layout(s.map, pdo_align=8 if b.is_can else 1).outputs.size,
-                        "input_bytes": layout(s.map, pdo_align=8 if b.is_can else 1).inputs.size,
+                        "output_bytes": layout(s.map.bus_map, pdo_align=8 if b.is_can else 1).outputs.size,
+                        "input_bytes": layout(s.map.bus_map, pdo_align=8 if b.is_can else 1).inputs.size,
                     }
                     for s in b.slaves
                 ],

@@ -710,7 +710,8 @@ def pdo_bytes(pdos: Iterable[Pdo]) -> int:
 
 def ecat_slave(slave: SlaveLike) -> EcatSlave:
     """An :class:`EcatSlave` from a network slave: outputs = RxPDOs, inputs = TxPDOs."""
-    return EcatSlave(pdo_bytes(slave.map.rpdo), pdo_bytes(slave.map.tpdo), name=slave.name)
+    device = slave.map.bus_map  # a multi-axis map: every axis's PDOs
+    return EcatSlave(pdo_bytes(device.rpdo), pdo_bytes(device.tpdo), name=slave.name)
 
 
 def _default_cob(tx: bool, number: int, node: int) -> int:
@@ -894,7 +895,7 @@ def bus_bandwidth(
         frames = can_frames(bus.slaves, bus_type=bus.type, fd_bus=fd_bus, options=can)
         params = CanParams(bitrate, bus.data_bitrate)
         return can_cycle(frames, params, rate, name=bus.name, type=bus.type)
-    payload = sum(pdo_bytes(s.map.rpdo) + pdo_bytes(s.map.tpdo) for s in bus.slaves)
+    payload = sum(pdo_bytes(s.map.bus_map.rpdo) + pdo_bytes(s.map.bus_map.tpdo) for s in bus.slaves)
     return BusResult(bus.name, bus.type, rate, 0, payload, 0.0, 0.0, 0.0, None)
 
 

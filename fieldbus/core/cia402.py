@@ -858,7 +858,10 @@ class Homing:
     @classmethod
     def from_maps(cls, ctrl: Cia402Controller, maps: Sequence[DriveMap], cycle_time_us: int) -> Homing:
         """Homing for axes described by ``maps`` (one per axis, e.g. ``[s.map for s in op.groups[g].slaves]``),
-        each timed out after its ``homing.timeout_ms`` (30 s without a section) at ``cycle_time_us``."""
+        each timed out after its ``homing.timeout_ms`` (30 s without a section) at ``cycle_time_us``.
+        A multi-axis slave's map may stand for all its axes (one map per slave)."""
+        if len(maps) != ctrl.n_axes and sum(m.axes for m in maps) == ctrl.n_axes:
+            maps = [m for m in maps for _ in range(m.axes)]
         if len(maps) != ctrl.n_axes:
             raise ValueError(f"{len(maps)} drive maps for {ctrl.n_axes} axes")
         if cycle_time_us < 1:

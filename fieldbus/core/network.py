@@ -78,6 +78,13 @@ class Slave:
     emulator: EmulatorSection | None = None  # the emulated drive's options, opaque (the emulator reads them)
 
 
+def row_names(slaves: Iterable[Slave]) -> tuple[str, ...]:
+    """A name per row of a group's image: the slave's, or ``<slave>.axis<k>`` for each axis of a multi-axis one."""
+    return tuple(
+        s.name if s.map.axes == 1 else f"{s.name}.axis{k + 1}" for s in slaves for k in range(s.map.axes)
+    )
+
+
 @dataclass(frozen=True)
 class Bus:
     """One bus. Times in µs; bit rates in bit/s (``data_bitrate`` only for CAN FD)."""

@@ -157,7 +157,7 @@ class WindDown:
             decode_states(g.statusword, g.state)
             for i in np.flatnonzero(~g.done):
                 g.cycles[i] += 1
-                if fresh[i]:
+                if fresh[i * len(fresh) // len(g.done)]:  # fresh per slave; a multi-axis slave has rows
                     v = abs(float(g.velocity[i])) if g.velocity is not None else None
                     g.last_velocity[i] = v
                     s = int(g.state[i])

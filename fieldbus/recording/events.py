@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.core.cia402 import UNKNOWN_STATE, State402, decode_states
+from fieldbus.core.network import row_names
 from fieldbus.recording.ring import BUS, COMMON, TEXTS, Ring, Snapshot
 
 TOGGLES = (
@@ -51,7 +52,7 @@ class EventDeriver:
             _Group(
                 g.group.name,
                 next(s.backend.bus.name for s in ring.buses if g.group in s.backend.groups),
-                tuple(s.name for s in g.group.slaves),
+                row_names(g.group.slaves),  # one per image row (each axis of a multi-axis slave)
                 "statusword" in (g.group.image.inputs.values.dtype.names or ()),
             )
             for g in ring.groups

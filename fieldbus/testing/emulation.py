@@ -200,14 +200,21 @@ class Emulation:
         emu, i = self._slave(bus, slave)
         emu.power_cycle(i)
 
-    def drive_fault(self, bus: str, slave: str, code: int) -> None:
+    def drive_fault(self, bus: str, slave: str, code: int | str) -> None:
         """The drive of slave ``slave`` faults with error code ``code`` (0x603F, e.g. 0x7300 sensor).
+
+        ``code`` may be the code's CiA 301 / CiA 402 name (``"sensor error"``, see
+        :func:`fieldbus.diagnosis.error_code`).
 
         Master: the statusword shows FAULT from the next cycle or two (the bus stays fresh), the
         error code is in 0x603F (in the inputs when the map has it, else by SDO), and an emergency
         (EMCY) with that code is sent (``backend.emergencies``). A fault reset (controlword bit 7)
         clears it. Not on raw CAN (MIT motors have no error codes).
         """
+        if isinstance(code, str):
+            from fieldbus.diagnosis import error_code
+
+            code = error_code(code)
         if not 0 < code <= 0xFFFF:
             raise FieldbusError(f"drive_fault: error code must be 0x0001..0xFFFF, got {code:#x}")
         emu, i = self._slave(bus, slave)

@@ -46,7 +46,8 @@ class Trace:
         for name, g in op.groups.items():
             bus_name = next(b.bus.name for b in network.backends if g in b.groups)
             self._group_bus[name] = self.bus_names.index(bus_name)
-            self._group_rows[name] = np.arange(g.first, g.first + len(g.slaves))
+            rows = np.arange(g.first, g.first + len(g.slaves))  # a multi-axis slave: a row per axis
+            self._group_rows[name] = np.repeat(rows, g.image.n_axes // len(g.slaves))
         self.n = 0
         self._cap = 0
         self._fresh = np.zeros(0, dtype=bool)

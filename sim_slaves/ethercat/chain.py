@@ -41,7 +41,9 @@ from sim_slaves.drive402 import Cia402Drive
 from sim_slaves.drive_bank import DriveBank, runs, warm_up
 from sim_slaves.drive_config import drive_params as map_drive_params
 from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.axes import MultiAxisDrive, device_od
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, DC_MIN_SAMPLE_INTERVAL_NS, DcLine, EscDc
+from sim_slaves.ethercat.diaghistory import record_fault
 from sim_slaves.ethercat.esc import DEFAULT_DT_S, MEM_SIZE, App, Esc
 from sim_slaves.ethercat.pdplan import CopyPlan, DriveLink, build_copy_plan, build_drive_link, pdo_offsets
 from sim_slaves.ethercat.sii import SiiImage, build_sii
@@ -151,6 +153,10 @@ class EscChain:
         # slaves exchanging process data with their outputs off (SAFE-OP): their writes do not count
         self._outputs_off = np.zeros(n, dtype=np.bool_)
         self._any_outputs_off = False
+        # diagnosis history (0x10F3): each bank drive's error code as last seen, a fault is a change to non-0
+        self._code_seen = self.bank.error_code.copy()
+        self._code_changed = np.zeros(self.bank.n, dtype=np.bool_)
+        self._slot_wire = {slot: i for i, slot in enumerate(self._slots) if slot >= 0}
 
     def _invalidate(self) -> None:
         self._valid = False
@@ -296,6 +302,7 @@ class EscChain:
             self._stepped[pending] = True
             pending[:] = False
             link.scatter(self.memory)
+            self._note_faults(now)
             return
         idx = np.flatnonzero(pending)
         stepped = self._stepped[idx]
@@ -311,6 +318,19 @@ class EscChain:
         pending[:] = False
         self._lockstep_ns = self._common_step_time()
         link.scatter(self.memory)
+        self._note_faults(now)
+
+    def _note_faults(self, now_ns: int) -> None:
+        """Bank drives whose error code changed to a fault: one diagnosis history message each (rare)."""
+        codes = self.bank.error_code
+        np.not_equal(codes, self._code_seen, out=self._code_changed)
+        if not self._code_changed.any():
+            return
+        for slot in np.flatnonzero(self._code_changed):
+            code = int(codes[slot])
+            if code and slot in self._slot_wire:
+                record_fault(self.slaves[self._slot_wire[int(slot)]].od, code, now_ns)
+        np.copyto(self._code_seen, codes)
 
     def _logical(self, cmd: int, laddr: int, buf: bytearray, doff: int, length: int, now_ns: int) -> int:
         """LRD/LWR/LRW through the copy plan; returns the WKC increment."""
@@ -371,13 +391,18 @@ class EscChain:
         for i, drive in enumerate(maps):
             extra = drive_params[i] if drive_params is not None else None
             params = map_drive_params(drive, extra) if is_cia402_drive(drive) else None  # the map's drive
-            od = ObjectDictionary.from_drive_map(drive, params)
-            image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive)
+            od = device_od(drive, params)  # a multi-axis device: every axis's objects
+            image = sii[i] if sii is not None and sii[i] is not None else build_sii(drive.bus_map)
             assert image is not None
             factory = default_app if app == "auto" else app
             the_app = factory(drive, od) if callable(factory) else None
             if params is not None and (extra or factory is default_app) and isinstance(the_app, Cia402Drive):
                 the_app = Cia402Drive(params)
+            if drive.axes > 1 and isinstance(the_app, Cia402Drive):  # one drive per axis, at +0x800 each
+                the_app = MultiAxisDrive(
+                    [the_app, *(Cia402Drive(the_app.params) for _ in range(drive.axes - 1))],
+                    drive.object_offsets,
+                )
             dc = EscDc(
                 drift_ppm=0.0 if drift_ppm is None else float(drift_ppm[i]),
                 initial_local_ns=i * DC_POWER_UP_STAGGER_NS,
@@ -707,7 +732,7 @@ class EscChain:
         """
         esc = self.slaves[slave]
         if self.drive_maps is not None:
-            od = ObjectDictionary.from_drive_map(self.drive_maps[slave], getattr(esc.app, "params", None))
+            od = device_od(self.drive_maps[slave], getattr(esc.app, "params", None))
             esc.od = od
             esc.mailbox.sdo.od = od
         self._step_pending()

@@ -104,6 +104,7 @@ from fieldbus.runtime.timing import LatencyHistogram
 from fieldbus.wire.pcap import PcapWriter
 from fieldbus.wire.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from sim_slaves.ethercat.al import AlState
+from sim_slaves.ethercat.axes import app_states
 from sim_slaves.ethercat.chain import ETHERTYPE_VLAN, VLAN_TAG_SIZE, AppFactory, EscChain
 from sim_slaves.ethercat.dc import DC_MIN_SAMPLE_INTERVAL_NS
 from sim_slaves.ethercat.esc import App, LoopbackApp
@@ -451,8 +452,8 @@ def handle_control(
         "frames": chain.frames,
         "states": [int(s.state) for s in chain.slaves],
         "al_status_codes": [s.status_code for s in chain.slaves],
-        # CiA 402 State402 of each emulated drive, -1: no drive application
-        "drive_states": [int(getattr(s.app, "state", -1)) for s in chain.slaves],
+        # CiA 402 State402 of each emulated drive (each axis of a multi-axis slave), -1: no drive application
+        "drive_states": [st for s in chain.slaves for st in app_states(s.app)],
     }
 
 

@@ -110,8 +110,8 @@ def test_cia402_maps_have_controlword_and_statusword_under_default_names(path: P
 
 @pytest.mark.parametrize("path", _maps(coe=True), ids=lambda p: p.stem)  # raw-CAN motors have no OD
 def test_coe_plan_builds_and_assigns_every_pdo(path: Path) -> None:
-    drive = _load(path)
-    plan = coe_plan(drive)
+    plan = coe_plan(_load(path))
+    drive = _load(path).bus_map  # a multi-axis map: the whole device (every axis's PDOs and SDOs)
     writes = {(s.index, s.sub_index, s.data) for s in plan.writes}
     for assign, pdos in ((0x1C12, drive.rpdo), (0x1C13, drive.tpdo)):
         for i, pdo in enumerate(pdos, start=1):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from fieldbus.core.pdo.model import (
     Pdo,
     SdoWrite,
     SyncManager,
+    is_axis_object,
 )
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD, default_name
 from fieldbus.core.yamlread import Reader
@@ -45,7 +47,7 @@ DEFAULT_COB_IDS = {
 
 _TOP_KEYS = (
     "name", "description", "vendor_id", "product_id", "revision", "profile",
-    "assign_activate", "auto_fault_reset", "homing", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
+    "assign_activate", "auto_fault_reset", "homing", "axes", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
     "motion_profile",
 )  # fmt: skip
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
@@ -56,9 +58,11 @@ _CHANNEL_KEYS = (
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
 _HOMING_KEYS = ("method", "offset", "speeds", "acceleration", "timeout_ms")
 _HOMING_SPEED_KEYS = ("switch", "zero")
+_AXES_KEYS = ("count", "object_offsets", "pdo_offsets")
 _SM_KEYS = ("index", "type", "pdo", "watchdog", "start", "size")
 _ETHERCAT_KEYS = (
     "coe", "lrw", "mailbox_size", "sync0_shift_ns", "sync1_cycle_ns", "serial", "dc_modes", "pdo_assign",
+    "diagnosis_history",
 )  # fmt: skip
 _DC_MODE_KEYS = (
     "name", "description", "assign_activate", "sync0_cycle_factor", "sync0_cycle_ns", "sync0_shift_ns",
@@ -128,7 +132,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if "rawcan" in top:
         from fieldbus.core.rawcan import parse_rawcan
 
-        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing", "motion_profile"):
+        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing", "motion_profile", "axes"):
             if key in top:
                 raise r.err(
                     (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
@@ -194,6 +198,9 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
             ("assign_activate",),
             f"0x{drive.assign_activate:04X} is none of the device's ethercat.dc_modes ({offered})",
         )
+    if "axes" in top:
+        object_offsets, pdo_offsets = _axes(r, top["axes"], drive, canopen is not None)
+        drive = replace(drive, object_offsets=object_offsets, pdo_offsets=pdo_offsets)
     if profile == "cia402":
         if drive.find(Direction.OUTPUTS, CONTROLWORD) is None:
             raise r.err(("rpdo",), "profile cia402 needs the controlword 0x6040:00 in an rpdo")
@@ -620,6 +627,78 @@ def motion_profile_sdos(cfg: MotionProfileConfig) -> tuple[SdoWrite, ...]:
     return tuple(out)
 
 
+# -- axes: multi-axis devices -------------------------------------------------------------------------
+
+MAX_AXES = 8  # CiA 402 logical devices 0x6000-0x67FF, 0x6800-0x6FFF, ... up to 0x9FFF
+AXIS_OBJECT_STEP = 0x800  # CiA 402: the objects of logical device k sit 0x800 x k above the first's
+AXIS_PDO_STEP = 0x10  # this project's default: axis k's PDOs at 0x1600 + 0x10 x k (0x1610, 0x1A10, ...)
+
+
+def _axes(r: Reader, raw: Any, drive: DriveMap, canopen: bool) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """``axes: N`` or ``axes: {count, object_offsets, pdo_offsets}`` -> (object offsets, PDO offsets) per axis."""
+    path: PathT = ("axes",)
+    if isinstance(raw, Mapping):
+        m = r.mapping(raw, path, _AXES_KEYS, required=("count",))
+        count = r.integer(m["count"], (*path, "count"), 1, MAX_AXES)
+    else:
+        m, count = {}, r.integer(raw, path, 1, MAX_AXES)
+    if canopen and count > 1:
+        raise r.err(path, "a multi-axis map runs on EtherCAT only (no canopen section with axes > 1)")
+    offsets: list[tuple[int, ...]] = []
+    for key, step, hi in (
+        ("object_offsets", AXIS_OBJECT_STEP, 0x3800),
+        ("pdo_offsets", AXIS_PDO_STEP, 0x1FF),
+    ):
+        if key not in m:
+            offsets.append(tuple(step * k for k in range(count)))
+            continue
+        items = r.sequence(m[key], (*path, key))
+        if len(items) != count:
+            raise r.err(
+                (*path, key), f"{len(items)} offsets for {count} axes: give one per axis, the first 0"
+            )
+        got = tuple(r.integer(v, (*path, key, k), 0, hi) for k, v in enumerate(items))
+        if got[0] != 0:
+            raise r.err((*path, key, 0), "the first axis is the map's own objects: its offset is 0")
+        for k, v in enumerate(got):
+            if key == "object_offsets" and v % AXIS_OBJECT_STEP:
+                raise r.err((*path, key, k), f"0x{v:X} is not a multiple of 0x800 (CiA 402 logical devices)")
+            if v in got[:k]:
+                raise r.err((*path, key, k), f"offset 0x{v:X} given twice: two axes would share it")
+        offsets.append(got)
+    object_offsets, pdo_offsets = offsets
+    if count == 1:
+        return object_offsets, pdo_offsets
+    for key, pdos, direction in (
+        ("rpdo", drive.rpdo, Direction.OUTPUTS),
+        ("tpdo", drive.tpdo, Direction.INPUTS),
+    ):
+        hi = (COE_RANGES[direction] if drive.ethercat.pdo_assign else ANY_PDO_RANGE)[1]
+        seen = {p.index for p in pdos}
+        bits = sum(p.bits for p in pdos)
+        if bits % 8:
+            raise r.err(
+                (key,), f"one axis's {key} is {bits} bits; with axes > 1 pad it to whole bytes (a bitN gap)"
+            )
+        for i, p in enumerate(pdos):
+            for j, c in enumerate(p.channels):
+                if not c.is_gap and not is_axis_object(c.index):
+                    raise r.err(
+                        (key, i, "channels", j, "index"),
+                        f"0x{c.index:04X} is not a CiA 402 axis object (0x6000-0x67FF): with axes > 1 every "
+                        "mapped object is repeated per axis",
+                    )
+            for k in range(1, count):
+                index = p.index + pdo_offsets[k]
+                if index > hi or index in seen:
+                    why = "passes the PDO range" if index > hi else "is taken by another PDO of the device"
+                    raise r.err(
+                        (key, i, "index"), f"axis {k + 1}'s copy of PDO 0x{p.index:04X} (0x{index:04X}) {why}"
+                    )
+                seen.add(index)
+    return object_offsets, pdo_offsets
+
+
 def _sync_managers(r: Reader, raw: Any) -> tuple[SyncManager, ...]:
     out = []
     seen: set[int] = set()
@@ -665,6 +744,7 @@ def _ethercat(r: Reader, raw: Any) -> EthercatConfig:
         serial=r.integer(m.get("serial", 0), (*path, "serial"), 0, 0xFFFFFFFF),
         dc_modes=_dc_modes(r, m.get("dc_modes")),
         pdo_assign=r.boolean(m.get("pdo_assign", True), (*path, "pdo_assign")),
+        diagnosis_history=r.boolean(m.get("diagnosis_history", False), (*path, "diagnosis_history")),
     )
 
 

@@ -9,7 +9,8 @@ side: ``outputs`` (RxPDO) and ``inputs`` (TxPDO).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 from fieldbus.core.datatypes import DataType
@@ -214,6 +215,9 @@ class EthercatConfig:
     # False: the device's PDO assignment (0x1C12/0x1C13) is fixed (ESI CoE@PdoAssign not true); bring-up
     # never writes it, and PDO indexes anywhere in 0x1600-0x1BFF are taken as the device names them
     pdo_assign: bool = True
+    # True: the device keeps an ETG.1020 diagnosis history (0x10F3); after a drive fault the network reads its
+    # newest messages and reports them in the DriveFault event (fieldbus.diagnosis)
+    diagnosis_history: bool = False
 
 
 @dataclass(frozen=True)
@@ -247,6 +251,29 @@ class DriveMap:
     homing: HomingConfig | None = None  # its SDOs are in ``sdo`` too (appended, in 0x6098..0x609A order)
     motion_profile: MotionProfileConfig | None = None  # its SDOs are in ``sdo`` too (0x6081, 0x6083, 0x6084)
     source: str = "<string>"
+    # multi-axis devices (``axes:``): rpdo/tpdo/sdo above describe axis 1; axis k adds object_offsets[k] to
+    # its CiA 402 objects (0x6000-0x67FF) and pdo_offsets[k] to its PDO indexes; see :attr:`bus_map`
+    object_offsets: tuple[int, ...] = (0,)
+    pdo_offsets: tuple[int, ...] = (0,)
+
+    @property
+    def axes(self) -> int:
+        """CiA 402 axes (logical devices) of one slave: rows of the group's image per slave."""
+        return len(self.object_offsets)
+
+    def axis_index(self, index: int, axis: int) -> int:
+        """The object ``index`` of axis 1 as axis ``axis`` (0-based) names it (0x603F -> 0x683F for axis 1)."""
+        return index + self.object_offsets[axis] if is_axis_object(index) else index
+
+    @cached_property
+    def bus_map(self) -> DriveMap:
+        """The whole device as the bus sees it: every axis's PDOs (axis order) and start-up SDOs.
+
+        Itself for a one-axis map. Axis k's channels are named ``<name>_axis<k+1>`` (k >= 1).
+        """
+        if self.axes == 1:
+            return self
+        return _expand_axes(self)
 
     def pdos(self, direction: Direction) -> tuple[Pdo, ...]:
         return self.rpdo if direction is Direction.OUTPUTS else self.tpdo
@@ -261,3 +288,40 @@ class DriveMap:
             if c.index == index and c.sub_index == sub_index:
                 return c
         return None
+
+
+AXIS_OBJECTS = (0x6000, 0x67FF)  # CiA 402 objects of the first logical device (axis); the next at +0x800
+
+
+def is_axis_object(index: int) -> bool:
+    """An object of a CiA 402 axis (0x6000-0x67FF): repeated per axis in a multi-axis device."""
+    return AXIS_OBJECTS[0] <= index <= AXIS_OBJECTS[1]
+
+
+def _expand_axes(drive: DriveMap) -> DriveMap:
+    """:attr:`DriveMap.bus_map` of a multi-axis map."""
+
+    def pdos(group: tuple[Pdo, ...]) -> tuple[Pdo, ...]:
+        out = []
+        for k, pdo_off in enumerate(drive.pdo_offsets):
+            for p in group:
+                chans = tuple(
+                    c
+                    if k == 0 or c.is_gap
+                    else replace(c, index=drive.axis_index(c.index, k), name=f"{c.name}_axis{k + 1}")
+                    for c in p.channels
+                )
+                out.append(replace(p, index=p.index + pdo_off, channels=chans))
+        return tuple(out)
+
+    sdos = list(drive.sdo)
+    for k in range(1, drive.axes):
+        sdos += [replace(s, index=drive.axis_index(s.index, k)) for s in drive.sdo if is_axis_object(s.index)]
+    return replace(
+        drive,
+        rpdo=pdos(drive.rpdo),
+        tpdo=pdos(drive.tpdo),
+        sdo=tuple(sdos),
+        object_offsets=(0,),
+        pdo_offsets=(0,),
+    )

@@ -128,6 +128,7 @@ def coe_plan(drive: DriveMap) -> SdoPlan:
     Empty for a map with ``ethercat.coe: false`` but start-up SDOs (mapping
     then comes from the SII).
     """
+    drive = drive.bus_map  # a multi-axis map: every axis's PDOs and start-up SDOs
     if not drive.ethercat.coe:
         if drive.sdo:
             raise FieldbusError(f"{drive.name}: start-up SDOs need CoE, but ethercat.coe is false")
