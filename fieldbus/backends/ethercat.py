@@ -70,7 +70,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
-from fieldbus.runtime.clock import Clock
+from fieldbus.runtime.clock import Clock, is_virtual
 from fieldbus.wire.pcap import EthercatCapture
 
 STATE_TIMEOUT_US = 2_000_000
@@ -150,11 +150,13 @@ class EthercatBackend(Backend):
                 chain_maps, drive_params=emulated if len(emulated) == len(chain_maps) else None, clock=clock
             )
         else:
-            for emulator_only in ("clock", "chain_maps"):
-                if options.get(emulator_only) is not None:
-                    raise FieldbusError(
-                        f"bus '{bus.name}': option {emulator_only} needs transport='in-process'"
-                    )
+            # a real segment runs on the wall clock: a wall clock is accepted (the testing kit passes the
+            # network's clock to every bus), a virtual one or the emulated chain's maps are not
+            clock = options.get("clock")
+            if is_virtual(clock):
+                raise FieldbusError(f"bus '{bus.name}': a virtual clock needs transport='in-process'")
+            if options.get("chain_maps") is not None:
+                raise FieldbusError(f"bus '{bus.name}': option chain_maps needs transport='in-process'")
             self.master = pysoem.Master()
         self._slaves: list[Any] = []
         self._open = False
@@ -310,15 +312,21 @@ class EthercatBackend(Backend):
         if view is None:
             return
         o_at, i_at = 0, self.out_bytes
+        out_copies, in_copies = [], []
         for k, g in enumerate(self.groups):
             n = len(g.slaves)
             o, i = self.areas[g.first].out_size, self.areas[g.first].in_size
+            # the image has a row per axis (a multi-axis slave's bytes are its axes' rows, in order)
+            wire_out, rx = g.image.outputs.wire, self.rx[k]
+            if (o and wire_out.size != n * o) or (i and rx.size != n * i):
+                return  # a layout the rows do not tile: the per-slave path stays
             if o:
-                self._out_copies.append((view[o_at : o_at + n * o].reshape(n, o), g.image.outputs.wire))
+                out_copies.append((view[o_at : o_at + n * o].reshape(wire_out.shape), wire_out))
             if i:
-                self._in_copies.append((self.rx[k], view[i_at : i_at + n * i].reshape(n, i)))
+                in_copies.append((rx, view[i_at : i_at + n * i].reshape(rx.shape)))
             o_at += n * o
             i_at += n * i
+        self._out_copies, self._in_copies = out_copies, in_copies
         self.iomap = view
 
     def _prime_mailboxes(self) -> None:

@@ -75,11 +75,12 @@ def test_a_bad_transport_option_is_a_clear_error(tmp_path: Path) -> None:
 
 
 def test_clock_and_chain_maps_are_only_for_the_in_process_transport(tmp_path: Path) -> None:
-    from fieldbus.testing import VirtualClock
+    from fieldbus.testing import VirtualClock, WallClock
 
     net_file = _net(tmp_path, DEMO_MAP, 1)
-    with pytest.raises(FieldbusError, match="option clock needs transport='in-process'"):
+    with pytest.raises(FieldbusError, match="a virtual clock needs transport='in-process'"):
         open_network(net_file, backend="ethercat", clock=VirtualClock())
+    open_network(net_file, backend="ethercat", clock=WallClock())  # a real segment's clock: accepted
     with pytest.raises(FieldbusError, match="option chain_maps needs transport='in-process'"):
         open_network(net_file, backend="ethercat", chain_maps=[load_drive_map(DEMO_MAP)])
     with pytest.raises(FieldbusError, match="option clock is not a "):
