@@ -8,12 +8,26 @@ that declared order. The steps of the commanded and actual positions are measure
 recording (``op.record`` / ``fieldbus.recording.load``). The machine is shared and loaded: a
 cycle whose reply is late holds the inputs, so steps are judged only between two fresh
 cycles, and the drives step by the wall time between frames, so an actual step is compared
-with the motion of the time that passed (at least one cycle).
+with the motion of the time that passed (at least one cycle) at the joint's own reported speed
+(the user's moves are per cycle: cycles that come close together on a loaded machine move the
+joint faster than SPEED in wall time).
+
+Homing is judged where a loaded machine hurts it: while the axes search, the master stalls
+STALL_S in every cycle (as a busy machine's master does now and then), so the emulator steps its
+drives by some 30 ms at once, and the home point must still read the home offset to within a few
+ms of search travel (the emulated drive used to look for its switch once per step and stopped up
+to a step's travel past it: 0.2-0.5 rad off).
+The collector is held off for the whole day: a collection of the test process's heap between
+two ``emu.run`` calls stalled the frames past the slaves' 100 ms watchdog on a loaded machine.
 """
 
 from __future__ import annotations
 
+import gc
 import json
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +37,7 @@ import fieldbus
 import fieldbus.recording
 from fieldbus import Cia402Controller, Goal, Homing, Mode
 from fieldbus.testing import EmulationUnavailable, emulate
+from sim_slaves.drive402 import HOMING_CHECK_S
 
 DEMO_MAP = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"  # rad, CSP/CST
 CYCLE_US = 2000
@@ -31,6 +46,10 @@ SPEED = 1.0  # rad/s of the user's moves
 STEP = SPEED * CYCLE_S  # one cycle of motion [rad]
 QUANTUM = 4.79369e-5  # rad per encoder count (demo_joint.yaml)
 SENSOR_FAULT = 0x7300
+SEARCH_RAD_S = {"hip": 100000 * QUANTUM, "knee": 200000 * QUANTUM}  # 17 at 0x6099:01, 34 at :02
+HOME_RAD = {"hip": 10000 * QUANTUM, "knee": -20000 * QUANTUM}  # the home offsets (0x607C) [rad]
+STALL_S = 0.03  # while an axis searches, the master sleeps this long in each cycle (< the 100 ms watchdog)
+RECEIVE_TIMEOUT_US = 20000
 # the knees report 0x603F in their inputs, so the fault's first event carries the code
 ERROR_CODE_TPDO = "  - index: 0x1A02\n    channels:\n      - {index: 0x603F, sub_index: 0, type: uint16}\n"
 
@@ -49,7 +68,7 @@ def _network(tmp_path: Path) -> Path:
     )
     net = tmp_path / "legs.yaml"
     net.write_text(
-        f"cycle_time_us: {CYCLE_US}\nreceive_timeout_us: 20000\nsafe_stop_after: 200\nbuses:\n"
+        f"cycle_time_us: {CYCLE_US}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US}\nsafe_stop_after: 200\nbuses:\n"
         "  - {name: legs, type: ethercat, interface: eth9, slaves: ["
         f"{{name: 'hip{{i}}', map: {json.dumps(str(hip))}, count: 6}}, "
         f"{{name: 'knee{{i}}', map: {json.dumps(str(knee))}, count: 6}}]}}\n"
@@ -62,10 +81,28 @@ def _network(tmp_path: Path) -> Path:
 def test_twelve_axes_home_switch_modes_without_a_step_and_a_fault_is_named(tmp_path: Path) -> None:
     pytest.importorskip("pysoem")
     try:
-        with emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=20000) as emu:
+        with (
+            _collector_held(),
+            emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=RECEIVE_TIMEOUT_US) as emu,
+        ):
             _day(emu, tmp_path)
     except EmulationUnavailable as exc:
         pytest.skip(f"the machine refuses a veth pair: {exc}")
+
+
+@contextmanager
+def _collector_held() -> Iterator[None]:
+    """No garbage collection from bring-up to the end of the day (a controller process does the same)."""
+    gc.collect()
+    gc.freeze()
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+        if was:
+            gc.enable()
 
 
 def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
@@ -118,22 +155,28 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
         emu.run(counted, cycles=20 * n)
         assert done[0] >= n, f"only {done[0]} of {n} fresh cycles"
 
-    # home: hips (method 17) then knees (method 34)
+    # home: hips (method 17) then knees (method 34), with long emulator steps while they search
     homed_at = [np.full(6, -1), np.full(6, -1)]
+    stalled = [0]
 
     def homing_step(k: int) -> bool:
         step(k)
         for h, at in zip(homings, homed_at, strict=True):
             at[(h.phase == 4) & (at < 0)] = op.result.cycle
+        if any((h.phase == 3).any() for h in homings):  # HomingPhase.RUNNING: a stalled master
+            time.sleep(STALL_S)
+            stalled[0] += 1
         return order["knees_started"] and homings[1].done and all(c.all_reached for c in ctrls)
 
     emu.run(homing_step, cycles=8000)
     assert [list(h.phase) for h in homings] == [[4] * 6, [4] * 6]  # HomingPhase.DONE
     assert homed_at[0].max() < homed_at[1].min(), homed_at  # every hip before any knee
-    # near the home point, which reads the offset (a stalled emulator steps up to 0.1 s of search
-    # speed at once on a loaded machine, so the stop may overshoot by some 0.2 rad)
-    assert np.all(np.abs(imgs[0].inputs["position_actual_value"] - 10000 * QUANTUM) < 0.3)
-    assert np.all(np.abs(imgs[1].inputs["position_actual_value"] + 20000 * QUANTUM) < 0.3)
+    assert stalled[0] >= 8, stalled  # the searches did run through long steps
+    # at rest where the home point reads the home offset: within two looks' travel at the search
+    # speed (the emulated drive looks every HOMING_CHECK_S) plus the stop, however long the steps
+    for img, kind in zip(imgs, ("hip", "knee"), strict=True):
+        off = img.inputs["position_actual_value"] - HOME_RAD[kind]
+        assert np.all(np.abs(off) < 2 * SEARCH_RAD_S[kind] * HOMING_CHECK_S + 0.005), (kind, off)
 
     # CSP, moving; CST while moving (torque seeded 0: coasting); back to CSP; moving again
     csp_from = op.result.cycle
@@ -145,7 +188,9 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
     run_fresh(60)
     for img in imgs:
         assert np.all(img.inputs["modes_of_operation_display"] == Mode.CST)
-        assert np.all(img.inputs["velocity_actual_value"] > 0.3 * SPEED)  # still moving
+        # still moving: it coasts (its speed decays with friction, by how much depends on the wall
+        # time 60 cycles took; the recording shows below that it never speeds up in CST)
+        assert np.all(img.inputs["velocity_actual_value"] > 0)
     for c in ctrls:
         c.request_mode(Mode.CSP)
     run_fresh(3)  # the user has not written yet: the seed holds each joint where it coasted to
@@ -185,7 +230,13 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
         mode = arr["inputs"]["modes_of_operation_display"]
         enabled = (arr["inputs"]["statusword"] & 0x6F) == 0x27
         in_csp = enabled & (mode == Mode.CSP)
-        cst_seen += int((enabled & (mode == Mode.CST))[window].sum())
+        in_cst = enabled & (mode == Mode.CST)
+        cst_seen += int(in_cst[window].sum())
+        # CST with the torque seeded 0: the joint coasts, its speed never grows (one count/s of rounding)
+        vel_cst = arr["inputs"]["velocity_actual_value"]
+        coast = both_fresh[:, None] & in_cst[1:] & in_cst[:-1]
+        assert np.all((vel_cst[1:] - vel_cst[:-1])[coast] <= QUANTUM * 1.01), "CST sped the joint up"
+        assert np.all(vel_cst[1:][coast] > 0), "the joint stopped in CST"
         csp_seen += int(in_csp[window].sum())
         pair = both_fresh[:, None]
         # commanded: at most one cycle of motion per fresh cycle while in CSP on both cycles
@@ -195,13 +246,16 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
         starts = pair & in_csp[1:] & ~in_csp[:-1]
         gap = np.abs(cmd[1:] - act[:-1])[starts]
         assert gap.size == 6 and gap.max() <= STEP * 1.05 + 2 * QUANTUM, gap
-        # actual: no more than the motion of the time that passed (>= one cycle) at the top speed
+        # actual: no more than the motion of the time that passed (>= one cycle) at the joint's own
+        # speed (0x606C on either side, at least SPEED): a jump is motion its speed does not explain
         dact = np.abs(np.diff(act, axis=0))
+        vel = np.abs(arr["inputs"]["velocity_actual_value"])
+        speed = np.maximum(np.maximum(vel[1:], vel[:-1]), SPEED)
         # (the emulator steps by the gap between frames as it sees them, which may lag the master's
         # time stamps by a cycle on a loaded machine: the longest of the neighbouring gaps)
         gaps = np.maximum(elapsed_s, CYCLE_S)
         near = np.maximum.reduce([gaps, np.roll(gaps, 1), np.roll(gaps, -1)])
-        allowed = SPEED * near[:, None] * 1.2 + 2 * QUANTUM
+        allowed = speed * near[:, None] * 1.2 + 2 * QUANTUM
         worst = (dact - allowed)[pair & np.ones_like(dact, dtype=bool)]
         assert worst.max() <= 0, (dact[pair & np.ones_like(dact, dtype=bool)].max(), worst.max())
     assert csp_seen > 12 * 400 and cst_seen > 12 * 40, (csp_seen, cst_seen)
