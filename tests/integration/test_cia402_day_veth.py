@@ -123,7 +123,7 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
         c.set_goal(Goal.ENABLE)
     homings[0].start()  # the hips first ...
     order = {"knees_started": False}
-    user: list[object] = [None]  # the user's move per cycle, or None (writes nothing)
+    user: list[float | None] = [None]  # the user's move per cycle [rad], or None (writes nothing)
     named: list[object] = []
     seen: list[object] = []
 
@@ -137,7 +137,7 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
             c.step_image(img)
             h.step(img.inputs["statusword"], img.outputs["controlword"])
             if user[0] is not None:
-                img.outputs["target_position"] += user[0]  # type: ignore[operator]
+                img.outputs["target_position"] += user[0]
         if not order["knees_started"] and homings[0].done:
             homings[1].start()  # ... then the knees (declared order)
             order["knees_started"] = True
