@@ -19,6 +19,9 @@ ms of search travel (the emulated drive used to look for its switch once per ste
 to a step's travel past it: 0.2-0.5 rad off).
 The collector is held off for the whole day: a collection of the test process's heap between
 two ``emu.run`` calls stalled the frames past the slaves' 100 ms watchdog on a loaded machine.
+Even so a busy machine may stall the master or the emulator past that watchdog: the slaves leave
+OP, the drives fault (0x8100) and a search in progress ends in a homing error. The test then
+homes those axes again (at most RETRIES times, and only after such a dropout), as a robot would.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ import pytest
 
 import fieldbus
 import fieldbus.recording
-from fieldbus import Cia402Controller, Goal, Homing, Mode
+from fieldbus import Cia402Controller, Goal, Homing, HomingPhase, Mode
 from fieldbus.testing import EmulationUnavailable, emulate
 from sim_slaves.drive402 import HOMING_CHECK_S
 
@@ -48,6 +51,7 @@ QUANTUM = 4.79369e-5  # rad per encoder count (demo_joint.yaml)
 SENSOR_FAULT = 0x7300
 SEARCH_RAD_S = {"hip": 100000 * QUANTUM, "knee": 200000 * QUANTUM}  # 17 at 0x6099:01, 34 at :02
 HOME_RAD = {"hip": 10000 * QUANTUM, "knee": -20000 * QUANTUM}  # the home offsets (0x607C) [rad]
+RETRIES = 2  # homings started again after a bus dropout cut them (none without one)
 STALL_S = 0.03  # while an axis searches, the master sleeps this long in each cycle (< the 100 ms watchdog)
 RECEIVE_TIMEOUT_US = 20000
 # the knees report 0x603F in their inputs, so the fault's first event carries the code
@@ -138,7 +142,7 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
             h.step(img.inputs["statusword"], img.outputs["controlword"])
             if user[0] is not None:
                 img.outputs["target_position"] += user[0]
-        if not order["knees_started"] and homings[0].done:
+        if not order["knees_started"] and (homings[0].phase == HomingPhase.DONE).all():
             homings[1].start()  # ... then the knees (declared order)
             order["knees_started"] = True
         return False
@@ -158,18 +162,28 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
     # home: hips (method 17) then knees (method 34), with long emulator steps while they search
     homed_at = [np.full(6, -1), np.full(6, -1)]
     stalled = [0]
+    dropouts = [0]  # cycles the bus spent recovering slaves that left OP while homing
+    retries = [RETRIES]
 
     def homing_step(k: int) -> bool:
         step(k)
+        dropouts[0] += any(b.recovering for b in op.result.buses)
         for h, at in zip(homings, homed_at, strict=True):
-            at[(h.phase == 4) & (at < 0)] = op.result.cycle
-        if any((h.phase == 3).any() for h in homings):  # HomingPhase.RUNNING: a stalled master
+            at[(h.phase == HomingPhase.DONE) & (at < 0)] = op.result.cycle
+            failed = h.phase == HomingPhase.FAILED
+            if h.done and failed.any() and dropouts[0] and retries[0] > 0:
+                # a search cut by a bus dropout (the slaves' watchdog on a loaded machine: the drives
+                # fault 0x8100 and report a homing error): home those axes again, as a robot would
+                retries[0] -= 1
+                h.start(failed)
+        if any((h.phase == HomingPhase.RUNNING).any() for h in homings):  # a stalled master
             time.sleep(STALL_S)
             stalled[0] += 1
         return order["knees_started"] and homings[1].done and all(c.all_reached for c in ctrls)
 
     emu.run(homing_step, cycles=8000)
-    assert [list(h.phase) for h in homings] == [[4] * 6, [4] * 6]  # HomingPhase.DONE
+    phases = [list(h.phase) for h in homings]
+    assert phases == [[HomingPhase.DONE] * 6] * 2, (phases, dropouts, retries)
     assert homed_at[0].max() < homed_at[1].min(), homed_at  # every hip before any knee
     assert stalled[0] >= 8, stalled  # the searches did run through long steps
     # at rest where the home point reads the home offset: within two looks' travel at the search
@@ -201,6 +215,8 @@ def _day(emu: fieldbus.testing.Emulation, tmp_path: Path) -> None:
     moved_until = op.result.cycle
 
     # a drive fault reaches the user with its code, by name
+    named.clear()  # (a bus dropout on a loaded machine may have faulted drives before: 0x8100)
+    seen.clear()
     emu.drive_fault("legs", "knee3", SENSOR_FAULT)
     for _ in range(1000):
         run_fresh(1)
