@@ -374,6 +374,7 @@ class Cia402Drive:
         self._home_method = 0
         self._home_prev_cw = 0
         self._home_found_from = 0.0  # physical position where the search began [rad]
+        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
@@ -699,9 +700,13 @@ class Cia402Drive:
             fast = method in (17, 18)
             speed = self._home_param(HOMING_SPEEDS, 1 if fast else 2, 0) * self.rad_s_per_velocity
             self._home_v = -speed if method in (17, 33) else speed
+            phys = self.position_rad - self._frame_rad
+            self._home_on_switch = self._on_switch(method, phys)
+            if self._home_on_switch:  # started on its limit switch: off it, to the switch's edge
+                self._home_v = -self._home_v
             self.home_bits = 0
             self._home_phase = 1
-            self._home_found_from = self.position_rad - self._frame_rad
+            self._home_found_from = phys
             return
         if not cw & _CW_HOMING_START and self._home_phase == 1:  # interrupted
             self._home_phase = 0
@@ -722,15 +727,22 @@ class Cia402Drive:
         phys = self.position_rad - self._frame_rad
         m = self._home_method
         p = self.params
-        if m == 17 and phys <= p.negative_switch_rad:
-            self._home_at(p.negative_switch_rad)
-        elif m == 18 and phys >= p.positive_switch_rad:
-            self._home_at(p.positive_switch_rad)
+        if m in (17, 18):
+            # the switch's edge is the home point: where the switch changes from its state at the start
+            # (on: searching towards it; off: the search started on it and moves off it)
+            if self._on_switch(m, phys) != self._home_on_switch:
+                self._home_at(p.negative_switch_rad if m == 17 else p.positive_switch_rad)
         elif m in (33, 34):
             rev_from = math.floor((self._home_found_from - p.negative_switch_rad) / TWO_PI)
             rev_now = math.floor((phys - p.negative_switch_rad) / TWO_PI)
             if rev_now != rev_from:
                 self._home_at(p.negative_switch_rad + TWO_PI * max(rev_now, rev_from))
+
+    def _on_switch(self, method: int, phys: float) -> bool:
+        """Is the limit switch of method 17 (negative) or 18 (positive) on at physical position ``phys``?"""
+        if method == 17:
+            return phys <= self.params.negative_switch_rad
+        return method == 18 and phys >= self.params.positive_switch_rad
 
     def _home_at(self, home_phys_rad: float) -> None:
         """The home point (physical position) is found: shift the reported frame so it reads the home offset."""

@@ -72,3 +72,32 @@ def test_long_steps_stop_where_short_steps_do(method: int, offset: int, zero_spe
         # the search looks at least every HOMING_CHECK_S: it stops within that much travel of where it
         # stops in 1 ms steps (a look per step), however long the step (before: speed x dt past it)
         assert abs(pos - ref) <= speed * HOMING_CHECK_S, (dt, pos, ref)
+
+
+@pytest.mark.parametrize("bank", [False, True], ids=["scalar", "bank"])
+@pytest.mark.parametrize(("method", "start_rad"), [(17, -1.5), (18, 1.5)])
+def test_a_search_started_on_its_switch_homes_at_the_switch_edge(
+    method: int, start_rad: float, bank: bool
+) -> None:
+    """A drive that coasted past its limit switch (a fault during the search) and homes again: it moves
+    off the switch and homes at the edge (CiA 402 methods 17/18), instead of calling where it stands
+    the switch position (before: the home offset read the distance past the switch off, 0.5 rad here)."""
+    p = DriveParams()  # switches at -1 and +1 rad
+    od = _od(p, method, 10_000, 10_000)
+    d: Cia402Drive
+    b = DriveBank([p]) if bank else None
+    d = b.drives[0] if b is not None else Cia402Drive(p)
+    d.position_rad = d._prev_target_rad = start_rad
+    for k in range(round(RUN_S / 1e-3)):
+        od.values[(Obj.CONTROLWORD, 0)] = _cw(k)
+        if b is None:
+            d.step(od, 1e-3)
+        else:
+            b.load_inputs(0, od)
+            b.step(0, 1, 1e-3)
+            b.store_outputs(0, od)
+    sw, pos = int(od.values[(Obj.STATUSWORD, 0)]), int(od.values[(Obj.POSITION_ACTUAL, 0)])
+    assert sw & 0x3400 == 0x1400, hex(sw)
+    assert abs(pos - 10_000) <= 2 * SEARCH * HOMING_CHECK_S, pos  # at the edge (+ a look's travel, stop)
+    edge = -1.0 if method == 17 else 1.0
+    assert (d.position_rad - d._frame_rad > edge) == (method == 17)  # it stands off the switch
