@@ -135,6 +135,11 @@ HOMING_METHOD, HOME_OFFSET, HOMING_SPEEDS, HOMING_ACCELERATION = 0x6098, 0x607C,
 _SW_HOMING_ATTAINED = 1 << 12  # statusword bit 12 in homing mode
 _SW_HOMING_ERROR = 1 << 13  # statusword bit 13 in homing mode
 _CW_HOMING_START = 1 << 4  # controlword bit 4 in homing mode: rising edge starts, 0 interrupts
+HOMING_CHECK_S = 1e-3
+"""While it searches, the emulated drive looks for its home switch or index pulse at least this often [s of
+its own time], however long the master leaves between two frames: a real drive watches them in its own
+loop. (A step of 0.1 s, a stalled master, at a 4.8 rad/s search speed would otherwise run 0.48 rad past
+the home point before it saw it.)"""
 
 # profile modes (CiA 402-2 "Profile position mode", modes of operation 1; "Profile velocity mode", 3)
 _PP, _PV = 1, 3
@@ -405,6 +410,7 @@ class Cia402Drive:
         self._prof_halt = False
         self._prof_target_v = 0.0  # PV: the velocity the ramp goes to [rad/s]
         self._prof_prev_cw = 0
+        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
         # integration coefficients, cached per substep length
         self._h = -1.0
         self._e = self._f = self._g = self._hh = 0.0
@@ -593,7 +599,16 @@ class Cia402Drive:
                 mode, target_v = _CSV, self._prof_v
         if not self._ideal_encoder and self.params.encoder_noise_counts:
             self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
-        self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
+        if state is _OE and mode == _HM and self._home_phase == 1 and dt_s > HOMING_CHECK_S:
+            # searching through a long step: in slices, the home point looked for between them
+            k = math.ceil(dt_s / HOMING_CHECK_S)
+            for j in range(k):
+                if j and self._home_phase == 1:
+                    self._home_search()
+                self._physics(dt_s / k, state, mode, target_rad, self._home_v, target_tau)
+            target_v = self._home_v
+        else:
+            self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
         self._outputs(od, dt_s, state, mode, target_rad, target_v)
         self._prev_cw = cw
 
@@ -736,28 +751,21 @@ class Cia402Drive:
             fast = method in (17, 18)
             speed = self._home_param(HOMING_SPEEDS, 1 if fast else 2, 0) * self.rad_s_per_velocity
             self._home_v = -speed if method in (17, 33) else speed
+            phys = self.position_rad - self._frame_rad
+            self._home_on_switch = self._on_switch(method, phys)
+            if self._home_on_switch:  # started on its limit switch: off it, to the switch's edge
+                self._home_v = -self._home_v
             self.home_bits = 0
             self._home_phase = 1
-            self._home_found_from = self.position_rad - self._frame_rad
+            self._home_found_from = phys
             return
         if not cw & _CW_HOMING_START and self._home_phase == 1:  # interrupted
             self._home_phase = 0
             self._home_v = 0.0
             self.home_bits = _SW_TARGET_REACHED
             return
-        phys = self.position_rad - self._frame_rad
         if self._home_phase == 1:
-            m = self._home_method
-            p = self.params
-            if m == 17 and phys <= p.negative_switch_rad:
-                self._home_at(p.negative_switch_rad)
-            elif m == 18 and phys >= p.positive_switch_rad:
-                self._home_at(p.positive_switch_rad)
-            elif m in (33, 34):
-                rev_from = math.floor((self._home_found_from - p.negative_switch_rad) / TWO_PI)
-                rev_now = math.floor((phys - p.negative_switch_rad) / TWO_PI)
-                if rev_now != rev_from:
-                    self._home_at(p.negative_switch_rad + TWO_PI * max(rev_now, rev_from))
+            self._home_search()
         elif (
             self._home_phase == 2
             and abs(self.velocity_rad_s) * self.velocity_per_rad_s <= self.velocity_window
@@ -870,6 +878,28 @@ class Cia402Drive:
         ):
             bits |= _SW_TARGET_REACHED
         return bits
+
+    def _home_search(self) -> None:
+        """Searching: the home switch or index pulse passed since the last look? Then it is the home point."""
+        phys = self.position_rad - self._frame_rad
+        m = self._home_method
+        p = self.params
+        if m in (17, 18):
+            # the switch's edge is the home point: where the switch changes from its state at the start
+            # (on: searching towards it; off: the search started on it and moves off it)
+            if self._on_switch(m, phys) != self._home_on_switch:
+                self._home_at(p.negative_switch_rad if m == 17 else p.positive_switch_rad)
+        elif m in (33, 34):
+            rev_from = math.floor((self._home_found_from - p.negative_switch_rad) / TWO_PI)
+            rev_now = math.floor((phys - p.negative_switch_rad) / TWO_PI)
+            if rev_now != rev_from:
+                self._home_at(p.negative_switch_rad + TWO_PI * max(rev_now, rev_from))
+
+    def _on_switch(self, method: int, phys: float) -> bool:
+        """Is the limit switch of method 17 (negative) or 18 (positive) on at physical position ``phys``?"""
+        if method == 17:
+            return phys <= self.params.negative_switch_rad
+        return method == 18 and phys >= self.params.positive_switch_rad
 
     def _home_at(self, home_phys_rad: float) -> None:
         """The home point (physical position) is found: shift the reported frame so it reads the home offset."""

@@ -27,6 +27,7 @@ Inputs (the master's outputs) go into :attr:`DriveBank.controlword`,
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
 from typing import Any
@@ -47,6 +48,7 @@ from sim_slaves.drive402 import (
     ERROR_FOLLOWING,
     ERROR_OVERTEMPERATURE,
     FOLLOWING_ERROR_OFF,
+    HOMING_CHECK_S,
     STICTION_RAD_S,
     TWO_PI,
     Cia402Drive,
@@ -391,15 +393,42 @@ class DriveBank:
         dt = np.broadcast_to(np.asarray(dt_s, dtype=np.float64), (b - a))
         if (dt <= 0.0).any():
             raise ValueError(f"dt_s must be > 0, got {dt_s}")
-        n = np.maximum(1, np.rint(dt * self.control_rate[sl])).astype(np.int64)
+        searching = self.home_phase[sl] == 1
+        if searching.any() and (dt[searching] > HOMING_CHECK_S).any():
+            # a homing search through a long step: the searching drives in slices, each looking for its
+            # home point between them (as Cia402Drive.step); the others in one piece
+            edges = [0, *(np.flatnonzero(np.diff(searching)) + 1).tolist(), b - a]
+            for lo, hi in pairwise(edges):
+                if searching[lo]:
+                    self._search(a + lo, a + hi, dt[lo:hi])
+                else:
+                    self._substeps(a + lo, a + hi, dt[lo:hi])
+            return
+        self._substeps(a, b, dt)
+
+    def _search(self, a: int, b: int, dt: F64) -> None:
+        """Drives ``a..b-1`` (all searching their home point) through ``dt``, in slices of at most
+        HOMING_CHECK_S; between slices each looks for the home point (the target ring is fed once)."""
+        k = max(1, math.ceil(float(dt.max()) / HOMING_CHECK_S))
+        part = dt / k
+        for j in range(k):
+            if j:
+                for i in range(a, b):
+                    if self.home_phase[i] == 1:
+                        self.drives[i]._home_search()
+            self._substeps(a, b, part, push=j == 0)
+
+    def _substeps(self, a: int, b: int, dt: F64, *, push: bool = True) -> None:
+        """Drives ``a..b-1`` through ``dt``, in the substeps of their control rates."""
+        n = np.maximum(1, np.rint(dt * self.control_rate[a:b])).astype(np.int64)
         if b - a > 1 and (n != n[0]).any():
             # different substep counts (a drive stepped at another time, e.g. after a power cycle):
             # the stretches of drives with the same count, each together
             edges = [0, *(np.flatnonzero(np.diff(n)) + 1).tolist(), b - a]
             for lo, hi in pairwise(edges):
-                self._advance(a + lo, a + hi, dt[lo:hi], n[lo:hi])
+                self._advance(a + lo, a + hi, dt[lo:hi], n[lo:hi], push=push)
             return
-        self._advance(a, b, dt, n)
+        self._advance(a, b, dt, n, push=push)
 
     def _state_machines(self, a: int, b: int) -> None:
         sl = slice(a, b)
@@ -438,7 +467,7 @@ class DriveBank:
         if self.quiet[sl].all() and not self.fault_pending[sl].any():
             self._calm.add((a, b))
 
-    def _advance(self, a: int, b: int, dt: F64, n: I64) -> None:
+    def _advance(self, a: int, b: int, dt: F64, n: I64, *, push: bool = True) -> None:
         sl = slice(a, b)
         kind = self._uniform.get((a, b))
         if kind is None:
@@ -454,7 +483,7 @@ class DriveBank:
         cst = mode == _CST
         rpc = self.rpc[sl]
         if self.any_delay:
-            tp, tv, tt = self._delayed(a, b)
+            tp, tv, tt = self._delayed(a, b, push=push)
         else:
             tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
         prev_t = self.prev_target[sl]
@@ -671,17 +700,20 @@ class DriveBank:
         self.velocity_counts[sl] = np.floor(vel * self.vpr[sl] + 0.5)
         self.torque_permille[sl] = np.floor(tau * 1000.0 / self.rated[sl] + 0.5)
 
-    def _delayed(self, a: int, b: int) -> tuple[I64, I64, I64]:
-        """Push this cycle's raw targets into each drive's ring; return those of ``delay`` cycles ago."""
+    def _delayed(self, a: int, b: int, *, push: bool = True) -> tuple[I64, I64, I64]:
+        """Push this cycle's raw targets into each drive's ring (unless ``push`` is False: a later slice of
+        the same cycle); return those of ``delay`` cycles ago."""
         sl = slice(a, b)
         hist = self.history
         depth = hist.shape[1]
         cols = np.arange(a, b)
-        head = (self.head[sl] + 1) % depth
-        self.head[sl] = head
-        hist[0, head, cols] = self.target_position[sl]
-        hist[1, head, cols] = self.target_velocity[sl]
-        hist[2, head, cols] = self.target_torque[sl]
+        head = self.head[sl]
+        if push:
+            head = (head + 1) % depth
+            self.head[sl] = head
+            hist[0, head, cols] = self.target_position[sl]
+            hist[1, head, cols] = self.target_velocity[sl]
+            hist[2, head, cols] = self.target_torque[sl]
         old = (head - self.delay[sl]) % depth
         return hist[0, old, cols], hist[1, old, cols], hist[2, old, cols]
 

@@ -352,6 +352,10 @@ def emulated_segment(
                 bus=bus,
             )
             emu = Emulator(master, slave, proc, control, pcap, err)
+            # import the control channel's module now, not at the first fault injection: that import
+            # (50-100 ms) stalled a running master past the slaves' 100 ms process-data watchdog
+            import sim_slaves.ethercat.runner  # noqa: F401
+
             try:
                 yield emu
             finally:
