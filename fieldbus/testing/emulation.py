@@ -206,10 +206,14 @@ class Emulation:
         Master: the statusword shows FAULT from the next cycle or two (the bus stays fresh), the
         error code is in 0x603F (in the inputs when the map has it, else by SDO), and an emergency
         (EMCY) with that code is sent (``backend.emergencies``). A fault reset (controlword bit 7)
-        clears it. Not on raw CAN (MIT motors have no error codes).
+        clears it. Raw CAN: ``code`` is the family's own (Damiao error nibble 0x8..0xE, ODrive axis
+        error bits, CubeMars error code 1..6); the motor lets go, its replies carry the code and the
+        master reports one named ``MotorFaultEvent`` in ``CycleResult.events``. Not on MIT motors of
+        family ``mit`` (no error code).
         """
-        if not 0 < code <= 0xFFFF:
-            raise FieldbusError(f"drive_fault: error code must be 0x0001..0xFFFF, got {code:#x}")
+        top = 0xFFFF_FFFF if self._bus(bus)[0].type == "rawcan" else 0xFFFF
+        if not 0 < code <= top:
+            raise FieldbusError(f"drive_fault: error code must be 0x1..{top:#x}, got {code:#x}")
         emu, i = self._slave(bus, slave)
         emu.drive_fault(i, code)
 
