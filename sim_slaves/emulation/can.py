@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 import os
 from collections import deque
+from contextlib import ExitStack
 from typing import Any
 
 from fieldbus.core.network import Bus
@@ -65,6 +66,30 @@ class _Inbox:
         pass
 
 
+class _UdpProcess:
+    """One child process (:func:`sim_slaves.can_process.can_emulators_process`) for every CAN bus of a
+    network on udp, each bus with its kind, map and nodes; started once, when the master's backends exist
+    (every bus has joined by then), stopped with the emulation."""
+
+    def __init__(self, context: EmulationContext) -> None:
+        # stopped where the first bus joined: after the master closed (its exit frames still answered)
+        self.stack = context.cleanup.enter_context(ExitStack())
+        self.buses: list[tuple[str, Any]] = []  # (bus name, EmulatedBus)
+        self.started = False
+
+    def start(self) -> None:
+        if self.started:
+            return
+        from sim_slaves.can_process import can_emulators_process
+
+        self.started = True
+        try:
+            self.stack.enter_context(can_emulators_process([b for _, b in self.buses]))
+        except RuntimeError as exc:
+            names = ", ".join(f"'{name}'" for name, _ in self.buses)
+            raise EmulationError(f"CAN buses {names}: {exc}") from None
+
+
 class CanBus(BusEmulator):
     """The nodes (``kind`` canopen) or motors (``kind``: their family, :func:`~sim_slaves.can_families.
     family_of`) of one CAN bus, with their fault hooks."""
@@ -82,6 +107,7 @@ class CanBus(BusEmulator):
         self._changes: dict[str, Any] = {}
         self._options: dict[str, Any] = {}
         self._own: list[Any] = []  # python-can buses this emulator opened
+        self._process: _UdpProcess | None = None
         if context.can == "udp":
             self._start_process(context, bus, nodes)
             return
@@ -132,24 +158,25 @@ class CanBus(BusEmulator):
             self._options = {"can_bus": ours}
 
     def _start_process(self, context: EmulationContext, bus: Bus, nodes: list[tuple[Any, int]]) -> None:
-        from sim_slaves.can_process import can_emulator_process, udp_bus
+        """Join the network's one emulator process (:class:`_UdpProcess`; started at the first attach)."""
+        from sim_slaves.can_process import EmulatedBus, udp_bus
 
         maps = {id(m) for m, _ in nodes}
         if len(maps) != 1:
             raise EmulationError(
                 f"bus '{bus.name}': over udp every node of a bus must share one drive map (the child "
-                "process takes one); use can='virtual'"
+                "process takes one per bus); use can='virtual'"
             )
         source = nodes[0][0].source
         if not source:
             raise EmulationError(f"bus '{bus.name}': over udp the drive map must be a file")
         where = udp_bus(next(_channels), "fieldbus_udp")
-        try:
-            context.cleanup.enter_context(
-                can_emulator_process(self.kind, source, [n for _, n in nodes], where)
-            )
-        except RuntimeError as exc:
-            raise EmulationError(f"bus '{bus.name}': {exc}") from None
+        if "can_udp_process" not in context.extra:
+            context.extra["can_udp_process"] = _UdpProcess(context)
+        process: _UdpProcess = context.extra["can_udp_process"]
+        kind = "canopen" if self.kind == "canopen" else "auto"
+        process.buses.append((bus.name, EmulatedBus(kind, source, [n for _, n in nodes], where)))
+        self._process = process
         self._changes = {
             "interface": where.channel,
             "can_interface": where.interface,
@@ -162,6 +189,10 @@ class CanBus(BusEmulator):
 
     def backend_options(self) -> dict[str, Any]:
         return dict(self._options)
+
+    def attach(self, backend: Any) -> None:
+        if self._process is not None:
+            self._process.start()  # every bus of the network is known by now
 
     def close(self) -> None:
         if self.lockstep is not None:
