@@ -8,9 +8,9 @@
 
 EtherCAT buses run on the in-process ``sim`` backend (``ethercat="sim"``) or
 on the real pysoem master over a veth pair with the emulator in a child
-process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN MIT motors) on an
-in-process bus (``can="virtual"``) or on ``fieldbus_udp`` with the emulator in
-a child process (``can="udp"``). Interfaces and channels are substituted;
+process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN motors: each bus the
+emulator of its maps' family) on an in-process bus (``can="virtual"``) or on
+``fieldbus_udp`` with every CAN bus's emulator in one child process (``can="udp"``). Interfaces and channels are substituted;
 the file is not touched. With every emulator in process the clock is a
 :class:`~fieldbus.runtime.clock.VirtualClock` unless told otherwise: the
 master and the emulators run in lockstep, time passes only in the master's
@@ -195,7 +195,9 @@ class Emulation:
         backend's recovery brings it back to OP by itself (``BusStatus.recovering``, then
         ``recoveries`` + 1); its drive restarts in SWITCH ON DISABLED, so a controller must
         enable it again. CANopen: a boot-up message, then the node is configured again and
-        started (``recoveries`` + 1). Raw CAN: the motor leaves motor mode (its replies go on).
+        started (``recoveries`` + 1). Raw CAN: the motor's family's power-up state, its replies go on
+        (MIT: out of motor mode; Damiao: disabled, registers as at power-up; ODrive: IDLE, no error;
+        CubeMars servo: running, no error); docs/testing.md, "Raw-CAN families".
         """
         emu, i = self._slave(bus, slave)
         emu.power_cycle(i)

@@ -126,6 +126,10 @@ class CanBus(BusEmulator):
             def make(port: Any, clock: Any = None) -> Any:
                 return simulator(port, nodes, clock=clock, dt_s=dt_s)
 
+        # the master's channel: this process's own (its lock is in-process), never the robot's can0, which
+        # another test or the robot's master may hold at the same time
+        channel = f"fieldbus-testing-{os.getpid()}-{next(_channels)}"
+        self._changes = {"interface": channel, "can_interface": "virtual"}
         if context.virtual:
             from fieldbus.testing.lockstep import LockstepCanBus
 
@@ -150,7 +154,6 @@ class CanBus(BusEmulator):
             clock.watch(self._watch)
             self._options = {"can_bus": self.lockstep}
         else:
-            channel = f"fieldbus-testing-{os.getpid()}-{next(_channels)}"
             theirs = can.Bus(interface="virtual", channel=channel)
             ours = can.Bus(interface="virtual", channel=channel)
             self._own = [ours, theirs]

@@ -198,3 +198,31 @@ def test_a_power_cycle_reaches_the_family(tmp_path: Path, drive_map: str, field:
         emu.cycles(300)  # ODrive: a heartbeat at once (state changed), the next ones every 100 ms
         assert int(emu.op["legs"].inputs[field][0]) == after != before
         assert emu.trace.arrays()["fresh"][-50:].all()
+
+
+@pytest.mark.parametrize("drive_map", sorted(FAMILIES))
+def test_lose_cycles_loses_exactly_that_many_replies_of_each_family(tmp_path: Path, drive_map: str) -> None:
+    with emulate(_network(tmp_path, [drive_map])) as emu:
+        emu.cycles(100)
+        since = emu.trace.mark()
+        emu.lose_cycles("legs", 5)
+        emu.cycles(20)
+        verdicts = emu.trace.verdict("legs")[since:]
+        timeout, ok = int(fieldbus.Verdict.TIMEOUT), int(fieldbus.Verdict.OK)
+        assert (verdicts[:5] == timeout).all() and (verdicts[5:] == ok).all(), verdicts
+
+
+def test_the_emulation_does_not_take_the_robot_s_can_channel(tmp_path: Path) -> None:
+    """A master (or another test) holding can0 does not stop an emulation of a file that names can0."""
+    from fieldbus.backends.buslock import lock_can_bus
+    from fieldbus.core.network import load_network
+
+    net = _network(tmp_path, ["odrive_s1"])
+    held = lock_can_bus(load_network(net).buses[0])
+    try:
+        for clock in (None, fieldbus.testing.WallClock()):
+            with emulate(net, clock=clock, receive_timeout_us=50_000) as emu:
+                emu.cycles(20)
+                assert emu.trace.arrays()["fresh"].any()
+    finally:
+        held.release()
