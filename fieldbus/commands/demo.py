@@ -224,6 +224,8 @@ def describe(r: dict[str, Any]) -> str:
         f"  cycle work: mean {t['mean']} us, p99 {t['p99']} us, max {t['max']} us; overruns {r['overruns']}",
         f"  missed {r['missed']}, safe stops {r['safe_stops']}",
     ]
+    if r.get("motor_faults"):
+        lines.append(f"  motor faults: {'; '.join(r['motor_faults'])}")
     if not r["enabled"]:
         lines.append(f"  states: {', '.join(r['states'])}")
     return "\n".join(lines)
@@ -416,6 +418,8 @@ def run_demo(
         report.update(follower.summary())
         report.update(cycleopts.latency_report(latency, rt or RtState()))
         report["_latency"] = latency
+        if backend == "rawcan":  # faults the motors reported, by name (e.g. a Damiao's own CAN timeout)
+            report["motor_faults"] = [str(f) for f in getattr(net.backends[0], "faults", ())]
     report["backend"] = backend
     report["axes"] = axes
     if backend == "rawcan":

@@ -51,9 +51,26 @@ def test_the_demo_runs_on_each_family_s_emulated_motors(
     assert code == (3 if r["safe_stops"] else 0), (code, r["safe_stops"])
     e = r["tracking_error"]
     assert e["samples"] >= 2 * 100, e
+    assert e["max_rad"] > 0  # tracked: the motors moved along a sine they were sent
+    if r["motor_faults"]:
+        # the only fault a demo meets: a Damiao whose master was kept away longer than its 50 ms CAN
+        # timeout (a loaded machine; the wall clock) lets go by itself, as it must; tracking then ends
+        assert motor.startswith("damiao") and all("communication lost" in f for f in r["motor_faults"]), r
+        return
     step_rad = PEAK_RAD_S * r["period_us"] / 1e6  # a miss run of n cycles moves the target n steps on
     assert e["max_rad"] < BOUND_RAD.get(motor, 10e-3) + bus["longest_streak"] * step_rad, (e, bus)
-    assert e["max_rad"] > 0  # tracked: the motors moved along a sine they were sent
+
+
+def test_a_motor_fault_is_in_the_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    """A fault the motors report is named in the summary: here a Damiao's own CAN timeout, forced by
+    ``--rate 10`` (100 ms between commands, twice the maps' 50 ms TIMEOUT)."""
+    slow = ["--axes", "1", "--rate", "10", "--cycles", "5", "--json"]
+    code = main(["demo", "--backend", "rawcan", "--motor", "damiao_dm_j4310", *slow])
+    r = json.loads(capsys.readouterr().out)
+    assert r["motor_faults"] and all(
+        f == "m0: motor error 0xD communication lost" for f in r["motor_faults"]
+    ), r
+    assert code == 0
 
 
 def test_the_text_summary_names_the_motor(capsys: pytest.CaptureFixture[str]) -> None:
