@@ -10,7 +10,7 @@ Parts: ``ethercat_chain`` (an in-process ESC chain from drive maps),
 ``ethercat_control`` (fault and status commands on a chain), ``veth_segment``
 (emulated EtherCAT slaves on a veth pair, in their own process),
 ``canopen_simulator``, ``canopen_control``, ``mit_simulator`` (CAN emulators on
-a python-can bus), ``emulator_options`` (validates a network file's ``emulator:``
+a python-can bus), ``can_motor_simulator`` (the emulator of a raw-CAN map's family), ``emulator_options`` (validates a network file's ``emulator:``
 section, :class:`~fieldbus.core.emulator_opts.EmulatorSection`, and returns the
 drive options it gives; see :func:`emulator_options_check`).
 """

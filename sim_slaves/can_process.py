@@ -2,9 +2,10 @@
 
 In one process the emulated nodes and the master share one interpreter lock: the
 nodes' work lands inside the master's cycle. Here a child process runs
-:class:`~sim_slaves.canopen.CanopenSimulator` (``--kind canopen``) or
-:class:`~sim_slaves.mit_motor.MitMotorSimulator` (``--kind mit``) or
-:class:`~sim_slaves.damiao.DamiaoSimulator` (``--kind damiao``) on a python-can
+:class:`~sim_slaves.canopen.CanopenSimulator` (``--kind canopen``) or the raw-CAN
+motors of a map's family (:mod:`sim_slaves.can_families`): ``--kind auto`` takes the
+family from the map; ``mit``, ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by
+the map) say which it must be, and a map of another family is refused. On a python-can
 bus that crosses processes: ``fieldbus_udp`` (:mod:`fieldbus.backends.udpcan`,
 fixed-size datagrams on the loopback, the lean one), python-can's
 ``udp_multicast`` (msgpack per frame, needs msgpack), one group and port per
@@ -14,11 +15,12 @@ bus, or any other python-can interface.
         --interface fieldbus_udp --channel 239.74.163.2 --option port=43114 \\
         [--channel 239.74.163.3 --option port=43115 ...]
 
-Several ``--channel``: one bus each, the same nodes on every bus, all served by
-one thread (:func:`sim_slaves.busthread.serve_together`: one ``select`` over the
-buses), so the emulators of a robot's buses take one CPU between them instead
-of one process each. An ``--option`` belongs to the ``--channel`` before it (to
-every bus when it comes first). Prints ``ready`` once the nodes listen and runs
+Several ``--channel``: one bus each, all served by one thread
+(:func:`sim_slaves.busthread.serve_together`: one ``select`` over the buses), so
+the emulators of a robot's buses take one CPU between them instead of one process
+each. An ``--option``, ``--kind``, ``--map`` or ``--nodes`` belongs to the
+``--channel`` before it (to every bus when it comes first): buses of different
+families and maps in one process. Prints ``ready`` once the nodes listen and runs
 until SIGTERM or SIGINT, also in the background with its stdin closed; with
 ``--exit-with-stdin`` (what :func:`can_emulator_process` passes, so a parent
 killed without cleaning up takes its child along) it also stops when its stdin
@@ -30,6 +32,7 @@ else on this host uses, for either UDP interface.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import select
 import signal
@@ -49,6 +52,7 @@ from sim_slaves.busthread import serve_together
 READY_TIMEOUT_S = 20.0
 UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
 UDP_INTERFACES = ("udp_multicast", "fieldbus_udp")  # python-can interfaces udp_bus() can describe
+KINDS = ("canopen", "mit", "damiao", "odrive", "cubemars", "auto")
 
 
 @dataclass(frozen=True)
@@ -114,6 +118,17 @@ class _ChannelAction(argparse.Action):
 
     def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None) -> None:
         namespace.buses = [*(namespace.buses or []), (str(values), {})]
+        namespace.per_bus = [*(getattr(namespace, "per_bus", None) or []), {}]
+
+
+class _BusSpecAction(argparse.Action):
+    """``--kind``, ``--map``, ``--nodes``: for the last ``--channel``, or for every bus before the first."""
+
+    def __call__(self, parser: Any, namespace: Any, values: Any, option_string: Any = None) -> None:
+        if namespace.buses:
+            namespace.per_bus[-1][self.dest] = values
+        else:
+            setattr(namespace, self.dest, values)
 
 
 class _OptionAction(argparse.Action):
@@ -130,9 +145,18 @@ class _OptionAction(argparse.Action):
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """The command line (see the module)."""
     p = argparse.ArgumentParser(prog="python -m sim_slaves.can_process", description=__doc__.splitlines()[0])
-    p.add_argument("--kind", choices=("canopen", "mit", "damiao"), required=True)
-    p.add_argument("--map", required=True, help="drive map of every node")
-    p.add_argument("--nodes", required=True, help="node ids, e.g. 1,2,3")
+    p.add_argument(
+        "--kind",
+        choices=KINDS,
+        action=_BusSpecAction,
+        help="the nodes' emulator; auto: the raw-CAN family of the map (after a --channel: that bus's)",
+    )
+    p.add_argument(
+        "--map", action=_BusSpecAction, help="drive map of every node (after a --channel: that bus's)"
+    )
+    p.add_argument(
+        "--nodes", action=_BusSpecAction, help="node ids, e.g. 1,2,3 (after a --channel: that bus's)"
+    )
     p.add_argument(
         "--interface",
         default="udp_multicast",
@@ -155,7 +179,41 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="also stop when stdin closes (a parent holding a pipe to it went away); "
         "default: only SIGTERM/SIGINT stop it",
     )
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    per_bus = getattr(args, "per_bus", None) or [{} for _ in args.buses]
+    for (channel, _), own in zip(args.buses, per_bus, strict=True):
+        missing = [k for k in ("kind", "map", "nodes") if own.get(k, getattr(args, k)) is None]
+        if missing:
+            p.error(
+                f"bus {channel}: no {', '.join('--' + k for k in missing)} (give it before the first --channel)"
+            )
+    args.per_bus = per_bus
+    return args
+
+
+def bus_specs(args: argparse.Namespace) -> list[tuple[str, str, list[int]]]:
+    """Each bus's ``(kind, map, node ids)`` of parsed ``args``, in ``--channel`` order."""
+    out = []
+    for own in args.per_bus:
+        kind, drive_map, nodes = (own.get(k, getattr(args, k)) for k in ("kind", "map", "nodes"))
+        out.append((str(kind), str(drive_map), [int(n) for n in str(nodes).split(",")]))
+    return out
+
+
+def _emulator(kind: str, bus: Any, drive: Any, node_ids: list[int], dt_s: float | None) -> Any:
+    """The emulator of ``kind`` for ``node_ids`` of ``drive`` on ``bus``; ``ValueError`` for a map of another
+    family than ``kind`` says."""
+    motors = [(drive, n) for n in node_ids]
+    if kind == "canopen":
+        from sim_slaves.canopen import CanopenSimulator
+
+        return CanopenSimulator(bus, motors, dt_s=dt_s)
+    from sim_slaves.can_families import family_of, simulator
+
+    family = family_of(drive)
+    if kind != "auto" and family.split("-")[0] != kind:
+        raise ValueError(f"--kind {kind}: the map {drive.name} is of family {family}")
+    return simulator(bus, motors, dt_s=dt_s)
 
 
 def bus_arguments(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -173,25 +231,22 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from fieldbus.core.pdo import load_drive_map
 
-    drive = load_drive_map(args.map)
-    nodes = [(drive, int(n)) for n in args.nodes.split(",")]
+    specs = bus_specs(args)
+    drives = {path: load_drive_map(path) for _, path, _ in specs}
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     if args.exit_with_stdin:
         threading.Thread(target=_stop_when_stdin_closes, args=(stop,), daemon=True).start()
-    emulator: Any
-    if args.kind == "canopen":
-        from sim_slaves.canopen import CanopenSimulator as emulator
-    elif args.kind == "damiao":
-        from sim_slaves.damiao import DamiaoSimulator as emulator
-    else:
-        from sim_slaves.mit_motor import MitMotorSimulator as emulator
     with ExitStack() as stack:
-        sims = [
-            emulator(stack.enter_context(can.Bus(**kwargs)), nodes, dt_s=args.dt_s)
-            for kwargs in bus_arguments(args)
-        ]
+        try:
+            sims = [
+                _emulator(kind, stack.enter_context(can.Bus(**kwargs)), drives[path], nodes, args.dt_s)
+                for kwargs, (kind, path, nodes) in zip(bus_arguments(args), specs, strict=True)
+            ]
+        except ValueError as exc:
+            print(f"can_process: {exc}", file=sys.stderr, flush=True)
+            return 2
         if len(sims) == 1:
             with sims[0]:
                 print("ready", flush=True)
@@ -208,7 +263,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-@contextmanager
+@dataclass(frozen=True)
+class EmulatedBus:
+    """One bus of an emulator process: the emulator kind (``--kind``), drive map, node ids and channel."""
+
+    kind: str
+    drive_map: str | Path
+    node_ids: Sequence[int]
+    where: CanChannel
+
+
 def can_emulator_process(
     kind: str,
     drive_map: str | Path,
@@ -216,32 +280,36 @@ def can_emulator_process(
     where: CanChannel | Sequence[CanChannel],
     *,
     dt_s: float | None = None,
-) -> Iterator[subprocess.Popen[str]]:
+) -> contextlib.AbstractContextManager[subprocess.Popen[str]]:
     """Run emulated nodes in a child process on ``where``; stopped (SIGTERM) on exit.
 
     Several channels: the same nodes on each, every bus served by the child's one thread.
     """
     channels = [where] if isinstance(where, CanChannel) else list(where)
-    interfaces = {c.interface for c in channels}
+    return can_emulators_process([EmulatedBus(kind, drive_map, node_ids, c) for c in channels], dt_s=dt_s)
+
+
+@contextmanager
+def can_emulators_process(
+    buses: Sequence[EmulatedBus], *, dt_s: float | None = None
+) -> Iterator[subprocess.Popen[str]]:
+    """Run the emulators of several buses (each its kind, map and nodes) in one child process, every bus
+    served by its one thread; stopped (SIGTERM) on exit. ``RuntimeError`` when it does not start."""
+    interfaces = {b.where.interface for b in buses}
     if len(interfaces) != 1:
         raise ValueError(f"can_emulator_process: one interface for every bus, got {sorted(interfaces)}")
     cmd = [
         sys.executable,
         "-m",
         "sim_slaves.can_process",
-        "--kind",
-        kind,
-        "--map",
-        str(drive_map),
-        "--nodes",
-        ",".join(str(n) for n in node_ids),
         "--interface",
-        channels[0].interface,
+        buses[0].where.interface,
         "--exit-with-stdin",
     ]
-    for c in channels:
-        cmd += ["--channel", c.channel]
-        for key, value in c.options:
+    for b in buses:
+        cmd += ["--channel", b.where.channel]
+        cmd += ["--kind", b.kind, "--map", str(b.drive_map), "--nodes", ",".join(str(n) for n in b.node_ids)]
+        for key, value in b.where.options:
             cmd += ["--option", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     if dt_s is not None:
         cmd += ["--dt-s", str(dt_s)]

@@ -77,6 +77,14 @@ class CubemarsServoSimulator(MitMotorSimulator):
             self.error[node_id] = code
             self.motor(node_id).enabled = False
 
+    def power_cycle(self, node_id: int) -> None:
+        """Power lost and back: the rotor's reset, no error, and (servo mode) running again at once."""
+        super().power_cycle(node_id)
+        with self._lock:
+            self.error[node_id] = 0
+            self.motor(node_id).enabled = True
+            self._hold.pop(node_id, None)
+
     def deliver(self, msg: can.Message) -> None:
         if msg.is_extended_id and not msg.is_remote_frame and (msg.arbitration_id & 0xFF) in self.proto:
             try:
@@ -185,6 +193,12 @@ class CubemarsMitSimulator(MitMotorSimulator):
         with self._lock:
             self.error[node_id] = code
             self.motor(node_id).enabled = False
+
+    def power_cycle(self, node_id: int) -> None:
+        """Power lost and back: the rotor's reset (out of motor mode), no error."""
+        super().power_cycle(node_id)
+        with self._lock:
+            self.error[node_id] = 0
 
     def _reply_data(self, st: MotorState, cfg: Any, frame: MitFrame) -> bytes:
         """CubeMars' reply: the position counter wraps at ±PMAX; temperature and error code follow."""

@@ -100,6 +100,7 @@ class DamiaoSimulator(MitMotorSimulator):
             )
             self._esc[node] = node
             self._proto[node] = (proto, cfg)
+        self._boot = {n: dict(ds.registers) for n, ds in self.state.items()}  # registers at power-up
 
     # -- fault hooks -------------------------------------------------------------------------------
     def inject_error(self, node_id: int, code: int) -> None:
@@ -107,6 +108,14 @@ class DamiaoSimulator(MitMotorSimulator):
         with self._lock:
             self.state[node_id].error = code
             self.motor(node_id).enabled = False
+
+    def power_cycle(self, node_id: int) -> None:
+        """Power lost and back: the rotor's reset, registers as at power-up (RAM writes lost), disabled."""
+        super().power_cycle(node_id)
+        with self._lock:
+            ds = self.state[node_id]
+            ds.registers = dict(self._boot[node_id])
+            ds.error, ds.last_command_t, ds.mode_command = DISABLED, None, None
 
     def set_temperatures(self, node_id: int, mos: float, rotor: float) -> None:
         with self._lock:

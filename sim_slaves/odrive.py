@@ -106,6 +106,17 @@ class OdriveSimulator(MitMotorSimulator):
             ax.disarm_reason = bits
             self._set_state(node_id, self._proto[node_id].idle)
 
+    def power_cycle(self, node_id: int) -> None:
+        """Power lost and back: the rotor's reset, errors gone, IDLE in the map's control mode (a heartbeat)."""
+        super().power_cycle(node_id)
+        with self._lock:
+            ax, proto = self.axes[node_id], self._proto[node_id]
+            ax.error = ax.disarm_reason = 0
+            ax.setpoint.clear()
+            ax.last_setpoint_t = None
+            ax.control_mode = proto.mode_named(proto.mode).control_mode
+            self._set_state(node_id, proto.idle)
+
     def idle(self) -> None:
         with self._lock:
             self.check_timers()

@@ -8,7 +8,9 @@ cycle statistics.
 Backends: ``sim`` (the EtherCAT emulator in-process: real frames, no root),
 ``ethercat`` (pysoem over a veth pair the demo creates, the emulator in a
 child process; needs root), ``canopen`` (emulated nodes on python-can's
-virtual bus).
+virtual bus), ``rawcan`` (raw-CAN motors of a shipped map on python-can's virtual bus: ``--motor``
+picks the map, so each family - MIT, Damiao, ODrive, CubeMars servo or MIT - runs on its own emulator,
+found through the ``can_motor_simulator`` emulator part).
 """
 
 from __future__ import annotations
@@ -39,7 +41,22 @@ from fieldbus.runtime.rt import RtState
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
 BACKENDS = ("sim", "ethercat", "canopen", "rawcan")
-MIT_MAP = Path(__file__).resolve().parents[1] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"  # package data
+PDO_MAPS = Path(__file__).resolve().parents[1] / "pdo_maps"  # package data
+MIT_MAP = PDO_MAPS / "cubemars_ak80_9_mit.yaml"
+# --motor: the shipped raw-CAN maps (tests check the list against pdo_maps/), the default first
+MOTORS = (
+    "cubemars_ak80_9_mit",
+    "cubemars_ak10_9_mit",
+    "cubemars_ak80_9_servo",
+    "damiao_dm_j4310",
+    "damiao_dm_j4340",
+    "damiao_dm_j8009",
+    "odrive_s1",
+    "odrive_3_6",
+)
+# most axes per family: Damiao replies on id + 0x10 (MST_ID), kept clear of the others' ids; ODrive node < 64
+MAX_FAMILY_AXES = {"damiao": 15, "odrive": 63}
+SERVO_SPEED_LIMIT = 10.0  # rad/s, the CubeMars servo demo's position-speed limit
 AMPLITUDE_RAD = 0.5  # sine amplitude per joint
 FREQUENCY_HZ = 0.5
 ENABLE_TIMEOUT_S = 3.0
@@ -92,6 +109,12 @@ def register(sub: Any) -> None:
         help="cycle rate in Hz, 1 to 20000 (default 1000; canopen 100, rawcan 250: python-can's virtual "
         "bus is threads)",
     )
+    p.add_argument(
+        "--motor",
+        choices=MOTORS,
+        default=None,
+        help=f"rawcan: the motors' drive map, each family on its own emulator (default {MOTORS[0]})",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
         "--delay-us",
@@ -118,6 +141,11 @@ def run(args: argparse.Namespace) -> int:
     if args.rate is None:
         args.rate = DEFAULT_RATE_HZ[args.backend]
     check_axes(args.backend, args.axes)
+    if args.motor is not None and args.backend != "rawcan":
+        raise UsageError("--motor needs --backend rawcan (the raw-CAN motors' drive map)")
+    args.motor = args.motor or MOTORS[0]
+    if args.backend == "rawcan":
+        check_motor_axes(args.motor, args.axes)
     if args.delay_us and args.backend not in ("sim", "ethercat"):
         raise UsageError("--delay-us needs --backend sim or ethercat (the EtherCAT emulators)")
     if args.latency:
@@ -135,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
             rt=rt,
             logs=args,
             delay_us=args.delay_us,
+            motor=args.motor,
         )
     if args.plot:
         cycleopts.plot_latency(report.pop("_latency"), args.plot, f"fieldbus demo --backend {args.backend}")
@@ -154,13 +183,31 @@ def check_axes(backend: str, axes: int) -> None:
         )
 
 
+def motor_family(motor: str) -> str:
+    """The raw-CAN family of shipped map ``motor`` (``mit``, ``damiao``, ``odrive``, ``cubemars``)."""
+    from fieldbus.core.pdo import load_drive_map
+
+    cfg = load_drive_map(PDO_MAPS / f"{motor}.yaml").rawcan
+    assert cfg is not None
+    return cfg.family
+
+
+def check_motor_axes(motor: str, axes: int) -> None:
+    """:class:`UsageError` for more axes than the family's ids allow (:data:`MAX_FAMILY_AXES`)."""
+    top = MAX_FAMILY_AXES.get(motor_family(motor))
+    if top is not None and axes > top:
+        raise UsageError(f"--motor {motor} takes at most {top} axes (its CAN ids), not {axes}")
+
+
 def _latency(args: argparse.Namespace) -> int:
     """``demo --latency``: the latency measurement on the demo's joints."""
     from fieldbus.commands import latency
 
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
-        demo_network(args.backend, args.axes, args.rate, Path(tmp), delay_us=args.delay_us) as setup,
+        demo_network(
+            args.backend, args.axes, args.rate, Path(tmp), delay_us=args.delay_us, motor=args.motor
+        ) as setup,
     ):
         report = latency.measure_latency(str(setup.net_file), setup.backend)
     print(json.dumps(report) if args.json else latency.describe(report))
@@ -170,17 +217,25 @@ def _latency(args: argparse.Namespace) -> int:
 def describe(r: dict[str, Any]) -> str:
     t, e = r["cycle_time_us"], r["tracking_error"]
     lines = [
-        f"{r['axes']} {'MIT-mode motors' if r['backend'] == 'rawcan' else 'CiA 402 joints'} on '{r['backend']}', "
-        f"{r['cycles']} cycles at {1e6 / r['period_us']:g} Hz",
+        f"{r['axes']} {_what(r)} on '{r['backend']}', {r['cycles']} cycles at {1e6 / r['period_us']:g} Hz",
         f"  enabled: {'all' if r['enabled'] else 'NOT all'} after {r['enable_cycles']} cycles",
         f"  tracking error (sine {AMPLITUDE_RAD} rad, {FREQUENCY_HZ} Hz): max {e['max_rad'] * 1e3:.3f} mrad, "
         f"rms {e['rms_rad'] * 1e3:.3f} mrad",
         f"  cycle work: mean {t['mean']} us, p99 {t['p99']} us, max {t['max']} us; overruns {r['overruns']}",
         f"  missed {r['missed']}, safe stops {r['safe_stops']}",
     ]
+    if r.get("motor_faults"):
+        lines.append(f"  motor faults: {'; '.join(r['motor_faults'])}")
     if not r["enabled"]:
         lines.append(f"  states: {', '.join(r['states'])}")
     return "\n".join(lines)
+
+
+def _what(r: dict[str, Any]) -> str:
+    if r["backend"] != "rawcan":
+        return "CiA 402 joints"
+    motor = r.get("motor", MOTORS[0])
+    return "MIT-mode motors" if motor == MOTORS[0] else f"{motor} motors"
 
 
 @dataclass
@@ -209,14 +264,15 @@ class DemoSetup:
 
 @contextmanager
 def demo_network(
-    backend: str, axes: int, rate_hz: float, workdir: Path, *, delay_us: float = 0.0
+    backend: str, axes: int, rate_hz: float, workdir: Path, *, delay_us: float = 0.0, motor: str = MOTORS[0]
 ) -> Iterator[DemoSetup]:
-    """Write the demo's network file and start its emulator (``delay_us``: the emulated drives' command delay).
+    """Write the demo's network file and start its emulator (``delay_us``: the emulated drives' command delay;
+    ``motor``: rawcan, the shipped map of the motors, :data:`MOTORS`).
 
     An error about the files written into ``workdir`` (a temporary folder the user never saw)
     names :data:`GENERATED` instead, with the field path."""
     try:
-        yield from _setups(backend, axes, rate_hz, workdir, delay_us)
+        yield from _setups(backend, axes, rate_hz, workdir, delay_us, motor)
     except FieldbusError as exc:
         raise _generated(exc, workdir) from None
 
@@ -235,7 +291,9 @@ def _generated(exc: FieldbusError, workdir: Path) -> FieldbusError:
     return FieldbusError(text)
 
 
-def _setups(backend: str, axes: int, rate_hz: float, workdir: Path, delay_us: float) -> Iterator[DemoSetup]:
+def _setups(
+    backend: str, axes: int, rate_hz: float, workdir: Path, delay_us: float, motor: str = MOTORS[0]
+) -> Iterator[DemoSetup]:
     cycle_us = max(1, round(1e6 / rate_hz))
     head = f"name: demo\ncycle_time_us: {cycle_us}\nreceive_timeout_us: {RECEIVE_TIMEOUT_US[backend]}\n"
     options = f", emulator: {{command_delay_us: {delay_us:.3f}}}" if delay_us else ""  # a dot: a YAML float
@@ -259,7 +317,7 @@ def _setups(backend: str, axes: int, rate_hz: float, workdir: Path, delay_us: fl
     elif backend == "canopen":
         yield from _canopen_network(head, axes, net)
     elif backend == "rawcan":
-        yield from _rawcan_network(head, axes, rate_hz, net)
+        yield from _rawcan_network(head, axes, rate_hz, net, motor)
     else:
         raise FieldbusError(f"unknown demo backend '{backend}' (have: {', '.join(BACKENDS)})")
 
@@ -287,26 +345,32 @@ def _canopen_network(head: str, axes: int, net: Path) -> Iterator[DemoSetup]:
         yield DemoSetup(net, None, sim)
 
 
-def _rawcan_network(head: str, axes: int, rate_hz: float, net: Path) -> Iterator[DemoSetup]:
-    """MIT-mode motors (CubeMars AK80-9 map) emulated on python-can's virtual bus."""
+def _rawcan_network(
+    head: str, axes: int, rate_hz: float, net: Path, motor: str = MOTORS[0]
+) -> Iterator[DemoSetup]:
+    """Raw-CAN motors of the shipped map ``motor`` emulated on python-can's virtual bus, each family by its
+    own emulator (the ``can_motor_simulator`` emulator part: the family from the map)."""
+    if motor not in MOTORS:
+        raise FieldbusError(f"unknown demo motor '{motor}' (have: {', '.join(MOTORS)})")
     try:
         import can
 
         from fieldbus.core.pdo import load_drive_map
 
-        MitMotorSimulator = emulator_part("mit_simulator")
+        simulator = emulator_part("can_motor_simulator")
     except ImportError as exc:
         raise FieldbusError(f"the rawcan demo needs {exc.name}: pip install 'fieldbus[can]'") from None
-    channel = f"fieldbus-demo-mit-{id(net)}"
-    drive = load_drive_map(MIT_MAP)
+    drive_map = PDO_MAPS / f"{motor}.yaml"
+    channel = f"fieldbus-demo-{motor}-{id(net)}"
+    drive = load_drive_map(drive_map)
     net.write_text(
         head + "buses:\n  - name: joints\n    type: rawcan\n"
         f"    interface: {channel}\n    can_interface: virtual\n"
-        f"    slaves: [{{name: 'm{{i}}', map: {json.dumps(str(MIT_MAP))}, node_id: 1, count: {axes}}}]\n"
+        f"    slaves: [{{name: 'm{{i}}', map: {json.dumps(str(drive_map))}, node_id: 1, count: {axes}}}]\n"
     )
     with (
         can.Bus(interface="virtual", channel=channel) as bus,
-        MitMotorSimulator(bus, [(drive, n) for n in range(1, axes + 1)], dt_s=1.0 / rate_hz) as sim,
+        simulator(bus, [(drive, n) for n in range(1, axes + 1)], dt_s=1.0 / rate_hz) as sim,
     ):
         yield DemoSetup(net, None, sim)
 
@@ -321,13 +385,14 @@ def run_demo(
     rt: RtState | None = None,
     logs: argparse.Namespace | None = None,
     delay_us: float = 0.0,
+    motor: str = MOTORS[0],
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
     the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record``/``--monitor`` flags."""
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
-        demo_network(backend, axes, rate_hz, Path(tmp), delay_us=delay_us) as setup,
+        demo_network(backend, axes, rate_hz, Path(tmp), delay_us=delay_us, motor=motor) as setup,
         open_network(
             setup.net_file,
             backend=setup.backend,
@@ -339,9 +404,7 @@ def run_demo(
         op = net.bring_up()
         if logs is not None:
             cycleopts.start_recording(op, logs)  # --record
-        follower: SineFollower | MitFollower = (
-            MitFollower(op, axes, rate_hz) if backend == "rawcan" else SineFollower(op, axes, rate_hz)
-        )
+        follower = _follower(op, backend, axes, rate_hz, motor)
         timer, latency = cycleopts.run_timed(
             op,
             follower.step,
@@ -355,9 +418,28 @@ def run_demo(
         report.update(follower.summary())
         report.update(cycleopts.latency_report(latency, rt or RtState()))
         report["_latency"] = latency
+        if backend == "rawcan":  # faults the motors reported, by name (e.g. a Damiao's own CAN timeout)
+            report["motor_faults"] = [str(f) for f in getattr(net.backends[0], "faults", ())]
     report["backend"] = backend
     report["axes"] = axes
+    if backend == "rawcan":
+        report["motor"] = motor
     return report
+
+
+def _follower(
+    op: Operational, backend: str, axes: int, rate_hz: float, motor: str
+) -> SineFollower | MitFollower | PositionFollower:
+    """The demo's job for the backend: CiA 402 joints; MIT-mode motors (families mit, damiao, cubemars MIT);
+    motors with their own position loop (ODrive in turns, CubeMars servo in position-speed)."""
+    if backend != "rawcan":
+        return SineFollower(op, axes, rate_hz)
+    outputs = op["joints"].outputs.names
+    if "kp" in outputs:
+        return MitFollower(op, axes, rate_hz)
+    if "speed_limit" in outputs:  # CubeMars servo: its position-speed packet (the map's mode)
+        return PositionFollower(op, axes, rate_hz, per_rad=1.0, setup={"speed_limit": SERVO_SPEED_LIMIT})
+    return PositionFollower(op, axes, rate_hz, per_rad=1.0 / (2 * math.pi), velocity_ff=True)  # ODrive: turns
 
 
 class TrackingError:
@@ -502,3 +584,53 @@ class MitFollower(_SineJob):
 
     def states(self) -> list[str]:
         return ["MOTOR_MODE" if self.enabled_at is not None else "NO_REPLY"] * self.n
+
+
+class PositionFollower(_SineJob):
+    """Motors with their own position loop: the target position each cycle, in the map's unit
+    (``per_rad`` units per rad: 1 for rad, 1/2 pi for ODrive's turns), with the trajectory's velocity as
+    feed-forward when ``velocity_ff``; ``setup``: outputs written once (e.g. a speed limit).
+
+    "Enabled" means every motor answered; tracking error as in :class:`SineFollower`, in rad.
+    """
+
+    def __init__(
+        self,
+        op: Operational,
+        axes: int,
+        rate_hz: float,
+        *,
+        per_rad: float,
+        setup: dict[str, float] | None = None,
+        velocity_ff: bool = False,
+        group: str = "joints",
+    ) -> None:
+        super().__init__(op, axes, rate_hz, group)
+        self.per_rad = per_rad
+        self.position = self.inp["position"]
+        self.target = self.out["position"]
+        self.ff = self.out["velocity"] if velocity_ff else None
+        self.rad = np.zeros(axes)  # the positions read, rad
+        self.goal = np.zeros(axes)  # this cycle's target, rad
+        for name, value in (setup or {}).items():
+            self.out[name][:] = value
+
+    def step(self, k: int) -> bool:
+        self.k = k
+        res = self.op.exchange()
+        if not res.fresh or res.safe_stop:
+            return False
+        np.divide(self.position, self.per_rad, out=self.rad)
+        if self.enabled_at is None:
+            self.begin(k, self.rad, self.goal)
+        else:
+            if k - self.enabled_at > 1:
+                self.tracking.add(self.rad, self.prev_target)
+            v = self.advance(k, self.goal)
+            if self.ff is not None:
+                self.ff.fill(v * self.per_rad)
+        np.multiply(self.goal, self.per_rad, out=self.target)
+        return False
+
+    def states(self) -> list[str]:
+        return ["ANSWERING" if self.enabled_at is not None else "NO_REPLY"] * self.n

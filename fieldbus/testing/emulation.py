@@ -8,9 +8,9 @@
 
 EtherCAT buses run on the in-process ``sim`` backend (``ethercat="sim"``) or
 on the real pysoem master over a veth pair with the emulator in a child
-process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN MIT motors) on an
-in-process bus (``can="virtual"``) or on ``fieldbus_udp`` with the emulator in
-a child process (``can="udp"``). Interfaces and channels are substituted;
+process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN motors: each bus the
+emulator of its maps' family) on an in-process bus (``can="virtual"``) or on
+``fieldbus_udp`` with every CAN bus's emulator in one child process (``can="udp"``). Interfaces and channels are substituted;
 the file is not touched. With every emulator in process the clock is a
 :class:`~fieldbus.runtime.clock.VirtualClock` unless told otherwise: the
 master and the emulators run in lockstep, time passes only in the master's
@@ -195,7 +195,9 @@ class Emulation:
         backend's recovery brings it back to OP by itself (``BusStatus.recovering``, then
         ``recoveries`` + 1); its drive restarts in SWITCH ON DISABLED, so a controller must
         enable it again. CANopen: a boot-up message, then the node is configured again and
-        started (``recoveries`` + 1). Raw CAN: the motor leaves motor mode (its replies go on).
+        started (``recoveries`` + 1). Raw CAN: the motor's family's power-up state, its replies go on
+        (MIT: out of motor mode; Damiao: disabled, registers as at power-up; ODrive: IDLE, no error;
+        CubeMars servo: running, no error); docs/testing.md, "Raw-CAN families".
         """
         emu, i = self._slave(bus, slave)
         emu.power_cycle(i)
@@ -209,14 +211,18 @@ class Emulation:
         Master: the statusword shows FAULT from the next cycle or two (the bus stays fresh), the
         error code is in 0x603F (in the inputs when the map has it, else by SDO), and an emergency
         (EMCY) with that code is sent (``backend.emergencies``). A fault reset (controlword bit 7)
-        clears it. Not on raw CAN (MIT motors have no error codes).
+        clears it. Raw CAN: ``code`` is the family's own (Damiao error nibble 0x8..0xE, ODrive axis
+        error bits, CubeMars error code 1..6); the motor lets go, its replies carry the code and the
+        master reports one named ``MotorFaultEvent`` in ``CycleResult.events``. Not on MIT motors of
+        family ``mit`` (no error code).
         """
         if isinstance(code, str):
             from fieldbus.diagnosis import error_code
 
             code = error_code(code)
-        if not 0 < code <= 0xFFFF:
-            raise FieldbusError(f"drive_fault: error code must be 0x0001..0xFFFF, got {code:#x}")
+        top = 0xFFFF_FFFF if self._bus(bus)[0].type == "rawcan" else 0xFFFF
+        if not 0 < code <= top:
+            raise FieldbusError(f"drive_fault: error code must be 0x1..{top:#x}, got {code:#x}")
         emu, i = self._slave(bus, slave)
         emu.drive_fault(i, code)
 

@@ -1,20 +1,24 @@
-"""CAN buses for :mod:`fieldbus.testing`: CANopen nodes and MIT-mode motors.
+"""CAN buses for :mod:`fieldbus.testing`: CANopen nodes and raw-CAN motors of every family.
 
-Three ways, as the emulation asks: on a virtual clock, in lockstep with the
-master in one thread (:class:`~fieldbus.testing.lockstep.LockstepCanBus`:
-the same frames in the same order every run); on the wall clock, on
-python-can's ``virtual`` bus with the simulator's own thread; or in a child
-process on ``fieldbus_udp`` (:mod:`sim_slaves.can_process`; no fault hooks:
-the child has no control channel).
+A raw-CAN bus gets the emulator of its maps' family (:mod:`sim_slaves.can_families`: MIT, Damiao,
+ODrive, CubeMars servo or MIT); a bus mixing families is refused. Three ways, as the emulation asks: on
+a virtual clock, in lockstep with the master in one thread
+(:class:`~fieldbus.testing.lockstep.LockstepCanBus`: the same frames in the same order every run; the
+emulators' timers - heartbeats, CAN timeouts, watchdogs - run as the clock does); on the wall clock, on
+python-can's ``virtual`` bus with the emulator's own thread; or in a child process on ``fieldbus_udp``
+(:mod:`sim_slaves.can_process`; no fault hooks: the child has no control channel).
 """
 
 from __future__ import annotations
 
 import itertools
 import os
+from collections import deque
+from contextlib import ExitStack
 from typing import Any
 
 from fieldbus.core.network import Bus
+from fieldbus.errors import FieldbusError
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
 
 _channels = itertools.count()
@@ -34,11 +38,61 @@ def start_canopen(context: EmulationContext, bus: Bus) -> BusEmulator:
 
 
 def start_rawcan(context: EmulationContext, bus: Bus) -> BusEmulator:
-    return CanBus(context, bus, "mit")
+    from sim_slaves.can_families import bus_family
+
+    try:
+        family = bus_family(s.map for s in bus.slaves)
+    except ValueError as exc:
+        raise EmulationError(f"bus '{bus.name}': {exc}") from None
+    return CanBus(context, bus, family)
+
+
+class _Inbox:
+    """A raw-CAN emulator's end of a lockstep bus, as python-can's: ``recv`` gives the frame being delivered,
+    ``send`` goes to the master's queue."""
+
+    def __init__(self, peer: Any) -> None:
+        self.peer = peer
+        self.frames: deque[Any] = deque()
+        self.channel_info = peer.channel_info
+
+    def send(self, msg: Any, timeout: float | None = None) -> None:
+        self.peer.send(msg)
+
+    def recv(self, timeout: float | None = None) -> Any:
+        return self.frames.popleft() if self.frames else None
+
+    def shutdown(self) -> None:
+        pass
+
+
+class _UdpProcess:
+    """One child process (:func:`sim_slaves.can_process.can_emulators_process`) for every CAN bus of a
+    network on udp, each bus with its kind, map and nodes; started once, when the master's backends exist
+    (every bus has joined by then), stopped with the emulation."""
+
+    def __init__(self, context: EmulationContext) -> None:
+        # stopped where the first bus joined: after the master closed (its exit frames still answered)
+        self.stack = context.cleanup.enter_context(ExitStack())
+        self.buses: list[tuple[str, Any]] = []  # (bus name, EmulatedBus)
+        self.started = False
+
+    def start(self) -> None:
+        if self.started:
+            return
+        from sim_slaves.can_process import can_emulators_process
+
+        self.started = True
+        try:
+            self.stack.enter_context(can_emulators_process([b for _, b in self.buses]))
+        except RuntimeError as exc:
+            names = ", ".join(f"'{name}'" for name, _ in self.buses)
+            raise EmulationError(f"CAN buses {names}: {exc}") from None
 
 
 class CanBus(BusEmulator):
-    """The nodes (``kind`` canopen) or motors (``kind`` mit) of one CAN bus, with their fault hooks."""
+    """The nodes (``kind`` canopen) or motors (``kind``: their family, :func:`~sim_slaves.can_families.
+    family_of`) of one CAN bus, with their fault hooks."""
 
     def __init__(self, context: EmulationContext, bus: Bus, kind: str) -> None:
         super().__init__(bus)
@@ -53,53 +107,79 @@ class CanBus(BusEmulator):
         self._changes: dict[str, Any] = {}
         self._options: dict[str, Any] = {}
         self._own: list[Any] = []  # python-can buses this emulator opened
+        self._process: _UdpProcess | None = None
         if context.can == "udp":
             self._start_process(context, bus, nodes)
             return
+        self._watch: Any = None
         if kind == "canopen":
-            from sim_slaves.canopen import CanopenSimulator as simulator
+            from sim_slaves.canopen import CanopenSimulator
+
+            def make(port: Any, clock: Any = None) -> Any:
+                return CanopenSimulator(port, nodes, clock=clock) if clock else CanopenSimulator(port, nodes)
         else:
-            from sim_slaves.mit_motor import MitMotorSimulator as simulator  # type: ignore[assignment]
+            from sim_slaves.can_families import simulator
+
+            # the MIT motors integrate the time between commands; the others one step per command
+            dt_s = None if kind in ("mit", "cubemars-mit") else bus.cycle_time_us / 1e6
+
+            def make(port: Any, clock: Any = None) -> Any:
+                return simulator(port, nodes, clock=clock, dt_s=dt_s)
+
+        # the master's channel: this process's own (its lock is in-process), never the robot's can0, which
+        # another test or the robot's master may hold at the same time
+        channel = f"fieldbus-testing-{os.getpid()}-{next(_channels)}"
+        self._changes = {"interface": channel, "can_interface": "virtual"}
         if context.virtual:
             from fieldbus.testing.lockstep import LockstepCanBus
 
             clock: Any = context.clock
+            self._clock = clock
             self.lockstep = LockstepCanBus(clock, bus.name)
-            self.sim = simulator(self.lockstep.peer, nodes, clock=clock)
-            self.lockstep.handlers.append(self.sim.deliver)
-            if kind == "canopen":  # heartbeats and event timers run as time passes
-                self._watch = lambda _t: self.sim.deliver(None)
-                clock.watch(self._watch)
-                self._clock = clock
+            if kind == "canopen":
+                self.sim = make(self.lockstep.peer, clock)
+                self.lockstep.handlers.append(self.sim.deliver)
+                self._watch = lambda _t: self.sim.deliver(None)  # heartbeats, event timers
                 self.sim.boot()
+            else:
+                inbox = _Inbox(self.lockstep.peer)
+                self.sim = make(inbox, clock)
+
+                def deliver(msg: Any) -> None:
+                    inbox.frames.append(msg)
+                    self.sim.serve(0.0)
+
+                self.lockstep.handlers.append(deliver)
+                self._watch = lambda _t: self.sim.idle()  # CAN timeouts, heartbeats, watchdogs
+            clock.watch(self._watch)
             self._options = {"can_bus": self.lockstep}
         else:
-            channel = f"fieldbus-testing-{os.getpid()}-{next(_channels)}"
             theirs = can.Bus(interface="virtual", channel=channel)
             ours = can.Bus(interface="virtual", channel=channel)
             self._own = [ours, theirs]
-            self.sim = simulator(theirs, nodes).start()
+            self.sim = make(theirs).start()
             self._options = {"can_bus": ours}
 
     def _start_process(self, context: EmulationContext, bus: Bus, nodes: list[tuple[Any, int]]) -> None:
-        from sim_slaves.can_process import can_emulator_process, udp_bus
+        """Join the network's one emulator process (:class:`_UdpProcess`; started at the first attach)."""
+        from sim_slaves.can_process import EmulatedBus, udp_bus
 
         maps = {id(m) for m, _ in nodes}
         if len(maps) != 1:
             raise EmulationError(
                 f"bus '{bus.name}': over udp every node of a bus must share one drive map (the child "
-                "process takes one); use can='virtual'"
+                "process takes one per bus); use can='virtual'"
             )
         source = nodes[0][0].source
         if not source:
             raise EmulationError(f"bus '{bus.name}': over udp the drive map must be a file")
         where = udp_bus(next(_channels), "fieldbus_udp")
-        try:
-            context.cleanup.enter_context(
-                can_emulator_process(self.kind, source, [n for _, n in nodes], where)
-            )
-        except RuntimeError as exc:
-            raise EmulationError(f"bus '{bus.name}': {exc}") from None
+        if "can_udp_process" not in context.extra:
+            context.extra["can_udp_process"] = _UdpProcess(context)
+        process: _UdpProcess = context.extra["can_udp_process"]
+        kind = "canopen" if self.kind == "canopen" else "auto"
+        process.buses.append((bus.name, EmulatedBus(kind, source, [n for _, n in nodes], where)))
+        self._process = process
         self._changes = {
             "interface": where.channel,
             "can_interface": where.interface,
@@ -113,9 +193,13 @@ class CanBus(BusEmulator):
     def backend_options(self) -> dict[str, Any]:
         return dict(self._options)
 
+    def attach(self, backend: Any) -> None:
+        if self._process is not None:
+            self._process.start()  # every bus of the network is known by now
+
     def close(self) -> None:
         if self.lockstep is not None:
-            if self.kind == "canopen":
+            if self._watch is not None:
                 self._clock.unwatch(self._watch)
             self.lockstep.shutdown()
         elif self.sim is not None:
@@ -165,22 +249,36 @@ class CanBus(BusEmulator):
         n = self.node_ids[slave]
         if self.kind == "canopen":
             sim.corrupt_tpdos(n, cycles * self._tpdos(n))
-        else:
+        elif self.kind in ("mit", "cubemars-mit"):
             sim.corrupt_replies(n, cycles)
+        else:
+            raise self._unsupported("corrupt_inputs", f"the {self.kind} emulator sends no corrupted replies")
 
     def power_cycle(self, slave: int) -> None:
         self._need_sim("power_cycle").power_cycle(self.node_ids[slave])
 
     def drive_fault(self, slave: int, code: int) -> None:
         sim = self._need_sim("drive_fault")
-        if self.kind != "canopen":
-            raise self._unsupported("drive_fault", "MIT-mode motors report no error code")
         n = self.node_ids[slave]
-        app = sim.node(n).app
-        if not hasattr(app, "inject_fault"):
-            raise self._unsupported("drive_fault", f"node {n} is not a CiA 402 drive")
-        app.inject_fault(code)
-        sim.send_emergency(n, code, 0x01)
+        if self.kind == "canopen":
+            app = sim.node(n).app
+            if not hasattr(app, "inject_fault"):
+                raise self._unsupported("drive_fault", f"node {n} is not a CiA 402 drive")
+            app.inject_fault(code)
+            sim.send_emergency(n, code, 0x01)
+            return
+        if self.kind == "mit":
+            raise self._unsupported("drive_fault", "MIT-mode motors (family mit) report no error code")
+        cfg = self.bus.slaves[slave].map.rawcan
+        assert cfg is not None
+        if cfg.damiao is not None:  # the reply's error nibble
+            faults = [(c, name) for c, name in cfg.damiao.errors if c not in cfg.damiao.ok_codes]
+            if code > 0xF or code in cfg.damiao.ok_codes:
+                have = ", ".join(f"0x{c:X} {name}" for c, name in faults)
+                raise FieldbusError(f"drive_fault: a Damiao fault code is one of {have}; got {code:#x}")
+        elif cfg.cubemars is not None and code > 0xFF:  # the status / reply error byte
+            raise FieldbusError(f"drive_fault: a CubeMars error code is 1..255, got {code:#x}")
+        sim.inject_error(n, code)  # ODrive: axis error bits (up to 32)
 
     def silence(self, slave: int, silent: bool) -> None:
         sim = self._need_sim("silence")
@@ -215,7 +313,7 @@ class CanBus(BusEmulator):
     def sdo_abort(self, slave: int, index: int, sub_index: int | None, code: int) -> None:
         sim = self._need_sim("sdo_abort")
         if self.kind != "canopen":
-            raise self._unsupported("sdo_abort", "MIT-mode motors have no object dictionary")
+            raise self._unsupported("sdo_abort", "raw-CAN motors have no object dictionary")
         sim.abort_sdo(self.node_ids[slave], index, sub_index, code)
 
     def clear_faults(self) -> None:

@@ -1,0 +1,78 @@
+"""Which emulator speaks a raw-CAN drive map's family, for the testing kit, the emulator process and the demo.
+
+A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``mit`` (the MIT frame
+alone), ``damiao``, ``odrive`` or ``cubemars`` (servo or MIT by its ``protocol``). One emulator object
+serves the motors of one bus, so the motors of a bus must be of one family (and, for CubeMars, of one
+protocol); :func:`bus_family` refuses a mix, naming the maps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from fieldbus.core.pdo.model import DriveMap
+from fieldbus.runtime.clock import Clock, monotonic_s
+from sim_slaves.mit_motor import MitMotorSimulator
+
+FAMILIES = ("mit", "damiao", "odrive", "cubemars")
+
+
+def family_of(drive: DriveMap) -> str:
+    """The emulator family of a raw-CAN map: ``mit``, ``damiao``, ``odrive``, ``cubemars-servo`` or
+    ``cubemars-mit``. Raises ``ValueError`` for a map without a ``rawcan`` section."""
+    cfg = drive.rawcan
+    if cfg is None:
+        raise ValueError(f"drive map {drive.name} has no rawcan section")
+    if cfg.cubemars is not None:
+        return f"cubemars-{cfg.cubemars.protocol}"
+    return cfg.family
+
+
+def bus_family(drives: Iterable[DriveMap]) -> str:
+    """The one family (:func:`family_of`) of every map of a bus; ``ValueError`` naming each family's
+    first map when there are several (one emulator serves one family per bus)."""
+    found: dict[str, str] = {}
+    for d in drives:
+        found.setdefault(family_of(d), d.name)
+    if len(found) != 1:
+        have = ", ".join(f"{family} ({name})" for family, name in found.items())
+        raise ValueError(
+            f"motors of {len(found)} families on one bus: {have}; one emulator serves one family"
+        )
+    return next(iter(found))
+
+
+def simulator(
+    bus: Any,
+    motors: Sequence[tuple[DriveMap, int]],
+    *,
+    clock: Clock | None = None,
+    dt_s: float | None = None,
+    log: Any = None,
+) -> MitMotorSimulator:
+    """The emulator of ``motors`` (``[(drive_map, node_id), ...]``, one family) on python-can ``bus``, not
+    started: ``.start()`` for its own thread, or ``serve`` / ``deliver`` from the caller.
+
+    ``clock``: the time the motors read (timeouts, heartbeats, watchdogs; default the machine's);
+    ``dt_s``: the physics step per command (default: 1 ms, the MIT motors the time between commands).
+    """
+    family = bus_family(d for d, _ in motors)
+    items = list(motors)
+    if family == "damiao":
+        from sim_slaves.damiao import DamiaoSimulator
+
+        return DamiaoSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
+    if family == "odrive":
+        from sim_slaves.odrive import OdriveSimulator
+
+        return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
+    if family == "cubemars-servo":
+        from sim_slaves.cubemars import CubemarsServoSimulator
+
+        return CubemarsServoSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
+    if family == "cubemars-mit":
+        from sim_slaves.cubemars import CubemarsMitSimulator
+
+        return CubemarsMitSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
+    return MitMotorSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
