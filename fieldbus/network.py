@@ -489,6 +489,10 @@ class Operational(_Phase):
                     self.result.drive_faults[g.name] = w.faults
             self._faults.append(watches)
         self._code_reads: list[FaultFollowUp] = []  # 0x603F read when not in a PDO, 0x10F3 when kept
+        # per group and row: its fault's 0x603F read is not served yet (a reset now would clear the code)
+        self._code_pending: dict[str, npt.NDArray[np.bool_]] = {
+            name: np.zeros(g.image.n_axes, dtype=bool) for name, g in net.groups.items()
+        }
         # raw-CAN motor faults (Damiao error codes, ODrive axis errors): the backend's onsets, as events
         self._motor_events: list[Any] = [  # Callable[[int], tuple[DriveFault, ...]] | None
             getattr(b, "take_motor_events", None) for b in net.backends
@@ -497,6 +501,15 @@ class Operational(_Phase):
     @property
     def groups(self) -> dict[str, AxisGroup]:
         return self._net.groups
+
+    def fault_code_pending(self, group: str) -> npt.NDArray[np.bool_]:
+        """Per row of ``group``: its fault's error code (0x603F) is still being read acyclically.
+
+        Pass it to ``Cia402Controller.step(..., hold_reset=...)`` (or ``step_image``) so the fault
+        reset waits for the read: a drive clears 0x603F on reset. The same array every cycle, updated
+        by :meth:`exchange` (read it, do not keep a copy).
+        """
+        return self._code_pending[group]
 
     def __getitem__(self, group: str) -> ProcessImage:
         """The process image of axis group ``group`` (a bus name when the bus has one map)."""
@@ -649,6 +662,8 @@ class Operational(_Phase):
             return req.future
 
         code = drive.axis_index(0x603F, fault.slave_axis) if fault.code is None else None
+        if code is not None and fault.group in self._code_pending:
+            self._code_pending[fault.group][fault.axis] = True
         self._code_reads.append(
             FaultFollowUp(fault, submit, code_index=code, history=drive.ethercat.diagnosis_history)
         )
@@ -662,12 +677,15 @@ class Operational(_Phase):
             except Exception as exc:  # never silent: the fault stays reported without its code, and why
                 why = "cancelled" if isinstance(exc, CancelledError) else _reason(exc)
                 fault = follow.fault
+                self._release_reset(fault)
                 self.result.events.append(
                     BusEvent(
                         cycle, self._bus_of(fault.group), "acyclic_error", f"0x603F of {fault.slave}: {why}"
                     )
                 )
                 continue
+            if not follow.code_pending:
+                self._release_reset(follow.fault)
             if done is None:
                 keep.append(follow)
                 continue
@@ -677,6 +695,12 @@ class Operational(_Phase):
                     BusEvent(cycle, self._bus_of(done.group), "acyclic_error", follow.error)
                 )
         self._code_reads = keep
+
+    def _release_reset(self, fault: DriveFault) -> None:
+        """The 0x603F read of ``fault`` is over (served or failed): its axis may be reset."""
+        pending = self._code_pending.get(fault.group)
+        if pending is not None:
+            pending[fault.axis] = False
 
     def record(self, path: str | Path, *, raw: bool = False, **options: Any) -> Recorder:
         """Record every cycle from now on to the MCAP file ``path`` (see :mod:`fieldbus.recording`).

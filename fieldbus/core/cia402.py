@@ -555,6 +555,7 @@ class Cia402Controller:
         mode: Mode = Mode.CSP,
         max_fault_resets: int = 3,
         fault_reset_window_cycles: int = 10_000,
+        max_reset_hold_cycles: int = 200,
     ) -> None:
         if n_axes < 1:
             raise ValueError(f"n_axes must be >= 1, got {n_axes}")
@@ -569,6 +570,8 @@ class Cia402Controller:
             )
         self.max_fault_resets = max_fault_resets
         self.fault_reset_window_cycles = fault_reset_window_cycles
+        # cycles a fault reset may wait for the axis's error-code read (``hold_reset`` of :meth:`step`)
+        self.max_reset_hold_cycles = max_reset_hold_cycles
         self.n_axes = n_axes
         self.timeout_cycles = timeout_cycles
         self.safe_stop_word = SafeStop(safe_stop_word)
@@ -594,6 +597,8 @@ class Cia402Controller:
         self._sm = np.zeros(n, dtype=np.uint16)
         self._last_sm = np.zeros(n, dtype=np.uint16)
         self._phase = np.zeros(n, dtype=np.int32)
+        self._held = np.zeros(n, dtype=np.int32)  # cycles the pending reset of this fault was held
+        self._holding = np.zeros(n, dtype=bool)
         self._tmp_i32 = np.zeros(n, dtype=np.int32)
         self._changed = np.zeros(n, dtype=bool)
         self._b1 = np.zeros(n, dtype=bool)
@@ -646,12 +651,17 @@ class Cia402Controller:
         controlword_out: npt.NDArray[Any],
         modes_display: npt.NDArray[Any] | None = None,
         modes_out: npt.NDArray[Any] | None = None,
+        hold_reset: npt.NDArray[np.bool_] | None = None,
     ) -> None:
         """One cycle: statusword (uint16, master inputs) -> controlword (uint16, master outputs, in place).
 
         With ``modes_display`` (0x6061, master input) and ``modes_out`` (0x6060,
         master output) the requested modes are written and an ENABLE goal waits
         in SWITCHED_ON until the display matches (and is reached only then).
+        ``hold_reset`` (bool per axis, e.g. ``Operational.fault_code_pending(group)``):
+        an axis whose fault's error code is still being read acyclically gets no
+        fault reset yet (a reset clears 0x603F in the drive), for at most
+        :attr:`max_reset_hold_cycles` cycles per fault; a held reset is not counted.
         """
         state, idx, sm = self.state, self._idx, self._sm
         decode_states(statusword, state, idx)
@@ -686,6 +696,13 @@ class Cia402Controller:
         # fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat; bounded per axis
         phase = self._phase
         np.greater(self._pulse, self.gave_up, out=self._pulse)  # an axis that gave up gets no pulse
+        np.multiply(self._held, self._pulse, out=self._held)  # out of fault: the next fault may wait again
+        if hold_reset is not None:  # its 0x603F read is pending: no reset yet (bounded per fault)
+            np.less(self._held, self.max_reset_hold_cycles, out=self._holding)
+            np.logical_and(self._holding, hold_reset, out=self._holding)
+            np.logical_and(self._holding, self._pulse, out=self._holding)
+            np.add(self._held, self._holding, out=self._held)
+            np.greater(self._pulse, self._holding, out=self._pulse)  # the pulse starts when released
         np.multiply(phase, self._pulse, out=phase)
         np.remainder(phase, 2 * self.fault_reset_cycles, out=self._tmp_i32)
         np.equal(self._tmp_i32, 0, out=self._b2)
@@ -746,7 +763,7 @@ class Cia402Controller:
 
     # -- the whole image: bumpless targets --
 
-    def step_image(self, img: ProcessImageLike) -> None:
+    def step_image(self, img: ProcessImageLike, hold_reset: npt.NDArray[np.bool_] | None = None) -> None:
         """One cycle on a group's process image: :meth:`step` plus bumpless targets.
 
         Reads the statusword and, where the map has them, modes_of_operation_display
@@ -764,11 +781,12 @@ class Cia402Controller:
         copied in the image's units: the target and the actual value must share
         a unit (both counts, or both rad...), as the map loader checks for the
         shipped maps. Allocation-free after the first call on an image.
+        ``hold_reset``: as in :meth:`step`.
         """
         b = self._binding
         if b is None or b.img is not img:
             b = self._binding = _ImageBinding(img, self.n_axes)
-        self.step(b.statusword, b.controlword, b.modes_display, b.modes_out)
+        self.step(b.statusword, b.controlword, b.modes_display, b.modes_out, hold_reset)
         seed = self._seed
         np.not_equal(self.state, self._enabled_code, out=seed)
         np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled

@@ -140,6 +140,11 @@ class FaultFollowUp:
         if self._code is None and history:
             self._reader = DiagnosisReader(submit, last=last)
 
+    @property
+    def code_pending(self) -> bool:
+        """The 0x603F read has not completed yet (a fault reset now would clear the code it reads)."""
+        return self._code is not None
+
     def poll(self) -> DriveFault | None:
         """The completed fault, or None while a read is pending. A failed 0x603F read raises."""
         if self._code is not None:
