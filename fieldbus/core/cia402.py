@@ -27,6 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import ChannelNameError
 
@@ -763,7 +764,12 @@ class Cia402Controller:
 
     # -- the whole image: bumpless targets --
 
-    def step_image(self, img: ProcessImageLike, hold_reset: npt.NDArray[np.bool_] | None = None) -> None:
+    def step_image(
+        self,
+        img: ProcessImageLike,
+        hold_reset: npt.NDArray[np.bool_] | None = None,
+        modes: AcyclicModes | None = None,
+    ) -> None:
         """One cycle on a group's process image: :meth:`step` plus bumpless targets.
 
         Reads the statusword and, where the map has them, modes_of_operation_display
@@ -781,17 +787,25 @@ class Cia402Controller:
         copied in the image's units: the target and the actual value must share
         a unit (both counts, or both rad...), as the map loader checks for the
         shipped maps. Allocation-free after the first call on an image.
-        ``hold_reset``: as in :meth:`step`.
+        ``hold_reset``: as in :meth:`step`. ``modes``: for an image without
+        modes_of_operation / its display (0x6060/0x6061 not in the PDOs), an
+        :class:`~fieldbus.core.acyclic_modes.AcyclicModes` of the same group that
+        carries them by SDO; it is stepped here, once per call, never waiting.
         """
         b = self._binding
         if b is None or b.img is not img:
             b = self._binding = _ImageBinding(img, self.n_axes)
-        self.step(b.statusword, b.controlword, b.modes_display, b.modes_out, hold_reset)
+        display, out = b.modes_display, b.modes_out
+        if modes is not None and out is None and display is None:  # the mode objects go by SDO
+            display, out = modes.display, modes.request
+        self.step(b.statusword, b.controlword, display, out, hold_reset)
+        if modes is not None and out is modes.request:
+            modes.step()
         seed = self._seed
         np.not_equal(self.state, self._enabled_code, out=seed)
         np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
         np.logical_or(seed, self._switching, out=seed)
-        if b.modes_display is not None:
+        if display is not None:
             np.logical_and(self._switching, self._goal_not_enable, out=self._b1)  # nothing to wait for
             np.logical_or(self._b1, self.mode_ok, out=self._b1)
         else:
