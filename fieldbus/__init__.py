@@ -18,6 +18,7 @@ drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
 
 from pathlib import Path
 
+from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import load_network
@@ -49,6 +50,7 @@ PDO_MAPS = Path(__file__).resolve().parent / "pdo_maps"
 
 __all__ = [
     "PDO_MAPS",
+    "AcyclicModes",
     "BackendUnavailableError",
     "BusEvent",
     "BusStatus",
