@@ -695,6 +695,10 @@ class Operational(_Phase):
                     BusEvent(cycle, self._bus_of(done.group), "acyclic_error", follow.error)
                 )
         self._code_reads = keep
+        for follow in keep:  # a second fault of an axis whose first read just ended: still pending
+            pending = self._code_pending.get(follow.fault.group)
+            if pending is not None and follow.code_pending:
+                pending[follow.fault.axis] = True
 
     def _release_reset(self, fault: DriveFault) -> None:
         """The 0x603F read of ``fault`` is over (served or failed): its axis may be reset."""

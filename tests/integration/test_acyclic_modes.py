@@ -21,6 +21,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
+from fieldbus.core.profile import ProfileMove, ProfilePhase
 from fieldbus.runtime.clock import VirtualClock
 
 RECEIVE_TIMEOUT_NS = 5_000_000
@@ -116,9 +117,28 @@ def test_home_and_switch_modes_by_sdo_when_the_mode_objects_are_not_in_the_pdos(
             ctrl.request_mode(mode)
             run_until(lambda m=mode: ctrl.all_reached and bool((modes.display == m).all()))
             assert [int(d.mode_display) for d in drives] == [int(mode)] * 2  # the drives' own mode
-        # every switch was one SDO download of 0x6060 per axis: CSP, HM, CSP, CSV, CSP
-        assert list(modes.writes) == [5, 5]
-        assert (modes.reads >= 5).all()
+        # profile position (PP, mode 1) through the same SDO path: a 0.5 rad move, then back to CSP
+        moves = ProfileMove(ctrl)
+        start = img.inputs["position_actual_value"].copy()
+        moves.move_to(start + 0.5)
+        pp_modes: set[tuple[int, ...]] = set()
+
+        def moved() -> bool:
+            moves.step_image(img)
+            pp_modes.add(tuple(int(d.mode_display) for d in drives))
+            return moves.done
+
+        run_until(moved, limit=5000)
+        assert (
+            list(moves.phase) == [ProfilePhase.DONE] * 2
+            and (Mode.PROFILE_POSITION, Mode.PROFILE_POSITION) in pp_modes
+        )
+        assert np.allclose(img.inputs["position_actual_value"], start + 0.5, atol=0.01)
+        ctrl.request_mode(Mode.CSP)
+        run_until(lambda: ctrl.all_reached and bool((modes.display == Mode.CSP).all()))
+        # every switch was one SDO download of 0x6060 per axis: CSP, HM, CSP, CSV, CSP, PP, CSP
+        assert list(modes.writes) == [7, 7]
+        assert (modes.reads >= 7).all()
         # the cycle never waited for an SDO: each exchange spans no virtual time at all
         assert max(spans) <= RECEIVE_TIMEOUT_NS
         assert np.all(img.inputs["statusword"] & 0x0008 == 0)
