@@ -103,10 +103,10 @@ class AcyclicModes:
                 self._pending[i] = None
                 self._busy -= 1
                 self._finish(i, f)
-            if not self._differs[i] and int(self.request[i]) == int(self.display[i]):
+            want = int(self.request[i])
+            if want == int(self._written[i]) == int(self.display[i]):  # settled (or just now)
                 continue
             slave, index = self.targets[i]
-            want = int(self.request[i])
             if want != int(self._written[i]):
                 self._pending[i] = self._submit(slave, index, 0, want.to_bytes(1, "little", signed=True))
                 self._reading[i] = False

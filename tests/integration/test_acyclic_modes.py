@@ -82,8 +82,9 @@ def test_home_and_switch_modes_by_sdo_when_the_mode_objects_are_not_in_the_pdos(
 
         def cycle() -> None:
             t0 = clock.now_ns()
-            op.exchange()
+            res = op.exchange()
             spans.append(clock.now_ns() - t0)
+            assert res.fresh  # no cycle held or lost while the SDOs run beside it
             ctrl.step_image(img, modes=modes)
 
         def run_until(done: Any, limit: int = 2000) -> int:
@@ -115,7 +116,8 @@ def test_home_and_switch_modes_by_sdo_when_the_mode_objects_are_not_in_the_pdos(
 
         for mode in (Mode.CSV, Mode.CSP):
             ctrl.request_mode(mode)
-            run_until(lambda m=mode: ctrl.all_reached and bool((modes.display == m).all()))
+            took = run_until(lambda m=mode: ctrl.all_reached and bool((modes.display == m).all()))
+            assert took >= 2  # a download, then an upload: spread over cycles, one step each
             assert [int(d.mode_display) for d in drives] == [int(mode)] * 2  # the drives' own mode
         # profile position (PP, mode 1) through the same SDO path: a 0.5 rad move, then back to CSP
         moves = ProfileMove(ctrl)
