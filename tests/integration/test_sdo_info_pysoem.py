@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 from fieldbus.core.pdo import load_drive_map
-from sim_slaves.od import ObjectDictionary
+from sim_slaves.ethercat.axes import device_od
 
 pysoem = pytest.importorskip("pysoem")
 
@@ -27,7 +27,7 @@ def test_pysoem_od_lists_names_types_and_access(ethercat_emulator: Any, tmp_path
     small = tmp_path / "maxon_small_mailbox.yaml"
     small.write_text(MAXON.read_text() + "\nethercat: {mailbox_size: 64}\n")
     emu = ethercat_emulator([small])
-    expected = ObjectDictionary.from_drive_map(load_drive_map(small))
+    expected = device_od(load_drive_map(small))  # the emulated device's dictionary (0x10F3 included)
     master = pysoem.Master()
     master.open(emu.iface)
     try:
