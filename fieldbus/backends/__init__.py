@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 # bus type -> (module, class, the extra that provides its dependencies)
 BACKENDS: dict[str, tuple[str, str, str | None]] = {
-    "sim": ("fieldbus.backends.sim", "SimBackend", None),
+    "sim": ("fieldbus.backends.sim", "SimBackend", "ethercat"),  # the ethercat backend in process
     "ethercat": ("fieldbus.backends.ethercat", "EthercatBackend", "ethercat"),
     "canopen": ("fieldbus.backends.canopen", "CanopenBackend", "can"),
     "rawcan": ("fieldbus.backends.rawcan", "RawCanBackend", "can"),

@@ -186,6 +186,7 @@ class InProcessMaster:
         self._virtual = is_virtual(self._waits)
         self.clock: Callable[[], int] = self._waits.now_ns
         self._held_s = 0.0  # how long the last process-data reply was held back (chain fault: delay)
+        self._hold_s, self._hold_cycles = 0.0, 0  # process-data replies still to hold back (hold_processdata)
         self.frames = FrameMaster(self._transport)
         self.slaves: list[InProcessSlave] = []
         self.iomap: npt.NDArray[np.uint8] | None = None  # the IO map: outputs, then inputs
@@ -359,6 +360,9 @@ class InProcessMaster:
             return 0
         wkc, now = 0, self.clock()
         self._held_s = 0.0
+        if self._hold_cycles:
+            self._hold_cycles -= 1
+            self._held_s = self._hold_s
         for frame, lo, n, wkc_off, in_lo, in_hi in self._frames:
             frame[_HEADER : _HEADER + n] = iomap[lo : lo + n].tobytes()
             frame[wkc_off] = frame[wkc_off + 1] = 0
@@ -375,6 +379,11 @@ class InProcessMaster:
             wkc += frame[wkc_off] | frame[wkc_off + 1] << 8
         self._wkc = wkc
         return len(self._frames)
+
+    def hold_processdata(self, seconds: float, cycles: int) -> None:
+        """The process-data replies of the next ``cycles`` sends come back ``seconds`` late (a fault hook:
+        other frames are not held back, as the chain's ``delay_frames`` would hold them); 0 cycles: off."""
+        self._hold_s, self._hold_cycles = seconds, cycles
 
     def receive_processdata(self, timeout: int = 2000, *, release_gil: Any = None) -> int:
         """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost or held back

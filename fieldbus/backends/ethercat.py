@@ -124,9 +124,9 @@ class EthercatBackend(Backend):
 
     def __init__(self, bus: Bus, **options: object) -> None:
         super().__init__(bus, **options)
-        if not bus.interface:
-            raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
         transport = options.get("transport", "soem")  # "in-process": the emulated chain (ecat_inprocess)
+        if not bus.interface and transport != "in-process":
+            raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
         if transport not in ("soem", "in-process"):
             raise FieldbusError(
                 f"bus '{bus.name}': transport {transport!r} is not one of 'soem', 'in-process'"
@@ -179,7 +179,9 @@ class EthercatBackend(Backend):
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True)) and not self.in_process  # no socket
         pcap = options.get("pcap")  # every EtherCAT frame of the card, both directions, to this pcap file
-        self.capture = EthercatCapture(str(pcap), bus.interface) if pcap else None
+        if pcap and not bus.interface:  # in process without a card: no frames on a wire to capture
+            raise FieldbusError(f"bus '{bus.name}': option pcap needs a network card ('interface')")
+        self.capture = EthercatCapture(str(pcap), bus.interface) if pcap and bus.interface else None
         # With a redundant port and the ring open (a cable cut: the usual reason to have one), SOEM
         # waits for both ports until its timer ends, so a good reply is handed over at the timeout,
         # a few µs past it. The non-blocking socket still ends that wait at SOEM's timer; the slack
@@ -252,7 +254,8 @@ class EthercatBackend(Backend):
 
     def _check_identity(self, found: int) -> None:
         self.check_identities(
-            [(s.name, s.man, s.id) for s in self._slaves[: max(found, 0)]], f"on {self.bus.interface}"
+            [(s.name, s.man, s.id) for s in self._slaves[: max(found, 0)]],
+            "(in process)" if self.in_process else f"on {self.bus.interface}",
         )
 
     def configure(self) -> None:

@@ -139,10 +139,10 @@ def test_a_change_inside_a_dropped_first_block_is_still_an_event(
     # the writer's first look comes after the ring has wrapped: the first blocks are gone
     monkeypatch.setattr("fieldbus.recording.writer.POLL_S", 0.5)
     rec = op.record(tmp_path / "late.mcap", block_cycles=4, ring_blocks=2)
-    master = op._net.backends[0].master
+    backend: Any = op._net.backends[0]
     for k in range(40):
-        if k == 2:  # an EMCY in cycle 2, which the writer never sees
-            master.emergencies.append((0x1001, 0x2310, 0x02))
+        if k == 2:  # an EMCY in cycle 2 (as the backend's mailbox keeps one), which the writer never sees
+            backend._emcy(0, 0x2310, 0x02)
         op.exchange()
     time.sleep(0.7)  # the writer takes what is left
     rec.close()
@@ -300,6 +300,17 @@ def test_the_official_mcap_reader_reads_the_file(op: Operational, tmp_path: Path
         assert meta["fieldbus"]["format"] == schema.FORMAT and meta["fieldbus.stats"]["cycles"] == "450"
 
 
+def _serve(op: Operational, request: Any, most: int = 100) -> int:
+    """Exchanges until ``request`` is answered (an SDO in OP takes a datagram per cycle on EtherCAT);
+    the cycle that answered it (``op.result.cycle`` before that exchange)."""
+    for _ in range(most):
+        at = op.result.cycle
+        _steps(op, 1)
+        if request.done():
+            return int(at)
+    raise AssertionError(f"not answered in {most} cycles")
+
+
 def test_an_sdo_abort_in_op_is_an_event_at_the_cycle_that_served_it(op: Operational, tmp_path: Path) -> None:
     from fieldbus.errors import SdoAbortError, abort_name
 
@@ -307,12 +318,11 @@ def test_an_sdo_abort_in_op_is_an_event_at_the_cycle_that_served_it(op: Operatio
     rec = op.record(path, block_cycles=64)
     _steps(op, 100)
     missing = op.submit_sdo_read("joints", "j1", 0x2FFF, 0)  # no such object
-    at_read = op.result.cycle  # the next exchange() serves it
-    _steps(op, 1)
+    at_read = _serve(op, missing)
     fine = op.submit_sdo_read("joints", "j0", 0x1000, 0)  # answered: no event
     _steps(op, 30)
     read_only = op.submit_sdo_write("joints", "j2", 0x1000, 0, b"\0\0\0\0")
-    at_write = op.result.cycle
+    at_write = _serve(op, read_only)
     _steps(op, 200)
     rec.close()
     assert isinstance(missing.exception(0), SdoAbortError) and isinstance(
@@ -335,7 +345,7 @@ def test_an_sdo_abort_in_op_is_an_event_at_the_cycle_that_served_it(op: Operatio
 def test_an_sdo_abort_before_recording_is_not_an_event(op: Operational, tmp_path: Path) -> None:
     """Only what the recorded cycles served: an abort served before record() is not in the file."""
     before = op.submit_sdo_read("joints", "j1", 0x2FFF, 0)
-    _steps(op, 2)
+    _serve(op, before)
     assert before.exception(0) is not None
     rec = op.record(tmp_path / "none.mcap")
     _steps(op, 50)
