@@ -20,6 +20,7 @@ from typing import Any
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
+from sim_slaves.ethercat.axes import app_states
 
 _channels = itertools.count()
 SILENT_TPDOS = 1 << 30  # "every TPDO from now on"
@@ -217,13 +218,13 @@ class CanBus(BusEmulator):
         return self.sim
 
     def _tpdos(self, node: int) -> int:
-        return len(self.sim.node(node).drive.tpdo)
+        return len(self.sim.node(node).drive.bus_map.tpdo)
 
     def drive_states(self) -> list[int]:
         sim = self._need_sim("drive_states")
         if self.kind != "canopen":
             return [-1] * len(self.node_ids)
-        return [int(getattr(sim.node(n).app, "state", -1)) for n in self.node_ids]
+        return [st for n in self.node_ids for st in app_states(sim.node(n).app)]  # per axis
 
     def lose_cycles(self, cycles: int) -> None:
         sim = self._need_sim("lose_cycles")
