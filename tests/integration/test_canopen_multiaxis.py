@@ -21,6 +21,7 @@ canopen = pytest.importorskip("canopen")
 import fieldbus  # noqa: E402
 from fieldbus import PDO_MAPS, canopen_plan, load_drive_map  # noqa: E402
 from fieldbus.core.cia402 import State402  # noqa: E402
+from fieldbus.core.drivefault import DriveFault  # noqa: E402
 from fieldbus.errors import FieldbusError  # noqa: E402
 from fieldbus.testing import emulate  # noqa: E402
 from sim_slaves.canopen import CanopenSimulator, NmtState  # noqa: E402
@@ -127,3 +128,24 @@ def test_canopen_remote_node_reads_axis_2_of_our_emulated_node(tmp_path: Path) -
         finally:
             network.disconnect()
         assert not sim.errors
+
+
+def test_drive_fault_on_axis_2_of_a_canopen_node_is_that_axis_s_event(tmp_path: Path) -> None:
+    with emulate(_network(tmp_path, _two_axis_map(tmp_path))) as emu:
+        op = emu.op
+        arm = op["arm"]
+        ctrl = fieldbus.Cia402Controller(arm.n_axes, mode=fieldbus.Mode.CSP)
+        ctrl.set_goal(fieldbus.Goal.ENABLE)
+        faults: list[DriveFault] = []
+
+        def step(_k: int) -> None:
+            res = op.exchange()
+            faults.extend(e for e in res.events if isinstance(e, DriveFault) and e.code is not None)
+            if res.fresh:
+                ctrl.step_image(arm)
+
+        emu.run(step, cycles=300)
+        emu.drive_fault("arm", "elbow", 0x7300, axis=2)
+        emu.run(step, cycles=50)
+        assert [(f.slave, f.axis, f.slave_axis, f.code) for f in faults] == [("elbow", 3, 1, 0x7300)]
+        assert any(e.code == 0x7300 and e.node_id == 4 for e in emu.network.backend("arm").emergencies)
