@@ -62,6 +62,16 @@ def test_axis_2_has_its_own_pdos_with_cia301_default_cob_ids(tmp_path: Path) -> 
     assert {(0x1602, 1), (0x1A03, 1), (0x6860, 0)} <= steps  # axis 2's mapping and start-up SDO
 
 
+def test_a_copy_takes_axis_1s_parameters_unless_canopen_pdo_names_it(tmp_path: Path) -> None:
+    path = tmp_path / "params.yaml"
+    text = (PDO_MAPS / "generic_cia402.yaml").read_text()
+    text = text.replace("{index: 0x1A01, transmission_type: 1}", "{index: 0x1A01, transmission_type: 2}")
+    path.write_text(text + "    - {index: 0x1A02, transmission_type: 3, cob_id: 0x1C0}\naxes: 2\n")
+    tpdo = load_drive_map(path).bus_map.tpdo
+    got = [(p.index, p.canopen.cob_id, p.canopen.transmission_type) for p in tpdo if p.canopen is not None]
+    assert got == [(0x1A00, 0x180, 1), (0x1A01, 0x280, 2), (0x1A02, 0x1C0, 3), (0x1A03, 0x480, 2)]
+
+
 def test_a_third_axis_past_the_predefined_pdos_needs_its_cob_ids(tmp_path: Path) -> None:
     path = tmp_path / "three.yaml"
     path.write_text((PDO_MAPS / "generic_cia402.yaml").read_text() + "axes: 3\n")

@@ -220,8 +220,8 @@ def _check_can_pdos(r: Reader, can_pdos: dict[int, tuple[int, PathT]], have: set
 def _axis_canopen(
     r: Reader, drive: DriveMap, canopen: CanopenConfig, can_pdos: dict[int, tuple[int, PathT]]
 ) -> tuple[tuple[int, CanopenPdo], ...]:
-    """Axes 2..n's PDO copies' COB-IDs: a ``canopen.pdo[]`` entry naming the copy's index, else CiA 301's
-    pre-defined connection set (PDO 1-4), else an error naming the copy."""
+    """Axes 2..n's PDO copies' parameters: a ``canopen.pdo[]`` entry naming the copy's index, else axis 1's
+    PDO's with CiA 301's pre-defined COB-ID of the copy's number (PDO 1-4), else an error naming the copy."""
     out: list[tuple[int, CanopenPdo]] = []
     for key, pdos, direction in (
         ("rpdo", drive.rpdo, Direction.OUTPUTS),
@@ -238,7 +238,9 @@ def _axis_canopen(
                         f"COB-ID; give canopen.pdo[] {{index: 0x{index:04X}, cob_id: ...}}",
                     )
                 params = _canopen_pdo_for(r, index, direction, canopen, can_pdos, (key, i))
-                assert params is not None
+                assert params is not None and p.canopen is not None
+                if index not in can_pdos:  # axis 1's PDO's parameters, the copy's own default COB-ID
+                    params = replace(p.canopen, cob_id=params.cob_id, cob_id_absolute=False)
                 out.append((index, params))
     return tuple(out)
 
