@@ -201,7 +201,7 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
         ("tpdo", 0x1800, 0x1A00, TPDO_COB, drive.tpdo),
     ):
         by_number = {p.number: p for p in pdos}
-        for n in range(1, max(4, *by_number) + 1):
+        for n in range(1, max([4, *by_number]) + 1):
             comm, mapping = comm_base + n - 1, map_base + n - 1
             pdo = by_number.get(n)
             if n > 4:  # past the pre-defined connection set: the map's own COB-ID, else none
