@@ -130,7 +130,7 @@ class CanopenBackend(CanFaults, Backend):
         self._tpdos: dict[int, tuple[int, npt.NDArray[np.uint8], int, int]] = {}
         self._tpdo_count = np.zeros(n, dtype=np.int32)  # expected TPDOs per node per SYNC
         for i, a in enumerate(self.areas):
-            self._tpdo_count[i] = sum(1 for p in a.slave.map.tpdo if tpdo_deadline(p).every_sync)
+            self._tpdo_count[i] = sum(1 for p in a.slave.map.bus_map.tpdo if tpdo_deadline(p).every_sync)
         self._got = np.zeros(n, dtype=np.int32)
         self._seen = np.zeros(0, dtype=bool)  # per expected TPDO, this cycle
         self._arrived = np.zeros(n, dtype=bool)
@@ -238,7 +238,7 @@ class CanopenBackend(CanFaults, Backend):
         self._rpdos, self._tpdos = [], {}
         k = 0
         n = self.n_slaves
-        slots = [[tpdo_deadline(p) for p in a.slave.map.tpdo] for a in self.areas]
+        slots = [[tpdo_deadline(p) for p in a.slave.map.bus_map.tpdo] for a in self.areas]
         width = max([sum(1 for d in row if d.any and not d.every_sync) for row in slots] + [1])
         self._due_t = np.full((n, width), np.inf)
         self._due_s = np.full((n, width), NEVER, dtype=np.int64)
@@ -247,23 +247,27 @@ class CanopenBackend(CanFaults, Backend):
         margin_s = self.bus.cycle_time_us / 1e6
         for i, a in enumerate(self.areas):
             node = self.node_ids[i]
-            out, inp = self.out_row(i), self.in_row(i)
-            for pdo, place in zip(a.slave.map.rpdo, a.layout.outputs.pdos, strict=True):
+            # a multi-axis node: axis k's PDOs (bus_map order: axis by axis) into its row of the image
+            out = self.out_row(i).reshape(a.axes, -1)
+            inp = self.in_row(i).reshape(a.axes, -1)
+            out_places = [(k, pl) for k in range(a.axes) for pl in a.layout.outputs.pdos]
+            in_places = [(k, pl) for k in range(a.axes) for pl in a.layout.inputs.pdos]
+            for pdo, (ax, place) in zip(a.slave.map.bus_map.rpdo, out_places, strict=True):
                 assert pdo.canopen is not None
                 msg = can.Message(
                     arbitration_id=pdo.canopen.cob_id_for(node),
                     data=bytearray(place.size),
                     is_extended_id=False,
                 )
-                view = out[place.byte_offset : place.byte_offset + place.size]
+                view = out[ax, place.byte_offset : place.byte_offset + place.size]
                 self._rpdos.append((msg, view, np.frombuffer(msg.data, dtype=np.uint8)))
             j = 0
-            for pdo, place, due in zip(a.slave.map.tpdo, a.layout.inputs.pdos, slots[i], strict=True):
+            for pdo, (ax, place), due in zip(a.slave.map.bus_map.tpdo, in_places, slots[i], strict=True):
                 assert pdo.canopen is not None
                 cob = pdo.canopen.cob_id_for(node)
                 if cob in self._tpdos:
                     raise FieldbusError(f"bus '{self.bus.name}': two TPDOs use COB-ID 0x{cob:03X}")
-                row = inp[place.byte_offset : place.byte_offset + place.size]
+                row = inp[ax, place.byte_offset : place.byte_offset + place.size]
                 if due.every_sync:
                     self._tpdos[cob] = (i, row, k, -1)
                     k += 1

@@ -24,6 +24,7 @@ from cyclonedds.topic import Topic
 
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.network import row_names
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
@@ -110,12 +111,17 @@ class ServedGroup:
     ) -> None:
         self.name = name
         self.bus = ""  # the bus it is on, from attach()
-        self.maps = maps  # one drive map per axis (homing time-outs)
+        self.maps = maps  # one drive map per slave (homing time-outs; a multi-axis map for each of its axes)
         self.homing: Homing | None = None  # a home request under way
         self.image = image
         self.axes = axes
         self.n = len(axes)
-        self.fresh = np.zeros(self.n, dtype=bool)  # the bus's per-slave freshness rows, from attach()
+        self.fresh = np.zeros(self.n, dtype=bool)  # per axis (row), from the bus's per-slave freshness
+        self.slave_fresh: npt.NDArray[np.bool_] | None = None  # the bus's per-slave rows, from attach()
+        # rows per slave: a multi-axis slave (``axes:``) has one joint per axis, named ``<slave>.axis<k>``
+        self.rows_per_slave = np.array([mp.axes for mp in maps] or [1] * self.n, dtype=np.intp)
+        # an SDO to a joint goes to its slave, at its axis's object (0x6041 -> 0x6841 for axis 2)
+        self.sdo_targets: dict[str, tuple[str, Any, int]] = {}
         self.writer: SafeStopWriter | None = None  # the group's safe outputs, from attach()
         self.gate = CommandGate(server.options.deadline)
         out, inp = image.outputs, image.inputs
@@ -194,6 +200,8 @@ class ServedGroup:
     # -- after exchange() --
     def publish(self, res: CycleResult, stamp_ns: int) -> None:
         inp = self.image.inputs.values
+        if self.slave_fresh is not None and self.fresh is not self.slave_fresh:  # each slave's, per axis
+            self.fresh[:] = np.repeat(self.slave_fresh, self.rows_per_slave)
         header = m.Header(stamp=_stamp(stamp_ns), frame_id="")
         js = m.JointState(header=header, name=list(self.axes))
         for field_name, chan in self.in_roles.items():
@@ -238,11 +246,14 @@ class BusServer:
         self.participant = participant
         self.options = options
         self.groups: dict[str, ServedGroup] = {
-            name: ServedGroup(
-                self, name, g.image, tuple(s.name for s in g.slaves), tuple(s.map for s in g.slaves)
-            )
+            name: ServedGroup(self, name, g.image, row_names(g.slaves), tuple(s.map for s in g.slaves))
             for name, g in net.groups.items()
         }
+        for name, g in net.groups.items():
+            rows = iter(self.groups[name].axes)
+            self.groups[name].sdo_targets = {
+                next(rows): (s.name, s.map, k) for s in g.slaves for k in range(s.map.axes)
+            }
         # requests answered in a later cycle: (request, a check returning the detail or None while under way)
         self._pending: list[tuple[m.Request, Callable[[], dict[str, Any] | None], Respond | None]] = []
         self._answered: dict[str, tuple[int, m.Reply]] = {}  # per client its newest reply (a resend)
@@ -259,7 +270,9 @@ class BusServer:
         for bv in op.buses:
             for g in bv.backend.groups:
                 served = self.groups[g.name]
-                served.fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
+                served.slave_fresh = bv.status.fresh[g.first : g.first + len(g.slaves)]
+                if len(g.slaves) == served.n:  # one row per slave: the bus's own rows
+                    served.fresh = served.slave_fresh
                 served.bus = bv.name
                 served.writer = op.safe_stops[g.name]
         self.stalls = StallWatch(int(op.cycle_time_us * 1000))
@@ -475,15 +488,17 @@ class BusServer:
         index, sub = arg.get("index"), arg.get("sub_index", 0)
         if not isinstance(index, int) or not isinstance(sub, int):
             raise FieldbusError(f"SDO: index and sub_index must be whole numbers, not {index!r}, {sub!r}")
+        slave, drive_map, k = g.sdo_targets[axis]
+        index = drive_map.axis_index(index, k)  # 0x6000-0x67FF: that axis's object
         if verb == "sdo_read":
-            future: Future[bytes | None] = self.op.submit_sdo_read(g.bus, axis, index, sub)
+            future: Future[bytes | None] = self.op.submit_sdo_read(g.bus, slave, index, sub)
         else:
             g.gate.check_owner(client)
             try:
                 data = bytes.fromhex(str(arg.get("data", "")))
             except ValueError:
                 raise FieldbusError(f"SDO write: data must be hex text, not {arg.get('data')!r}") from None
-            future = self.op.submit_sdo_write(g.bus, axis, index, sub, data)
+            future = self.op.submit_sdo_write(g.bus, slave, index, sub, data)
 
         def check() -> dict[str, Any] | None:
             if not future.done():

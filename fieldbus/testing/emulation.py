@@ -202,8 +202,12 @@ class Emulation:
         emu, i = self._slave(bus, slave)
         emu.power_cycle(i)
 
-    def drive_fault(self, bus: str, slave: str, code: int | str) -> None:
+    def drive_fault(self, bus: str, slave: str, code: int | str, *, axis: int = 1) -> None:
         """The drive of slave ``slave`` faults with error code ``code`` (0x603F, e.g. 0x7300 sensor).
+
+        ``axis``: which axis of a multi-axis slave (``axes:`` in its map), 1-based within the slave
+        (1: the first; its error code sits in 0x603F, axis k's in 0x603F + 0x800 x (k - 1)). The
+        master's ``DriveFault`` names that axis's row and ``slave_axis`` = ``axis`` - 1.
 
         ``code`` may be the code's CiA 301 / CiA 402 name (``"sensor error"``, see
         :func:`fieldbus.diagnosis.error_code`).
@@ -224,7 +228,10 @@ class Emulation:
         if not 0 < code <= top:
             raise FieldbusError(f"drive_fault: error code must be 0x1..{top:#x}, got {code:#x}")
         emu, i = self._slave(bus, slave)
-        emu.drive_fault(i, code)
+        axes = self._bus(bus)[0].slaves[i].map.axes
+        if not 1 <= axis <= axes:
+            raise FieldbusError(f"drive_fault: slave '{slave}' has axes 1..{axes}, got axis={axis}")
+        emu.drive_fault(i, code, axis - 1)
 
     def silence(self, bus: str, slave: str, silent: bool = True) -> None:
         """CAN: slave ``slave`` stops (``silent=False``: resumes) sending; it still listens.

@@ -96,7 +96,8 @@ class BusEmulator:
     def power_cycle(self, slave: int) -> None:
         raise self._unsupported("power_cycle")
 
-    def drive_fault(self, slave: int, code: int) -> None:
+    def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
+        """Fault ``slave``'s drive (``axis``: 0-based axis of a multi-axis slave) with error code ``code``."""
         raise self._unsupported("drive_fault")
 
     def silence(self, slave: int, silent: bool) -> None:

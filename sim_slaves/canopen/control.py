@@ -22,7 +22,7 @@ def handle_control(sim: CanopenSimulator, msg: dict[str, Any]) -> dict[str, Any]
     if cmd == "drop":
         targets = [ids[int(msg["slave"])]] if "slave" in msg else ids
         for n in targets:
-            sim.drop_tpdos(n, count * len(sim.node(n).drive.tpdo))
+            sim.drop_tpdos(n, count * len(sim.node(n).drive.bus_map.tpdo))
     elif cmd == "drop_frame":  # one TPDO of one node
         sim.drop_tpdos(ids[int(msg.get("slave", 0))], 1)
     elif cmd == "power_cycle":

@@ -30,6 +30,7 @@ from typing import Protocol
 from fieldbus.core import datatypes
 from fieldbus.core.pdo.model import Channel, DriveMap
 from fieldbus.errors import SdoAbortError
+from sim_slaves.ethercat.axes import device_od
 from sim_slaves.od import Access, CommState, Entry, ObjectDictionary
 
 U8 = datatypes.lookup("uint8")
@@ -194,15 +195,21 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
         od.add(ERROR_FIELD, sub, U32, 0, access=Access.RO, name=f"standard error field {sub}")
     hb = drive.canopen.heartbeat_ms if drive.canopen is not None else 0
     od.add(0x1017, 0, U16, hb, name="producer heartbeat time")
+    drive = drive.bus_map  # a multi-axis drive: every axis's PDOs
     for direction, comm_base, map_base, cobs, pdos in (
         ("rpdo", 0x1400, 0x1600, RPDO_COB, drive.rpdo),
         ("tpdo", 0x1800, 0x1A00, TPDO_COB, drive.tpdo),
     ):
         by_number = {p.number: p for p in pdos}
-        for n in range(1, 5):
+        for n in range(1, max([4, *by_number]) + 1):
             comm, mapping = comm_base + n - 1, map_base + n - 1
             pdo = by_number.get(n)
-            cob = cobs[n - 1] + node_id if pdo is not None else INVALID | (cobs[n - 1] + node_id)
+            if n > 4:  # past the pre-defined connection set: the map's own COB-ID, else none
+                if pdo is None or pdo.canopen is None:
+                    continue
+                cob = pdo.canopen.cob_id_for(node_id)
+            else:
+                cob = cobs[n - 1] + node_id if pdo is not None else INVALID | (cobs[n - 1] + node_id)
             od.add(comm, 1, U32, cob, name=f"{direction}{n} COB-ID")
             od.add(comm, 2, U8, 255 if pdo is None else 1, name=f"{direction}{n} transmission type")
             if direction == "tpdo":
@@ -216,7 +223,8 @@ def add_communication_objects(od: ObjectDictionary, drive: DriveMap, node_id: in
 
 
 def _fresh_od(drive: DriveMap, node_id: int) -> ObjectDictionary:
-    od = ObjectDictionary.from_drive_map(drive)
+    # a multi-axis drive: every axis's objects at +0x800 per axis (sim_slaves.ethercat.axes)
+    od = ObjectDictionary.from_drive_map(drive) if drive.axes == 1 else device_od(drive)
     add_communication_objects(od, drive, node_id)
     return od
 

@@ -29,9 +29,11 @@ from fieldbus.core.pdo.model import DriveMap
 from fieldbus.runtime.clock import Clock, monotonic_s
 from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
-from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, CanopenNode, Frame, NmtState
+from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, App, CanopenNode, Frame, NmtState
+from sim_slaves.drive402 import ObjectStore
 from sim_slaves.drive_bank import DriveBank, runs
 from sim_slaves.drive_config import drive_params
+from sim_slaves.ethercat.axes import AxisObjects, MultiAxisDrive
 from sim_slaves.od import is_cia402_drive
 
 TIMER_TICK_S = 0.001  # heartbeats and event timers are checked this often at most
@@ -65,14 +67,29 @@ class CanopenSimulator(BusThread):
         ids = [node_id for _, node_id in nodes]
         if len(set(ids)) != len(ids):
             raise ValueError(f"node id {next(i for i in ids if ids.count(i) > 1)} used twice")
-        # every CiA 402 drive in one bank, stepped together on SYNC (slot k: the k-th drive node)
-        drives = [node_id for drive, node_id in nodes if is_cia402_drive(drive)]
-        self.bank = DriveBank([drive_params(drive) for drive, _ in nodes if is_cia402_drive(drive)])
-        self._slot = {node_id: k for k, node_id in enumerate(drives)}
+        # every CiA 402 drive in one bank, stepped together on SYNC (slot k: the k-th drive axis; a
+        # multi-axis node has one slot per axis, consecutive, each seeing its objects at +0x800 per axis)
+        cia402 = [(drive, node_id) for drive, node_id in nodes if is_cia402_drive(drive)]
+        self.bank = DriveBank([drive_params(drive) for drive, _ in cia402 for _k in range(drive.axes)])
+        self._slot: dict[int, int] = {}  # node id -> its first axis's slot
+        self._axes: dict[int, tuple[int, ...]] = {}  # node id -> its axes' object offsets
+        first = 0
+        for drive, node_id in cia402:
+            self._slot[node_id], self._axes[node_id] = first, drive.object_offsets
+            first += drive.axes
         for drive, node_id in nodes:
             k = self._slot.get(node_id)
-            self.nodes[node_id] = CanopenNode(drive, node_id, None if k is None else self.bank.drives[k])
-        self._active = np.zeros(len(drives), dtype=np.bool_)  # drive slots stepping on this SYNC
+            app: App | None = None
+            if k is not None:
+                bank_drives = self.bank.drives[k : k + drive.axes]
+                app = (
+                    bank_drives[0]
+                    if drive.axes == 1
+                    else MultiAxisDrive(list(bank_drives), drive.object_offsets)
+                )
+            self.nodes[node_id] = CanopenNode(drive, node_id, app)
+        self._views: dict[int, tuple[object, list[tuple[int, ObjectStore]]]] = {}  # node id -> (OD, per axis)
+        self._active = np.zeros(first, dtype=np.bool_)  # drive slots stepping on this SYNC
         self.errors: list[str] = []
         self.syncs = 0
         self.sync_cpu_s = 0.0  # thread CPU time on SYNCs (RPDOs applied, drives stepped, TPDOs sent)
@@ -223,23 +240,35 @@ class CanopenSimulator(BusThread):
             for n in consumers:
                 n.rpdo(cob, data)
 
+    def _stores(self, n: CanopenNode, k: int) -> list[tuple[int, ObjectStore]]:
+        """(bank slot, the objects it sees) per axis of node ``n`` (first slot ``k``); rebuilt for a new OD."""
+        cached = self._views.get(n.node_id)
+        if cached is None or cached[0] is not n.od:
+            offsets = self._axes[n.node_id]
+            stores: list[tuple[int, ObjectStore]] = [
+                (k + j, n.od if off == 0 else AxisObjects(n.od, off)) for j, off in enumerate(offsets)
+            ]
+            cached = self._views[n.node_id] = (n.od, stores)
+        return cached[1]
+
     def _sync(self, dt: float, now: float) -> None:
         """Every OPERATIONAL node's RPDOs applied, their drives stepped as runs of the bank, TPDOs sent."""
         bank, active, slot = self.bank, self._active, self._slot
         active.fill(False)
-        taking_part: list[tuple[CanopenNode, int | None]] = []  # node, its drive's bank slot
+        taking_part: list[tuple[CanopenNode, list[tuple[int, ObjectStore]]]] = []  # node, its axes' slots
         for node_id, n in self.nodes.items():
             if n.sync_inputs():
                 k = slot.get(node_id)
-                taking_part.append((n, k))
-                if k is not None:
-                    bank.load_inputs(k, n.od)
-                    active[k] = True
+                stores = [] if k is None else self._stores(n, k)
+                taking_part.append((n, stores))
+                for s, store in stores:
+                    bank.load_inputs(s, store)
+                    active[s] = True
         for a, b in runs(np.flatnonzero(active)):  # the drives that take part (a stopped node's stands still)
             bank.step(a, b, dt)
-        for n, k in taking_part:
-            if k is not None:
-                bank.store_outputs(k, n.od)
+        for n, stores in taking_part:
+            for s, store in stores:
+                bank.store_outputs(s, store)
             frames = n.sync_outputs(now)
             if frames and self._corrupt.get(n.node_id):
                 frames = self._corrupted(n.node_id, frames)

@@ -20,6 +20,7 @@ from typing import Any
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
+from sim_slaves.ethercat.axes import app_states
 
 _channels = itertools.count()
 SILENT_TPDOS = 1 << 30  # "every TPDO from now on"
@@ -217,13 +218,13 @@ class CanBus(BusEmulator):
         return self.sim
 
     def _tpdos(self, node: int) -> int:
-        return len(self.sim.node(node).drive.tpdo)
+        return len(self.sim.node(node).drive.bus_map.tpdo)
 
     def drive_states(self) -> list[int]:
         sim = self._need_sim("drive_states")
         if self.kind != "canopen":
             return [-1] * len(self.node_ids)
-        return [int(getattr(sim.node(n).app, "state", -1)) for n in self.node_ids]
+        return [st for n in self.node_ids for st in app_states(sim.node(n).app)]  # per axis
 
     def lose_cycles(self, cycles: int) -> None:
         sim = self._need_sim("lose_cycles")
@@ -257,18 +258,25 @@ class CanBus(BusEmulator):
     def power_cycle(self, slave: int) -> None:
         self._need_sim("power_cycle").power_cycle(self.node_ids[slave])
 
-    def drive_fault(self, slave: int, code: int) -> None:
+    def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         sim = self._need_sim("drive_fault")
         n = self.node_ids[slave]
         if self.kind == "canopen":
             app = sim.node(n).app
             if not hasattr(app, "inject_fault"):
                 raise self._unsupported("drive_fault", f"node {n} is not a CiA 402 drive")
-            app.inject_fault(code)
+            if axis:
+                if not hasattr(app, "drives"):
+                    raise self._unsupported("drive_fault", f"node {n} runs one axis")
+                app.inject_fault(code, axis=axis)
+            else:
+                app.inject_fault(code)
             sim.send_emergency(n, code, 0x01)
             return
         if self.kind == "mit":
             raise self._unsupported("drive_fault", "MIT-mode motors (family mit) report no error code")
+        if axis:
+            raise self._unsupported("drive_fault", f"a {self.kind} motor has one axis")
         cfg = self.bus.slaves[slave].map.rawcan
         assert cfg is not None
         if cfg.damiao is not None:  # the reply's error nibble

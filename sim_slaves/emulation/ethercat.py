@@ -57,11 +57,14 @@ class SimChainBus(BusEmulator):
     def power_cycle(self, slave: int) -> None:
         self.chain.power_cycle(slave)
 
-    def drive_fault(self, slave: int, code: int) -> None:
+    def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         app = self.chain.slaves[slave].app
         if not hasattr(app, "inject_fault"):
             raise self._unsupported("drive_fault", f"slave {slave} is not a CiA 402 drive")
-        app.inject_fault(code)
+        if axis:
+            app.inject_fault(code, axis=axis)  # a MultiAxisDrive (the map's axes were checked)
+        else:
+            app.inject_fault(code)
         self.chain.emergency(slave, code, 0x01)
 
     def silence(self, slave: int, silent: bool) -> None:
@@ -138,8 +141,8 @@ class VethBus(BusEmulator):
     def power_cycle(self, slave: int) -> None:
         self._command(cmd="power_cycle", slave=slave)
 
-    def drive_fault(self, slave: int, code: int) -> None:
-        self._command(cmd="drive_fault", slave=slave, code=code)
+    def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
+        self._command(cmd="drive_fault", slave=slave, code=code, axis=axis)
 
     def silence(self, slave: int, silent: bool) -> None:
         raise self._unsupported("silence", NOT_ALONE)

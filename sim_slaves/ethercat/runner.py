@@ -43,7 +43,8 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
     {"cmd": "refuse_state", "slave": 0, "state": "SAFE_OP", "code": 29}
     {"cmd": "abort_sdo", "slave": 0, "index": 4120, "sub": 1, "code": 101318656}
     {"cmd": "emergency", "slave": 0, "code": 33297}
-    {"cmd": "drive_fault", "slave": 0, "code": 29440}    the drive faults (0x603F = code), EMCY sent
+    {"cmd": "drive_fault", "slave": 0, "code": 29440}    the drive faults (0x603F = code), EMCY sent;
+                                                        "axis": k (0-based) faults axis k + 1 of a multi-axis slave
     {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
     {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
     {"cmd": "clear"}                                    undo all injections
@@ -439,7 +440,11 @@ def handle_control(
         inject = getattr(chain.slaves[slave].app, "inject_fault", None)
         if inject is None:
             return {"ok": False, "error": f"slave {slave} has no CiA 402 drive"}
-        inject(int(msg["code"]))
+        axis = int(msg.get("axis", 0))  # 0-based axis of a multi-axis slave
+        if axis:
+            inject(int(msg["code"]), axis=axis)
+        else:
+            inject(int(msg["code"]))
         chain.emergency(slave, int(msg["code"]), 0x01)
     elif cmd == "clear":
         chain.clear_faults()

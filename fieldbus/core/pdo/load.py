@@ -160,9 +160,8 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     else:
         rpdo = _pdos(r, top.get("rpdo"), Direction.OUTPUTS, canopen, can_pdos, ethercat.pdo_assign)
         tpdo = _pdos(r, top.get("tpdo"), Direction.INPUTS, canopen, can_pdos, ethercat.pdo_assign)
-    for index, (_, path) in can_pdos.items():
-        if not any(p.index == index for p in (*rpdo, *tpdo)):
-            raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
+    if not isinstance(top.get("axes"), int | Mapping) or canopen is None:  # else checked after the axes
+        _check_can_pdos(r, can_pdos, {p.index for p in (*rpdo, *tpdo)})
 
     sdos = _sdos(r, top.get("sdo"))
     homing = _homing(r, top["homing"], sdos) if "homing" in top else None
@@ -201,12 +200,49 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if "axes" in top:
         object_offsets, pdo_offsets = _axes(r, top["axes"], drive, canopen is not None)
         drive = replace(drive, object_offsets=object_offsets, pdo_offsets=pdo_offsets)
+        if canopen is not None:
+            drive = replace(drive, axis_canopen=_axis_canopen(r, drive, canopen, can_pdos))
+            _check_can_pdos(r, can_pdos, {p.index for p in (*drive.bus_map.rpdo, *drive.bus_map.tpdo)})
     if profile == "cia402":
         if drive.find(Direction.OUTPUTS, CONTROLWORD) is None:
             raise r.err(("rpdo",), "profile cia402 needs the controlword 0x6040:00 in an rpdo")
         if drive.find(Direction.INPUTS, STATUSWORD) is None:
             raise r.err(("tpdo",), "profile cia402 needs the statusword 0x6041:00 in a tpdo")
     return drive
+
+
+def _check_can_pdos(r: Reader, can_pdos: dict[int, tuple[int, PathT]], have: set[int]) -> None:
+    for index, (_, path) in can_pdos.items():
+        if index not in have:
+            raise r.err(path, f"CANopen settings for PDO 0x{index:04X}, which is not in rpdo or tpdo")
+
+
+def _axis_canopen(
+    r: Reader, drive: DriveMap, canopen: CanopenConfig, can_pdos: dict[int, tuple[int, PathT]]
+) -> tuple[tuple[int, CanopenPdo], ...]:
+    """Axes 2..n's PDO copies' parameters: a ``canopen.pdo[]`` entry naming the copy's index, else axis 1's
+    PDO's with CiA 301's pre-defined COB-ID of the copy's number (PDO 1-4), else an error naming the copy."""
+    out: list[tuple[int, CanopenPdo]] = []
+    for key, pdos, direction in (
+        ("rpdo", drive.rpdo, Direction.OUTPUTS),
+        ("tpdo", drive.tpdo, Direction.INPUTS),
+    ):
+        for i, p in enumerate(pdos):
+            for k in range(1, drive.axes):
+                index = p.index + drive.pdo_offsets[k]
+                if index not in can_pdos and (index & 0x1FF) >= 4:
+                    raise r.err(
+                        (key, i, "index"),
+                        f"axis {k + 1}'s copy of PDO 0x{p.index:04X} is 0x{index:04X}, "
+                        f"{direction.yaml_key.upper()}{(index & 0x1FF) + 1}: only PDO 1-4 have a default "
+                        f"COB-ID; give canopen.pdo[] {{index: 0x{index:04X}, cob_id: ...}}",
+                    )
+                params = _canopen_pdo_for(r, index, direction, canopen, can_pdos, (key, i))
+                assert params is not None and p.canopen is not None
+                if index not in can_pdos:  # axis 1's PDO's parameters, the copy's own default COB-ID
+                    params = replace(p.canopen, cob_id=params.cob_id, cob_id_absolute=False)
+                out.append((index, params))
+    return tuple(out)
 
 
 def _safe_name(stem: str) -> str:
@@ -642,12 +678,13 @@ def _axes(r: Reader, raw: Any, drive: DriveMap, canopen: bool) -> tuple[tuple[in
         count = r.integer(m["count"], (*path, "count"), 1, MAX_AXES)
     else:
         m, count = {}, r.integer(raw, path, 1, MAX_AXES)
-    if canopen and count > 1:
-        raise r.err(path, "a multi-axis map runs on EtherCAT only (no canopen section with axes > 1)")
+    # CANopen: axis k's PDOs follow axis 1's in PDO number (2 RPDOs per axis: axis 2 has RPDO3-4), so
+    # the first 4 + 4 PDOs keep CiA 301's pre-defined COB-IDs; EtherCAT: 0x10 apart (0x1600 -> 0x1610)
+    pdo_step = max(len(drive.rpdo), len(drive.tpdo), 1) if canopen else AXIS_PDO_STEP
     offsets: list[tuple[int, ...]] = []
     for key, step, hi in (
         ("object_offsets", AXIS_OBJECT_STEP, 0x3800),
-        ("pdo_offsets", AXIS_PDO_STEP, 0x1FF),
+        ("pdo_offsets", pdo_step, 0x1FF),
     ):
         if key not in m:
             offsets.append(tuple(step * k for k in range(count)))

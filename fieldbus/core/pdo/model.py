@@ -255,6 +255,8 @@ class DriveMap:
     # its CiA 402 objects (0x6000-0x67FF) and pdo_offsets[k] to its PDO indexes; see :attr:`bus_map`
     object_offsets: tuple[int, ...] = (0,)
     pdo_offsets: tuple[int, ...] = (0,)
+    # CANopen communication parameters of axes 2..n's PDO copies, by their mapping index (0x1602 -> ...)
+    axis_canopen: tuple[tuple[int, CanopenPdo], ...] = ()
 
     @property
     def axes(self) -> int:
@@ -301,6 +303,8 @@ def is_axis_object(index: int) -> bool:
 def _expand_axes(drive: DriveMap) -> DriveMap:
     """:attr:`DriveMap.bus_map` of a multi-axis map."""
 
+    copies = dict(drive.axis_canopen)
+
     def pdos(group: tuple[Pdo, ...]) -> tuple[Pdo, ...]:
         out = []
         for k, pdo_off in enumerate(drive.pdo_offsets):
@@ -311,7 +315,8 @@ def _expand_axes(drive: DriveMap) -> DriveMap:
                     else replace(c, index=drive.axis_index(c.index, k), name=f"{c.name}_axis{k + 1}")
                     for c in p.channels
                 )
-                out.append(replace(p, index=p.index + pdo_off, channels=chans))
+                index = p.index + pdo_off
+                out.append(replace(p, index=index, channels=chans, canopen=copies.get(index, p.canopen)))
         return tuple(out)
 
     sdos = list(drive.sdo)
@@ -324,4 +329,5 @@ def _expand_axes(drive: DriveMap) -> DriveMap:
         sdo=tuple(sdos),
         object_offsets=(0,),
         pdo_offsets=(0,),
+        axis_canopen=(),
     )

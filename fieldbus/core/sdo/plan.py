@@ -151,6 +151,7 @@ def coe_plan(drive: DriveMap) -> SdoPlan:
 
 def canopen_plan(drive: DriveMap, node_id: int) -> SdoPlan:
     """The CANopen plan for ``drive`` at ``node_id`` (1..127), per CiA 301."""
+    drive = drive.bus_map  # a multi-axis map: every axis's PDOs (their own COB-IDs) and start-up SDOs
     if drive.canopen is None:
         raise FieldbusError(f"{drive.name} ({drive.source}) has no 'canopen' section")
     if not 1 <= node_id <= 127:
