@@ -13,6 +13,7 @@ it with their EtherCAT dissector.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 import sys
@@ -29,7 +30,11 @@ PCAP_LINKTYPE_ETHERNET = 1
 _PCAP_HEADER = struct.Struct("<IHHiIII")
 _PCAP_RECORD = struct.Struct("<IIII")
 _SNAPLEN = 65535
-DRAIN_S = 1.0  # at close, the capture thread writes the frames still queued for at most this long
+DRAIN_S = 5.0  # at close, the capture thread writes the frames still queued for at most this long
+CAPTURE_BUFFER = 4 << 20  # the capture socket's receive buffer [bytes]: a thread kept off the CPU for a
+# while (a loaded machine) finds the frames of that while queued, not dropped (the default is ~200 kB)
+SOL_PACKET = 263
+PACKET_STATISTICS = 6  # struct tpacket_stats {unsigned tp_packets, tp_drops}: read resets them
 
 
 class PcapWriter:
@@ -68,6 +73,7 @@ class EthercatCapture:
         except OSError as exc:
             raise FieldbusError(f"pcap {self.path}: cannot write ({exc.strerror or exc})") from exc
         self.frames = 0
+        self.dropped = 0  # frames the kernel dropped before the capture thread read them
         self.error: str | None = None
         self._sock: socket.socket | None = None
         self._stop = threading.Event()
@@ -86,6 +92,8 @@ class EthercatCapture:
                 f"pcap on '{self.iface}': cannot open a packet socket ({exc.strerror or exc}); "
                 "it needs root or CAP_NET_RAW, like the master"
             ) from exc
+        with contextlib.suppress(OSError):  # a smaller buffer still captures; drops are then counted
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, CAPTURE_BUFFER)
         sock.settimeout(0.1)  # to see close() without a frame
         self._sock = sock
         self._thread = threading.Thread(target=self._run, name=f"pcap-{self.iface}", daemon=True)
@@ -121,14 +129,23 @@ class EthercatCapture:
             self.frames += 1
 
     def close(self) -> None:
-        """Stop the thread, close the socket and the file (idempotent)."""
+        """Stop the thread, close the socket and the file (idempotent); frames the kernel dropped (the
+        thread behind by more than the socket's buffer) are counted in :attr:`dropped` and :attr:`error`."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=DRAIN_S + 1.0)
             self._thread = None
         if self._sock is not None:
+            with contextlib.suppress(OSError):
+                _, drops = struct.unpack("II", self._sock.getsockopt(SOL_PACKET, PACKET_STATISTICS, 8))
+                self.dropped += drops
             self._sock.close()
             self._sock = None
+            if self.dropped and self.error is None:
+                self.error = (
+                    f"pcap {self.path}: the kernel dropped {self.dropped} frames (the capture thread fell "
+                    "behind); the file lacks them"
+                )
         try:
             self._writer.close()
         except OSError as exc:
