@@ -246,3 +246,37 @@ def test_a_capture_closed_right_after_the_last_frames_keeps_them(
     # lo hands a packet socket each frame twice, as sent and as received (a card: requests out, replies in)
     assert capture.frames == 100, capture.frames
     assert tshark(pcap, "ecat") == 100
+
+
+def test_frames_the_kernel_dropped_are_counted_and_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A capture thread far behind a socket buffer too small for the burst: the kernel drops frames; the
+    capture says how many (PACKET_STATISTICS) instead of leaving a file that silently lacks them."""
+    import socket
+
+    from fieldbus.wire import pcap as wire_pcap
+
+    try:
+        sender = socket.socket(socket.AF_PACKET, socket.SOCK_RAW)
+        sender.bind(("lo", 0))
+    except OSError as exc:
+        pytest.skip(f"a packet socket on lo needs root or CAP_NET_RAW: {exc}")
+    write = wire_pcap.PcapWriter.write
+
+    def slow_write(self: Any, frame: Any, t_s: float) -> None:
+        time.sleep(0.002)
+        write(self, frame, t_s)
+
+    monkeypatch.setattr(wire_pcap.PcapWriter, "write", slow_write)
+    monkeypatch.setattr(wire_pcap, "CAPTURE_BUFFER", 0)  # the kernel's least: a few frames
+    capture = wire_pcap.EthercatCapture(tmp_path / "drops.pcap", "lo")
+    capture.start()
+    frame = bytes(6) + bytes.fromhex("020000000001") + b"\x88\xa4" + bytes.fromhex("0e10")
+    frame += bytes([7, 0]) + bytes(4) + bytes.fromhex("0200") + bytes(2) + bytes(2) + bytes(2)
+    with sender:
+        for _ in range(300):
+            sender.send(frame)
+    capture.close()
+    assert capture.dropped > 0 and capture.frames + capture.dropped == 600, (capture.frames, capture.dropped)
+    assert capture.error is not None and f"dropped {capture.dropped} frames" in capture.error
