@@ -22,7 +22,7 @@ import yaml
 
 import fieldbus
 from fieldbus import AcyclicModes, Cia402Controller, Goal, Homing, HomingPhase, Mode
-from fieldbus.testing import EmulationUnavailable, emulate
+from fieldbus.testing import emulate
 
 DEMO_MAP = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"
 
@@ -46,15 +46,14 @@ def _network(tmp_path: Path) -> Path:
 
 @pytest.mark.veth
 @pytest.mark.timeout(300)
-def test_veth_homes_and_switches_modes_by_sdo(tmp_path: Path, tshark: Callable[[Path, str], int]) -> None:
-    pytest.importorskip("pysoem")
+def test_veth_homes_and_switches_modes_by_sdo(
+    tmp_path: Path, tshark: Callable[[Path, str], int], request: pytest.FixtureRequest
+) -> None:
     if shutil.which("dumpcap") is None:
         pytest.skip("dumpcap is not installed (apt-get install tshark)")
-    try:
-        with emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=20000) as emu:
-            _day(emu, tmp_path, tshark)
-    except EmulationUnavailable as exc:
-        pytest.skip(f"the machine refuses a veth pair: {exc}")
+    request.getfixturevalue("veth_possible")
+    with emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=20000) as emu:
+        _day(emu, tmp_path, tshark)
 
 
 def _day(emu: Any, tmp_path: Path, tshark: Callable[[Path, str], int]) -> None:

@@ -39,7 +39,7 @@ import pytest
 import fieldbus
 import fieldbus.recording
 from fieldbus import Cia402Controller, Goal, Homing, HomingPhase, Mode
-from fieldbus.testing import EmulationUnavailable, emulate
+from fieldbus.testing import emulate
 from sim_slaves.drive402 import HOMING_CHECK_S
 
 DEMO_MAP = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"  # rad, CSP/CST
@@ -82,16 +82,15 @@ def _network(tmp_path: Path) -> Path:
 
 @pytest.mark.veth
 @pytest.mark.timeout(600)
-def test_twelve_axes_home_switch_modes_without_a_step_and_a_fault_is_named(tmp_path: Path) -> None:
-    pytest.importorskip("pysoem")
-    try:
-        with (
-            _collector_held(),
-            emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=RECEIVE_TIMEOUT_US) as emu,
-        ):
-            _day(emu, tmp_path)
-    except EmulationUnavailable as exc:
-        pytest.skip(f"the machine refuses a veth pair: {exc}")
+def test_twelve_axes_home_switch_modes_without_a_step_and_a_fault_is_named(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    request.getfixturevalue("veth_possible")
+    with (
+        _collector_held(),
+        emulate(_network(tmp_path), ethercat="veth", receive_timeout_us=RECEIVE_TIMEOUT_US) as emu,
+    ):
+        _day(emu, tmp_path)
 
 
 @contextmanager

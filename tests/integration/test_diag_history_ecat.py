@@ -14,7 +14,7 @@ import pytest
 import fieldbus
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.network import BusEvent
-from fieldbus.testing import EmulationUnavailable, emulate
+from fieldbus.testing import emulate
 
 MAPS = Path(__file__).resolve().parents[2] / "pdo_maps"
 
@@ -92,12 +92,11 @@ def test_without_the_map_flag_the_history_is_not_read(tmp_path: Path) -> None:
 
 
 @pytest.mark.veth
-def test_the_history_comes_with_the_fault_over_veth_with_pysoem(tmp_path: Path) -> None:
-    pytest.importorskip("pysoem")
+def test_the_history_comes_with_the_fault_over_veth_with_pysoem(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
     one = _with_history(MAPS / "generic_cia402.yaml", tmp_path / "one.yaml")
-    try:
-        with emulate(_network(tmp_path, [one, one]), ethercat="veth", receive_timeout_us=20000) as emu:
-            events = _fault_and_collect(emu, "j1", "sensor error")
-    except EmulationUnavailable as exc:
-        pytest.skip(str(exc))
+    request.getfixturevalue("veth_possible")
+    with emulate(_network(tmp_path, [one, one]), ethercat="veth", receive_timeout_us=20000) as emu:
+        events = _fault_and_collect(emu, "j1", "sensor error")
     _check(events, "j1", 0x7300, "sensor error")

@@ -15,7 +15,7 @@ import fieldbus
 from fieldbus.core.cia402 import State402
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.recording.load import load
-from fieldbus.testing import EmulationUnavailable, emulate
+from fieldbus.testing import emulate
 
 MAPS = Path(__file__).resolve().parents[2] / "pdo_maps"
 TWO_AXIS = MAPS / "generic_cia402_2axis.yaml"
@@ -81,17 +81,16 @@ def test_a_two_axis_slave_runs_both_axes_on_the_sim_backend(tmp_path: Path) -> N
 
 
 @pytest.mark.veth
-def test_a_two_axis_slave_runs_both_axes_over_veth_with_pysoem(tmp_path: Path) -> None:
-    pytest.importorskip("pysoem")
-    try:
-        with emulate(_network(tmp_path, TWO_AXIS), ethercat="veth", receive_timeout_us=20000) as emu:
-            # SOEM mapped what the maps imply: 2 x 13 output and 2 x 15 input bytes per slave
-            backend = emu.network.backend("arm")
-            assert [(a.out_size, a.in_size) for a in backend.areas] == [(26, 30)] * 2
-            _enable_and_track(emu, 1500)
-            _check_both_axes_track(emu)
-    except EmulationUnavailable as exc:
-        pytest.skip(str(exc))
+def test_a_two_axis_slave_runs_both_axes_over_veth_with_pysoem(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    request.getfixturevalue("veth_possible")
+    with emulate(_network(tmp_path, TWO_AXIS), ethercat="veth", receive_timeout_us=20000) as emu:
+        # SOEM mapped what the maps imply: 2 x 13 output and 2 x 15 input bytes per slave
+        backend = emu.network.backend("arm")
+        assert [(a.out_size, a.in_size) for a in backend.areas] == [(26, 30)] * 2
+        _enable_and_track(emu, 1500)
+        _check_both_axes_track(emu)
 
 
 @pytest.mark.parametrize(
@@ -102,7 +101,9 @@ def test_a_two_axis_slave_runs_both_axes_over_veth_with_pysoem(tmp_path: Path) -
         pytest.param("sdo", "veth", marks=pytest.mark.veth),
     ],
 )
-def test_sdos_to_axis_2_objects_reach_axis_2(tmp_path: Path, code_by: str, ethercat: str) -> None:
+def test_sdos_to_axis_2_objects_reach_axis_2(
+    tmp_path: Path, code_by: str, ethercat: str, request: pytest.FixtureRequest
+) -> None:
     """0x6841 reads axis 2's statusword; 0x6865 sets axis 2's following error window, not axis 1's.
 
     ``code_by`` "sdo": a map without 0x603F in its PDOs; the fault's code is read from 0x683F, and
@@ -116,11 +117,8 @@ def test_sdos_to_axis_2_objects_reach_axis_2(tmp_path: Path, code_by: str, ether
         line = next(x for x in text.splitlines() if "0x603F" in x and "index:" in x)
         map_path.write_text(text.replace(line + "\n", "") + "ethercat: {diagnosis_history: true}\n")
     if ethercat == "veth":
-        pytest.importorskip("pysoem")
-    try:
-        _axis_2_fault(tmp_path, map_path, code_by, ethercat)
-    except EmulationUnavailable as exc:
-        pytest.skip(str(exc))
+        request.getfixturevalue("veth_possible")  # pysoem there, the machine makes a veth pair
+    _axis_2_fault(tmp_path, map_path, code_by, ethercat)
 
 
 def _axis_2_fault(tmp_path: Path, map_path: Path, code_by: str, ethercat: str) -> None:

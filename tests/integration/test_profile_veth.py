@@ -16,7 +16,7 @@ import pytest
 
 import fieldbus
 from fieldbus import Cia402Controller, Goal, Mode, ProfileMove, ProfilePhase
-from fieldbus.testing import EmulationUnavailable, emulate
+from fieldbus.testing import emulate
 
 pytestmark = pytest.mark.timeout(180)
 DEMO_MAP = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"
@@ -38,35 +38,34 @@ def _net(tmp_path: Path) -> Path:
     return net
 
 
-def test_a_pp_move_over_veth_with_pysoem_ends_on_target_after_the_handshake(tmp_path: Path) -> None:
-    pytest.importorskip("pysoem")
-    try:
-        with emulate(_net(tmp_path), ethercat="veth", receive_timeout_us=20000) as emu:
-            op = emu.op
-            (group,) = op.groups
-            img = op[group]
-            ctrl = Cia402Controller(1, mode=Mode.CSP)
-            ctrl.set_goal(Goal.ENABLE)
-            moves = ProfileMove.from_maps(ctrl, [s.map for s in op.groups[group].slaves], op.cycle_time_us)
+def test_a_pp_move_over_veth_with_pysoem_ends_on_target_after_the_handshake(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    request.getfixturevalue("veth_possible")
+    with emulate(_net(tmp_path), ethercat="veth", receive_timeout_us=20000) as emu:
+        op = emu.op
+        (group,) = op.groups
+        img = op[group]
+        ctrl = Cia402Controller(1, mode=Mode.CSP)
+        ctrl.set_goal(Goal.ENABLE)
+        moves = ProfileMove.from_maps(ctrl, [s.map for s in op.groups[group].slaves], op.cycle_time_us)
 
-            def step(k: int) -> bool:
-                if op.exchange().fresh:
-                    ctrl.step_image(img)
-                    moves.step_image(img)
-                return ctrl.all_reached and moves.done
+        def step(k: int) -> bool:
+            if op.exchange().fresh:
+                ctrl.step_image(img)
+                moves.step_image(img)
+            return ctrl.all_reached and moves.done
 
-            emu.run(step, cycles=3000)  # enable in CSP (ends early once enabled)
-            assert ctrl.all_reached
-            target = float(img.inputs["position_actual_value"][0]) + 1.5  # rad: 31,291 counts
-            since = emu.trace.mark()
-            moves.move_to(target)
-            emu.run(step, cycles=8000)  # ends early once the move is done
-            fresh = emu.trace.fresh[since:]
-            cw = emu.trace.outputs(group)["controlword"][since:, 0]
-            sw = emu.trace.inputs(group)["statusword"][since:, 0]
-            pos = emu.trace.inputs(group)["position_actual_value"][since:, 0]
-    except EmulationUnavailable as exc:
-        pytest.skip(str(exc))
+        emu.run(step, cycles=3000)  # enable in CSP (ends early once enabled)
+        assert ctrl.all_reached
+        target = float(img.inputs["position_actual_value"][0]) + 1.5  # rad: 31,291 counts
+        since = emu.trace.mark()
+        moves.move_to(target)
+        emu.run(step, cycles=8000)  # ends early once the move is done
+        fresh = emu.trace.fresh[since:]
+        cw = emu.trace.outputs(group)["controlword"][since:, 0]
+        sw = emu.trace.inputs(group)["statusword"][since:, 0]
+        pos = emu.trace.inputs(group)["position_actual_value"][since:, 0]
     assert moves.phase[0] == ProfilePhase.DONE
     sent = int(np.flatnonzero(cw & NEW)[0])
     acked = sent + int(np.flatnonzero(sw[sent:] & ACK)[0])
