@@ -231,14 +231,12 @@ class Remote:
     def claim(self, group: str) -> None:
         """Become the one client that commands ``group`` (:class:`ClaimError` if another owns it).
 
-        The position command starts at the measured position: the first exchange holds the joints.
+        The position command starts at the measured position, velocity and torque at 0: the first exchange
+        holds the joints. The server knows this client by its DDS participant, not by ``client_id``.
         """
         g = self[group]
         self.request("claim", group)
-        # the first command holds the joints where they are (the server's target followed them until now)
-        out, inp = g.command_channels.get("position"), g.joint_state.get("position")
-        if out is not None and inp is not None:
-            g.outputs.values[out] = g.inputs.values[inp]
+        self._hold(g)
         self.claimed.add(group)
 
     def release(self, group: str) -> None:
@@ -302,9 +300,19 @@ class Remote:
             for st in link.reader.take(N=8):
                 if isinstance(st, m.AxisState) and st.cycle > g.state.cycle:
                     g.accept(st)
+        self._hold(g)
+
+    @staticmethod
+    def _hold(g: RemoteGroup) -> None:
+        """The next command holds the joints: position at the measured one, velocity and torque 0 (what the
+        server applies while no command does)."""
         out, inp = g.command_channels.get("position"), g.joint_state.get("position")
         if out is not None and inp is not None:
             g.outputs.values[out] = g.inputs.values[inp]
+        for role in ("velocity", "torque"):
+            chan = g.command_channels.get(role)
+            if chan is not None:
+                g.outputs.values[chan] = 0.0
 
     def command_channels(self, group: str) -> dict[str, str]:
         """Which output channel each command field carries (the rest belong to the server)."""

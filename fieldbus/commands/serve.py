@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, previous)
     report["groups"] = {
         n: {
-            "owner": g.gate.owner,
+            "owner": g.gate.label if g.gate.owner is not None else None,
             "gate": g.gate.state.name,
             "dropped": g.gate.dropped,
             "refused": g.gate.refused,

@@ -28,6 +28,13 @@ REALTIME = Qos(
     Policy.History.KeepLast(1),
     Policy.Durability.Volatile,
 )
+# the command reader: best effort as the writers, but a few samples per instance, so that a writer that
+# names another client's client_id (the same instance) cannot push the owner's newest command out
+COMMANDS = Qos(
+    Policy.Reliability.BestEffort,
+    Policy.History.KeepLast(8),
+    Policy.Durability.Volatile,
+)
 # requests, replies and diagnostics: few, each one matters
 RELIABLE = Qos(
     Policy.Reliability.Reliable(duration(seconds=1)),

@@ -22,15 +22,25 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
+from fieldbus.core.cia402 import (
+    Cia402Controller,
+    Goal,
+    Homing,
+    HomingPhase,
+    Mode,
+    State402,
+    decode_states,
+)
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import row_names
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
+from fieldbus.dds.callers import Caller, Callers, publication_handle
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
+    COMMANDS,
     DIAGNOSTICS,
     REALTIME,
     RELIABLE,
@@ -55,7 +65,10 @@ MODES_OUT, MODES_DISPLAY = 0x6060, 0x6061
 ENABLE_TIMEOUT_CYCLES = 3000
 SERVICE_POLL_EVERY = 10  # cycles between looks at the ROS 2 service requests (10 ms at 1 kHz)
 Respond = Callable[["dict[str, Any] | FieldbusError | None"], None]  # a service call's answer
+Check = Callable[[], "dict[str, Any] | None"]  # a request under way: its detail once it has ended
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
+# why a command was not applied (a counter each, in the diagnostics as refused/<reason>)
+REFUSALS = ("wrong_length", "not_finite", "not_owner", "before_transition")
 
 
 @dataclass(frozen=True)
@@ -144,11 +157,18 @@ class ServedGroup:
             )
         self.no_state = np.full(self.n, -1, dtype=np.int8)
         self.drive_errors: list[str] = [""] * self.n  # per axis its newest drive fault, by name
+        self.refusals = dict.fromkeys(REFUSALS, 0)  # commands not applied, per reason
+        self.last_refusal = ""  # the newest refusal, said for people
+        self.latched_by = ""  # why the gate latched its safe stop (deadline, bus, drive fault, owner left)
+        self.callers = server.callers
+        self.owner_writers: list[tuple[Any, int]] = []  # (reader, writer handle) the owner was seen on
+        self.stopped = False  # the group's drives are held by safe outputs (the gate's or the bus's latch)
+        self._scratch = np.zeros(self.n, dtype=np.intp)
         topics = topic_names(server.options.namespace, name)
         dp = server.participant.dp
         self.js_writer = DataWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
         self.st_writer = DataWriter(dp, Topic(dp, topics["axis_state"], m.AxisState), qos=REALTIME)
-        self.cmd_reader = DataReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=REALTIME)
+        self.cmd_reader = DataReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=COMMANDS)
         self.topics = topics
 
     def describe(self) -> dict[str, Any]:
@@ -163,17 +183,51 @@ class ServedGroup:
         }
 
     # -- the cycle, before exchange() --
+    def refuse(self, reason: str, why: str) -> None:
+        """A command not applied: counted under ``reason``; ``why`` is published in the diagnostics."""
+        self.refusals[reason] += 1
+        if reason != "before_transition":
+            self.gate.refused += 1
+        self.last_refusal = why
+
+    def discard_pending(self) -> None:
+        """A transition (claim, clear, enable): commands received before it are not applied after it."""
+        for cmd in self.cmd_reader.take(N=64):
+            if isinstance(cmd, m.JointCommand):
+                self.refuse(
+                    "before_transition", f"sequence {cmd.sequence} came before a claim, clear or enable"
+                )
+
     def take_commands(self) -> None:
-        """Offer every command received since the last cycle to the gate; apply the newest accepted one."""
+        """Offer every command received since the last cycle to the gate; apply the newest accepted one.
+
+        Refused, with the reason counted: a sequence of the wrong length, a
+        value that is not finite (NaN, inf: it never counts as a live command),
+        a writer whose DDS participant is not the owner's (whatever client_id it
+        names)."""
         newest: m.JointCommand | None = None
+        gate = self.gate
         for cmd in self.cmd_reader.take(N=64):
             if not isinstance(cmd, m.JointCommand):
                 continue  # an instance disposed by a departed writer
             if any(len(getattr(cmd, r)) not in (0, self.n) for r in OUTPUT_ROLES):
-                self.gate.refused += 1
+                lengths = {r: len(getattr(cmd, r)) for r in OUTPUT_ROLES if getattr(cmd, r)}
+                self.refuse("wrong_length", f"sequence {cmd.sequence}: lengths {lengths}, want 0 or {self.n}")
                 continue
-            if self.gate.offer(cmd.client_id, cmd.sequence):
+            if not all(np.isfinite(getattr(cmd, r)).all() for r in OUTPUT_ROLES if getattr(cmd, r)):
+                self.refuse("not_finite", f"sequence {cmd.sequence}: a value is NaN or infinite")
+                continue
+            who = self.callers.of(self.cmd_reader, cmd)
+            if who is None or who != gate.owner:
+                self.refuse(
+                    "not_owner",
+                    f"sequence {cmd.sequence} (client_id {cmd.client_id!r}) from DDS participant {who}, "
+                    f"not the owner's",
+                )
+                continue
+            if gate.offer(who, cmd.sequence):
                 newest = cmd
+                self.note_owner_writer(self.cmd_reader, publication_handle(cmd))
         if newest is not None:
             out = self.image.outputs.values
             for role, chan in self.out_roles.items():
@@ -181,19 +235,47 @@ class ServedGroup:
                 if seq:
                     out[chan] = seq
 
-    def before_exchange(self) -> None:
+    def note_owner_writer(self, reader: Any, handle: int) -> None:
+        """The owner wrote on ``reader`` with writer ``handle``: its liveliness is watched there."""
+        if handle and (reader, handle) not in self.owner_writers:
+            self.owner_writers.append((reader, handle))
+
+    def latch(self, why: str, *, edge: bool = False) -> None:
+        """Latch the group's safe stop now (``edge``: the gate has just latched it itself); the drives'
+        goal is DISABLE until an enable after the clear."""
+        if edge or not self.gate.latched:
+            self.latched_by = why
+        self.gate.latch()
+        if self.ctrl is not None:
+            self.ctrl.set_goal(Goal.DISABLE)
+
+    def seed(self) -> None:
+        """No command applies: position target = the joint's actual position, velocity and torque 0."""
+        out, inp = self.image.outputs.values, self.image.inputs.values
+        pos_out, pos_in = self.out_roles.get("position"), self.in_roles.get("position")
+        if pos_out is not None and pos_in is not None:
+            out[pos_out] = inp[pos_in]
+        for role in ("velocity", "torque"):
+            chan = self.out_roles.get(role)
+            if chan is not None:
+                out[chan] = 0.0
+
+    def before_exchange(self, bus_stopped: bool) -> None:
         was = self.gate.state
         state = self.gate.tick()
-        if state is GateState.SAFE_STOP and was is not GateState.SAFE_STOP and self.ctrl is not None:
-            self.ctrl.set_goal(Goal.DISABLE)  # after a clear the drives stay off until asked to enable
+        if state is GateState.SAFE_STOP and was is not GateState.SAFE_STOP:
+            self.latch(f"no command for {self.gate.deadline.stop_after} cycles", edge=True)
+        self.stopped = state is GateState.SAFE_STOP or bus_stopped
         if self.ctrl is not None:
-            self.ctrl.step(*self._cia)
+            if self.stopped:  # the safe outputs own the controlword: no fault reset is spent against them
+                decode_states(self._cia[0], self.ctrl.state, self._scratch)
+            else:
+                self.ctrl.step(*self._cia)
             if self.homing is not None:
                 self.homing.step(self._cia[0], self._cia[1])
-        pos_out, pos_in = self.out_roles.get("position"), self.in_roles.get("position")
-        if state is GateState.IDLE and pos_out is not None and pos_in is not None:
-            # no command yet: the target follows the joint, so an enable or a first command starts from here
-            self.image.outputs.values[pos_out] = self.image.inputs.values[pos_in]
+        if state is GateState.IDLE or self.stopped:
+            # no command applies: the targets hold the joint, so an enable or a first command starts from here
+            self.seed()
         if state is GateState.SAFE_STOP and self.writer is not None:
             self.writer.apply()
 
@@ -221,7 +303,7 @@ class ServedGroup:
             gate=int(g.state),
             command_sequence=g.applied_sequence,
             command_age=g.age,
-            owner=g.owner or "",
+            owner=g.label if g.owner is not None else "",
             dropped_sequences=g.dropped,
             refused_commands=g.refused,
         )
@@ -245,6 +327,8 @@ class BusServer:
         self.stalls = StallWatch(1_000_000)
         self.participant = participant
         self.options = options
+        self.callers = Callers()
+        self._bus_stopped = False  # the bus's safe stop was latched at the end of the last cycle
         self.groups: dict[str, ServedGroup] = {
             name: ServedGroup(self, name, g.image, row_names(g.slaves), tuple(s.map for s in g.slaves))
             for name, g in net.groups.items()
@@ -263,7 +347,9 @@ class BusServer:
         self.reply_writer = DataWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
         self.diag_writer = DataWriter(dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=DIAGNOSTICS)
         self.requests = 0
-        self.services = ServiceHost(participant, options.namespace, list(self.groups), self._answer)
+        self.services = ServiceHost(
+            participant, options.namespace, list(self.groups), self._answer, self.callers
+        )
 
     def attach(self, op: Operational) -> None:
         """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
@@ -300,16 +386,22 @@ class BusServer:
         self.stalls.tick(self._clock(), self.op.result.cycle)
         for req in self.req_reader.take(N=16):
             if isinstance(req, m.Request):
-                self._answer(req)
+                self._answer(req, None, Caller.of(self.callers, self.req_reader, req, req.client_id))
         if k % SERVICE_POLL_EVERY == 0:
             self.services.poll()
         if self._pending:
             self._advance_pending()
+        if k % SERVICE_POLL_EVERY == 5:
+            self._watch_owners()
         for g in self.groups.values():
             g.take_commands()
-            g.before_exchange()
+            g.before_exchange(self._bus_stopped)
         res = self.op.exchange()
         self.stalls.result(res.cycle, res.safe_stop)
+        if res.safe_stop and not self._bus_stopped:
+            for g in self.groups.values():
+                g.latch("the bus's safe stop")
+        self._bus_stopped = res.safe_stop
         if res.events:
             self._note_faults(res)
         o = self.options
@@ -328,9 +420,20 @@ class BusServer:
                 g = self.groups[ev.group]
                 code = f"0x{ev.code:04X} " if ev.code is not None else ""
                 g.drive_errors[ev.axis] = f"{code}{ev.name} (cycle {ev.cycle})"
+                # no automatic re-enable on the last command: the owner clears and enables again
+                g.latch(f"drive fault on {g.axes[ev.axis]} (its drive_error says which)")
 
-    def _answer(self, req: m.Request, respond: Respond | None = None) -> None:
-        """Carry out ``req``; its outcome goes to ``respond`` (a ROS 2 service call), else as a Reply."""
+    def _watch_owners(self) -> None:
+        """A group whose owner's participant has left the domain (no writer of it matched) latches."""
+        for g in self.groups.values():
+            if g.gate.owner is None or g.gate.latched or not g.owner_writers:
+                continue
+            if not any(self.callers.alive(reader, h) for reader, h in g.owner_writers):
+                g.latch(f"the owner '{g.gate.label}' left the DDS domain")
+
+    def _answer(self, req: m.Request, respond: Respond | None, caller: Caller) -> None:
+        """Carry out ``req`` for ``caller``; its outcome goes to ``respond`` (a ROS 2 service call), else as
+        a Reply."""
         if respond is None:
             done = self._answered.get(req.client_id)
             if done is not None and done[0] == req.request_id:  # a resend of an answered request
@@ -343,7 +446,7 @@ class BusServer:
                 return  # a resend of a request under way: answered when it ends
         self.requests += 1
         try:
-            detail = self._do(req)
+            detail = self._do(req, caller)
         except FieldbusError as exc:
             self._reply(req, exc, respond)
             return
@@ -377,13 +480,15 @@ class BusServer:
         if isinstance(outcome, FieldbusError):
             reply.ok = False
             reply.error = f"{type(outcome).__name__}: {outcome}"
-        elif outcome is not None:
+        elif outcome:
             reply.detail = json.dumps(outcome)
         self._answered[req.client_id] = (req.request_id, reply)
         self.reply_writer.write(reply)
 
-    def _do(self, req: m.Request) -> dict[str, Any] | Callable[[], dict[str, Any] | None] | None:
-        """Carry out ``req``: its detail, or a check the cycle calls until it gives the detail."""
+    def _do(self, req: m.Request, caller: Caller) -> dict[str, Any] | Check | None:
+        """Carry out ``req``: its detail, or a check the cycle calls until it gives the detail.
+
+        The caller is its DDS participant (``caller.who``), not the client_id it names."""
         verb = req.verb
         if verb not in VERBS:
             raise FieldbusError(f"unknown request '{verb}' (have: {', '.join(VERBS)})")
@@ -392,26 +497,35 @@ class BusServer:
         g = self.groups.get(req.group)
         if g is None:
             raise FieldbusError(f"no axis group '{req.group}' (have: {', '.join(self.groups)})")
-        client = req.client_id
-        if not client:
+        if not req.client_id:
             raise ClaimError("a request needs a client_id")
+        if caller.who is None:
+            raise ClaimError(f"client '{req.client_id}': its DDS participant is not known (yet): ask again")
+        client = caller.who
         gate = g.gate
         if verb == "claim":
-            gate.claim(client)
+            was = gate.owner
+            gate.claim(client, req.client_id)
+            if was != client:
+                g.owner_writers = []
+                g.note_owner_writer(caller.reader, caller.handle)
+                g.discard_pending()
         elif verb == "release":
             gate.release(client)
+            g.owner_writers = []
         elif verb == "disable":  # anyone may stop the drives
             self._cia402(g).set_goal(Goal.DISABLE)
         elif verb == "enable":
-            gate.check_owner(client)
-            if gate.latched or self.op.result.safe_stop:
-                raise FieldbusError("safe stop latched: send clear_safe_stop first")
-            self._cia402(g).set_goal(Goal.ENABLE)
+            return self._enable(g, client)
+        elif verb == "reset_faults":
+            return self._reset_faults(g, client, _argument(req))
         elif verb == "clear_safe_stop":
             gate.check_owner(client)
             if self.op.result.safe_stop:
                 self.op.clear_safe_stop()  # SafeStopClearError while a bus is still missing
             gate.clear(client)
+            g.latched_by = ""
+            g.discard_pending()
         elif verb == "home":
             return self._home(g, client)
         elif verb == "mode":
@@ -419,6 +533,78 @@ class BusServer:
         elif verb in ("sdo_read", "sdo_write"):
             return self._sdo(g, client, verb, _argument(req))
         return None
+
+    def _enable(self, g: ServedGroup, client: str) -> Check:
+        """Enable ``g``'s drives (the owner): IDLE first (targets on the joints, commands sent before
+        discarded), each axis's fault-reset budget re-armed; answered once every axis is OPERATION
+        ENABLED, or with the axes that are not. While the bus's latch waits for its release (after a
+        clear), the goal waits too."""
+        ctrl, gate = self._cia402(g), g.gate
+        gate.check_owner(client)
+        bus = self.op.result.safe_stop
+        if gate.latched or (bus and not any(bv.status.release_pending for bv in self.op.buses)):
+            raise FieldbusError("safe stop latched: send clear_safe_stop first")
+        gate.pause(client)  # IDLE, no deadline until enabled
+        g.discard_pending()
+        ctrl.reset_fault_budget()
+        end = self.op.result.cycle + ENABLE_TIMEOUT_CYCLES
+        started = False
+
+        def check() -> dict[str, Any] | None:
+            nonlocal started
+            if gate.latched or gate.owner != client:
+                raise FieldbusError(
+                    f"group '{g.name}': {g.latched_by or 'the claim was lost'} while enabling"
+                )
+            if self.op.result.cycle > end:
+                raise FieldbusError(
+                    f"group '{g.name}' not enabled within {ENABLE_TIMEOUT_CYCLES} cycles (states {_names(ctrl)})"
+                )
+            if not started:
+                if self.op.result.safe_stop:
+                    return None  # the bus's latch opens after its release cycles
+                ctrl.set_goal(Goal.ENABLE)
+                started = True
+            if ctrl.gave_up.any():
+                bad = ", ".join(a for a, x in zip(g.axes, ctrl.gave_up, strict=True) if x)
+                raise FieldbusError(f"group '{g.name}': {bad} stayed in FAULT after its fault resets")
+            if not (ctrl.state == State402.OPERATION_ENABLED).all():
+                return None
+            gate.restart(client)  # IDLE, the no-command deadline counts from now
+            g.discard_pending()
+            return {}
+
+        return self._resuming(g, check)
+
+    def _reset_faults(self, g: ServedGroup, client: str, arg: dict[str, Any]) -> dict[str, Any]:
+        """Re-arm the fault-reset budget of ``arg['axis']`` (a joint; default every joint of ``g``)."""
+        ctrl = self._cia402(g)
+        g.gate.check_owner(client)
+        axis = arg.get("axis")
+        if axis is not None and axis not in g.axes:
+            raise FieldbusError(
+                f"reset_faults: no axis {axis!r} in group '{g.name}' (have: {', '.join(g.axes)})"
+            )
+        axes = [g.axes.index(axis)] if axis is not None else list(range(g.n))
+        re_armed = [g.axes[i] for i in axes if ctrl.gave_up[i]]
+        ctrl.reset_fault_budget(axes)
+        return {"re_armed": re_armed}
+
+    @staticmethod
+    def _resuming(g: ServedGroup, check: Check) -> Check:
+        """``check``, and once it has ended (answer or error) the gate's no-command deadline counts again."""
+
+        def wrapped() -> dict[str, Any] | None:
+            try:
+                detail = check()
+            except FieldbusError:
+                g.gate.resume()
+                raise
+            if detail is not None:
+                g.gate.resume()
+            return detail
+
+        return wrapped
 
     def _home(self, g: ServedGroup, client: str) -> Callable[[], dict[str, Any] | None]:
         """Home every axis of ``g`` (the drive's method 0x6098, the map's homing time-out)."""
@@ -444,7 +630,7 @@ class BusServer:
                 raise FieldbusError(f"homing of group '{g.name}' did not end: {', '.join(bad)}")
             return {"phases": phases, "cycles": homing.cycles.tolist()}
 
-        return check
+        return self._resuming(g, check)
 
     def _mode(self, g: ServedGroup, client: str, arg: dict[str, Any]) -> Callable[[], dict[str, Any] | None]:
         """Switch ``g``'s drives to ``arg['mode']`` (a name such as "CSV" or a CiA 402 number)."""
@@ -475,7 +661,7 @@ class BusServer:
                 )
             return None
 
-        return check
+        return self._resuming(g, check)
 
     def _sdo(
         self, g: ServedGroup, client: str, verb: str, arg: dict[str, Any]
@@ -544,7 +730,7 @@ class BusServer:
             status.append(
                 m.DiagnosticStatus(
                     level=level,
-                    name=f"fieldbus/{bv.name}",
+                    name=f"fieldbus/bus/{bv.name}",
                     message=f"{st.verdict.name}{' safe stop' if st.safe_stop else ''}",
                     hardware_id=bv.kind,
                     values=values,
@@ -555,11 +741,14 @@ class BusServer:
             states = g.ctrl.state.tolist() if g.ctrl is not None else []
             level = LEVEL_ERROR if gate.latched else LEVEL_WARN if gate.state is GateState.HOLD else LEVEL_OK
             values = [
-                m.KeyValue("owner", gate.owner or ""),
+                m.KeyValue("owner", gate.label if gate.owner is not None else ""),
+                m.KeyValue("owner_participant", gate.owner or ""),
                 m.KeyValue("command_sequence", str(gate.applied_sequence)),
                 m.KeyValue("dropped_sequences", str(gate.dropped)),
                 m.KeyValue("refused_commands", str(gate.refused)),
             ]
+            values += [m.KeyValue(f"refused/{r}", str(n)) for r, n in g.refusals.items()]
+            values += [m.KeyValue("last_refusal", g.last_refusal), m.KeyValue("latched_by", g.latched_by)]
             values += [
                 m.KeyValue(f"{axis}/drive_state", _state_name(s))
                 for axis, s in zip(g.axes, states, strict=False)
@@ -572,8 +761,8 @@ class BusServer:
             status.append(
                 m.DiagnosticStatus(
                     level=level,
-                    name=f"fieldbus/{g.name}",
-                    message=gate.state.name,
+                    name=f"fieldbus/group/{g.name}",
+                    message=gate.state.name + (f": {g.latched_by}" if gate.latched and g.latched_by else ""),
                     hardware_id=g.name,
                     values=values,
                 )

@@ -17,12 +17,13 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.dds import messages as m
+from fieldbus.dds.callers import Caller, Callers
 from fieldbus.dds.participant import RELIABLE, Participant
 from fieldbus.dds.services import SERVICES, Service, service_topics
 from fieldbus.errors import FieldbusError
 
 Outcome = dict[str, Any] | FieldbusError | None
-Answer = Callable[[m.Request, Callable[[Outcome], None]], None]
+Answer = Callable[[m.Request, Callable[[Outcome], None], Caller], None]
 
 
 class _Endpoint:
@@ -39,11 +40,13 @@ class _Endpoint:
 class ServiceHost:
     """Every group's ROS 2 services; create it before bring-up, :meth:`poll` it from the cycle's thread."""
 
-    def __init__(self, participant: Participant, namespace: str, groups: list[str], answer: Answer) -> None:
+    def __init__(
+        self, participant: Participant, namespace: str, groups: list[str], answer: Answer, callers: Callers
+    ) -> None:
         dp = participant.dp
         self._answer = answer
         self._endpoints = [_Endpoint(dp, namespace, g, s) for g in groups for s in SERVICES]
-        self._callers: dict[int, str] = {}  # a request writer's handle -> its caller's client id
+        self._callers = callers
         self.calls = 0
 
     def poll(self) -> None:
@@ -54,25 +57,15 @@ class ServiceHost:
                     self.calls += 1
                     self._call(ep, call)
 
-    def caller(self, ep: _Endpoint, call: Any) -> str:
-        """The caller's client id: ``ros2-`` and its DDS participant's GUID (one per ROS 2 process), else
-        its request writer's id from the request header."""
-        handle = int(getattr(getattr(call, "sample_info", None), "publication_handle", 0) or 0)
-        known = self._callers.get(handle)
-        if known is not None:
-            return known
-        who = f"ros2-{int(call.client_guid):016x}"
-        try:
-            data = ep.reader.get_matched_publication_data(handle) if handle else None
-            if data is not None:
-                who = f"ros2-{data.participant_key.hex}"
-        except Exception:
-            pass
-        self._callers[handle] = who
-        return who
+    def caller(self, ep: _Endpoint, call: Any) -> Caller:
+        """The caller: its DDS participant (one per ROS 2 process); its client id ``ros2-`` and that
+        participant's GUID in hex (None and ``ros2-?`` while the writer is not known)."""
+        who = self._callers.of(ep.reader, call)
+        return Caller.of(self._callers, ep.reader, call, f"ros2-{who or '?'}")
 
     def _call(self, ep: _Endpoint, call: Any) -> None:
-        client = self.caller(ep, call)
+        caller = self.caller(ep, call)
+        client = caller.label
         s = ep.service
         verb, argument = s.verb, {}
         if s.name == "claim" and not call.data:
@@ -107,4 +100,4 @@ class ServiceHost:
                     reply.message = json.dumps(detail)
             ep.writer.write(reply)
 
-        self._answer(req, respond)
+        self._answer(req, respond, caller)

@@ -23,6 +23,7 @@ service                   type                        does
 ``/NS/GROUP/enable``      ``std_srvs/srv/Trigger``    enable the CiA 402 drives (the owner)
 ``/NS/GROUP/disable``     ``std_srvs/srv/Trigger``    disable them (anyone)
 ``/NS/GROUP/clear_safe_stop`` ``std_srvs/srv/Trigger``  open the latched safe stop (the owner)
+``/NS/GROUP/reset_faults`` ``std_srvs/srv/Trigger``   re-arm every joint's fault-reset budget (the owner)
 ``/NS/GROUP/home``        ``std_srvs/srv/Trigger``    home with the drives' method (the owner)
 ``/NS/GROUP/set_mode``    ``fieldbus_msgs/srv/SetMode``  switch the modes of operation (the owner)
 ``/NS/GROUP/sdo_read``    ``fieldbus_msgs/srv/SdoRead``  read an object of one joint
@@ -30,9 +31,9 @@ service                   type                        does
 ========================  ==========================  =============================================
 
 A caller is known by its DDS participant (one per ROS 2 process): every
-service client of one node shares the claim. Its client id, for the
-``JointCommand`` it sends, is ``ros2-`` and the participant's GUID in hex; the
-claim's reply says it.
+service client of one node shares the claim, and the group takes commands from
+writers of that participant only. Its client id, for people (``AxisState.owner``),
+is ``ros2-`` and the participant's GUID in hex; the claim's reply says it.
 """
 
 # no ``from __future__ import annotations``: cyclonedds resolves the annotations at run time
@@ -164,6 +165,7 @@ SERVICES = (
     Service("enable", TriggerRequest, TriggerResponse, "enable"),
     Service("disable", TriggerRequest, TriggerResponse, "disable"),
     Service("clear_safe_stop", TriggerRequest, TriggerResponse, "clear_safe_stop"),
+    Service("reset_faults", TriggerRequest, TriggerResponse, "reset_faults"),
     Service("home", TriggerRequest, TriggerResponse, "home"),
     Service("set_mode", SetModeRequest, SetModeResponse, "mode"),
     Service("sdo_read", SdoReadRequest, SdoReadResponse, "sdo_read"),

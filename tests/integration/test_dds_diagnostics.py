@@ -56,12 +56,15 @@ def test_a_drive_fault_is_in_the_diagnostics_by_axis_code_and_name(tmp_path: Pat
         emu.drive_fault("bus", "j1", 0x7300)
         emu.run(server.step, 50)
         values = _values(server, group)
+        status = _status(server, group)
     assert [k for k in values if k.endswith("/drive_error")] == ["j1/drive_error"]
     assert values["j1/drive_error"].startswith("0x7300 sensor") and values["j1/drive_error"].endswith(
         "1 fault(s)"
     )
-    # the fault stays named after the server's CiA 402 state machine has reset it and re-enabled
-    assert values["j1/drive_state"] == "OPERATION_ENABLED"
+    # the fault latches the group's safe stop (no automatic re-enable on the last command): the drive
+    # stays in FAULT until the owner clears and enables, and the group's status says why
+    assert values["j1/drive_state"] == "FAULT" and values["latched_by"].startswith("drive fault on j1")
+    assert status.level == 2 and status.message.startswith("SAFE_STOP: drive fault on j1")
 
 
 @pytest.mark.parametrize("stall_ms", [50, 150])

@@ -494,11 +494,11 @@ def test_monitor_dds_shows_the_served_joints_drive_states_gate_and_verdicts(
     assert [a["drive_state"] for a in group["axes"]] == ["operation enabled"] * 3
     assert all(a["fresh"] and a["position"] is not None for a in group["axes"])
     bus = next(s for s in snap["diagnostics"] if s["hardware_id"] == "sim")
-    assert (bus["name"], bus["level"], bus["message"]) == ("fieldbus/joints", "OK", "OK")
+    assert (bus["name"], bus["level"], bus["message"]) == ("fieldbus/bus/joints", "OK", "OK")
     assert bus["values"]["misses"] == "0" and "safe_stops" in bus["values"]
     # the text view, refreshed twice: the joints with their drive states, the gate, the bus's verdict
     assert text.count("group joints: cycle") == 2 and text.count("owner mover") == 2
-    assert text.count("operation enabled") == 6 and "fieldbus/joints [OK] OK" in text
+    assert text.count("operation enabled") == 6 and "fieldbus/bus/joints [OK] OK" in text
 
 
 def test_monitor_dds_without_a_served_bus_is_one_clear_error(
