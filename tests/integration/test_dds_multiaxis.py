@@ -80,7 +80,7 @@ def test_a_served_two_axis_slave_has_a_joint_per_axis_with_its_own_position(tmp_
         emu.run(server.step, cycles=300)
         assert emu.drive_states("arm") == [State402.OPERATION_ENABLED] * 4
         start = emu.op[name].inputs["position_actual_value"].astype(np.float64)
-        g.gate.claim("test")
+        g.gate.claim(dp.guid.hex, "test")  # the server knows a client by its DDS participant, not a string
         commands.write(m.JointCommand(client_id="test", sequence=1, position=(start + OFFSETS).tolist()))
         _run_until(emu, server, lambda: g.gate.applied_sequence == 1, 2000)
         assert g.gate.applied_sequence == 1

@@ -507,3 +507,70 @@ def test_monitor_dds_without_a_served_bus_is_one_clear_error(
     assert main(_monitor(_domain(404), "--once", "--timeout", "1")) == 1
     err = capsys.readouterr().err
     assert "no reply to 'describe' from namespace 'robot'" in err and "Traceback" not in err
+
+
+def _adversary(mode: str, domain: int, env: dict[str, str]) -> subprocess.Popen[str]:
+    """``dds/adversary.py MODE``: a client made with cyclonedds only (no fieldbus import)."""
+    return subprocess.Popen(
+        [sys.executable, str(HERE / "adversary.py"), mode, "robot", "joints", str(domain)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+
+def _last_line(proc: subprocess.Popen[str], timeout_s: float) -> dict[str, Any]:
+    out, err = proc.communicate(timeout=timeout_s)
+    assert proc.returncode == 0, err
+    return dict(json.loads(out.strip().splitlines()[-1]))
+
+
+def test_an_independent_client_cannot_move_a_joint_by_forging_the_owners_client_id(
+    served: int, env: dict[str, str]
+) -> None:
+    """Two DDS participants: the owner holds the joints; the other sends under the owner's client_id with
+    sequence numbers a million higher and +0.06 rad. The bus applies the owner's commands only."""
+    res = _last_line(_adversary("forge", served, env), 120)
+    assert res["owner"] == "owner"
+    assert res["applied"] == res["owner_sequence"]  # the owner's newest, not dropped as stale
+    assert res["refused"] >= 100 and res["dropped"] == 0
+    assert np.allclose(res["after"], res["before"], atol=2e-3), res  # the forger moved nothing
+
+
+def test_an_independent_client_sending_only_nan_is_held_then_safe_stopped_on_the_deadline(
+    served: int, env: dict[str, str]
+) -> None:
+    """After one valid command only NaN: the deadline runs as if nothing came (NaN is no sign of life)."""
+    res = _last_line(_adversary("nan", served, env), 180)
+    applied = [q for _, _, _, q, _ in res["seen"]]
+    first = applied.index(res["valid_sequence"])  # states from before the valid command: none applied yet
+    assert set(applied[:first]) <= {0} and set(applied[first:]) == {res["valid_sequence"]}  # no NaN applied
+    seen = [(int(c), GateState(g), int(age), ds) for c, g, age, _, ds in res["seen"][first:]]
+    _assert_hold_then_safe_stop(seen, HOLD_AFTER, STOP_AFTER)  # in the bus's cycles, as if nothing came
+    assert res["refused"] >= len(seen) - 1
+
+
+def test_an_owner_killed_with_sigkill_leaves_the_group_claimable_on_the_deadline(
+    served: int, env: dict[str, str]
+) -> None:
+    """A cyclonedds-only owner is killed (SIGKILL: no release, no goodbye); another cyclonedds-only client
+    asking to claim is refused only while the deadline has not fired, then gets the group."""
+    owner = _adversary("commander", served, env)
+    claimer = None
+    try:
+        assert _read_line(owner, 60) == {"commanding": True}
+        claimer = _adversary("claimer", served, env)
+        assert "refused_after" in _read_line(claimer, 60)  # refused while the owner lives
+        owner.kill()
+        owner.wait()
+        res = _last_line(claimer, 120)
+    finally:
+        for p in (owner, claimer):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+    assert GateState(res["gate"]) is GateState.SAFE_STOP  # the dead owner's deadline latched
+    last = int(res["last_command_cycle"])
+    assert res["refused"] and all(before < last + STOP_AFTER for before, _ in res["refused"]), res
+    assert all("commanded by client 'commander'" in why for _, why in res["refused"])
