@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
@@ -11,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from fieldbus.commands.argtypes import integer
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
+from fieldbus.runtime.clock import Clock
 from fieldbus.runtime.loop import default_status_stream, run_cycles
 from fieldbus.runtime.monitor import monitor_context
 from fieldbus.runtime.rt import RtConfig, RtState, realtime
@@ -102,10 +104,12 @@ def run_timed(
     status: bool,
     describe: Callable[[], str] | None = None,
     monitor: bool = False,
+    clock: Clock | None = None,
 ) -> tuple[CycleTimer, CycleLatency]:
     """:func:`run_cycles` with wake-up latency and ``exchange()`` time histograms.
 
-    ``status``: a progress line on a terminal; ``monitor``: the live view instead.
+    ``status``: a progress line on a terminal; ``monitor``: the live view instead; ``clock``: how the
+    loop waits (default: a relative sleep and a spin).
     """
     latency = CycleLatency()
     if op.recorders:
@@ -125,6 +129,7 @@ def run_timed(
             status=default_status_stream(status and not monitor),
             describe=describe,
             latency=latency,
+            clock=clock if clock is not None else time.perf_counter_ns,
         )
     return timer, latency
 

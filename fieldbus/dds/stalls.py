@@ -23,6 +23,7 @@ class StallWatch:
         self.period_ns = period_ns
         self.count = 0  # stalls seen
         self.longest_ns = 0
+        self.longest_gap_ns = 0  # the longest gap between two cycles' starts, stall or not
         self.last_cycle = -1  # the cycle that started after the newest stall (-1: none yet)
         self.last_ns = 0  # that stall's gap
         self.note = ""  # why the newest latched safe stop came, when a stall explains it
@@ -33,6 +34,8 @@ class StallWatch:
         """Cycle ``cycle`` starts at ``now_ns`` (any monotonic clock, ns)."""
         if self._prev_ns is not None:
             gap = now_ns - self._prev_ns
+            if gap > self.longest_gap_ns:
+                self.longest_gap_ns = gap
             if gap >= STALL_PERIODS * self.period_ns:
                 self.count += 1
                 self.longest_ns = max(self.longest_ns, gap)

@@ -13,6 +13,8 @@ passes they are called at every step of at most ``step_ns``, in order, so a
 
 from __future__ import annotations
 
+import ctypes
+import sys
 import time
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
@@ -42,6 +44,51 @@ class WallClock:
     def sleep(self, seconds: float) -> None:
         if seconds > 0:
             time.sleep(seconds)
+
+
+class DeadlineClock(WallClock):
+    """The monotonic clock, waiting by an absolute sleep (``clock_nanosleep`` with ``TIMER_ABSTIME`` on
+    ``CLOCK_MONOTONIC``) to ``spin_ns`` before each deadline, then spinning only that long.
+
+    A cycle thread at SCHED_FIFO that spins for long counts as busy: past
+    ``/proc/sys/kernel/sched_rt_runtime_us`` (950 ms in every 1 s by default)
+    the kernel throttles every real-time thread on the CPU for the rest of the
+    period, a stall of tens of ms. An absolute sleep does not drift with the
+    time the call takes to start; elsewhere than Linux it is ``time.sleep``.
+    """
+
+    def __init__(self, spin_ns: int = 30_000) -> None:
+        self.spin_ns = spin_ns
+        self._nanosleep = _clock_nanosleep()
+
+    def sleep_until_ns(self, deadline_ns: int) -> None:
+        """Sleep until the monotonic clock reads ``deadline_ns`` (an OS sleep: it may wake a little late)."""
+        if self._nanosleep is None:
+            self.sleep((deadline_ns - self.now_ns()) / 1e9)
+            return
+        ts = _Timespec(deadline_ns // 1_000_000_000, deadline_ns % 1_000_000_000)
+        while self._nanosleep(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ctypes.byref(ts), None) == _EINTR:
+            pass  # a signal woke it: sleep on to the same deadline
+
+
+_CLOCK_MONOTONIC, _TIMER_ABSTIME, _EINTR = 1, 1, 4  # Linux's values (time.h, errno.h)
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+def _clock_nanosleep() -> Callable[..., int] | None:
+    """libc's ``clock_nanosleep`` (which returns the error number), or None where there is none."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = ctypes.CDLL(None).clock_nanosleep
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.c_void_p]
+    fn.restype = ctypes.c_int
+    return fn
 
 
 Watcher = Callable[[int], None]
@@ -123,9 +170,15 @@ def sleep_until(clock: Clock, deadline_ns: int, spin_ns: int = 0) -> None:
             else:
                 clock.sleep((deadline_ns - now) / 1e9)
         return
-    remaining = deadline_ns - clock.now_ns()
-    if remaining > spin_ns:
-        clock.sleep((remaining - spin_ns) / 1e9)
+    absolute = getattr(clock, "sleep_until_ns", None)
+    if callable(absolute):  # a DeadlineClock: an absolute sleep, then its own (short) spin
+        spin_ns = clock.spin_ns  # type: ignore[attr-defined]
+        if deadline_ns - clock.now_ns() > spin_ns:
+            absolute(deadline_ns - spin_ns)
+    else:
+        remaining = deadline_ns - clock.now_ns()
+        if remaining > spin_ns:
+            clock.sleep((remaining - spin_ns) / 1e9)
     while clock.now_ns() < deadline_ns:
         pass
 

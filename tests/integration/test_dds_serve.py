@@ -533,7 +533,9 @@ def test_an_independent_client_cannot_move_a_joint_by_forging_the_owners_client_
     sequence numbers a million higher and +0.06 rad. The bus applies the owner's commands only."""
     res = _last_line(_adversary("forge", served, env), 120)
     assert res["owner"] == "owner"
-    assert res["applied"] == res["owner_sequence"]  # the owner's newest, not dropped as stale
+    # the owner's own (the forger's start at a million), its last ones perhaps still in flight; none of
+    # the owner's was dropped as stale behind the forger's higher numbers
+    assert res["owner_sequence"] - 50 < res["applied"] <= res["owner_sequence"], res
     assert res["refused"] >= 100 and res["dropped"] == 0
     assert np.allclose(res["after"], res["before"], atol=2e-3), res  # the forger moved nothing
 
