@@ -50,3 +50,31 @@ def test_sleep_until_on_the_wall_clock_reaches_the_deadline() -> None:
     deadline = wall.now_ns() + 2_000_000
     sleep_until(wall, deadline, spin_ns=150_000)
     assert wall.now_ns() >= deadline
+
+
+def test_the_deadline_clock_sleeps_not_spins_and_never_wakes_before_the_deadline() -> None:
+    """``DeadlineClock`` (``fieldbus serve``'s wait): an absolute sleep to ``spin_ns`` before the deadline,
+    then a spin. ``sleep_until`` returns at or after the deadline, never before, also when a signal
+    interrupts the sleep; the process's CPU time over the waits is a small part of them (a busy wait
+    would use all of it; the ratio does not depend on the machine's load)."""
+    import signal
+    import time
+
+    from fieldbus.runtime.clock import DeadlineClock, sleep_until
+
+    clock = DeadlineClock(spin_ns=30_000)
+    previous = signal.signal(signal.SIGALRM, lambda *_: None)
+    waited = cpu = 0
+    try:
+        for _ in range(20):
+            start, cpu0 = clock.now_ns(), time.process_time_ns()
+            deadline = start + 2_000_000
+            signal.setitimer(signal.ITIMER_REAL, 0.0005)  # a signal in the middle of the sleep
+            sleep_until(clock, deadline)
+            assert clock.now_ns() >= deadline
+            waited += clock.now_ns() - start
+            cpu += time.process_time_ns() - cpu0
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert cpu < 0.3 * waited, (cpu, waited)

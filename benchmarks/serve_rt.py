@@ -1,0 +1,117 @@
+"""The served cycle at SCHED_FIFO beside CPU burners and a 1 kHz client: does it keep its period?
+
+    python benchmarks/serve_rt.py [--seconds 10] [--rt-priority 50] [--burners 2] [--spin-us 30 150]
+
+For each ``--spin-us`` value, side by side on the same load: ``fieldbus serve``
+(sim emulator, 3 CiA 402 joints, 1 kHz, loopback, its own DDS domain) at
+``--rt-priority``, a client in this process that claims, enables and commands
+every cycle through ``fieldbus.remote`` (each exchange waits for the state
+that applied it: about 1 kHz), and ``--burners`` processes spinning
+``while 1: pass``. Reported per run, from serve's own report: the longest
+step (cycle_time_us max), overruns, the longest gap between two cycles'
+starts and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
+safe stops; and serve's CPU use while it was commanded (all its threads, from
+/proc). A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
+sched_rt_period_us is throttled for the rest of that period: the point of a
+short spin is to stay well below it. Wall-clock figures: they depend on the
+machine and its load; the load average is printed with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import fieldbus
+import fieldbus.remote
+from fieldbus.dds.participant import interface_config
+
+DEMO_JOINT = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"
+
+
+def _cpu_s(pid: int) -> float:
+    """utime + stime of process ``pid`` (all threads), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _run(net: Path, domain: int, seconds: float, priority: int, spin_us: int) -> dict[str, Any]:
+    env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
+    cmd = [sys.executable, "-m", "fieldbus", "serve", str(net), "--backend", "sim", "--domain", str(domain)]
+    cmd += ["--interface", "lo", "--json", "--hold-after", "5000", "--stop-after", "10000"]
+    cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us)]
+    server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert server.stdout is not None
+        ready = json.loads(server.stdout.readline())
+        with fieldbus.remote.connect("bench", domain=domain, interface="lo", client_id="bench") as op:
+            op.claim("joints")
+            op.enable("joints")
+            cpu0, t0, n = _cpu_s(server.pid), time.monotonic(), 0
+            while time.monotonic() - t0 < seconds:
+                op.exchange(deadline_s=0.05)
+                n += 1
+            cpu = (_cpu_s(server.pid) - cpu0) / (time.monotonic() - t0)
+            misses = op.misses
+    finally:
+        server.send_signal(signal.SIGTERM)
+        out, _ = server.communicate(timeout=60)
+    report = json.loads(out.strip().splitlines()[-1])
+    return {
+        "spin_us": spin_us,
+        "realtime": ready["realtime"],
+        "client_exchanges": n,
+        "client_late": misses,
+        "serve_cpu_percent": round(100 * cpu, 1),
+        "longest_step_us": report["cycle_time_us"]["max"],
+        "overruns": report["overruns"],
+        "longest_gap_us": report["stalls"]["longest_gap_us"],
+        "stalls_20ms": report["stalls"]["count"],
+        "bus_misses": report["missed"],
+        "safe_stops": report["safe_stops"],
+        "cycles": report["cycles"],
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--rt-priority", type=int, default=50)
+    ap.add_argument("--burners", type=int, default=2)
+    ap.add_argument("--spin-us", type=int, nargs="+", default=[30, 150])
+    args = ap.parse_args()
+    burners = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.burners)]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            net = Path(tmp) / "bench.yaml"
+            net.write_text(
+                "name: bench\ncycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n  - name: joints\n"
+                "    type: ethercat\n    interface: sim\n"
+                f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, count: 3}}]\n"
+            )
+            load = os.getloadavg()
+            rt = Path("/proc/sys/kernel/sched_rt_runtime_us").read_text().strip()
+            print(
+                json.dumps({"loadavg": load, "cpus": os.cpu_count(), "sched_rt_runtime_us": rt}), flush=True
+            )
+            for i, spin in enumerate(args.spin_us):
+                domain = 1 + (os.getpid() * 3 + i) % 200
+                print(json.dumps(_run(net, domain, args.seconds, args.rt_priority, spin)), flush=True)
+            print(json.dumps({"loadavg_after": os.getloadavg()}), flush=True)
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
