@@ -244,8 +244,9 @@ class Remote:
         self.claimed.discard(group)
 
     def enable(self, group: str, *, wait_s: float = 5.0) -> None:
-        """Enable ``group``'s CiA 402 drives; waits until every axis reports OPERATION ENABLED."""
-        self.request("enable", group)
+        """Enable ``group``'s CiA 402 drives; waits until every axis reports OPERATION ENABLED (the server
+        answers then, or with the axes that stayed in FAULT). The joints hold until the next command."""
+        self.request("enable", group, timeout_s=wait_s)
         self._wait_states(group, State402.OPERATION_ENABLED, wait_s)
 
     def disable(self, group: str, *, wait_s: float = 5.0) -> None:
@@ -260,6 +261,12 @@ class Remote:
         ):  # states from before the clear: not the answer to later
             if isinstance(st, m.AxisState):
                 self.groups[group].accept(st)
+
+    def reset_faults(self, group: str, axis: str | None = None) -> list[str]:
+        """Re-arm the fault-reset budget of ``axis`` (a joint; default every joint of ``group``), for a
+        drive that stayed in FAULT after its automatic resets; the joints that had given up."""
+        detail = self.request("reset_faults", group, argument={"axis": axis} if axis else None) or {}
+        return list(detail.get("re_armed", []))
 
     def home(self, group: str, *, timeout_s: float = 60.0) -> dict[str, Any]:
         """Home every axis of ``group`` (enabled, claimed) with the drives' homing method (0x6098); waits

@@ -13,7 +13,8 @@ the served bus's (``AxisState.cycle``), so the test bounds them in cycles.
 - ``nan``: claims, enables, sends one valid command, then only NaN. Result: the
   valid command's sequence and every (cycle, gate, command age, applied
   sequence, drive states) seen until 300 states after SAFE_STOP.
-- ``commander``: claims, enables, holds the joints forever (to be killed).
+- ``commander``: claims, enables, holds the joints forever (to be killed);
+  ``silent``: claims, enables and never sends a command (to be killed).
 - ``claimer``: asks to claim until it may (each refusal and the cycle it came
   at). Result: the claim's cycle and the owner's last command cycle as the state
   showed it.
@@ -169,12 +170,13 @@ def main() -> int:
                 "drive_state": list(p.last.drive_state) if p.last else [],
             }
         )
-    elif mode == "commander":
+    elif mode in ("commander", "silent"):
         p = Peer(ns, group, domain, "commander")
         hold = p.claim_and_enable()
         out({"commanding": True})
         while True:
-            p.command(hold)
+            if mode == "commander":
+                p.command(hold)
             time.sleep(0.002)
     elif mode == "claimer":
         p = Peer(ns, group, domain, "claimer")
