@@ -33,8 +33,12 @@ HELP_EPILOG = """DDS domain and network interface:
 command safety (cycles of this bus):
   no new command for --hold-after cycles: HOLD (the last command stays applied);
   for --stop-after cycles: SAFE STOP (the group's safe outputs), latched until the owner sends
-  clear_safe_stop. One client owns a group (claim); others are refused. A sequence number that does
-  not increase is dropped and counted.
+  clear_safe_stop; an owner that sends no command after its claim, clear or enable latches the same
+  way. One client owns a group (claim), known by its DDS participant: commands from any other
+  participant are refused, whatever client_id they name, and so are NaN/inf and wrong lengths (each
+  reason counted in the diagnostics). A sequence number that does not increase is dropped and counted.
+  The bus's safe stop and a drive fault latch too; after clear_safe_stop the drives stay disabled
+  until enable, and while no command applies the targets hold the joints (velocity, torque 0).
 
 ROS 2 services, per group: /NS/GROUP/claim (std_srvs/SetBool), enable, disable, clear_safe_stop,
   home (std_srvs/Trigger), set_mode, sdo_read, sdo_write (fieldbus_msgs); see docs/dds.md.

@@ -107,7 +107,7 @@ class AxisState(IdlStruct, typename="fieldbus_msgs::msg::dds_::AxisState_"):
     command_age: t.uint32 = 0
     owner: str = ""
     dropped_sequences: t.uint32 = 0  # commands whose sequence number did not increase
-    refused_commands: t.uint32 = 0  # commands not from the owner, or with a sequence of the wrong length
+    refused_commands: t.uint32 = 0  # not from the owner's participant, wrong length, or NaN/inf
 
 
 @dataclass
@@ -115,14 +115,15 @@ class JointCommand(IdlStruct, typename="fieldbus_msgs::msg::dds_::JointCommand_"
     """A command for one axis group: per joint, whatever the group's drives accept.
 
     An empty sequence leaves that quantity as it was; a non-empty one has one
-    entry per axis. ``client_id``: the claim this command is sent under.
-    ``sequence``: strictly increasing per client (a lower or equal one is dropped).
+    entry per axis, every value finite. ``client_id``: the sender's name (the
+    server trusts the writer's DDS participant, not this string).
+    ``sequence``: strictly increasing per claim (a lower or equal one is dropped).
     Units: rad, rad/s, N·m, N·m/rad, N·m·s/rad (as the drive map scales them).
     """
 
     header: Header = field(default_factory=Header)
     client_id: str = ""
-    key("client_id")  # one instance per client: a refused client cannot push the owner's sample out
+    key("client_id")  # one instance per client_id (the server's reader keeps 8 samples per instance)
     sequence: t.uint64 = 0
     position: Seq[t.float64] = field(default_factory=list)
     velocity: Seq[t.float64] = field(default_factory=list)
