@@ -124,6 +124,12 @@ class CommandGate:
         self._check_owner(client)
         self._idle()
 
+    def heard_from(self, client: str) -> None:
+        """A request from ``client``: if it owns the IDLE group, it is alive, and the no-command deadline
+        restarts (a COMMANDED group's deadline is kept by commands only)."""
+        if client == self.owner and self.state is GateState.IDLE:
+            self.age = 0
+
     def latch(self) -> None:
         """Latch SAFE_STOP now (a bus's safe stop or a drive fault): the owner must clear it."""
         self.state = GateState.SAFE_STOP

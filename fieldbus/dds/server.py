@@ -503,6 +503,7 @@ class BusServer:
             raise ClaimError(f"client '{req.client_id}': its DDS participant is not known (yet): ask again")
         client = caller.who
         gate = g.gate
+        gate.heard_from(client)
         if verb == "claim":
             was = gate.owner
             gate.claim(client, req.client_id)

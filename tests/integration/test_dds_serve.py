@@ -446,7 +446,10 @@ def test_a_ros2_service_client_without_fieldbus_calls_trigger_setbool_and_sdo_re
     assert not ok and message.startswith("ClaimError: ") and "not claimed" in message
     ok, message = calls["claim"]
     assert ok and re.search(r"claimed as client 'ros2-[0-9a-f]+'", message), message
-    assert calls["enable"] == [True, ""]
+    assert calls["enable"] == [True, ""]  # answered once the drives are enabled
+    ok, message = calls["reset_faults_unclaimed"]
+    assert not ok and message.startswith("ClaimError: ")
+    assert calls["reset_faults"] == [True, '{"re_armed": []}']  # no joint had given up
     ok, _, statusword = calls["statusword"]
     assert ok and statusword[0] & 0x6F == 0x27, statusword  # OPERATION ENABLED, as the drive reports it
     moved = out["moved"]  # commanded under the client id the claim named: the joints went there

@@ -71,3 +71,33 @@ def test_a_new_claim_is_possible_only_after_the_owner_latched_and_restarts_the_s
 def test_bad_deadlines_are_refused(hold: int, stop: int) -> None:
     with pytest.raises(FieldbusError, match="deadline"):
         Deadline(hold, stop)
+
+
+def test_an_owner_that_never_commands_latches_after_stop_after_cycles_and_the_group_is_claimable() -> None:
+    g = _gate(hold=3, stop=6)  # claimed by 'a', no command
+    states = [g.tick() for _ in range(7)]
+    assert states[:5] == [GateState.IDLE] * 5  # no HOLD from IDLE: nothing is applied to hold
+    assert states[5:] == [GateState.SAFE_STOP] * 2  # the 6th cycle without a command
+    g.claim("b")  # claimable again
+
+
+def test_a_request_from_the_owner_restarts_the_idle_deadline_a_paused_gate_does_not_age() -> None:
+    g = _gate(hold=3, stop=6)
+    for _ in range(5):
+        g.tick()
+    g.heard_from("b")  # not the owner: nothing
+    g.heard_from("a")
+    assert [g.tick() for _ in range(5)] == [GateState.IDLE] * 5
+    g.pause("a")  # homing, a mode switch, an enable under way
+    assert [g.tick() for _ in range(20)] == [GateState.IDLE] * 20
+    g.resume()
+    assert [g.tick() for _ in range(6)][-1] is GateState.SAFE_STOP
+
+
+def test_a_latch_from_outside_holds_until_the_owner_clears_and_a_clear_applies_no_command() -> None:
+    g = _gate()
+    assert g.offer("a", 1) and g.tick() is GateState.COMMANDED
+    g.latch()  # the bus's safe stop or a drive fault
+    assert not g.offer("a", 2) and g.tick() is GateState.SAFE_STOP
+    g.clear("a")
+    assert g.tick() is GateState.IDLE  # nothing applies until the next command

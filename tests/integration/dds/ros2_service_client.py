@@ -188,10 +188,13 @@ def main() -> int:
     claim = Client(dp, f"{base}/claim", SetBool_Request_, SetBool_Response_)
     sdo = Client(dp, f"{base}/sdo_read", SdoRead_Request_, SdoRead_Response_)
     set_mode = Client(dp, f"{base}/set_mode", SetMode_Request_, SetMode_Response_)
+    reset_faults = Client(dp, f"{base}/reset_faults", Trigger_Request_, Trigger_Response_)
     calls = {
         "enable_unclaimed": enable.call(),
+        "reset_faults_unclaimed": reset_faults.call(),
         "claim": claim.call(data=True),
         "enable": enable.call(),
+        "reset_faults": reset_faults.call(),
     }
     # the drives enable over a few cycles: read the first one's statusword (0x6041) until it shows it
     for _ in range(100):
