@@ -14,7 +14,8 @@ the served bus's (``AxisState.cycle``), so the test bounds them in cycles.
   valid command's sequence and every (cycle, gate, command age, applied
   sequence, drive states) seen until 300 states after SAFE_STOP.
 - ``commander``: claims, enables, holds the joints forever (to be killed);
-  ``silent``: claims, enables and never sends a command (to be killed).
+  ``silent``: claims, enables and never sends a command, only a request every
+  0.2 s (the owner's requests keep an IDLE group claimed; to be killed).
 - ``claimer``: asks to claim until it may (each refusal and the cycle it came
   at). Result: the claim's cycle and the owner's last command cycle as the state
   showed it.
@@ -177,7 +178,10 @@ def main() -> int:
         while True:
             if mode == "commander":
                 p.command(hold)
-            time.sleep(0.002)
+                time.sleep(0.002)
+            else:  # alive only by its requests (claiming again is a no-op for the owner)
+                p.ask("claim")
+                time.sleep(0.2)
     elif mode == "claimer":
         p = Peer(ns, group, domain, "claimer")
         refused = []
