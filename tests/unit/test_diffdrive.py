@@ -257,3 +257,14 @@ def test_a_bad_base_is_a_located_error(body: str, where: str, what: str, tmp_pat
         _net(body, tmp_path)
     text = str(exc.value)
     assert "net.yaml:" in text and where in text and what in text
+
+
+def test_validate_summarises_the_base_of_the_shipped_example() -> None:
+    from pathlib import Path
+
+    from fieldbus.commands.validate import check
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "amr_base.yaml"
+    summary = check(str(example))
+    assert summary["base"]["wheel_separation"] == 0.45 and summary["base"]["max_linear"] == 1.5
+    assert summary["base"]["left_wheel_names"] == ["left_wheel"]
