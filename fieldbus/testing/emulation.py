@@ -140,6 +140,12 @@ class Emulation:
         """
         return [State402(s) if s >= 0 else None for s in self._bus(bus)[1].drive_states()]
 
+    def drive_positions(self, bus: str) -> list[float]:
+        """Each axis's shaft position as the emulated drive's physics has it: the ground truth, in the
+        drive's own counts (unquantised; divide by the map's counts per unit). The in-process EtherCAT
+        emulator has it; elsewhere :class:`FaultNotSupported`."""
+        return self._bus(bus)[1].drive_positions()
+
     # -- faults ------------------------------------------------------------------------------------
     def lose_cycles(self, bus: str, cycles: int) -> None:
         """Lose the process data of the next ``cycles`` cycles of bus ``bus`` (only those: the
