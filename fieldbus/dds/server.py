@@ -37,6 +37,7 @@ from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
+from fieldbus.dds.base_service import BaseService
 from fieldbus.dds.callers import Caller, Callers, publication_handle
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
@@ -77,6 +78,7 @@ class ServeOptions:
 
     namespace: str
     deadline: Deadline = field(default_factory=Deadline)
+    base_namespace: str = ""  # the wheeled base's topics (cmd_vel, odom...) under it; "": ROS 2 global names
     publish_every: int = 1
     diagnostics_every: int = 1000
 
@@ -350,6 +352,10 @@ class BusServer:
         self.services = ServiceHost(
             participant, options.namespace, list(self.groups), self._answer, self.callers
         )
+        # the network file's wheeled base: cmd_vel in, odom/tf out (fieldbus.dds.base_service)
+        self.base: BaseService | None = None
+        if net.model.base is not None:
+            self.base = BaseService(self, net.model.base, options.base_namespace)
 
     def attach(self, op: Operational) -> None:
         """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
@@ -363,6 +369,8 @@ class BusServer:
                 served.writer = op.safe_stops[g.name]
         self.stalls = StallWatch(int(op.cycle_time_us * 1000))
         self._op = op
+        if self.base is not None:
+            self.base.attach(op)
 
     @property
     def op(self) -> Operational:
@@ -379,6 +387,7 @@ class BusServer:
             "hold_after": o.deadline.hold_after,
             "stop_after": o.deadline.stop_after,
             "groups": {name: g.describe() for name, g in self.groups.items()},
+            **({"base": self.base.topics} if self.base is not None else {}),
         }
 
     def step(self, k: int) -> bool:
@@ -393,6 +402,9 @@ class BusServer:
             self._advance_pending()
         if k % SERVICE_POLL_EVERY == 5:
             self._watch_owners()
+        start_ns = self._clock()
+        if self.base is not None:
+            self.base.take(start_ns / 1e9)
         for g in self.groups.values():
             g.take_commands()
             g.before_exchange(self._bus_stopped)
@@ -405,6 +417,8 @@ class BusServer:
         if res.events:
             self._note_faults(res)
         o = self.options
+        if self.base is not None:
+            self.base.after(res, start_ns / 1e9, self.op.cycle_time_us / 1e6, time.time_ns())
         if k % o.publish_every == 0:
             now = time.time_ns()
             for g in self.groups.values():
