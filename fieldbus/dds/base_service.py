@@ -30,12 +30,11 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from fieldbus.core.cia402 import Goal, State402
 from fieldbus.core.diffdrive import DiffDriveParams, Limited, quaternion_z
 from fieldbus.dds import messages as m
 from fieldbus.dds import ros_types as r
-from fieldbus.dds.callers import Callers, publication_handle
 from fieldbus.dds.participant import COMMANDS, RELIABLE
+from fieldbus.dds.topic_claim import TopicClaim
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Operational
 from fieldbus.wheeled_base import WheeledBase
@@ -102,15 +101,12 @@ class BaseService:
         self.tf_writer = DataWriter(dp, Topic(dp, t["tf"], r.TFMessage), qos=RELIABLE)
         self.js_writer = DataWriter(dp, Topic(dp, t["joint_states"], m.JointState), qos=RELIABLE)
         self.diag_writer = DataWriter(dp, Topic(dp, t["diagnostics"], m.DiagnosticArray), qos=RELIABLE)
-        self.callers: Callers = server.callers
+        self.claim = TopicClaim("cmd_vel", server.callers)
         self.base: WheeledBase | None = None
-        self.owner: str | None = None  # the owner's DDS participant GUID
-        self.owner_writer: tuple[Any, int] | None = None  # (reader, writer handle) it commands on
         self.leaving = False  # the owner left: ramping to rest, then the wheels are let go
         self.refusals = dict.fromkeys(REASONS, 0)
         self.last_refusal = ""
         self.counters = BaseCounters()
-        self._sequence = 0  # what the base offers the wheel gates each cycle it commands
         self._was_limited = False
         self._was_timed_out = True
         self._events: list[str] = []  # said in the next diagnostics (saturation, timeout, owner)
@@ -138,9 +134,9 @@ class BaseService:
         return groups
 
     @property
-    def ident(self) -> str | None:
-        """How the wheel gates name the owner (None: no owner)."""
-        return f"cmd_vel:{self.owner}" if self.owner is not None else None
+    def owner(self) -> str | None:
+        """The DDS participant (GUID) that commands the base, None when nobody does."""
+        return self.claim.owner
 
     def attach(self, op: Operational) -> None:
         self.base = WheeledBase(op, self.params)
@@ -154,9 +150,10 @@ class BaseService:
         if base is None:
             return
         self._k += 1
-        self._check_gates()
-        if self.owner is not None and self._k % OWNER_CHECK_EVERY == 0:
-            self._check_owner()
+        if self.owner is not None and not self.leaving and self._k % OWNER_CHECK_EVERY == 0:
+            why = self.claim.lost()
+            if why is not None:
+                self._leave(why)
         for reader in (self.twist, self.stamped):
             if reader is None:
                 continue
@@ -165,90 +162,49 @@ class BaseService:
                 if not isinstance(twist, r.Twist):
                     continue
                 self._offer(reader, sample, twist, now_s)
-        if self.owner is not None and self.enabled and not self.leaving:
-            self._sequence += 1
-            for g in self.groups:  # the base commands every cycle: the gates stay COMMANDED
-                g.gate.offer(self.ident or "", self._sequence)
+        if self.claim.enabled:
+            self.claim.offer()  # the base commands every cycle (its ramp too): the wheel gates stay COMMANDED
 
     def _offer(self, reader: Any, sample: Any, twist: r.Twist, now_s: float) -> None:
         lin, ang = twist.linear.x, twist.angular.z
         if not all(math.isfinite(v) for v in (lin, ang, twist.linear.y, twist.angular.x, twist.angular.y)):
             self._refuse("not_finite", "a cmd_vel value is NaN or infinite")
             return
-        who = self.callers.of(reader, sample)
+        who = self.claim.who(reader, sample)
         if who is None:
             self._refuse("not_owner", "a cmd_vel from a DDS participant not known yet")
             return
-        if self.owner is None and not self._take_base(who):
-            return
+        if self.owner is None:
+            busy = self.claim.busy(self.groups)
+            if busy is not None:
+                self._refuse(
+                    "wheels_claimed", f"group '{busy.name}' is claimed by client '{busy.gate.label}'"
+                )
+                return
+            self.claim.take(who, self.groups)
+            self.leaving = False
+            self.counters.owners += 1
+            self._events.append(f"taken by DDS participant {who}")
         if who != self.owner:
             self._refuse("not_owner", f"cmd_vel from DDS participant {who}, not the base's owner")
             return
-        self.owner_writer = (reader, publication_handle(sample))
-        if not self.enabled:
-            return  # enabling: commands taken before the drives are enabled do not apply
+        self.claim.seen(reader, sample)
+        if not self.claim.enabled or self.leaving:
+            return  # enabling (commands taken before the drives are enabled do not apply), or letting go
         assert self.base is not None
         self.base.command(lin, ang, now_s)
         self.counters.commands += 1
 
-    def _take_base(self, who: str) -> bool:
-        """``who`` takes the base: claims the wheel groups and enables them (no motion: zero targets)."""
-        for g in self.groups:
-            if g.gate.owner is not None and not g.gate.owner.startswith("cmd_vel:"):
-                self._refuse("wheels_claimed", f"group '{g.name}' is claimed by client '{g.gate.label}'")
-                return False
-        self.owner, self.leaving = who, False
-        self.counters.owners += 1
-        self._events.append(f"taken by DDS participant {who}")
-        for g in self.groups:
-            g.gate.claim(self.ident or "", f"cmd_vel ({who[:8]})")
-            g.owner_writers = []  # the base watches its owner itself (it lets go instead of latching)
-            g.discard_pending()
-            ctrl = g.ctrl
-            assert ctrl is not None
-            if not g.gate.latched:
-                ctrl.reset_fault_budget()
-                ctrl.set_goal(Goal.ENABLE)
-        return True
-
-    def _check_gates(self) -> None:
-        """Someone else took a wheel group (an operator's claim to clear a latch): the base lets go."""
-        if self.owner is not None and any(g.gate.owner != self.ident for g in self.groups):
-            self._let_go("a client claimed a wheel group")
-
-    def _check_owner(self) -> None:
-        if self.owner_writer is None or self.leaving:
-            return
-        reader, handle = self.owner_writer
-        if not self.callers.alive(reader, handle):
-            self.leaving = True
-            self._events.append("the owner left the DDS domain: ramping to rest")
-            assert self.base is not None
-            self.base.hold()
-
-    def _let_go(self, why: str) -> None:
-        self._events.append(f"let go: {why}")
-        for g in self.groups:
-            if g.gate.owner == self.ident:
-                g.gate.release(self.ident or "")
-        self.owner, self.owner_writer, self.leaving = None, None, False
-        if self.base is not None:
-            self.base.hold()
+    def _leave(self, why: str) -> None:
+        """The owner is gone (or an operator took a wheel group): ramp to rest, then let the wheels go."""
+        self.leaving = True
+        self._events.append(f"{why}: ramping to rest")
+        assert self.base is not None
+        self.base.hold()
 
     def _refuse(self, reason: str, why: str) -> None:
         self.refusals[reason] += 1
         self.last_refusal = why
-
-    @property
-    def enabled(self) -> bool:
-        """Every wheel drive OPERATION ENABLED, no wheel group latched."""
-        for g in self.groups:
-            ctrl = g.ctrl
-            if g.gate.latched or g.stopped or ctrl is None:
-                return False
-            if not (ctrl.state == State402.OPERATION_ENABLED).all():
-                return False
-        return True
 
     # -- after exchange() -------------------------------------------------------------------------
     def after(self, res: CycleResult, now_s: float, dt_s: float, stamp_ns: int) -> None:
@@ -256,7 +212,7 @@ class BaseService:
         base = self.base
         if base is None:
             return
-        commanding = self.owner is not None and self.enabled
+        commanding = self.claim.enabled
         step = base.step(res, now_s, dt_s, enabled=commanding)
         limited = bool(step.linear_limited | step.angular_limited)
         if step.linear_limited:
@@ -270,7 +226,9 @@ class BaseService:
             self._events.append(f"cmd_vel timed out ({self.params.cmd_vel_timeout:g} s): ramping to rest")
         self._was_limited, self._was_timed_out = limited, step.timed_out
         if self.leaving and step.linear == 0.0 and step.angular == 0.0:
-            self._let_go("the owner left and the base is at rest")
+            self._events.append("at rest: the wheels are let go")
+            self.claim.let_go()
+            self.leaving = False
         if self._k % self._publish_every == 0:
             self.publish(stamp_ns)
         if self._events:

@@ -51,6 +51,7 @@ from fieldbus.dds.participant import (
 )
 from fieldbus.dds.service_host import ServiceHost
 from fieldbus.dds.stalls import StallWatch
+from fieldbus.dds.topic_control import TopicControl
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
 
@@ -79,6 +80,7 @@ class ServeOptions:
     namespace: str
     deadline: Deadline = field(default_factory=Deadline)
     base_namespace: str = ""  # the wheeled base's topics (cmd_vel, odom...) under it; "": ROS 2 global names
+    ros2_control: tuple[str, str] | None = None  # (commands, states) topics of topic-based ros2_control
     publish_every: int = 1
     diagnostics_every: int = 1000
 
@@ -356,6 +358,11 @@ class BusServer:
         self.base: BaseService | None = None
         if net.model.base is not None:
             self.base = BaseService(self, net.model.base, options.base_namespace)
+        # ros2_control's topic-based hardware interface (fieldbus.dds.topic_control), on the other groups
+        self.topic_control: TopicControl | None = None
+        if options.ros2_control is not None:
+            wheels = tuple(g.name for g in self.base.groups) if self.base is not None else ()
+            self.topic_control = TopicControl(self, *options.ros2_control, exclude=wheels)
 
     def attach(self, op: Operational) -> None:
         """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
@@ -388,6 +395,7 @@ class BusServer:
             "stop_after": o.deadline.stop_after,
             "groups": {name: g.describe() for name, g in self.groups.items()},
             **({"base": self.base.topics} if self.base is not None else {}),
+            **({"ros2_control": self.topic_control.describe()} if self.topic_control is not None else {}),
         }
 
     def step(self, k: int) -> bool:
@@ -405,6 +413,8 @@ class BusServer:
         start_ns = self._clock()
         if self.base is not None:
             self.base.take(start_ns / 1e9)
+        if self.topic_control is not None:
+            self.topic_control.take()
         for g in self.groups.values():
             g.take_commands()
             g.before_exchange(self._bus_stopped)
@@ -423,6 +433,8 @@ class BusServer:
             now = time.time_ns()
             for g in self.groups.values():
                 g.publish(res, now)
+            if self.topic_control is not None:
+                self.topic_control.publish(now)
         if k % o.diagnostics_every == 0:
             self.diag_writer.write(self.diagnostics())
         return False

@@ -28,7 +28,7 @@ from fieldbus.dds.server import BusServer, ServeOptions
 from fieldbus.testing import emulate
 
 sys.path.insert(0, str(Path(__file__).parent / "dds"))
-from ros2_base_client import BaseClient  # noqa: E402
+from ros2_base_client import BaseClient
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 COUNTS_PER_RAD = 4096 * 20 / (2 * math.pi)  # seed 001: 4096 counts/rev encoder, 20:1 reduction
