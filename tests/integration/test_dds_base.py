@@ -81,7 +81,7 @@ def served(tmp_path: Path) -> Iterator[ServedBase]:
         server = BusServer(
             emu.network,
             Participant(DOMAIN, "lo"),
-            ServeOptions("amr", deadline=Deadline(20, 200), diagnostics_every=10**9),
+            ServeOptions("amr", deadline=Deadline(20, 200), publish_every=10, diagnostics_every=10**9),
             clock=emu.clock.now_ns,
         )
         server.attach(emu.bring_up())
