@@ -121,11 +121,10 @@ class CanBus(BusEmulator):
         else:
             from sim_slaves.can_families import simulator
 
-            # the MIT motors integrate the time between commands; the others one step per command
-            dt_s = None if kind in ("mit", "cubemars-mit") else bus.cycle_time_us / 1e6
+            # every family's physics run on the clock (virtual in lockstep), between frames too
 
             def make(port: Any, clock: Any = None) -> Any:
-                return simulator(port, nodes, clock=clock, dt_s=dt_s)
+                return simulator(port, nodes, clock=clock)
 
         # the master's channel: this process's own (its lock is in-process), never the robot's can0, which
         # another test or the robot's master may hold at the same time
