@@ -47,6 +47,12 @@ current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` len
 reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
 outside 0 are counted, named faults as for Damiao.
 
+Family ``frames`` (:mod:`fieldbus.core.canframes`): a protocol described in data; its command frames
+(per motor, or shared by several motors of the bus) are filled from the image's output rows and its
+feedback frames routed into the motors' input rows by :class:`~fieldbus.core.canframes.FramesBus`;
+enable / disable / zero are the map's byte patterns (no answer awaited), and ``stop()`` sends every
+motor's ``safe_value`` command before the disable pattern.
+
 CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
 with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
 """
@@ -66,6 +72,7 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import cubemars, damiao, odrive
+from fieldbus.core.canframes import FramesBus
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -191,6 +198,8 @@ class RawCanBackend(CanFaults, Backend):
             str, tuple[int, int]
         ] = {}  # 0.6 Get_Error answers: (active errors, disarm reason)
         self._sdo_answer: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
+        declared: list[Any] = []  # family frames: (index, node, protocol, output row, input row)
+        self._fr = [False] * self.n_slaves
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -204,6 +213,10 @@ class RawCanBackend(CanFaults, Backend):
             )
             # the frame's data bytearray seen as a numpy array: encoding writes straight into it
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
+            if cfg.frames is not None:
+                self._fr[i] = True
+                declared.append((i, node, cfg.frames, out_row, self._in_rows[i]))
+                continue
             reply_id = cfg.reply_can_id(node)
             if cfg.damiao is not None:
                 self._family_init(i, cfg, node)
@@ -232,6 +245,14 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
+        try:
+            self._frames = FramesBus(declared) if declared else None
+        except ValueError as exc:
+            raise FieldbusError(f"bus '{bus.name}': {exc}") from None
+        self._fr_msgs = [
+            (self._message(arbitration_id=f.can_id, data=f.data, is_extended_id=f.extended))
+            for f in (self._frames.commands if self._frames is not None else ())
+        ]
         self._families = any(at is not None for at in self._error_at)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
@@ -808,9 +829,17 @@ class RawCanBackend(CanFaults, Backend):
         """
         self._drain()
         try:
+            if self._frames is not None:  # patterns, no answer awaited; the safe command before disabling
+                frames = self._frames.safe_frames() if which == "exit" else []
+                for can_id, ext, data in frames + self._frames.special(
+                    {"enter": "enable", "exit": "disable"}.get(which, which)
+                ):
+                    self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=ext))
             for i, area in enumerate(self.areas):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
+                if self._fr[i]:
+                    continue
                 msg, _, _ = self._cmd[i]
                 cm = cfg.cubemars
                 if cm is not None and cm.protocol == "servo":
@@ -839,7 +868,7 @@ class RawCanBackend(CanFaults, Backend):
         self._arrived.fill(False)
         for i, proto in enumerate(self._od):
             cm = self._cm[i]
-            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo")
+            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or self._fr[i]
         if which == "clear":
             for i, area in enumerate(self.areas):
                 self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
@@ -857,7 +886,13 @@ class RawCanBackend(CanFaults, Backend):
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
         try:
+            if self._frames is not None:
+                self._frames.fill()
+                for m in self._fr_msgs:
+                    self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
+                if self._fr[i]:
+                    continue
                 proto = self._od[i]
                 if proto is not None:
                     self._send_odrive(i, proto)
@@ -892,8 +927,7 @@ class RawCanBackend(CanFaults, Backend):
                 remaining = deadline - clock()
                 if remaining <= 0:
                     break
-                if accept(recv(timeout=remaining), copy=True):
-                    count += 1
+                count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
             raise self._io_failed("receive", exc) from exc
@@ -920,9 +954,12 @@ class RawCanBackend(CanFaults, Backend):
         data = msg.data
         return self._route.get((can_id, (data[byte] if byte < len(data) else -1) if byte >= 0 else -1), -1)
 
-    def _accept(self, msg: Any, *, copy: bool) -> bool:
+    def _accept(self, msg: Any, *, copy: bool) -> int:
+        """Take ``msg`` as a reply; the number of motors it answered for (a shared frame: several)."""
         if msg is None:
-            return False
+            return 0
+        if self._frames is not None and self._frames.is_feedback(msg.arbitration_id, msg.is_extended_id):
+            return self._accept_shared(msg, copy=copy)
         i = self._motor(msg)
         if i < 0:
             return False
@@ -941,6 +978,26 @@ class RawCanBackend(CanFaults, Backend):
             row[:n] = np.frombuffer(data, dtype=np.uint8)
         self._arrived[i] = True
         return True
+
+    def _accept_shared(self, msg: Any, *, copy: bool) -> int:
+        """A feedback frame of family ``frames``: its slots into the rows of the motors not yet arrived."""
+        if msg.is_remote_frame or msg.is_error_frame:
+            return 0
+        motors = self._frames_motors(msg)
+        if any(self._arrived[i] for i in motors):
+            self.extra_frames += 1
+            return 0
+        if copy and self._frames is not None:
+            motors = self._frames.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+        for i in motors:
+            self._arrived[i] = True
+        return len(motors)
+
+    def _frames_motors(self, msg: Any) -> list[int]:
+        frame = self._frames.feedback.get((msg.arbitration_id, msg.is_extended_id)) if self._frames else None
+        if frame is None or len(msg.data) < len(frame.data):
+            return []
+        return [s.motor for s in frame.slots]
 
     def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
         """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
@@ -962,6 +1019,10 @@ class RawCanBackend(CanFaults, Backend):
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
+                shared = self._frames_motors(msg) if self._frames is not None else []
+                if shared:
+                    self.late_frames += 1
+                    continue
                 i = self._motor(msg)
                 if i >= 0:
                     if self._arrived[i]:
