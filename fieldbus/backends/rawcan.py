@@ -550,8 +550,91 @@ class RawCanBackend(CanFaults, Backend):
         return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
-        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer."""
+        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer. The
+        motors stay disabled: :meth:`recover` clears one motor's fault and enables it again."""
         return [self.areas[i].slave.name for i in self._special("clear")]
+
+    def recover(self, slave: int | str) -> bool:
+        """Clear motor ``slave``'s fault and enable it again by its family's own sequence, between cycles
+        (each answer awaited at most ``ENTER_TIMEOUT_S``); True when it is enabled again.
+
+        First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
+        the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
+        itself: the controller writes its targets after.
+        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); ODrive: Clear_Errors, then
+        CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
+        declarative (``frames``): the map's enable pattern, if any. A CubeMars servo has no clear command:
+        True only when its error code is 0 again (after a power cycle). Raises
+        :class:`~fieldbus.errors.BusIoError` when the driver fails.
+        """
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        self._seed_from_actual(i)
+        cfg = self.areas[i].slave.map.rawcan
+        assert cfg is not None
+        proto = self._od[i]
+        if proto is not None:
+            a = self.areas[i]
+            self.groups[a.group].image.outputs.values[a.row][proto.request_field] = proto.closed_loop
+            try:
+                self._od_frame(i, "clear_errors", proto.clear)
+                self._od_hb[i] = None
+                self._od_request_state(i, proto.closed_loop)
+                self._od_wait_heartbeat(i, proto.closed_loop)
+            except StateTransitionError:
+                return False
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("send", exc) from exc
+            self._codes[i] = 0
+            return True
+        if self._fr[i]:
+            if self._frames is not None:
+                for can_id, ext, data in self._frames.special("enable"):
+                    self._send_raw(can_id, ext, data)
+            return True
+        cm = self._cm[i]
+        if cm is not None and cm.protocol == "servo":
+            return int(self._codes[i]) == 0
+        if cfg.damiao is not None and not self._answered(i, cfg.damiao.clear):
+            return False
+        if not self._answered(i, cfg.enter):
+            return False
+        at = self._error_at[i]
+        if at is None:
+            return True
+        byte, shift, mask = at
+        self._codes[i] = code = (int(self._reply_rows[i][byte]) >> shift) & mask
+        return cfg.damiao is None or code == 1  # Damiao: 1 is ENABLED; CubeMars MIT: 0
+
+    def _seed_from_actual(self, i: int) -> None:
+        """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
+        a = self.areas[i]
+        img = self.groups[a.group].image
+        out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
+        names, read = out.dtype.names or (), inp.dtype.names or ()
+        for n in ("velocity", "torque", "current", "duty", "brake_current"):
+            if n in names:
+                out[n] = 0
+        if "position" in names and "position" in read:
+            out["position"] = inp["position"]
+
+    def _send_raw(self, can_id: int, extended: bool, data: bytes) -> None:
+        try:
+            self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=extended))
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
+
+    def _answered(self, i: int, frame: bytes) -> bool:
+        """Send ``frame`` on motor ``i``'s command id; True when its reply came (copied to its row)."""
+        self._drain()
+        self._arrived[i] = False
+        self._send_raw(self._cmd[i][0].arbitration_id, False, frame)
+        deadline = self._now() + ENTER_TIMEOUT_S
+        try:
+            while not self._arrived[i] and self._now() < deadline:
+                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        return bool(self._arrived[i])
 
     def _mode_values(self, i: int) -> dict[str, float]:
         a = self.areas[i]

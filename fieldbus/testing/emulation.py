@@ -279,6 +279,22 @@ class Emulation:
         """Undo every pending or lasting injection on bus ``bus`` (not a power cycle already done)."""
         self._bus(bus)[1].clear_faults()
 
+    def recover_motor(self, bus: str, slave: str) -> bool:
+        """Raw CAN: the master clears motor ``slave``'s fault and enables it again by its family's own
+        sequence (``backend.recover``, between cycles); True when the motor is enabled again.
+
+        Its set-points are seeded from where it is (position as read, speed and torque 0, the gains
+        kept): it holds there until the controller writes its targets again.
+        """
+        model, _ = self._bus(bus)
+        if model.type != "rawcan":
+            raise FieldbusError(
+                f"recover_motor: bus '{bus}' is {model.type}, not rawcan (CiA 402: fault reset)"
+            )
+        self._slave(bus, slave)  # a known name, or the error naming the bus's slaves
+        backend: Any = self.op.network.backend(bus)
+        return bool(backend.recover(slave))
+
     @staticmethod
     def _check_count(n: int) -> None:
         if n < 1:
