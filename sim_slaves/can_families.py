@@ -13,10 +13,11 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.rawcan import FAMILIES
 from fieldbus.runtime.clock import Clock, monotonic_s
 from sim_slaves.mit_motor import MitMotorSimulator
 
-FAMILIES = ("mit", "damiao", "odrive", "cubemars", "frames")
+__all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]
 
 
 def family_of(drive: DriveMap) -> str:

@@ -11,7 +11,7 @@ integers (:meth:`~fieldbus.core.canframes.FrameSpec.encode` / ``decode``, not th
   every motor's slot): ``position``, ``velocity``, ``torque`` and the fault field (its code), other fields 0;
   an integer field wraps as a counter does (two's complement of its bits); a shared frame is one
   device's, sent whole or not at all (a silent or dropping motor silences its frame);
-- ``enable`` / ``disable`` / ``zero`` patterns on the command id: a map without ``enable`` has its motors
+- ``enable`` / ``disable`` / ``zero`` / ``clear`` (the fault) patterns on the command id: a map without ``enable`` has its motors
   enabled from power-up; enabling starts no motion (no set-point until a command);
 - fault hooks: ``inject_error(node, code)`` (the motor lets go, the fault field reports ``code``),
   ``clear_error(node)``, and the base's ``drop_replies``, ``silence``, ``power_cycle``.
@@ -93,10 +93,12 @@ class FramesMotorSimulator(MitMotorSimulator):
         data = bytes(msg.data)
         self.frames.append((msg.arbitration_id, data))
         proto = self.proto[nodes[0]]
-        if data in (proto.enable, proto.disable, proto.zero):
+        if data in (proto.enable, proto.disable, proto.zero, proto.clear):
             for node in nodes:
                 st = self.motor(node)
-                if data == proto.zero:
+                if data == proto.clear:
+                    self.error[node] = 0
+                elif data == proto.zero:
                     st.zero += st.position
                     st.position = 0.0
                 elif data == proto.enable and not self.error[node]:

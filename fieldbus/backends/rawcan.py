@@ -174,7 +174,7 @@ class RawCanBackend(CanFaults, Backend):
         self._max: list[dict[str, float]] = [
             {} for _ in range(self.n_slaves)
         ]  # per-unit bases of mode fields
-        self._codes = np.zeros(self.n_slaves, dtype=np.int16)  # last error code per motor
+        self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
         self._onsets: deque[tuple[int, int, str]] = deque(
@@ -253,7 +253,10 @@ class RawCanBackend(CanFaults, Backend):
             (self._message(arbitration_id=f.can_id, data=f.data, is_extended_id=f.extended))
             for f in (self._frames.commands if self._frames is not None else ())
         ]
-        self._families = any(at is not None for at in self._error_at)
+        self._fr_faults = [
+            i for i, node, proto, _, _ in declared if proto.fault_field is not None
+        ]  # family frames with a fault field
+        self._families = any(at is not None for at in self._error_at) or bool(self._fr_faults)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -563,7 +566,7 @@ class RawCanBackend(CanFaults, Backend):
         itself: the controller writes its targets after.
         Damiao: clear-error frame, then enable, the reply's code 1 (enabled); ODrive: Clear_Errors, then
         CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
-        declarative (``frames``): the map's enable pattern, if any. A CubeMars servo has no clear command:
+        declarative (``frames``): the map's clear and enable patterns, if any. A CubeMars servo has no clear command:
         True only when its error code is 0 again (after a power cycle). Raises
         :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
@@ -587,9 +590,13 @@ class RawCanBackend(CanFaults, Backend):
             self._codes[i] = 0
             return True
         if self._fr[i]:
-            if self._frames is not None:
-                for can_id, ext, data in self._frames.special("enable"):
-                    self._send_raw(can_id, ext, data)
+            if self._frames is not None:  # the patterns of the motor's command frame: clear, then enable
+                frame = next(f for f in self._frames.commands if any(x.motor == i for x in f.slots))
+                proto_f = self._frames.protocols[i]
+                for data in (proto_f.clear, proto_f.enable):
+                    if data is not None:
+                        self._send_raw(frame.can_id, frame.extended, data)
+            self._codes[i] = 0
             return True
         cm = self._cm[i]
         if cm is not None and cm.protocol == "servo":
@@ -644,6 +651,14 @@ class RawCanBackend(CanFaults, Backend):
 
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
+        for i in self._fr_faults:
+            if self._arrived[i] and self._frames is not None:
+                fp = self._frames.protocols[i]
+                code = fp.fault_code(self._in_rows[i])
+                if code is not None and code != self._codes[i]:
+                    if code not in fp.ok_codes:
+                        self._fault(i, code, fp.fault_name(code))
+                    self._codes[i] = code
         for i, at in enumerate(self._error_at):
             if at is None or not self._arrived[i]:
                 continue

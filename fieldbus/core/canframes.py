@@ -13,6 +13,7 @@ A map of this family names a command frame and a feedback frame, each either per
       enable: [0x01]       # optional byte patterns, sent on the command id (per motor: to each)
       disable: [0x00]
       zero: [0x02]
+      clear: [0x03]        # clears a fault (recovery: clear, then enable)
 
 A field: ``type`` ``uint`` / ``int`` (8, 16 or 32 bits, or a ``uint`` bit field of 1..31 bits, least
 significant bit first) or ``float32``; ``byte_order`` ``little`` or ``big`` (whole-byte fields; default
@@ -42,7 +43,7 @@ from fieldbus.core import datatypes
 from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
-SECTION_KEYS = ("family", "command", "feedback", "enable", "disable", "zero", "fault", "reply_deadline_us")
+SECTION_KEYS = ("family", "command", "feedback", "enable", "disable", "zero", "clear", "fault")
 FRAME_KEYS = ("id", "motors", "extended", "byte_order", "length", "fields")
 FIELD_KEYS = ("name", "type", "bits", "byte_order", "scale", "offset", "unit", "safe_value", "description")
 TYPES = ("uint", "int", "float32")
@@ -158,9 +159,19 @@ class FramesProtocol:
     enable: bytes | None = None
     disable: bytes | None = None
     zero: bytes | None = None
+    clear: bytes | None = None
     fault_field: str | None = None
     fault_codes: tuple[tuple[int, str], ...] = ()
     ok_codes: tuple[int, ...] = (0,)
+
+    def fault_code(self, row: Any) -> int | None:
+        """The fault field's code in a feedback image row (its fields little-endian in place), or None
+        when the map has no fault field."""
+        if self.fault_field is None:
+            return None
+        f = next(g for g in self.feedback.fields if g.name == self.fault_field)
+        x = int.from_bytes(bytes(row[: self.feedback.stride]), "little")
+        return (x >> f.offset_bits) & ((1 << f.bits) - 1)
 
     def fault_name(self, code: int) -> str:
         return dict(self.fault_codes).get(code, f"code {code}")
@@ -181,7 +192,9 @@ def parse_frames(
         raise r.err(
             (*path, "command", "fields"), "no command field has a safe_value: say what the safe stop sends"
         )
-    special = {k: _pattern(r, m[k], (*path, k)) if k in m else None for k in ("enable", "disable", "zero")}
+    special = {
+        k: _pattern(r, m[k], (*path, k)) if k in m else None for k in ("enable", "disable", "zero", "clear")
+    }
     fault_field: str | None = None
     codes: tuple[tuple[int, str], ...] = ()
     ok: tuple[int, ...] = (0,)
@@ -190,8 +203,10 @@ def parse_frames(
         fm = r.mapping(m["fault"], fp, ("field", "codes", "ok"), required=("field",))
         fault_field = r.string(fm["field"], (*fp, "field"))
         found = next((f for f in feedback.fields if f.name == fault_field), None)
-        if found is None or found.scaled or found.type == "float32":
-            raise r.err((*fp, "field"), f"'{fault_field}' is not an unscaled integer feedback field")
+        if found is None or found.scaled or found.type != "uint" or found.bits > 16:
+            raise r.err(
+                (*fp, "field"), f"'{fault_field}' is not an unscaled uint feedback field of 1..16 bits"
+            )
         table = r.mapping(fm.get("codes", {}), (*fp, "codes"), [k for k in fm.get("codes", {})])
         codes = tuple(
             (r.integer(k, (*fp, "codes", k), 0, 2**32 - 1), r.string(v, (*fp, "codes", k)))
@@ -202,7 +217,15 @@ def parse_frames(
             for i, v in enumerate(r.sequence(fm.get("ok", [0]), (*fp, "ok")))
         )
     proto = FramesProtocol(
-        command, feedback, special["enable"], special["disable"], special["zero"], fault_field, codes, ok
+        command,
+        feedback,
+        special["enable"],
+        special["disable"],
+        special["zero"],
+        special["clear"],
+        fault_field,
+        codes,
+        ok,
     )
     rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, outputs=True)),)
     tpdo = (Pdo(0x1A00, _channels(feedback, FEEDBACK_OBJECT, outputs=False)),)

@@ -283,6 +283,10 @@ class CanBus(BusEmulator):
             if code > 0xF or code in cfg.damiao.ok_codes:
                 have = ", ".join(f"0x{c:X} {name}" for c, name in faults)
                 raise FieldbusError(f"drive_fault: a Damiao fault code is one of {have}; got {code:#x}")
+        elif cfg.frames is not None and cfg.frames.fault_field is None:
+            raise self._unsupported(
+                "drive_fault", f"map {self.bus.slaves[slave].map.name} has no fault field"
+            )
         elif cfg.cubemars is not None and code > 0xFF:  # the status / reply error byte
             raise FieldbusError(f"drive_fault: a CubeMars error code is 1..255, got {code:#x}")
         sim.inject_error(n, code)  # ODrive: axis error bits (up to 32)

@@ -145,3 +145,61 @@ def test_a_bad_description_is_refused_naming_file_line_and_field(old: str, new: 
 def test_the_shipped_map_is_the_one_the_example_uses() -> None:
     assert (fieldbus.PDO_MAPS / "amr_seed_wheels.yaml").is_file()
     assert "../pdo_maps/amr_seed_wheels.yaml" in EXAMPLE.read_text()
+
+
+def test_the_wheels_run_in_the_emulator_process_over_fieldbus_udp() -> None:
+    """The same YAML, the emulator in a child process (``sim_slaves.can_process``, kind auto): the master
+    reads both wheels from the one shared feedback frame every cycle (wall clock: judged in cycles)."""
+    with emulate(EXAMPLE, can="udp", receive_timeout_us=20_000) as emu:
+        base = emu.op["base"]
+        base.outputs["velocity"][:] = [1.0, -1.0]
+        fresh = sum(bool(emu.op.exchange().fresh) for _ in range(200))
+        assert fresh >= 150, fresh  # a loaded machine may miss a few
+        left, right = base.inputs["position"]
+        assert left > 0.05 and right < -0.05  # both wheels turned, each its own way
+
+
+FAULTY = """
+name: faulty_wheels
+rawcan:
+  family: frames
+  command:
+    id: 0x210
+    fields:
+      - {name: velocity, type: int, bits: 16, scale: 100, unit: rad/s, safe_value: 0}
+  feedback:
+    id: 0x310
+    fields:
+      - {name: position, type: int, bits: 32, scale: 10000, unit: rad}
+      - {name: status, type: uint, bits: 4}
+      - {name: spare, type: uint, bits: 4}
+  enable: [0x01]
+  disable: [0x00]
+  clear: [0x03]
+  fault: {field: status, codes: {0: ok, 1: enabled, 9: over-current}, ok: [0, 1]}
+"""
+
+
+def test_a_declared_fault_code_is_a_named_event_and_recovery_uses_the_map_s_patterns(tmp_path: Path) -> None:
+    (tmp_path / "faulty.yaml").write_text(FAULTY)
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 1000\nbuses:\n  - {name: base, type: rawcan, interface: can0, slaves: "
+        "[{name: 'w{i}', map: faulty.yaml, node_id: 1, count: 2}]}\n"
+    )
+    with emulate(net) as emu:
+        base, sim = emu.op["base"], _sim(emu)
+        assert sim.frames[:2] == [(0x211, b"\x01"), (0x212, b"\x01")]  # per motor: id + node, enabled
+        base.outputs["velocity"][:] = 2.0
+        emu.cycles(200)
+        assert sim.motor(2).velocity == pytest.approx(2.0, abs=0.01)
+        emu.drive_fault("base", "w1", 9)
+        events = [e for _ in range(5) for e in emu.op.exchange().events if isinstance(e, fieldbus.DriveFault)]
+        assert [(e.slave, e.code, e.name) for e in events] == [("w1", 9, "over-current")]
+        assert not sim.motor(2).enabled
+        assert emu.recover_motor("base", "w1")
+        assert sim.frames[-2:] == [(0x212, b"\x03"), (0x212, b"\x01")]  # clear, then enable
+        assert sim.motor(2).enabled and sim.error[2] == 0
+        assert base.outputs["velocity"][1] == 0.0  # seeded: no motion until the controller asks
+        emu.cycles(50)
+        assert abs(sim.motor(2).velocity) < 0.01
