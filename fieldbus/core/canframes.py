@@ -41,6 +41,7 @@ from typing import Any
 
 from fieldbus.core import datatypes
 from fieldbus.core.pdo.model import Channel, Pdo
+from fieldbus.core.rawcan import field_channel
 from fieldbus.core.yamlsrc import PathT
 
 SECTION_KEYS = ("family", "command", "feedback", "enable", "disable", "zero", "clear", "fault")
@@ -306,25 +307,24 @@ def _channels(spec: FrameSpec, obj: int, *, outputs: bool) -> tuple[Channel, ...
     chans: list[Channel] = []
     for sub, f in enumerate(spec.fields, start=1):
         aligned = f.bits in (8, 16, 32) and f.offset_bits % 8 == 0
-        kind = "float" if f.type == "float32" else (f"{'int' if f.type == 'int' else 'uint'}{f.bits}")
-        dt = datatypes.lookup(kind if aligned else f"bit{f.bits}")
-        assert dt is not None
         factor, offset = 1.0, 0.0
         if f.scaled:
             s = f.scale if f.scale is not None else 1.0
             factor, offset = (s, f.offset) if outputs else (1.0 / s, -f.offset / s)
         chans.append(
-            Channel(
-                index=obj,
-                sub_index=sub,
-                type=dt,
-                name=f.name,
-                unit=f.unit,
-                factor=factor,
-                offset=offset,
-                scaled=f.scaled,
-                description=f.description,
-                safe_value=f.safe_value,
+            field_channel(
+                obj,
+                sub,
+                f.name,
+                f.type,
+                f.bits,
+                aligned,
+                factor,
+                offset,
+                f.unit,
+                f.scaled,
+                f.safe_value,
+                f.description,
             )
         )
     pad = spec.stride * 8 - sum(f.bits for f in spec.fields)

@@ -291,9 +291,6 @@ def _channels(
     order = list(enumerate(fields, start=1))
     for sub, f in order if little else reversed(order):
         aligned = bit % 8 == 0 and f.bits in (8, 16, 32)
-        kind = {"float32": "float", "int": f"int{f.bits}"}.get(f.type, f"uint{f.bits}")
-        dt = datatypes.lookup(kind if aligned else f"bit{f.bits}")
-        assert dt is not None
         factor, offset = 1.0, 0.0
         if f.min is not None and f.max is not None:
             steps = (1 << f.bits) - (1 if span == "full" else 0)
@@ -303,20 +300,45 @@ def _channels(
             else:  # value = factor * raw + offset
                 factor, offset = 1.0 / per_unit, f.min
         chans.append(
-            Channel(
-                index=obj,
-                sub_index=sub,
-                type=dt,
-                name=f.name,
-                unit=f.unit,
-                factor=factor,
-                offset=offset,
-                scaled=f.scaled,
-                safe_value=f.safe_value,
+            field_channel(
+                obj, sub, f.name, f.type, f.bits, aligned, factor, offset, f.unit, f.scaled, f.safe_value
             )
         )
         bit += f.bits
     return tuple(chans)
+
+
+def field_channel(
+    obj: int,
+    sub: int,
+    name: str,
+    kind: str,
+    bits: int,
+    aligned: bool,
+    factor: float,
+    offset: float,
+    unit: str | None,
+    scaled: bool,
+    safe_value: float | None,
+    description: str = "",
+) -> Channel:
+    """The image channel of a frame field: ``kind`` uint / int / float32 (``aligned``: a whole-byte
+    number in the row, else a bit field), ``factor``/``offset`` as the PDO model's."""
+    name_of = {"float32": "float", "int": f"int{bits}"}.get(kind, f"uint{bits}")
+    dt = datatypes.lookup(name_of if aligned else f"bit{bits}")
+    assert dt is not None
+    return Channel(
+        index=obj,
+        sub_index=sub,
+        type=dt,
+        name=name,
+        unit=unit,
+        factor=factor,
+        offset=offset,
+        scaled=scaled,
+        description=description,
+        safe_value=safe_value,
+    )
 
 
 def encode_frame(fields: tuple[RawCanField, ...], span: str, values: Mapping[str, float]) -> bytes:
