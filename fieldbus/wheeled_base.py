@@ -12,7 +12,11 @@ rules do to a target, they do to the base's.
 A wheel joint's target is the channel mapping 0x60FF (CiA 402 target velocity,
 the drive in CSV) or else an output channel named ``velocity``; its feedback
 is 0x6064 / 0x606C or input channels named ``position`` / ``velocity``, in the
-map's units (rad, rad/s after scaling).
+map's units (rad, rad/s after scaling). A position that is an integer counter
+of a declarative raw-CAN drive (``rawcan: family: frames``) wraps (seed 001's
+int16 encoder count every 0.8 wheel turn): the base unwraps it, so odometry
+counts every turn (a wheel must turn less than half a wrap between two fresh
+readings: 0.4 turn per cycle there).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import numpy.typing as npt
 from fieldbus.core.diffdrive import BaseStep, DiffDrive, DiffDriveParams
 from fieldbus.core.network import row_names
 from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Operational
 
@@ -46,6 +51,18 @@ class Wheel:
     target: str  # output channel (rad/s)
     position: str | None  # input channel (rad)
     velocity: str | None  # input channel (rad/s)
+    wrap: float | None = None  # the position counter wraps every this many units (None: it does not)
+
+
+def wrap_period(drive: DriveMap, channel: str) -> float | None:
+    """The period (image units) at which an integer position counter of a declarative raw-CAN map wraps."""
+    frames = drive.rawcan.frames if drive.rawcan is not None else None
+    if frames is None:
+        return None
+    for f in frames.feedback.fields:
+        if f.name == channel and f.type in ("int", "uint") and f.scale:
+            return float(2**f.bits) / abs(f.scale)
+    return None
 
 
 def _channel(image: ProcessImage, out: bool, index: int, name: str) -> str | None:
@@ -58,17 +75,17 @@ def _channel(image: ProcessImage, out: bool, index: int, name: str) -> str | Non
 
 def find_wheels(op: Operational, params: DiffDriveParams) -> tuple[Wheel, ...]:
     """Each wheel of ``params`` located in ``op``'s groups; a missing channel is a FieldbusError."""
-    where: dict[str, tuple[str, int, str, int]] = {}
+    where: dict[str, tuple[str, int, str, int, DriveMap]] = {}
     for backend in op.network.backends:
         for g in backend.groups:
             for row, joint in enumerate(row_names(g.slaves)):
-                slave = g.first + row // g.slaves[0].map.axes
-                where[joint] = (g.name, row, backend.bus.name, slave)
+                k = row // g.slaves[0].map.axes
+                where[joint] = (g.name, row, backend.bus.name, g.first + k, g.slaves[k].map)
     wheels = []
     for joint in params.wheel_names:
         if joint not in where:
             raise FieldbusError(f"wheel '{joint}' is not a joint of this network")
-        gname, row, bus, slave = where[joint]
+        gname, row, bus, slave, drive = where[joint]
         image = op[gname]
         target = _channel(image, True, TARGET_VELOCITY, "velocity")
         if target is None:
@@ -82,7 +99,8 @@ def find_wheels(op: Operational, params: DiffDriveParams) -> tuple[Wheel, ...]:
             raise FieldbusError(
                 f"wheel '{joint}': odometry needs its {need} (set open_loop: true to run without)"
             )
-        wheels.append(Wheel(joint, gname, image, row, bus, slave, target, pos, vel))
+        wrap = wrap_period(drive, pos) if pos is not None else None
+        wheels.append(Wheel(joint, gname, image, row, bus, slave, target, pos, vel, wrap))
     return tuple(wheels)
 
 
@@ -104,6 +122,8 @@ class WheeledBase:
             w.image.inputs[w.velocity] if w.velocity else None for w in self.wheels
         ]
         self.last: BaseStep | None = None
+        self._raw: list[float] = [math.nan] * len(self.wheels)  # last fresh wrapped reading per wheel
+        self._turns: list[float] = [0.0] * len(self.wheels)  # unwrapped = reading + turns
 
     @property
     def odometry(self) -> Any:
@@ -125,6 +145,20 @@ class WheeledBase:
             out.append(float(a[w.row]) if a is not None and fresh else math.nan)
         return tuple(out)
 
+    def _unwrapped(self, positions: tuple[float, ...]) -> tuple[float, ...]:
+        """Wrapping counters made continuous: each step's change taken as the shorter way round."""
+        out = list(positions)
+        for i, (w, x) in enumerate(zip(self.wheels, positions, strict=True)):
+            if w.wrap is None or not math.isfinite(x):
+                continue
+            last = self._raw[i]
+            if math.isfinite(last):
+                jump = x - last - math.remainder(x - last, w.wrap)
+                self._turns[i] -= jump
+            self._raw[i] = x
+            out[i] = x + self._turns[i]
+        return tuple(out)
+
     def step(self, res: CycleResult, now_s: float, dt_s: float, *, enabled: bool = True) -> BaseStep:
         """One cycle after ``exchange()`` returned ``res``: odometry in, wheel targets out.
 
@@ -135,7 +169,8 @@ class WheeledBase:
         if not enabled or res.safe_stop:
             self.drive.hold()
             self.drive.reset_speeds()
-        step = self.drive.step(now_s, dt_s, self._feedback(res, self._pos), self._feedback(res, self._vel))
+        positions = self._unwrapped(self._feedback(res, self._pos))
+        step = self.drive.step(now_s, dt_s, positions, self._feedback(res, self._vel))
         speeds = step.wheel_velocity if enabled and not res.safe_stop else (0.0,) * len(self.wheels)
         for w, target, v in zip(self.wheels, self._targets, speeds, strict=True):
             target[w.row] = v

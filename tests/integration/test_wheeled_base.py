@@ -124,3 +124,32 @@ def test_a_refused_command_is_not_a_command_and_a_safe_stop_drops_it() -> None:
         steps = _run(emu, base, ctrl, wheels, truth, 40, cmd=(0.5, 0.0))
         assert emu.op.result.safe_stop
         assert steps[-1].linear == 0.0 and np.allclose(wheels.outputs["target_velocity"], 0.0)
+
+
+def test_the_seed_can_drive_wraps_its_counters_and_the_odometry_counts_every_turn() -> None:
+    """examples/amr_seed_can.yaml: seed 001's own CAN drive (int16 encoder counts wrap every 0.8 wheel
+    turn); 3 m straight at 1 m/s: the odometry against the emulated motors' own (never wrapped) angles."""
+    can_net = NETWORK.parent / "amr_seed_can.yaml"
+    with emulate(can_net) as emu:
+        op = emu.op
+        base = WheeledBase(op)
+        assert all(w.wrap == pytest.approx(65536 / COUNTS_PER_RAD) for w in base.wheels)
+        dt = emu.cycle_time_us / 1e6
+        start = list(emu.drive_positions("base"))
+        wrapped = 0
+        last = None
+        for k in range(450):  # 4.5 s at 10 ms: 1 s ramp, 3 s at 1 m/s, ramp down
+            res = op.exchange()
+            now = emu.clock.now_ns() / 1e9
+            if k < 350:
+                base.command(1.0, 0.0, now)
+            base.step(res, now, dt)
+            pos = float(op["base"].inputs["position"][0])
+            wrapped += last is not None and abs(pos - last) > 1.0
+            last = pos
+            emu.clock.sleep(dt)
+        truth = [(p - s) * 0.08 for p, s in zip(emu.drive_positions("base"), start, strict=True)]
+        assert wrapped >= 5  # the image's angle wrapped again and again
+        assert truth[0] > 3.0 and truth[1] > 3.0
+        assert base.odometry.x == pytest.approx(sum(truth) / 2, rel=0.005)
+        assert abs(base.odometry.y) < 0.01
