@@ -138,15 +138,15 @@ def emulator_frame_us(family: str = "mit", frames: int = 500, batches: int = 5) 
     kind = DamiaoSimulator if family == "damiao" else MitMotorSimulator
     with can.Bus(interface="virtual", channel=f"frame-cost-{time.monotonic_ns()}") as bus:
         sim = kind(bus, [(drive, n) for n in range(1, MOTORS + 1)], dt_s=0.001)
-        sim.handle(can.Message(arbitration_id=1, data=bytes([0xFF] * 7 + [0xFC]), is_extended_id=False))
+        sim.deliver(can.Message(arbitration_id=1, data=bytes([0xFF] * 7 + [0xFC]), is_extended_id=False))
         msg = can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False)
         for _ in range(100):
-            sim.handle(msg)
+            sim.deliver(msg)
         per_batch = []
         for _ in range(batches):
             t0 = time.perf_counter()
             for _ in range(frames):
-                sim.handle(msg)
+                sim.deliver(msg)  # 1 ms of physics (dt_s: the frame clock) and the reply
             per_batch.append((time.perf_counter() - t0) / frames * 1e6)
         return statistics.median(per_batch)
 
@@ -203,7 +203,9 @@ def main() -> int:
                 groups = [buses] if args.emulators == "one" else [[b] for b in buses]
                 for g in groups:
                     stack.enter_context(
-                        can_emulator_process(family, drive_map, range(1, MOTORS + 1), g, dt_s=0.001)
+                        can_emulator_process(
+                            family, drive_map, range(1, MOTORS + 1), g
+                        )  # physics on the clock
                     )
                 one, four = (
                     Path(tmp) / f"{family}-{transport}-1.yaml",
@@ -249,6 +251,17 @@ def main() -> int:
             f"{family}/{families[0]}": {
                 t: {
                     s: _ratio(rounds, _who(family, t), _who(families[0], t), s)
+                    for s in ("back_to_back", "paced")
+                }
+                for t in TRANSPORTS
+            }
+            for family in families[1:]
+        },
+        # the same, of the p99s: the tail a family's bring-up and framing add
+        "ratio_family_p99": {
+            f"{family}/{families[0]}": {
+                t: {
+                    s: _ratio(rounds, _who(family, t), _who(families[0], t), s, "p99_us")
                     for s in ("back_to_back", "paced")
                 }
                 for t in TRANSPORTS
@@ -318,6 +331,10 @@ def main() -> int:
     for pair, per in result["ratio_family_p50"].items():
         for t, r in per.items():
             print(f"  {pair} on {t}: {r['back_to_back']:.2f} back to back, {r['paced']:.2f} paced")
+    print("ratios of the p99s within a round (median over rounds):")
+    for pair, per in result["ratio_family_p99"].items():
+        for t, r in per.items():
+            print(f"  {pair} on {t}: {r['back_to_back']:.2f} back to back, {r['paced']:.2f} paced")
     for family, us in frame_us.items():
         print(
             f"\nthe {family} emulator's own work: {us:.0f} µs per command frame ({BUSES * MOTORS} frames per "
@@ -331,9 +348,11 @@ def _who(family: str, transport: str) -> str:
     return f"{family}/{transport}"
 
 
-def _ratio(rounds: list[dict[str, dict[str, Any]]], top: str, bottom: str, scenario: str) -> float:
-    """Median over rounds of ``top`` p50 / ``bottom`` p50, each pair from one round."""
-    return statistics.median(r[top][scenario]["p50_us"] / r[bottom][scenario]["p50_us"] for r in rounds)
+def _ratio(
+    rounds: list[dict[str, dict[str, Any]]], top: str, bottom: str, scenario: str, key: str = "p50_us"
+) -> float:
+    """Median over rounds of ``top`` / ``bottom`` (``key``: p50 by default), each pair from one round."""
+    return statistics.median(r[top][scenario][key] / r[bottom][scenario][key] for r in rounds)
 
 
 if __name__ == "__main__":

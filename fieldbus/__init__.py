@@ -42,6 +42,7 @@ from fieldbus.errors import (
 from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 from fieldbus.runtime.timing import CycleTimer
+from fieldbus.wheeled_base import WheeledBase
 
 __version__ = "0.1.0"
 
@@ -77,6 +78,7 @@ __all__ = [
     "State402",
     "StateTransitionError",
     "Verdict",
+    "WheeledBase",
     "WorkingCounterError",
     "__version__",
     "canopen_plan",

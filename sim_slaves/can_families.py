@@ -1,7 +1,8 @@
 """Which emulator speaks a raw-CAN drive map's family, for the testing kit, the emulator process and the demo.
 
 A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``mit`` (the MIT frame
-alone), ``damiao``, ``odrive`` or ``cubemars`` (servo or MIT by its ``protocol``). One emulator object
+alone), ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by its ``protocol``) or ``frames`` (a protocol
+described in data: :mod:`sim_slaves.frames_motor`). One emulator object
 serves the motors of one bus, so the motors of a bus must be of one family (and, for CubeMars, of one
 protocol); :func:`bus_family` refuses a mix, naming the maps.
 """
@@ -12,10 +13,11 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.rawcan import FAMILIES
 from fieldbus.runtime.clock import Clock, monotonic_s
 from sim_slaves.mit_motor import MitMotorSimulator
 
-FAMILIES = ("mit", "damiao", "odrive", "cubemars")
+__all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]
 
 
 def family_of(drive: DriveMap) -> str:
@@ -55,7 +57,7 @@ def simulator(
     started: ``.start()`` for its own thread, or ``serve`` / ``deliver`` from the caller.
 
     ``clock``: the time the motors read (timeouts, heartbeats, watchdogs; default the machine's);
-    ``dt_s``: the physics step per command (default: 1 ms, the MIT motors the time between commands).
+    ``dt_s``: unused (the physics run on ``clock``, in steps of :data:`sim_slaves.mit_motor.STEP_S`).
     """
     family = bus_family(d for d, _ in motors)
     items = list(motors)
@@ -67,6 +69,10 @@ def simulator(
         from sim_slaves.odrive import OdriveSimulator
 
         return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
+    if family == "frames":
+        from sim_slaves.frames_motor import FramesMotorSimulator
+
+        return FramesMotorSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
     if family == "cubemars-servo":
         from sim_slaves.cubemars import CubemarsServoSimulator
 

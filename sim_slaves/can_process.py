@@ -47,12 +47,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.rawcan import FAMILIES
 from sim_slaves.busthread import serve_together
 
 READY_TIMEOUT_S = 20.0
 UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
 UDP_INTERFACES = ("udp_multicast", "fieldbus_udp")  # python-can interfaces udp_bus() can describe
-KINDS = ("canopen", "mit", "damiao", "odrive", "cubemars", "auto")
+KINDS = ("canopen", *FAMILIES, "auto")  # the raw-CAN families from their one table
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ import can
 from fieldbus.core import cubemars
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.runtime.clock import Clock
-from sim_slaves.mit_motor import MitFrame, MitMotorSimulator, MotorState
+from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator, MotorState
 
 KT = 0.091 * 9  # N·m/A at the output: AK80-9's Kt 0.091 times its 9:1 gear (TMotorCANControl servo_can.py)
 TORQUE_LIMIT = 18.0  # N·m, AK80-9 peak torque (the manual's MIT limits table)
@@ -86,19 +86,23 @@ class CubemarsServoSimulator(MitMotorSimulator):
             self._hold.pop(node_id, None)
 
     def deliver(self, msg: can.Message) -> None:
-        if msg.is_extended_id and not msg.is_remote_frame and (msg.arbitration_id & 0xFF) in self.proto:
-            try:
-                with self._lock:
+        try:
+            with self._lock:
+                self._tick()
+                if (
+                    msg.is_extended_id
+                    and not msg.is_remote_frame
+                    and (msg.arbitration_id & 0xFF) in self.proto
+                ):
                     self.handle(msg)
-            except Exception as exc:  # keep serving; a test reads .errors
-                self.errors.append(f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # keep serving; a test reads .errors
+            self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def handle(self, msg: can.Message) -> can.Message | None:
-        """One servo packet: acted on, answered with a status frame (returned)."""
+        """One servo packet: answered with a status frame (returned), then followed until the next."""
         node, packet, data = msg.arbitration_id & 0xFF, msg.arbitration_id >> 8, bytes(msg.data)
         proto, st = self.proto[node], self.motor(node)
         self.packets[node].append((packet, data))
-        dt = self.dt_s if self.dt_s is not None else 0.001
         if packet == proto.origin_packet:
             st.zero += st.position
             st.position = 0.0
@@ -111,30 +115,25 @@ class CubemarsServoSimulator(MitMotorSimulator):
         reply = self._status(node, st, msg)
         if packet != 2:
             self._hold.pop(node, None)
-        limit = st.torque_limit
-        try:
-            self._act(node, st, packet, v, dt)
-        finally:
-            st.torque_limit = limit
+        st.law = self._law(node, st, packet, v)
         return reply
 
-    def _act(self, node: int, st: MotorState, packet: int, v: dict[str, float], dt: float) -> None:
-        """``dt`` s of the packet's control law (the MIT law ``_step`` with the packet's gains)."""
+    def _law(self, node: int, st: MotorState, packet: int, v: dict[str, float]) -> Law:
+        """The packet's control law (the MIT law with the packet's gains)."""
         if packet == 0:  # duty: a voltage; the torque falls with speed (back-EMF)
             duty = max(-1.0, min(1.0, v["duty"]))
-            self._step(st, 0.0, 0.0, 0.0, STALL_TORQUE / NO_LOAD_SPEED, duty * STALL_TORQUE, dt)
-        elif packet == 1:
-            self._step(st, 0.0, 0.0, 0.0, 0.0, KT * v["current"], dt)
-        elif packet == 2:
+            return Law(kd=STALL_TORQUE / NO_LOAD_SPEED, torque=duty * STALL_TORQUE)
+        if packet == 1:
+            return Law(torque=KT * v["current"])
+        if packet == 2:
             hold = self._hold.setdefault(node, st.position)
-            st.torque_limit = min(st.torque_limit, KT * abs(v["brake_current"]))
-            self._step(st, hold, 0.0, BRAKE_GAIN, VELOCITY_GAIN, 0.0, dt)
-        elif packet == 3:
-            self._step(st, 0.0, v["velocity"], 0.0, VELOCITY_GAIN, 0.0, dt)
-        else:  # position (4), position-speed (6): a position loop under a speed limit
-            vmax = abs(v["speed_limit"]) if "speed_limit" in v else DEFAULT_SPEED
-            v_des = max(-vmax, min(vmax, POSITION_GAIN * (v["position"] - st.position)))
-            self._step(st, 0.0, v_des, 0.0, VELOCITY_GAIN, 0.0, dt)
+            limit = KT * abs(v["brake_current"])
+            return Law(position=hold, kp=BRAKE_GAIN, kd=VELOCITY_GAIN, torque_limit=limit)
+        if packet == 3:
+            return Law(velocity=v["velocity"], kd=VELOCITY_GAIN)
+        # position (4), position-speed (6): a position loop under a speed limit
+        vmax = abs(v["speed_limit"]) if "speed_limit" in v else DEFAULT_SPEED
+        return Law(kd=VELOCITY_GAIN, gain=POSITION_GAIN, target=v["position"], vmax=vmax)
 
     def _status(self, node: int, st: MotorState, cmd: can.Message) -> can.Message | None:
         if st.drop:

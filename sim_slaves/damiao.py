@@ -17,8 +17,10 @@ is Damiao's comes from the drive map's ``rawcan.damiao`` section (:mod:`fieldbus
   reports 0xD (communication lost) and lets go; errors stay until the clear-error frame;
 - ``inject_error(node, code)`` puts a motor in any error (it lets go, as the firmware does).
 
-Time: ``clock`` (seconds, default :func:`time.monotonic`) decides the CAN timeout, so a test can run
-it in virtual time; the physics step is ``dt_s`` per command as in the MIT emulator.
+Time: ``clock`` (seconds, default :func:`time.monotonic`) decides the CAN timeout and runs the physics
+(as in the MIT emulator: the mode's set-point is followed between frames, on the clock), so a test can
+run it in virtual time. The speed loop of the non-MIT modes adds the friction torque of its set-point,
+so a speed is reached without steady-state error.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import can
 
 from fieldbus.core import damiao
 from fieldbus.core.pdo.model import DriveMap
-from sim_slaves.mit_motor import MitFrame, MitMotorSimulator
+from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator
 
 POSITION_GAIN = 20.0  # 1/s: speed command per rad of position error (position modes)
 VELOCITY_GAIN = 0.5  # N·m·s/rad: torque per rad/s of speed error (velocity loop of the non-MIT modes)
@@ -77,8 +79,8 @@ class DamiaoSimulator(MitMotorSimulator):
         clock: Callable[[], float] = time.monotonic,
         registers: dict[int, dict[int, float]] | None = None,
     ) -> None:
-        super().__init__(bus, motors, dt_s=dt_s, log=log)
-        self.clock = clock
+        super().__init__(bus, motors, dt_s=dt_s, log=log, clock=clock)
+        self.clock = self._now
         self.state: dict[int, DamiaoState] = {}
         self._esc: dict[int, int] = {}  # ESC_ID -> node
         self._proto: dict[int, tuple[damiao.DamiaoProtocol, Any]] = {}
@@ -122,9 +124,9 @@ class DamiaoSimulator(MitMotorSimulator):
             st = self.state[node_id]
             st.t_mos, st.t_rotor = mos, rotor
 
-    def idle(self) -> None:
-        with self._lock:
-            self.check_timeouts()
+    def _tick(self) -> None:
+        super()._tick()
+        self.check_timeouts()
 
     def check_timeouts(self) -> None:
         """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off."""
@@ -140,7 +142,7 @@ class DamiaoSimulator(MitMotorSimulator):
     def serve(self, timeout: float) -> bool:
         msg = self.bus.recv(timeout=timeout)
         with self._lock:
-            self.check_timeouts()
+            self._tick()
             if msg is None:
                 return False
             if not msg.is_extended_id and not msg.is_error_frame:
@@ -225,6 +227,8 @@ class DamiaoSimulator(MitMotorSimulator):
         if mode.mit and len(data) == 8 and data[:7] == b"\xff" * 7:
             if data == cfg.enter:
                 if ds.error in (ENABLED, DISABLED):
+                    if not st.enabled:
+                        st.law = None  # enabling starts no motion: no torque until a command comes
                     ds.error, st.enabled = ENABLED, True
                     ds.last_command_t = now
             elif data == cfg.exit:
@@ -239,7 +243,6 @@ class DamiaoSimulator(MitMotorSimulator):
             return self._status(node)
         if int(ds.reg(proto.registers.ctrl_mode)) != mode.ctrl_mode:
             return None  # not the mode the motor is in: ignored
-        dt = self.dt_s if self.dt_s is not None else 0.001
         ds.last_command_t = now
         st.commands += 1
         tmax = next(f.max for f in cfg.command if f.name == "torque")
@@ -248,22 +251,23 @@ class DamiaoSimulator(MitMotorSimulator):
             v = frame.decode(data)
             st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
             reply = self._status(node)
-            self._step(st, *st.command, dt)
+            st.law = Law(*st.command)
             return reply
         maxima = {f.name: f.max for f in cfg.command if f.max is not None}
         v = damiao.decode_mode(mode, data, maxima)
         ds.mode_command = (mode.name, v)
         reply = self._status(node)
-        limit = st.torque_limit
+        limit = v.get("torque", tmax) if mode.fields[-1].per_unit else None  # position-force: its share
         if "position" in v:  # position loop under the speed limit
             vmax = abs(v.get("velocity", 0.0))
-            v_des = max(-vmax, min(vmax, POSITION_GAIN * (v["position"] - st.position)))
+            st.law = Law(
+                kd=VELOCITY_GAIN,
+                gain=POSITION_GAIN,
+                target=v["position"],
+                vmax=vmax,
+                torque_limit=limit,
+                compensate=True,
+            )
         else:
-            v_des = v.get("velocity", 0.0)
-        if mode.fields[-1].per_unit:  # position-force: the torque limited to its share of TMAX
-            st.torque_limit = min(limit, v.get("torque", tmax))
-        try:
-            self._step(st, 0.0, v_des, 0.0, VELOCITY_GAIN, 0.0, dt)
-        finally:
-            st.torque_limit = limit
+            st.law = Law(velocity=v.get("velocity", 0.0), kd=VELOCITY_GAIN, compensate=True)
         return reply

@@ -6,18 +6,26 @@ Special frames: enter motor mode (FF x7 FC), exit (FD), set zero (FE).
 Physics per motor: a rotor of inertia ``J`` (kg·m²) with viscous friction
 ``b`` (N·m·s/rad) driven by the MIT impedance law
 ``tau = kp*(p_des - p) + kd*(v_des - v) + tau_ff``, saturated to the torque
-field's range, integrated over the time between commands (``dt_s`` if given).
+field's range. Physics run on the clock: every motor follows its last set-point (a :class:`Law`) in
+fixed steps of ``STEP_S`` on a grid of the clock's time, up to the time a frame arrives and, between
+frames, whenever the emulator wakes (:meth:`MitMotorSimulator.idle`: its thread's wait, or a virtual
+clock's watcher), so a set-point is followed after the last frame as a real motor's loop does, and a
+run on a virtual clock is the same, bit for bit, every time.
 Fault hooks: ``drop_replies(node, n)``, ``corrupt_replies(node, n)``,
 ``silence(node)`` and ``power_cycle(node)``. ``clock``: the time the motors
-read when a frame has no timestamp (a :class:`~fieldbus.runtime.clock.Clock`;
-default the machine's); without a thread, :meth:`MitMotorSimulator.deliver`
+read (a :class:`~fieldbus.runtime.clock.Clock` or a function giving seconds;
+default the machine's; ``dt_s`` given: the physics' time is ``dt_s`` per command instead, for tests
+without a virtual clock); without a thread, :meth:`MitMotorSimulator.deliver`
 takes each frame (virtual time, :mod:`fieldbus.testing`). A motor answers a CAN FD command with
 a CAN FD reply (bit-rate switched as the command was): the FD variants of these motors.
 """
 
 from __future__ import annotations
 
+import math
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,6 +79,45 @@ class MitFrame:
         return x.to_bytes(self.size, "big")
 
 
+STEP_S = 1e-4  # s: the physics' fixed step (semi-implicit Euler; stiff MIT gains stay stable)
+MAX_CATCH_UP = 100_000  # steps (10 s) at most per wake-up: a stalled emulator's step stays bounded
+
+
+@dataclass(frozen=True)
+class Law:
+    """A motor's set-point, followed between frames: the impedance law
+    ``tau = kp*(position - p) + kd*(v_des - v) + torque`` with ``v_des = velocity``, or, with a position
+    loop (``gain`` > 0, 1/s), ``v_des = clamp(gain*(target - p) + velocity, ±vmax)``. ``compensate``: the
+    speed loop adds the friction torque of its set-point (no steady-state speed error).
+    ``torque_limit``: N·m, under the motor's own. Units rad, rad/s, N·m."""
+
+    position: float = 0.0
+    velocity: float = 0.0
+    kp: float = 0.0
+    kd: float = 0.0
+    torque: float = 0.0
+    gain: float = 0.0
+    target: float = 0.0
+    vmax: float = math.inf
+    torque_limit: float | None = None
+    compensate: bool = False
+
+
+FREE = Law()  # no torque: a disabled motor coasts to rest on its friction
+
+
+def seconds_of(clock: Any) -> Callable[[], float]:
+    """Seconds on ``clock``: a :class:`~fieldbus.runtime.clock.Clock`, a function giving seconds, or None
+    (the machine's monotonic clock)."""
+    if clock is None:
+        return time.monotonic
+    if isinstance(clock, Clock):
+        return monotonic_s(clock)
+    if callable(clock):
+        return clock  # type: ignore[no-any-return]
+    raise TypeError(f"not a clock: {clock!r}")
+
+
 @dataclass
 class MotorState:
     """One emulated motor. Angles in rad, speeds in rad/s, torque in N·m."""
@@ -87,7 +134,8 @@ class MotorState:
     drop: int = 0
     corrupt: int = 0  # replies still to send with every data bit inverted
     silent: bool = False
-    last_t: float | None = None
+    step: int | None = None  # the physics' grid step (units of STEP_S on the clock) reached so far
+    law: Law | None = None  # the set-point being followed (None: no torque)
     torque_limit: float = 1e9  # N·m, the command's torque field range
     history: list[tuple[float, float]] = field(default_factory=list)
     # the last command received, in engineering units: position, velocity, kp, kd, torque (feed-forward)
@@ -106,9 +154,9 @@ class MitMotorSimulator(BusThread):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
-        clock: Clock | None = None,
+        clock: Clock | Callable[[], float] | None = None,
     ) -> None:
-        self._now = monotonic_s(clock)  # seconds
+        self._now = seconds_of(clock)  # seconds
         self.log = open_log(log)  # every frame the motors see and send, python-can format by suffix
         self.bus: Any = bus if self.log is None else LoggedBus(bus, self.log)
         self.dt_s = dt_s
@@ -155,37 +203,87 @@ class MitMotorSimulator(BusThread):
             st.position += st.zero
             st.zero = 0.0
             st.drop = st.corrupt = 0
-            st.last_t = None
-            st.command = None
+            st.command, st.law = None, None
 
+    # -- time ----------------------------------------------------------------------------------------
+    def idle(self) -> None:
+        """What is due without a frame: the physics up to now (and a family's timers)."""
+        with self._lock:
+            self._tick()
+
+    def _tick(self) -> None:
+        """Under the lock: every motor's physics up to the clock's now (a family adds its timers)."""
+        self.advance(self._physics_now())
+
+    def _physics_now(self) -> float:
+        """The physics' time, s: the clock's; with ``dt_s``, ``dt_s`` per command of the most commanded
+        motor (a test's deterministic pace without a virtual clock; no time passes between frames)."""
+        if self.dt_s is None:
+            return self._now()
+        return self.dt_s * max(st.commands for st, _, _ in self._by_id.values())
+
+    def advance(self, now: float) -> None:
+        """Every motor's physics up to ``now`` (s, the emulator's clock), in whole steps of ``STEP_S``."""
+        k = int(now / STEP_S + 1e-6)
+        for st, _, _ in self._by_id.values():
+            self._integrate(st, k)
+
+    def _integrate(self, st: MotorState, k: int) -> None:
+        """Motor ``st``'s law from its grid step to ``k`` (semi-implicit Euler; ``st.torque``: the last
+        step's torque). A disabled motor gets no torque; the first call only sets the grid."""
+        if st.step is None or k <= st.step:
+            st.step = k if st.step is None else st.step
+            return
+        n, st.step = min(k - st.step, MAX_CATCH_UP), k
+        law = st.law if st.enabled and st.law is not None else FREE
+        tmax = st.torque_limit if law.torque_limit is None else min(st.torque_limit, law.torque_limit)
+        p, v, t = st.position, st.velocity, 0.0
+        h, h_j, damp = STEP_S, STEP_S / st.inertia, st.friction
+        kp, kd, p_des, tau_ff, v_ff = law.kp, law.kd, law.position, law.torque, law.velocity
+        gain, target, vmax, comp = law.gain, law.target, law.vmax, damp if law.compensate else 0.0
+        for _ in range(n):
+            v_des = v_ff
+            if gain:
+                v_des = gain * (target - p) + v_ff
+                v_des = -vmax if v_des < -vmax else (vmax if v_des > vmax else v_des)
+            t = kp * (p_des - p) + kd * (v_des - v) + tau_ff + comp * v_des
+            t = -tmax if t < -tmax else (tmax if t > tmax else t)
+            v += h_j * (t - damp * v)
+            p += h * v
+        st.position, st.velocity, st.torque = p, v, t
+
+    # -- frames ---------------------------------------------------------------------------------------
     def serve(self, timeout: float) -> bool:
         msg = self.bus.recv(timeout=timeout)
         if msg is None:
+            self.idle()
             return False
         self.deliver(msg)
         return True
 
     def deliver(self, msg: can.Message) -> None:
-        """One frame from the bus (the thread's :meth:`serve`, or a caller without the thread)."""
-        if not msg.is_extended_id and msg.arbitration_id in self._by_id:
-            try:
-                with self._lock:
+        """One frame from the bus (the thread's :meth:`serve`, or a caller without the thread); the
+        physics first run up to now, so the reply tells the state when the frame arrived."""
+        try:
+            with self._lock:
+                self._tick()
+                if not msg.is_extended_id and msg.arbitration_id in self._by_id:
                     self.handle(msg)
-            except Exception as exc:  # keep serving; a test reads .errors
-                self.errors.append(f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # keep serving; a test reads .errors
+            self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def handle(self, msg: can.Message) -> can.Message | None:
         """Process one command frame; returns (and sends) the reply, if any.
 
-        As a motor's firmware does, the reply carries the state measured when the
-        command arrives; the command then acts for ``dt_s`` (or as long as the time since
-        the command before), so a reply never tells of a time still to come.
+        As a motor's firmware does, the reply carries the state measured when the command arrives (the
+        caller ran the physics up to now); the command is followed from then on, until the next.
         """
         st, (command, reply_frame), cfg = self._by_id[msg.arbitration_id]
         data = bytes(msg.data)
-        now = msg.timestamp or self._now()
-        new: tuple[float, float, float, float, float] | None = None  # a command to act from now on
+        new: Law | None = None  # a set-point to follow from now on
         if data == cfg.enter:
+            if not st.enabled:
+                st.law = None  # enabling starts no motion: no torque until a command comes
             st.enabled = True
         elif data == cfg.exit:
             st.enabled = False
@@ -194,16 +292,11 @@ class MitMotorSimulator(BusThread):
             st.position = 0.0
         elif len(data) == command.size:
             v = command.decode(data)
-            new = st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
+            st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
+            new = Law(*st.command)
             st.commands += 1
         else:
             return None
-        dt = (
-            self.dt_s
-            if self.dt_s is not None
-            else (0.001 if st.last_t is None else min(0.01, now - st.last_t))
-        )
-        st.last_t = now
         reply = None
         if st.drop:
             st.drop -= 1
@@ -222,7 +315,7 @@ class MitMotorSimulator(BusThread):
             )
             self.bus.send(reply)
         if new is not None:
-            self._step(st, *new, dt)
+            st.law = new
         return reply
 
     def _reply_data(self, st: MotorState, cfg: Any, frame: MitFrame) -> bytes:
@@ -231,23 +324,3 @@ class MitMotorSimulator(BusThread):
         if cfg.node_field:
             values[cfg.node_field] = st.node_id
         return frame.encode(values)
-
-    @staticmethod
-    def _step(
-        st: MotorState, p_des: float, v_des: float, kp: float, kd: float, tau_ff: float, dt: float
-    ) -> None:
-        """Integrate ``dt`` s of the impedance law (semi-implicit Euler in 0.1 ms sub-steps: stiff gains
-        stay stable); ``st.torque`` is the last sub-step's torque."""
-        tmax, p, v = st.torque_limit, st.position, st.velocity
-        if not st.enabled:
-            kp = kd = tau_ff = 0.0
-        n = max(1, int(dt / 1e-4))
-        h = dt / n
-        h_j, damp = h / st.inertia, st.friction
-        t = 0.0
-        for _ in range(n):
-            t = kp * (p_des - p) + kd * (v_des - v) + tau_ff
-            t = -tmax if t < -tmax else (tmax if t > tmax else t)
-            v += h_j * (t - damp * v)
-            p += h * v
-        st.position, st.velocity, st.torque = p, v, t

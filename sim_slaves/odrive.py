@@ -17,8 +17,9 @@ rotor's state is in rad there, CANSimple speaks turns); what is ODrive's comes f
   WATCHDOG_TIMER_EXPIRED and goes IDLE; ``inject_error(node, bits)`` sets any error (IDLE too).
 
 Control in closed loop: position mode ``v = POSITION_GAIN * (p_set - p) + v_ff`` then the velocity loop
-``t = VELOCITY_GAIN * (v - v_est) + t_ff``; velocity mode the velocity loop; torque mode the torque; each
-set-point acts for ``dt_s`` (default 1 ms), like the other emulators' commands.
+``t = VELOCITY_GAIN * (v - v_est) + t_ff``; velocity mode the velocity loop; torque mode the torque; the
+set-point is followed on ``clock`` until the next (the physics of :mod:`sim_slaves.mit_motor`); arming
+holds no set-point (no torque) until one comes.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import can
 
 from fieldbus.core import damiao, odrive
 from fieldbus.core.pdo.model import DriveMap
-from sim_slaves.mit_motor import MitMotorSimulator
+from sim_slaves.mit_motor import Law, MitMotorSimulator
 
 POSITION_GAIN = 20.0  # (turn/s) per turn of position error
 VELOCITY_GAIN = 1.0  # N·m per rad/s of speed error
@@ -78,8 +79,8 @@ class OdriveSimulator(MitMotorSimulator):
         watchdog_ms: float = 0.0,
         watchdog: tuple[int, int] | None = None,
     ) -> None:
-        super().__init__(bus, motors, dt_s=dt_s, log=log)
-        self.clock = clock
+        super().__init__(bus, motors, dt_s=dt_s, log=log, clock=clock)
+        self.clock = self._now
         self.axes: dict[int, AxisState] = {}
         self._proto: dict[int, odrive.OdriveProtocol] = {}
         self._watchdog_ep = watchdog
@@ -117,9 +118,9 @@ class OdriveSimulator(MitMotorSimulator):
             ax.control_mode = proto.mode_named(proto.mode).control_mode
             self._set_state(node_id, proto.idle)
 
-    def idle(self) -> None:
-        with self._lock:
-            self.check_timers()
+    def _tick(self) -> None:
+        super()._tick()
+        self.check_timers()
 
     def check_timers(self) -> None:
         """Watchdogs, then the heartbeats that are due."""
@@ -149,7 +150,7 @@ class OdriveSimulator(MitMotorSimulator):
     def serve(self, timeout: float) -> bool:
         msg = self.bus.recv(timeout=timeout)
         with self._lock:
-            self.check_timers()
+            self._tick()
             if msg is None:
                 return False
             if not msg.is_extended_id and not msg.is_error_frame:
@@ -183,6 +184,8 @@ class OdriveSimulator(MitMotorSimulator):
         if st.enabled:
             ax.last_setpoint_t = self.clock()
             ax.setpoint.clear()
+        if changed:
+            st.law = None  # arming (or letting go) holds no set-point: no torque until one comes
         if changed:
             self._heartbeat(node)
 
@@ -236,7 +239,7 @@ class OdriveSimulator(MitMotorSimulator):
         return None
 
     def _setpoint(self, node: int, mode: odrive.OdriveMode, data: bytes) -> None:
-        """A set-point feeds the watchdog; the one of the active control mode drives the rotor for ``dt_s``."""
+        """A set-point feeds the watchdog; the one of the active control mode is followed from now on."""
         ax, st = self.axes[node], self.motor(node)
         values = damiao.decode_fields(mode.fields, data, {})
         ax.setpoint[mode.command] = values
@@ -244,15 +247,16 @@ class OdriveSimulator(MitMotorSimulator):
         st.commands += 1
         if ax.state != self._proto[node].closed_loop or mode.control_mode != ax.control_mode:
             return
-        dt = self.dt_s if self.dt_s is not None else 0.001
         v_ff, t_ff = values.get("velocity", 0.0), values.get("torque", 0.0)
         if mode.control_mode == 3:  # position
-            v_des = POSITION_GAIN * (values.get("position", 0.0) - st.position / TURN) + v_ff
-            self._step(st, 0.0, v_des * TURN, 0.0, VELOCITY_GAIN, t_ff, dt)
+            target = values.get("position", 0.0) * TURN
+            st.law = Law(
+                velocity=v_ff * TURN, kd=VELOCITY_GAIN, torque=t_ff, gain=POSITION_GAIN, target=target
+            )
         elif mode.control_mode == 2:  # velocity
-            self._step(st, 0.0, v_ff * TURN, 0.0, VELOCITY_GAIN, t_ff, dt)
+            st.law = Law(velocity=v_ff * TURN, kd=VELOCITY_GAIN, torque=t_ff)
         else:  # torque
-            self._step(st, 0.0, 0.0, 0.0, 0.0, t_ff, dt)
+            st.law = Law(torque=t_ff)
 
     def endpoint(self, node: int, endpoint: int, fmt: str = "<f") -> Any:
         """An endpoint's value as the axis holds it (``fmt``: struct format)."""

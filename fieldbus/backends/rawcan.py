@@ -47,6 +47,12 @@ current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` len
 reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
 outside 0 are counted, named faults as for Damiao.
 
+Family ``frames`` (:mod:`fieldbus.core.canframes`): a protocol described in data; its command frames
+(per motor, or shared by several motors of the bus) are filled from the image's output rows and its
+feedback frames routed into the motors' input rows by :class:`~fieldbus.core.canframes.FramesBus`;
+enable / disable / zero are the map's byte patterns (no answer awaited), and ``stop()`` sends every
+motor's ``safe_value`` command before the disable pattern.
+
 CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
 with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
 """
@@ -66,6 +72,7 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import cubemars, damiao, odrive
+from fieldbus.core.canframes import FramesBus
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -167,7 +174,7 @@ class RawCanBackend(CanFaults, Backend):
         self._max: list[dict[str, float]] = [
             {} for _ in range(self.n_slaves)
         ]  # per-unit bases of mode fields
-        self._codes = np.zeros(self.n_slaves, dtype=np.int16)  # last error code per motor
+        self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
         self._onsets: deque[tuple[int, int, str]] = deque(
@@ -191,6 +198,8 @@ class RawCanBackend(CanFaults, Backend):
             str, tuple[int, int]
         ] = {}  # 0.6 Get_Error answers: (active errors, disarm reason)
         self._sdo_answer: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
+        declared: list[Any] = []  # family frames: (index, node, protocol, output row, input row)
+        self._fr = [False] * self.n_slaves
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -204,6 +213,10 @@ class RawCanBackend(CanFaults, Backend):
             )
             # the frame's data bytearray seen as a numpy array: encoding writes straight into it
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
+            if cfg.frames is not None:
+                self._fr[i] = True
+                declared.append((i, node, cfg.frames, out_row, self._in_rows[i]))
+                continue
             reply_id = cfg.reply_can_id(node)
             if cfg.damiao is not None:
                 self._family_init(i, cfg, node)
@@ -232,7 +245,18 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
-        self._families = any(at is not None for at in self._error_at)
+        try:
+            self._frames = FramesBus(declared) if declared else None
+        except ValueError as exc:
+            raise FieldbusError(f"bus '{bus.name}': {exc}") from None
+        self._fr_msgs = [
+            (self._message(arbitration_id=f.can_id, data=f.data, is_extended_id=f.extended))
+            for f in (self._frames.commands if self._frames is not None else ())
+        ]
+        self._fr_faults = [
+            i for i, node, proto, _, _ in declared if proto.fault_field is not None
+        ]  # family frames with a fault field
+        self._families = any(at is not None for at in self._error_at) or bool(self._fr_faults)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -529,8 +553,95 @@ class RawCanBackend(CanFaults, Backend):
         return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
-        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer."""
+        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer. The
+        motors stay disabled: :meth:`recover` clears one motor's fault and enables it again."""
         return [self.areas[i].slave.name for i in self._special("clear")]
+
+    def recover(self, slave: int | str) -> bool:
+        """Clear motor ``slave``'s fault and enable it again by its family's own sequence, between cycles
+        (each answer awaited at most ``ENTER_TIMEOUT_S``); True when it is enabled again.
+
+        First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
+        the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
+        itself: the controller writes its targets after.
+        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); ODrive: Clear_Errors, then
+        CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
+        declarative (``frames``): the map's clear and enable patterns, if any. A CubeMars servo has no clear command:
+        True only when its error code is 0 again (after a power cycle). Raises
+        :class:`~fieldbus.errors.BusIoError` when the driver fails.
+        """
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        self._seed_from_actual(i)
+        cfg = self.areas[i].slave.map.rawcan
+        assert cfg is not None
+        proto = self._od[i]
+        if proto is not None:
+            a = self.areas[i]
+            self.groups[a.group].image.outputs.values[a.row][proto.request_field] = proto.closed_loop
+            try:
+                self._od_frame(i, "clear_errors", proto.clear)
+                self._od_hb[i] = None
+                self._od_request_state(i, proto.closed_loop)
+                self._od_wait_heartbeat(i, proto.closed_loop)
+            except StateTransitionError:
+                return False
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("send", exc) from exc
+            self._codes[i] = 0
+            return True
+        if self._fr[i]:
+            if self._frames is not None:  # the patterns of the motor's command frame: clear, then enable
+                frame = next(f for f in self._frames.commands if any(x.motor == i for x in f.slots))
+                proto_f = self._frames.protocols[i]
+                for data in (proto_f.clear, proto_f.enable):
+                    if data is not None:
+                        self._send_raw(frame.can_id, frame.extended, data)
+            self._codes[i] = 0
+            return True
+        cm = self._cm[i]
+        if cm is not None and cm.protocol == "servo":
+            return int(self._codes[i]) == 0
+        if cfg.damiao is not None and not self._answered(i, cfg.damiao.clear):
+            return False
+        if not self._answered(i, cfg.enter):
+            return False
+        at = self._error_at[i]
+        if at is None:
+            return True
+        byte, shift, mask = at
+        self._codes[i] = code = (int(self._reply_rows[i][byte]) >> shift) & mask
+        return cfg.damiao is None or code == 1  # Damiao: 1 is ENABLED; CubeMars MIT: 0
+
+    def _seed_from_actual(self, i: int) -> None:
+        """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
+        a = self.areas[i]
+        img = self.groups[a.group].image
+        out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
+        names, read = out.dtype.names or (), inp.dtype.names or ()
+        for n in ("velocity", "torque", "current", "duty", "brake_current"):
+            if n in names:
+                out[n] = 0
+        if "position" in names and "position" in read:
+            out["position"] = inp["position"]
+
+    def _send_raw(self, can_id: int, extended: bool, data: bytes) -> None:
+        try:
+            self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=extended))
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("send", exc) from exc
+
+    def _answered(self, i: int, frame: bytes) -> bool:
+        """Send ``frame`` on motor ``i``'s command id; True when its reply came (copied to its row)."""
+        self._drain()
+        self._arrived[i] = False
+        self._send_raw(self._cmd[i][0].arbitration_id, False, frame)
+        deadline = self._now() + ENTER_TIMEOUT_S
+        try:
+            while not self._arrived[i] and self._now() < deadline:
+                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        return bool(self._arrived[i])
 
     def _mode_values(self, i: int) -> dict[str, float]:
         a = self.areas[i]
@@ -540,6 +651,14 @@ class RawCanBackend(CanFaults, Backend):
 
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
+        for i in self._fr_faults:
+            if self._arrived[i] and self._frames is not None:
+                fp = self._frames.protocols[i]
+                code = fp.fault_code(self._in_rows[i])
+                if code is not None and code != self._codes[i]:
+                    if code not in fp.ok_codes:
+                        self._fault(i, code, fp.fault_name(code))
+                    self._codes[i] = code
         for i, at in enumerate(self._error_at):
             if at is None or not self._arrived[i]:
                 continue
@@ -808,9 +927,17 @@ class RawCanBackend(CanFaults, Backend):
         """
         self._drain()
         try:
+            if self._frames is not None:  # patterns, no answer awaited; the safe command before disabling
+                frames = self._frames.safe_frames() if which == "exit" else []
+                for can_id, ext, data in frames + self._frames.special(
+                    {"enter": "enable", "exit": "disable"}.get(which, which)
+                ):
+                    self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=ext))
             for i, area in enumerate(self.areas):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
+                if self._fr[i]:
+                    continue
                 msg, _, _ = self._cmd[i]
                 cm = cfg.cubemars
                 if cm is not None and cm.protocol == "servo":
@@ -839,7 +966,7 @@ class RawCanBackend(CanFaults, Backend):
         self._arrived.fill(False)
         for i, proto in enumerate(self._od):
             cm = self._cm[i]
-            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo")
+            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or self._fr[i]
         if which == "clear":
             for i, area in enumerate(self.areas):
                 self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
@@ -857,7 +984,13 @@ class RawCanBackend(CanFaults, Backend):
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
         try:
+            if self._frames is not None:
+                self._frames.fill()
+                for m in self._fr_msgs:
+                    self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
+                if self._fr[i]:
+                    continue
                 proto = self._od[i]
                 if proto is not None:
                     self._send_odrive(i, proto)
@@ -892,8 +1025,7 @@ class RawCanBackend(CanFaults, Backend):
                 remaining = deadline - clock()
                 if remaining <= 0:
                     break
-                if accept(recv(timeout=remaining), copy=True):
-                    count += 1
+                count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
             raise self._io_failed("receive", exc) from exc
@@ -920,9 +1052,12 @@ class RawCanBackend(CanFaults, Backend):
         data = msg.data
         return self._route.get((can_id, (data[byte] if byte < len(data) else -1) if byte >= 0 else -1), -1)
 
-    def _accept(self, msg: Any, *, copy: bool) -> bool:
+    def _accept(self, msg: Any, *, copy: bool) -> int:
+        """Take ``msg`` as a reply; the number of motors it answered for (a shared frame: several)."""
         if msg is None:
-            return False
+            return 0
+        if self._frames is not None and self._frames.is_feedback(msg.arbitration_id, msg.is_extended_id):
+            return self._accept_shared(msg, copy=copy)
         i = self._motor(msg)
         if i < 0:
             return False
@@ -941,6 +1076,26 @@ class RawCanBackend(CanFaults, Backend):
             row[:n] = np.frombuffer(data, dtype=np.uint8)
         self._arrived[i] = True
         return True
+
+    def _accept_shared(self, msg: Any, *, copy: bool) -> int:
+        """A feedback frame of family ``frames``: its slots into the rows of the motors not yet arrived."""
+        if msg.is_remote_frame or msg.is_error_frame:
+            return 0
+        motors = self._frames_motors(msg)
+        if any(self._arrived[i] for i in motors):
+            self.extra_frames += 1
+            return 0
+        if copy and self._frames is not None:
+            motors = self._frames.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+        for i in motors:
+            self._arrived[i] = True
+        return len(motors)
+
+    def _frames_motors(self, msg: Any) -> list[int]:
+        frame = self._frames.feedback.get((msg.arbitration_id, msg.is_extended_id)) if self._frames else None
+        if frame is None or len(msg.data) < len(frame.data):
+            return []
+        return [s.motor for s in frame.slots]
 
     def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
         """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
@@ -962,6 +1117,10 @@ class RawCanBackend(CanFaults, Backend):
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
+                shared = self._frames_motors(msg) if self._frames is not None else []
+                if shared:
+                    self.late_frames += 1
+                    continue
                 i = self._motor(msg)
                 if i >= 0:
                     if self._arrived[i]:

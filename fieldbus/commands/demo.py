@@ -9,7 +9,7 @@ Backends: ``sim`` (the EtherCAT emulator in-process: real frames, no root),
 ``ethercat`` (pysoem over a veth pair the demo creates, the emulator in a
 child process; needs root), ``canopen`` (emulated nodes on python-can's
 virtual bus), ``rawcan`` (raw-CAN motors of a shipped map on python-can's virtual bus: ``--motor``
-picks the map, so each family - MIT, Damiao, ODrive, CubeMars servo or MIT - runs on its own emulator,
+picks the map, a shipped one by name or any raw-CAN map by its path, so each family - MIT, Damiao, ODrive, CubeMars servo or MIT - runs on its own emulator,
 found through the ``can_motor_simulator`` emulator part).
 """
 
@@ -53,6 +53,7 @@ MOTORS = (
     "damiao_dm_j8009",
     "odrive_s1",
     "odrive_3_6",
+    "amr_seed_wheels",
 )
 # most axes per family: Damiao replies on id + 0x10 (MST_ID), kept clear of the others' ids; ODrive node < 64
 MAX_FAMILY_AXES = {"damiao": 15, "odrive": 63}
@@ -98,8 +99,9 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--axes",
         type=integer(1),
-        default=12,
-        help=f"number of joints (default 12; canopen, rawcan: at most {MAX_CAN_AXES})",
+        default=None,
+        help=f"number of joints (default 12, or as many as the motor's shared frames carry; canopen, "
+        f"rawcan: at most {MAX_CAN_AXES})",
     )
     p.add_argument("--cycles", type=integer(1), default=3000, help="cycles to run (default 3000)")
     p.add_argument(
@@ -111,9 +113,10 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--motor",
-        choices=MOTORS,
         default=None,
-        help=f"rawcan: the motors' drive map, each family on its own emulator (default {MOTORS[0]})",
+        metavar="MAP",
+        help=f"rawcan: the motors' drive map, a shipped one ({', '.join(MOTORS)}) or a raw-CAN map's "
+        f"path, each family on its own emulator (default {MOTORS[0]})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.add_argument(
@@ -140,10 +143,13 @@ DEFAULT_RATE_HZ = {"sim": 1000.0, "ethercat": 1000.0, "canopen": 100.0, "rawcan"
 def run(args: argparse.Namespace) -> int:
     if args.rate is None:
         args.rate = DEFAULT_RATE_HZ[args.backend]
-    check_axes(args.backend, args.axes)
     if args.motor is not None and args.backend != "rawcan":
         raise UsageError("--motor needs --backend rawcan (the raw-CAN motors' drive map)")
     args.motor = args.motor or MOTORS[0]
+    if args.axes is None:
+        top = max_motor_axes(args.motor) if args.backend == "rawcan" else None
+        args.axes = min(12, top) if top is not None else 12
+    check_axes(args.backend, args.axes)
     if args.backend == "rawcan":
         check_motor_axes(args.motor, args.axes)
     if args.delay_us and args.backend not in ("sim", "ethercat"):
@@ -183,18 +189,42 @@ def check_axes(backend: str, axes: int) -> None:
         )
 
 
-def motor_family(motor: str) -> str:
-    """The raw-CAN family of shipped map ``motor`` (``mit``, ``damiao``, ``odrive``, ``cubemars``)."""
+def motor_map(motor: str) -> Path:
+    """The drive map of ``--motor``: a shipped map's name (:data:`MOTORS`) or a map file's path."""
+    if motor in MOTORS:
+        return PDO_MAPS / f"{motor}.yaml"
+    path = Path(motor)
+    if path.suffix in (".yaml", ".yml") and path.is_file():
+        return path.resolve()  # the generated network sits elsewhere
+    raise UsageError(f"--motor {motor}: neither a shipped map ({', '.join(MOTORS)}) nor a map file")
+
+
+def _rawcan_config(motor: str) -> Any:
     from fieldbus.core.pdo import load_drive_map
 
-    cfg = load_drive_map(PDO_MAPS / f"{motor}.yaml").rawcan
-    assert cfg is not None
-    return cfg.family
+    cfg = load_drive_map(motor_map(motor)).rawcan
+    if cfg is None:
+        raise UsageError(f"--motor {motor}: the map has no rawcan section (raw-CAN motors only)")
+    return cfg
+
+
+def motor_family(motor: str) -> str:
+    """The raw-CAN family of ``motor`` (``mit``, ``damiao``, ``odrive``, ``cubemars``, ``frames``)."""
+    return str(_rawcan_config(motor).family)
+
+
+def max_motor_axes(motor: str) -> int | None:
+    """Most axes ``motor``'s ids allow: :data:`MAX_FAMILY_AXES`, or the slots of a shared frame."""
+    cfg = _rawcan_config(motor)
+    if cfg.frames is not None:
+        shared = [s.motors for s in (cfg.frames.command, cfg.frames.feedback) if s.shared]
+        return min(shared) if shared else None
+    return MAX_FAMILY_AXES.get(cfg.family)
 
 
 def check_motor_axes(motor: str, axes: int) -> None:
-    """:class:`UsageError` for more axes than the family's ids allow (:data:`MAX_FAMILY_AXES`)."""
-    top = MAX_FAMILY_AXES.get(motor_family(motor))
+    """:class:`UsageError` for more axes than the family's ids allow (:func:`max_motor_axes`)."""
+    top = max_motor_axes(motor)
     if top is not None and axes > top:
         raise UsageError(f"--motor {motor} takes at most {top} axes (its CAN ids), not {axes}")
 
@@ -350,8 +380,6 @@ def _rawcan_network(
 ) -> Iterator[DemoSetup]:
     """Raw-CAN motors of the shipped map ``motor`` emulated on python-can's virtual bus, each family by its
     own emulator (the ``can_motor_simulator`` emulator part: the family from the map)."""
-    if motor not in MOTORS:
-        raise FieldbusError(f"unknown demo motor '{motor}' (have: {', '.join(MOTORS)})")
     try:
         import can
 
@@ -360,8 +388,11 @@ def _rawcan_network(
         simulator = emulator_part("can_motor_simulator")
     except ImportError as exc:
         raise FieldbusError(f"the rawcan demo needs {exc.name}: pip install 'fieldbus[can]'") from None
-    drive_map = PDO_MAPS / f"{motor}.yaml"
-    channel = f"fieldbus-demo-{motor}-{id(net)}"
+    try:
+        drive_map = motor_map(motor)
+    except UsageError as exc:
+        raise FieldbusError(str(exc)) from None
+    channel = f"fieldbus-demo-{drive_map.stem}-{id(net)}"
     drive = load_drive_map(drive_map)
     net.write_text(
         head + "buses:\n  - name: joints\n    type: rawcan\n"
@@ -429,7 +460,7 @@ def run_demo(
 
 def _follower(
     op: Operational, backend: str, axes: int, rate_hz: float, motor: str
-) -> SineFollower | MitFollower | PositionFollower:
+) -> SineFollower | MitFollower | PositionFollower | SpeedFollower:
     """The demo's job for the backend: CiA 402 joints; MIT-mode motors (families mit, damiao, cubemars MIT);
     motors with their own position loop (ODrive in turns, CubeMars servo in position-speed)."""
     if backend != "rawcan":
@@ -439,6 +470,8 @@ def _follower(
         return MitFollower(op, axes, rate_hz)
     if "speed_limit" in outputs:  # CubeMars servo: its position-speed packet (the map's mode)
         return PositionFollower(op, axes, rate_hz, per_rad=1.0, setup={"speed_limit": SERVO_SPEED_LIMIT})
+    if "position" not in outputs and "velocity" in outputs:  # a wheel: speed commands, position read
+        return SpeedFollower(op, axes, rate_hz)
     return PositionFollower(op, axes, rate_hz, per_rad=1.0 / (2 * math.pi), velocity_ff=True)  # ODrive: turns
 
 
@@ -584,6 +617,39 @@ class MitFollower(_SineJob):
 
     def states(self) -> list[str]:
         return ["MOTOR_MODE" if self.enabled_at is not None else "NO_REPLY"] * self.n
+
+
+class SpeedFollower(_SineJob):
+    """Motors commanded in speed only (a wheel drive): the trajectory's velocity plus ``GAIN`` (1/s) times
+    the position error, towards ``start + A (1 - cos 2 pi f t)``; tracking error in rad as the others."""
+
+    GAIN = 10.0
+
+    def __init__(self, op: Operational, axes: int, rate_hz: float, group: str = "joints") -> None:
+        super().__init__(op, axes, rate_hz, group)
+        self.position = self.inp["position"]
+        self.speed = self.out["velocity"]
+        self.goal = np.zeros(axes)  # this cycle's target, rad
+        self.err = np.zeros(axes)
+
+    def step(self, k: int) -> bool:
+        self.k = k
+        res = self.op.exchange()
+        if not res.fresh or res.safe_stop:
+            return False
+        if self.enabled_at is None:
+            self.begin(k, self.position, self.goal)
+            return False
+        if k - self.enabled_at > 1:
+            self.tracking.add(self.position, self.prev_target)
+        v = self.advance(k, self.goal)
+        np.subtract(self.goal, self.position, out=self.err)
+        np.multiply(self.err, self.GAIN, out=self.err)
+        np.add(self.err, v, out=self.speed)
+        return False
+
+    def states(self) -> list[str]:
+        return ["ANSWERING" if self.enabled_at is not None else "NO_REPLY"] * self.n
 
 
 class PositionFollower(_SineJob):

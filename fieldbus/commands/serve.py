@@ -7,7 +7,9 @@ Requests (claim, release, enable, disable, clear_safe_stop, describe) on
 ``rt/<namespace>/request``, answers on ``rt/<namespace>/reply``; the same requests
 as ROS 2 services ``/<namespace>/<group>/<name>`` (std_srvs Trigger / SetBool,
 fieldbus_msgs SetMode / SdoRead / SdoWrite); diagnostics
-(``diagnostic_msgs/DiagnosticArray``) on ``rt/<namespace>/diagnostics``.
+(``diagnostic_msgs/DiagnosticArray``) on ``rt/<namespace>/diagnostics``. A network
+file with a ``base:`` section is also a wheeled base in standard messages:
+``cmd_vel`` in, ``odom``, ``tf``, ``joint_states`` and ``diagnostics`` out (docs/amr.md).
 ``fieldbus monitor --dds`` shows a served bus live.
 """
 
@@ -82,6 +84,21 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--stop-after", type=int, default=200, metavar="M", help="cycles without a command: safe stop"
     )
+    p.add_argument(
+        "--base-namespace",
+        default="",
+        metavar="NS",
+        help="the wheeled base's topics (cmd_vel, odom, joint_states, diagnostics) under /NS "
+        "(default: the global names Nav2 uses; tf is always /tf)",
+    )
+    p.add_argument(
+        "--ros2-control",
+        nargs="?",
+        const="/robot_joint_commands,/robot_joint_states",
+        metavar="COMMANDS,STATES",
+        help="serve ros2_control's topic-based hardware interface: commands (sensor_msgs/JointState) on "
+        "COMMANDS, every joint's state on STATES (default: /robot_joint_commands,/robot_joint_states)",
+    )
     p.add_argument("--json", action="store_true", help="ready line and final report as JSON objects")
     p.add_argument(
         "--spin-us",
@@ -117,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
         deadline=Deadline(args.hold_after, args.stop_after),
         publish_every=args.publish_every,
         diagnostics_every=args.diagnostics_every,
+        base_namespace=check_namespace(args.base_namespace) if args.base_namespace else "",
+        ros2_control=_topic_pair(args.ros2_control) if args.ros2_control else None,
     )
     participant = Participant(args.domain, args.interface, args.peer)
     cycleopts.check_record(args)
@@ -138,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
                 "namespace": options.namespace,
                 "domain": participant.domain_id,
                 "groups": {n: g.topics for n, g in server.groups.items()},
+                **({"base": server.base.topics} if server.base is not None else {}),
+                **({"ros2_control": server.topic_control.topics} if server.topic_control is not None else {}),
                 "realtime": rt.to_json(),
             }
             print(
@@ -192,3 +213,14 @@ def run(args: argparse.Namespace) -> int:
             f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
         )
     return 0
+
+
+def _topic_pair(text: str) -> tuple[str, str]:
+    """``COMMANDS,STATES``: two ROS 2 topic names."""
+    from fieldbus.dds.participant import check_namespace
+    from fieldbus.errors import FieldbusError
+
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or not all(parts):
+        raise FieldbusError(f"--ros2-control takes COMMANDS,STATES (two topic names), not {text!r}")
+    return check_namespace(parts[0]), check_namespace(parts[1])

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
 
 from fieldbus.commands.usage import add_command
 from fieldbus.core.bandwidth import network_bandwidth, overload
+from fieldbus.core.diffdrive import DiffDriveParams
 from fieldbus.core.network import NetworkConfig, is_network_document, parse_network
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.load import looks_like_drive_map, parse_drive_map, shape
@@ -101,6 +103,22 @@ def network_summary(net: NetworkConfig) -> dict[str, Any]:
             }
             for b in net.buses
         ],
+        **({"base": _base_summary(net.base)} if net.base is not None else {}),
+    }
+
+
+def _base_summary(base: DiffDriveParams) -> dict[str, Any]:
+    def limit(v: float) -> float | None:
+        return None if math.isnan(v) else v
+
+    return {
+        "left_wheel_names": list(base.left_wheel_names),
+        "right_wheel_names": list(base.right_wheel_names),
+        "wheel_separation": base.wheel_separation,
+        "wheel_radius": base.wheel_radius,
+        "max_linear": limit(base.linear.max_velocity),
+        "max_angular": limit(base.angular.max_velocity),
+        "cmd_vel_timeout": base.cmd_vel_timeout,
     }
 
 
@@ -145,6 +163,18 @@ def _print_network(path: str, s: dict[str, Any]) -> None:
             print(
                 f"    {where:>8} {sl['name']:<16} {sl['map']:<24} out {sl['output_bytes']} B, in {sl['input_bytes']} B"
             )
+    if "base" in s:
+        w = s["base"]
+
+        def lim(v: float | None, unit: str) -> str:
+            return "no limit" if v is None else f"{v:g} {unit}"
+
+        print(
+            f"  base: left {', '.join(w['left_wheel_names'])} / right {', '.join(w['right_wheel_names'])}, "
+            f"separation {w['wheel_separation']:g} m, radius {w['wheel_radius']:g} m, "
+            f"linear {lim(w['max_linear'], 'm/s')}, angular {lim(w['max_angular'], 'rad/s')}, "
+            f"cmd_vel timeout {w['cmd_vel_timeout']:g} s"
+        )
 
 
 def run(args: argparse.Namespace) -> int:

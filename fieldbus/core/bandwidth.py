@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 from fieldbus.core import cubemars
+from fieldbus.core.canframes import FramesProtocol
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
@@ -730,6 +731,7 @@ def can_frames(
     treated as 1: conservative).
     """
     frames: list[CanFrame] = []
+    shared: set[tuple[int, bool]] = set()  # declarative frames already counted (several motors each)
     fb = options.frame_bits
     if bus_type == "canopen" and options.sync:
         frames.append(CanFrame(0x080, 0, "SYNC", frame_bits=fb))
@@ -740,6 +742,12 @@ def can_frames(
         cfg = s.map.canopen or CanopenConfig()
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
+        if s.map.rawcan is not None and s.map.rawcan.frames is not None:  # shared frames: once per bus
+            for f in declared_frames(s.name, s.map.rawcan.frames, node, fb, fd_bus):
+                if (f.can_id, f.extended) not in shared:
+                    shared.add((f.can_id, f.extended))
+                    frames.append(f)
+            continue
         if s.map.rawcan is not None:  # one command frame and its reply per motor, not PDOs
             frames += _motor_frames(s.name, s.map.rawcan, node, s.map.rpdo, s.map.tpdo, fb, fd_bus)
             continue
@@ -796,6 +804,20 @@ def _motor_frames(
         reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label
     )
     return [command, reply]
+
+
+def declared_frames(
+    name: str, proto: FramesProtocol, node: int, frame_bits: int | None, fd: bool = False
+) -> list[CanFrame]:
+    """A declarative motor's command frame and the feedback that answers it (a shared frame is named
+    by its id: it carries several motors)."""
+    out: list[CanFrame] = []
+    for spec, what in ((proto.command, "command"), (proto.feedback, "feedback")):
+        cid = spec.frame_id(node)
+        label = f"0x{cid:X} {what}" if spec.shared else f"{name} {what}"
+        after = out[0].label if out else None
+        out.append(CanFrame(cid, spec.length, label, spec.extended, fd, frame_bits=frame_bits, after=after))
+    return out
 
 
 #: Data bytes the master puts in every Damiao mode frame and ODrive set-point: the rawcan backend

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.base_config import parse_base
+from fieldbus.core.diffdrive import DiffDriveParams
 from fieldbus.core.emulator_opts import EmulatorSection, emulator_section
 from fieldbus.core.liveness import unwatched_reason
 from fieldbus.core.pdo.load import (
@@ -39,7 +41,7 @@ DEFAULT_RECEIVE_TIMEOUT_US = (
 )
 DEFAULT_SAFE_STOP_AFTER = 10  # legged-robot hardware tutorial §62.5: safe stop after 10 consecutive misses
 
-_TOP_KEYS = ("name", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "buses")
+_TOP_KEYS = ("name", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "buses", "base")
 _BUS_KEYS = (
     "name", "type", "interface", "redundant_interface", "can_interface", "can_options", "bitrate",
     "data_bitrate", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
@@ -118,6 +120,8 @@ class NetworkConfig:
     warnings: tuple[str, ...] = ()
     """``file:line:column path: message`` of what may work but is likely a mistake (``fieldbus validate``
     prints them); e.g. a receive timeout longer than the cycle."""
+    base: DiffDriveParams | None = None
+    """A wheeled base on some of the joints (the ``base:`` section), if the file has one."""
 
     def bus(self, name: str) -> Bus:
         for b in self.buses:
@@ -182,8 +186,15 @@ def parse_network(doc: Located, base: Path, default_name: str = "network") -> Ne
         bus_names.add(bus.name)
         buses.append(bus)
     name = r.name(top["name"], ("name",)) if "name" in top else default_name
+    joints = [j for b in buses for j in row_names(b.slaves)]
+    wheeled = parse_base(r, top["base"], ("base",), joints) if "base" in top else None
     return NetworkConfig(
-        name=name, cycle_time_us=cycle, buses=tuple(buses), source=doc.file, warnings=tuple(warnings)
+        name=name,
+        cycle_time_us=cycle,
+        buses=tuple(buses),
+        source=doc.file,
+        warnings=tuple(warnings),
+        base=wheeled,
     )
 
 

@@ -26,6 +26,7 @@ from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
 if TYPE_CHECKING:
+    from fieldbus.core.canframes import FramesProtocol
     from fieldbus.core.cubemars import CubemarsProtocol
     from fieldbus.core.damiao import DamiaoProtocol
     from fieldbus.core.odrive import OdriveProtocol
@@ -39,8 +40,10 @@ FAMILIES = (
     "damiao",
     "odrive",
     "cubemars",
+    "frames",
 )  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple;
-# cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars)
+# cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars);
+# frames: any protocol described in data (fieldbus.core.canframes)
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
 FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
@@ -91,6 +94,7 @@ class RawCanConfig:
     odrive: OdriveProtocol | None = None  # family "odrive": CANSimple commands, modes, states, errors
     byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
     cubemars: CubemarsProtocol | None = None  # family "cubemars": servo packets or MIT unwrapping
+    frames: FramesProtocol | None = None  # family "frames": the protocol described in data
 
     def reply_can_id(self, node: int) -> int:
         """The CAN id motor ``node`` answers on."""
@@ -104,6 +108,16 @@ class RawCanConfig:
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
     """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""
     path: PathT = ("rawcan",)
+    if isinstance(raw, Mapping) and raw.get("family") == "frames":
+        from fieldbus.core.canframes import parse_frames
+
+        proto, rpdo, tpdo = parse_frames(r, raw, path)
+        cfg = RawCanConfig(
+            command=(), reply=(), command_id=proto.command.can_id, reply_id=proto.feedback.can_id,
+            enter=proto.enable or b"", exit=proto.disable or b"", zero=proto.zero or b"",
+            family="frames", frames=proto,
+        )  # fmt: skip
+        return cfg, rpdo, tpdo
     m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
     family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
@@ -277,9 +291,6 @@ def _channels(
     order = list(enumerate(fields, start=1))
     for sub, f in order if little else reversed(order):
         aligned = bit % 8 == 0 and f.bits in (8, 16, 32)
-        kind = {"float32": "float", "int": f"int{f.bits}"}.get(f.type, f"uint{f.bits}")
-        dt = datatypes.lookup(kind if aligned else f"bit{f.bits}")
-        assert dt is not None
         factor, offset = 1.0, 0.0
         if f.min is not None and f.max is not None:
             steps = (1 << f.bits) - (1 if span == "full" else 0)
@@ -289,20 +300,45 @@ def _channels(
             else:  # value = factor * raw + offset
                 factor, offset = 1.0 / per_unit, f.min
         chans.append(
-            Channel(
-                index=obj,
-                sub_index=sub,
-                type=dt,
-                name=f.name,
-                unit=f.unit,
-                factor=factor,
-                offset=offset,
-                scaled=f.scaled,
-                safe_value=f.safe_value,
+            field_channel(
+                obj, sub, f.name, f.type, f.bits, aligned, factor, offset, f.unit, f.scaled, f.safe_value
             )
         )
         bit += f.bits
     return tuple(chans)
+
+
+def field_channel(
+    obj: int,
+    sub: int,
+    name: str,
+    kind: str,
+    bits: int,
+    aligned: bool,
+    factor: float,
+    offset: float,
+    unit: str | None,
+    scaled: bool,
+    safe_value: float | None,
+    description: str = "",
+) -> Channel:
+    """The image channel of a frame field: ``kind`` uint / int / float32 (``aligned``: a whole-byte
+    number in the row, else a bit field), ``factor``/``offset`` as the PDO model's."""
+    name_of = {"float32": "float", "int": f"int{bits}"}.get(kind, f"uint{bits}")
+    dt = datatypes.lookup(name_of if aligned else f"bit{bits}")
+    assert dt is not None
+    return Channel(
+        index=obj,
+        sub_index=sub,
+        type=dt,
+        name=name,
+        unit=unit,
+        factor=factor,
+        offset=offset,
+        scaled=scaled,
+        description=description,
+        safe_value=safe_value,
+    )
 
 
 def encode_frame(fields: tuple[RawCanField, ...], span: str, values: Mapping[str, float]) -> bytes:

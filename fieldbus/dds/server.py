@@ -37,6 +37,7 @@ from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
+from fieldbus.dds.base_service import BaseService
 from fieldbus.dds.callers import Caller, Callers, publication_handle
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
@@ -50,6 +51,7 @@ from fieldbus.dds.participant import (
 )
 from fieldbus.dds.service_host import ServiceHost
 from fieldbus.dds.stalls import StallWatch
+from fieldbus.dds.topic_control import TopicControl
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
 
@@ -77,6 +79,8 @@ class ServeOptions:
 
     namespace: str
     deadline: Deadline = field(default_factory=Deadline)
+    base_namespace: str = ""  # the wheeled base's topics (cmd_vel, odom...) under it; "": ROS 2 global names
+    ros2_control: tuple[str, str] | None = None  # (commands, states) topics of topic-based ros2_control
     publish_every: int = 1
     diagnostics_every: int = 1000
 
@@ -350,6 +354,15 @@ class BusServer:
         self.services = ServiceHost(
             participant, options.namespace, list(self.groups), self._answer, self.callers
         )
+        # the network file's wheeled base: cmd_vel in, odom/tf out (fieldbus.dds.base_service)
+        self.base: BaseService | None = None
+        if net.model.base is not None:
+            self.base = BaseService(self, net.model.base, options.base_namespace)
+        # ros2_control's topic-based hardware interface (fieldbus.dds.topic_control), on the other groups
+        self.topic_control: TopicControl | None = None
+        if options.ros2_control is not None:
+            wheels = tuple(g.name for g in self.base.groups) if self.base is not None else ()
+            self.topic_control = TopicControl(self, *options.ros2_control, exclude=wheels)
 
     def attach(self, op: Operational) -> None:
         """Serve ``op`` (the network's running phase) from the next :meth:`step` on."""
@@ -363,6 +376,8 @@ class BusServer:
                 served.writer = op.safe_stops[g.name]
         self.stalls = StallWatch(int(op.cycle_time_us * 1000))
         self._op = op
+        if self.base is not None:
+            self.base.attach(op)
 
     @property
     def op(self) -> Operational:
@@ -379,6 +394,8 @@ class BusServer:
             "hold_after": o.deadline.hold_after,
             "stop_after": o.deadline.stop_after,
             "groups": {name: g.describe() for name, g in self.groups.items()},
+            **({"base": self.base.topics} if self.base is not None else {}),
+            **({"ros2_control": self.topic_control.describe()} if self.topic_control is not None else {}),
         }
 
     def step(self, k: int) -> bool:
@@ -393,6 +410,11 @@ class BusServer:
             self._advance_pending()
         if k % SERVICE_POLL_EVERY == 5:
             self._watch_owners()
+        start_ns = self._clock()
+        if self.base is not None:
+            self.base.take(start_ns / 1e9)
+        if self.topic_control is not None:
+            self.topic_control.take()
         for g in self.groups.values():
             g.take_commands()
             g.before_exchange(self._bus_stopped)
@@ -405,10 +427,14 @@ class BusServer:
         if res.events:
             self._note_faults(res)
         o = self.options
+        if self.base is not None:
+            self.base.after(res, start_ns / 1e9, self.op.cycle_time_us / 1e6, time.time_ns())
         if k % o.publish_every == 0:
             now = time.time_ns()
             for g in self.groups.values():
                 g.publish(res, now)
+            if self.topic_control is not None:
+                self.topic_control.publish(now)
         if k % o.diagnostics_every == 0:
             self.diag_writer.write(self.diagnostics())
         return False

@@ -140,6 +140,13 @@ class Emulation:
         """
         return [State402(s) if s >= 0 else None for s in self._bus(bus)[1].drive_states()]
 
+    def drive_positions(self, bus: str) -> list[float]:
+        """Each axis's shaft position as the emulated drive's physics has it: the ground truth. The
+        in-process EtherCAT emulator gives the drive's own counts (unquantised; divide by the map's
+        counts per unit), an in-process raw-CAN emulator each motor's position in its map's unit (rad),
+        never wrapped; elsewhere :class:`FaultNotSupported`."""
+        return self._bus(bus)[1].drive_positions()
+
     # -- faults ------------------------------------------------------------------------------------
     def lose_cycles(self, bus: str, cycles: int) -> None:
         """Lose the process data of the next ``cycles`` cycles of bus ``bus`` (only those: the
@@ -278,6 +285,22 @@ class Emulation:
     def clear_faults(self, bus: str) -> None:
         """Undo every pending or lasting injection on bus ``bus`` (not a power cycle already done)."""
         self._bus(bus)[1].clear_faults()
+
+    def recover_motor(self, bus: str, slave: str) -> bool:
+        """Raw CAN: the master clears motor ``slave``'s fault and enables it again by its family's own
+        sequence (``backend.recover``, between cycles); True when the motor is enabled again.
+
+        Its set-points are seeded from where it is (position as read, speed and torque 0, the gains
+        kept): it holds there until the controller writes its targets again.
+        """
+        model, _ = self._bus(bus)
+        if model.type != "rawcan":
+            raise FieldbusError(
+                f"recover_motor: bus '{bus}' is {model.type}, not rawcan (CiA 402: fault reset)"
+            )
+        self._slave(bus, slave)  # a known name, or the error naming the bus's slaves
+        backend: Any = self.op.network.backend(bus)
+        return bool(backend.recover(slave))
 
     @staticmethod
     def _check_count(n: int) -> None:

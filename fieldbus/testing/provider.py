@@ -80,6 +80,10 @@ class BusEmulator:
         """Every slave's CiA 402 state as the emulated drive has it (``State402`` value, -1: no drive)."""
         raise self._unsupported("drive_states")
 
+    def drive_positions(self) -> list[float]:
+        """Every axis's shaft position as the emulated drive's physics has it, in its counts, unquantised."""
+        raise self._unsupported("drive_positions")
+
     # -- faults (slave: index on the bus) -------------------------------------------------------
     def lose_cycles(self, cycles: int) -> None:
         raise self._unsupported("lose_cycles")

@@ -121,11 +121,10 @@ class CanBus(BusEmulator):
         else:
             from sim_slaves.can_families import simulator
 
-            # the MIT motors integrate the time between commands; the others one step per command
-            dt_s = None if kind in ("mit", "cubemars-mit") else bus.cycle_time_us / 1e6
+            # every family's physics run on the clock (virtual in lockstep), between frames too
 
             def make(port: Any, clock: Any = None) -> Any:
-                return simulator(port, nodes, clock=clock, dt_s=dt_s)
+                return simulator(port, nodes, clock=clock)
 
         # the master's channel: this process's own (its lock is in-process), never the robot's can0, which
         # another test or the robot's master may hold at the same time
@@ -226,6 +225,12 @@ class CanBus(BusEmulator):
             return [-1] * len(self.node_ids)
         return [st for n in self.node_ids for st in app_states(sim.node(n).app)]  # per axis
 
+    def drive_positions(self) -> list[float]:
+        sim = self._need_sim("drive_positions")
+        if self.kind == "canopen":
+            raise self._unsupported("drive_positions", "the CANopen emulator's drives are read by SDO")
+        return [float(sim.motor(n).position) for n in self.node_ids]
+
     def lose_cycles(self, cycles: int) -> None:
         sim = self._need_sim("lose_cycles")
         for n in self.node_ids:
@@ -284,6 +289,10 @@ class CanBus(BusEmulator):
             if code > 0xF or code in cfg.damiao.ok_codes:
                 have = ", ".join(f"0x{c:X} {name}" for c, name in faults)
                 raise FieldbusError(f"drive_fault: a Damiao fault code is one of {have}; got {code:#x}")
+        elif cfg.frames is not None and cfg.frames.fault_field is None:
+            raise self._unsupported(
+                "drive_fault", f"map {self.bus.slaves[slave].map.name} has no fault field"
+            )
         elif cfg.cubemars is not None and code > 0xFF:  # the status / reply error byte
             raise FieldbusError(f"drive_fault: a CubeMars error code is 1..255, got {code:#x}")
         sim.inject_error(n, code)  # ODrive: axis error bits (up to 32)

@@ -6,7 +6,7 @@ from typing import Any
 
 from fieldbus.core.network import Bus
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
-from sim_slaves.ethercat.axes import app_states
+from sim_slaves.ethercat.axes import app_positions, app_states
 
 CAN_ONLY = "a CAN fault (an EtherCAT slave has no controller of its own to go bus-off or send error frames)"
 RET_TIMEOUT_US = 20_000
@@ -41,6 +41,9 @@ class SimChainBus(BusEmulator):
 
     def drive_states(self) -> list[int]:
         return [st for s in self.chain.slaves for st in app_states(s.app)]  # each axis of a multi-axis slave
+
+    def drive_positions(self) -> list[float]:
+        return [p for s in self.chain.slaves for p in app_positions(s.app)]
 
     def lose_cycles(self, cycles: int) -> None:
         self.chain.drop_frames(cycles, process_data=True)

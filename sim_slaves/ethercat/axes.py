@@ -117,3 +117,12 @@ def app_states(app: object) -> list[int]:
     if states is None:
         states = [getattr(app, "state", -1)]
     return [int(s) for s in states]
+
+
+def app_positions(app: object) -> list[float]:
+    """Each axis's own shaft position in the drive's counts, unquantised (NaN: not a drive)."""
+    drives = getattr(app, "drives", None) or [app]
+    return [
+        float(d.position_rad * d.counts_per_rad) if hasattr(d, "position_rad") else float("nan")
+        for d in drives
+    ]

@@ -1,7 +1,9 @@
 """The independent ``damiao-motor`` driver (PyPI, MIT licence; a test dependency) against our Damiao side.
 
 1. Its ``DaMiaoController`` (pointed at python-can's ``virtual`` interface as it is: no adapter needed)
-   enables our emulated DM-J4310, reads and writes its registers and runs each of its four modes.
+   enables our emulated DM-J4310, reads and writes its registers and runs each of its four modes. The
+   emulator's physics run on a virtual clock the test advances: the driver sends at its own rate (a few
+   commands), and the motor follows the last one between frames, as a real motor's loop does.
 2. Its ``DaMiaoMotor`` encodes the values our master commanded; the bytes must equal the frames our
    master put on the bus (MIT within one raw step: it truncates, we round).
 """
@@ -25,6 +27,7 @@ dm = pytest.importorskip(
 
 from fieldbus import PDO_MAPS, open_network  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
+from fieldbus.runtime.clock import VirtualClock  # noqa: E402
 from sim_slaves.damiao import DamiaoSimulator  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
@@ -41,13 +44,19 @@ def wait_for(what: Callable[[], bool], limit_s: float = 10.0) -> None:
 
 
 @pytest.fixture
-def driver() -> Iterator[tuple[Any, Any, DamiaoSimulator]]:
+def clock() -> VirtualClock:
+    return VirtualClock(step_ns=1_000_000)
+
+
+@pytest.fixture
+def driver(clock: VirtualClock) -> Iterator[tuple[Any, Any, DamiaoSimulator]]:
     channel = f"fb-dmo-{os.getpid()}-{next(_channels)}"
     drive = load_drive_map(MAP)
     with (
         can.Bus(interface="virtual", channel=channel) as sim_bus,
-        DamiaoSimulator(sim_bus, [(drive, 1)], dt_s=0.001) as sim,
+        DamiaoSimulator(sim_bus, [(drive, 1)], clock=lambda: clock.now_ns() / 1e9) as sim,
     ):
+        clock.watch(lambda _t: sim.idle())  # the motors' loops run as virtual time passes
         with warnings.catch_warnings():  # it passes python-can's deprecated bustype= argument
             warnings.simplefilter("ignore", DeprecationWarning)
             ctl = dm.DaMiaoController(channel=channel, bustype="virtual")
@@ -95,40 +104,48 @@ def test_the_driver_reads_and_writes_our_emulators_registers(
     assert fresh_register(motor, 24) == 1234.5
 
 
-def test_the_driver_enables_and_runs_each_mode(driver: tuple[Any, Any, DamiaoSimulator]) -> None:
+def at_its_own_rate(
+    clock: VirtualClock, sim: DamiaoSimulator, send: Callable[[], None], n: int, s: float
+) -> None:
+    """The driver sends ``n`` commands, one every ``s`` seconds of the emulator's (virtual) time."""
+    for _ in range(n):
+        base = sim.motor(1).commands
+        send()
+        wait_for(commanded(sim, base + 1))
+        clock.advance(round(s * 1e9))
+
+
+def test_the_driver_enables_and_runs_each_mode(
+    driver: tuple[Any, Any, DamiaoSimulator], clock: VirtualClock
+) -> None:
     _, motor, sim = driver
     motor.enable()
     wait_for(lambda: motor.get_states().get("status") == "ENABLED")
     st = sim.motor(1)
 
     switch(motor, "MIT")
-    for _ in range(400):
-        motor.send_cmd_mit(target_position=0.5, stiffness=30.0, damping=1.0)
-    wait_for(commanded(sim, 400))
-    assert st.position == pytest.approx(0.5, abs=0.01)
-    wait_for(lambda: abs(motor.get_states()["pos"] - st.position) < 0.01)  # our reply, its decoder
+    at_its_own_rate(
+        clock, sim, lambda: motor.send_cmd_mit(target_position=0.5, stiffness=30.0, damping=1.0), 5, 0.1
+    )
+    assert st.position == pytest.approx(0.5, abs=0.005)
+    motor.send_cmd_mit(target_position=0.5, stiffness=30.0, damping=1.0)  # its reply tells the position
+    wait_for(lambda: abs(motor.get_states()["pos"] - st.position) < 0.001)  # our reply, its decoder
 
     switch(motor, "VEL")
-    base = st.commands
-    for _ in range(300):
-        motor.send_cmd_vel(target_velocity=2.0)
-    wait_for(commanded(sim, base + 300))
-    assert st.velocity == pytest.approx(2.0, abs=0.05)
+    at_its_own_rate(clock, sim, lambda: motor.send_cmd_vel(target_velocity=2.0), 3, 0.2)
+    assert st.velocity == pytest.approx(2.0, abs=0.005)
     assert sim.state[1].mode_command == ("velocity", {"velocity": pytest.approx(2.0)})
 
     switch(motor, "POS_VEL")
-    base = st.commands
-    for _ in range(1500):
-        motor.send_cmd_pos_vel(target_position=-0.5, velocity_limit=3.0)
-    wait_for(commanded(sim, base + 1500))
-    assert st.position == pytest.approx(-0.5, abs=0.01)
+    at_its_own_rate(
+        clock, sim, lambda: motor.send_cmd_pos_vel(target_position=-0.5, velocity_limit=3.0), 3, 0.5
+    )
+    assert st.position == pytest.approx(-0.5, abs=0.005)
 
     switch(motor, "FORCE_POS")
-    base = st.commands
-    for _ in range(1000):
-        motor.send_cmd_force_pos(target_position=0.3, velocity_limit=2.0, torque_limit_ratio=0.5)
-    wait_for(commanded(sim, base + 1000))
-    assert st.position == pytest.approx(0.3, abs=0.01)
+    send = lambda: motor.send_cmd_force_pos(target_position=0.3, velocity_limit=2.0, torque_limit_ratio=0.5)  # noqa: E731
+    at_its_own_rate(clock, sim, send, 3, 0.5)
+    assert st.position == pytest.approx(0.3, abs=0.005)
     mode, values = sim.state[1].mode_command or ("", {})
     assert mode == "position_force" and values["torque"] == pytest.approx(5.0)  # 0.5 of TMAX 10 N·m
     assert sim.state[1].reg(10) == 4 and not sim.errors
@@ -136,6 +153,30 @@ def test_the_driver_enables_and_runs_each_mode(driver: tuple[Any, Any, DamiaoSim
     motor.disable()
     wait_for(lambda: motor.get_states().get("status") == "DISABLED")
     assert not st.enabled
+
+
+def test_one_position_velocity_command_is_followed_to_its_target(
+    driver: tuple[Any, Any, DamiaoSimulator], clock: VirtualClock
+) -> None:
+    """1.2 rad at 4 rad/s, one command and then only the driver's own polling: the motor's loop runs on
+    between frames (an emulator stepped per frame stopped 0.087 rad short after 1.5 s)."""
+    _, motor, sim = driver
+    motor.enable()
+    wait_for(lambda: motor.get_states().get("status") == "ENABLED")
+    switch(motor, "POS_VEL")
+    at_its_own_rate(
+        clock, sim, lambda: motor.send_cmd_pos_vel(target_position=1.2, velocity_limit=4.0), 1, 1.5
+    )
+    st = sim.motor(1)
+    assert st.position == pytest.approx(1.2, abs=0.005) and abs(st.velocity) < 0.005
+    motor.send_cmd_pos_vel(target_position=1.2, velocity_limit=4.0)  # its reply tells where the motor is
+    wait_for(lambda: abs(motor.get_states()["pos"] - 1.2) < 0.005)
+
+    switch(motor, "VEL")
+    at_its_own_rate(clock, sim, lambda: motor.send_cmd_vel(target_velocity=-3.0), 1, 1.0)
+    assert st.velocity == pytest.approx(-3.0, abs=0.005)
+    motor.send_cmd_vel(target_velocity=-3.0)
+    wait_for(lambda: abs(motor.get_states()["vel"] + 3.0) < 0.02)  # its decoder: 12 bits over ±30 rad/s
 
 
 class Capture:
@@ -162,7 +203,7 @@ def test_the_driver_encodes_what_our_master_sent(tmp_path: Path) -> None:
     with (
         can.Bus(interface="virtual", channel=channel) as listener,
         can.Bus(interface="virtual", channel=channel) as sim_bus,
-        DamiaoSimulator(sim_bus, [(drive, 1)], dt_s=0.001),
+        DamiaoSimulator(sim_bus, [(drive, 1)]),
         open_network(net) as network,
     ):
         op = network.bring_up()
