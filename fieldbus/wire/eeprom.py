@@ -42,6 +42,10 @@ class EepromError(FieldbusError):
     """The EEPROM interface refused or failed a command (which, where, the status bits)."""
 
 
+class EepromVerifyError(EepromError):
+    """A word written reads back another value."""
+
+
 def status_text(status: int) -> str:
     """The status bits of 0x0502 in words."""
     names = [
@@ -147,7 +151,7 @@ class EepromPort:
             )
         back = self.read_words(word, 1)
         if back != data:
-            raise EepromError(
+            raise EepromVerifyError(
                 f"{self.who}: word 0x{word:04X} reads back 0x{int.from_bytes(back, 'little'):04X} "
                 f"after writing 0x{value & 0xFFFF:04X}"
             )
