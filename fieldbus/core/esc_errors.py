@@ -282,3 +282,37 @@ class ErrorWatch:
     def suspects(self) -> list[Suspect]:
         """Cables where errors started since the baseline (all slaves' counters together)."""
         return suspect_links(self.since_baseline())
+
+
+def describe_change(change: CounterRise | LinkChange, names: Sequence[str] | None = None) -> tuple[str, str]:
+    """(event kind, detail) of a change: "esc_errors" (what rose where, the suspect cable), "link_down"/"link_up"."""
+
+    def who(i: int) -> str:
+        return f"slave {i}" + (f" ({names[i]})" if names and i < len(names) else "")
+
+    if isinstance(change, LinkChange):
+        return ("link_up" if change.up else "link_down"), f"{who(change.slave)} port {change.port}"
+    parts = []
+    for p, c in enumerate(change.rise.ports):
+        got = [
+            f"+{n} {what}"
+            for n, what in (
+                (c.invalid_frame, "invalid frames"),
+                (c.rx_error, "RX errors"),
+                (c.forwarded, "forwarded errors"),
+                (c.lost_link, "lost links"),
+            )
+            if n
+        ]
+        if got:
+            parts.append(f"port {p}: {', '.join(got)}")
+    if change.rise.processing_unit:
+        parts.append(f"+{change.rise.processing_unit} processing unit errors")
+    if change.rise.pdi:
+        parts.append(f"+{change.rise.pdi} PDI errors")
+    detail = f"{who(change.slave)} {'; '.join(parts)}"
+    if change.suspects:
+        detail += f"; suspect: {change.suspects[0].link.describe(names)}"
+    if change.total.saturated:
+        detail += "; a counter stopped at 255 (reset them)"
+    return "esc_errors", detail
