@@ -51,7 +51,7 @@ PATH_CHARS = 160  # most characters of a map path (from the network file) an err
 
 # Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
-    "sim": ("chain_maps", "clock"),
+    "sim": ("chain_maps", "clock", "error_counters"),
     "ethercat": (
         "exact_timeout",
         "pcap",
