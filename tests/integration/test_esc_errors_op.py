@@ -107,3 +107,51 @@ def test_without_the_option_nothing_is_read(tmp_path: Path) -> None:
     assert b.error_watch is None and b.diag_datagrams == 0
     assert not [e for e in events if e.kind == "esc_errors"] and not any(diags)
     assert set(per_cycle[:100]) == {PD_FRAMES}  # before the fault: the process data alone
+
+
+def test_monitor_recording_report_and_the_run_command_show_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fieldbus.recording.load import load
+    from fieldbus.recording.summary import describe, summary
+    from fieldbus.runtime.monitor import Monitor
+
+    net, clock = _open(tmp_path, error_counters=True)
+    rec_path = tmp_path / "run.mcap"
+    try:
+        op = net.bring_up()
+        op.add_observer(_Tick(clock))
+        rec = op.record(rec_path)
+        chain = net.backend("arm").chain  # type: ignore[attr-defined]
+        for k in range(600):
+            if k == 60:
+                chain.bit_errors(4, 0.05, seed=5)
+            op.exchange()
+        snap = Monitor(op).snapshot()
+        rec.close()
+    finally:
+        net.close()
+    bus = snap["buses"][0]
+    assert bus["suspect_link"].startswith("cable between slave 4 (j4) port 1 and slave 5 (j5) port 0")
+    assert bus["slaves"][5]["esc_errors"].startswith("p0 ")  # invalid frames at port 0 of slave 5
+    recording = load(rec_path)
+    kinds = [e["kind"] for e in recording.events]
+    assert "esc_errors" in kinds
+    text = describe(summary(recording), max_events=1000)
+    assert "esc_errors" in text and "suspect: cable between slave 4" in text
+    # the command line: --error-counters on the emulator (no fault: no event, exit 0)
+    from fieldbus.cli import main
+
+    code = main(
+        [
+            "run",
+            str(tmp_path / "net.yaml"),
+            "--backend",
+            "sim",
+            "--cycles",
+            "50",
+            "--error-counters",
+            "--json",
+        ]
+    )
+    assert code in (0, 3), capsys.readouterr().err
