@@ -138,3 +138,23 @@ def test_a_write_keeps_the_interface_busy_for_some_status_reads() -> None:
     port.write_word(0x10, port.read_words(0x10, 1)[0] | port.read_words(0x10, 1)[1] << 8)
     # wait, clear?, data, command, busy polls (2 busy + 1 idle), read-back (wait, command, wait, data)
     assert port.datagrams - before >= 7
+
+
+def test_decode_of_random_bytes_is_a_result_or_a_typed_error() -> None:
+    import random
+
+    rng = random.Random(7)
+    base = bytes(build_sii(load_drive_map(DEMO_MAP)).data)
+    decoded = 0
+    for k in range(400):
+        data = bytearray(base)
+        for _ in range(rng.randint(1, 40)):  # flip bytes anywhere, categories included
+            data[rng.randrange(len(data))] = rng.randrange(256)
+        if k % 5 == 0:
+            data = data[: 2 * rng.randrange(0x38, len(data) // 2)]
+        try:
+            sii.format_text(sii.decode(bytes(data)))
+            decoded += 1
+        except sii.SiiFormatError as exc:
+            assert "word" in str(exc) or "bytes" in str(exc)
+    assert decoded > 100
