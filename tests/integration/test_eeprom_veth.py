@@ -148,3 +148,41 @@ def test_scan_errors_names_the_cable_with_bit_errors_and_reset_clears(
     assert code == 0 and "cable between slave 4 port 1 and slave 5 port 0" in out, out + err
     code, out, _ = _run(capsys, "scan", "ethercat", emu.iface, "--errors", "--json")
     assert code == 0 and json.loads(out)["suspects"] == []
+
+
+@pytest.mark.veth
+@pytest.mark.timeout(600)
+def test_in_op_with_pysoem_the_watch_names_the_cable(tmp_path: Path) -> None:
+    """The real pysoem backend in OP over veth, error_counters on: its reads go beside SOEM's LRW on
+    SOEM's socket; bit errors between slaves 4 and 5 of 12 (the emulator's fault model)."""
+    from fieldbus.testing import EmulationUnavailable, emulate
+
+    net = tmp_path / "line.yaml"
+    net.write_text(
+        "cycle_time_us: 2000\nreceive_timeout_us: 20000\nbuses:\n"
+        f"  - {{name: arm, type: ethercat, interface: eth0, slaves: [{{name: 'j{{i}}', map: {json.dumps(str(GENERIC))}, count: 12}}]}}\n"
+    )
+    options = {"arm": {"error_counters": True}}
+    try:
+        with emulate(net, ethercat="veth", receive_timeout_us=20000, bus_options=options) as emu:
+            _watch_names_the_cable(emu)
+    except EmulationUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+def _watch_names_the_cable(emu: Any) -> None:
+    from fieldbus.core.esc_errors import Link
+
+    op = emu.op
+    for _ in range(60):  # every slave's baseline (24 free cycles a round)
+        op.exchange()
+    emu.bit_errors("arm", between=("j4", "j5"), rate=0.05, seed=2)
+    events = []
+    for _ in range(800):
+        events += [e for e in op.exchange().events if e.kind == "esc_errors"]
+    b = emu.network.backend("arm")
+    watch = b.error_watch
+    assert watch.suspects() and watch.suspects()[0].link == Link(4, 1, 5, 0), watch.suspects()
+    named = [e for e in events if "suspect" in e.detail]
+    assert named and all("slave 4 (j4) port 1 and slave 5 (j5) port 0" in e.detail for e in named)
+    assert b.diag_datagrams <= 860
