@@ -283,6 +283,31 @@ class ErrorWatch:
         """Cables where errors started since the baseline (all slaves' counters together)."""
         return suspect_links(self.since_baseline())
 
+    def summary(self, names: Sequence[str]) -> dict[str, str]:
+        """For diagnostics: "suspect_link" (the cable with most errors, if any) and "NAME/esc_errors" per
+        slave whose counters rose since its baseline ("p0 inv/rx/fwd/lost ...")."""
+        out: dict[str, str] = {}
+        found = self.suspects()
+        if found:
+            out["suspect_link"] = f"{found[0].link.describe(names)} ({found[0].errors} errors)"
+        for i, rise in enumerate(self.since_baseline()):
+            text = format_rise(rise)
+            if text not in (None, "0"):
+                out[f"{names[i] if i < len(names) else i}/esc_errors"] = str(text)
+        return out
+
+
+def format_rise(rise: EscErrors | None) -> str | None:
+    """A slave's counters as "p0 inv/rx/fwd/lost ..." for the ports with any ("0": none; None: not read)."""
+    if rise is None:
+        return None
+    parts = [
+        f"p{k} {c.invalid_frame}/{c.rx_error}/{c.forwarded}/{c.lost_link}"
+        for k, c in enumerate(rise.ports)
+        if c.total
+    ]
+    return " ".join(parts) or "0"
+
 
 def describe_change(change: CounterRise | LinkChange, names: Sequence[str] | None = None) -> tuple[str, str]:
     """(event kind, detail) of a change: "esc_errors" (what rose where, the suspect cable), "link_down"/"link_up"."""

@@ -17,6 +17,7 @@ from contextlib import AbstractContextManager
 from typing import Any, Self
 
 from fieldbus.core.cia402 import decode_state
+from fieldbus.core.esc_errors import format_rise
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
 from fieldbus.runtime.timing import CycleLatency
@@ -79,7 +80,7 @@ class Monitor:
                         "fresh": bool(policy.fresh[i]),
                         "stale_cycles": int(policy.stale_cycles[i]),
                         "last_emcy": str(emcy.name) if emcy is not None else None,
-                        "esc_errors": _esc_errors(rises[i]) if rises is not None and i < len(rises) else None,
+                        "esc_errors": format_rise(rises[i]) if rises is not None and i < len(rises) else None,
                     }
                 )
             out["buses"].append(
@@ -177,18 +178,6 @@ def monitor_context(
     except ImportError as exc:
         raise BackendUnavailableError("--monitor needs rich: pip install 'fieldbus[monitor]'") from exc
     return Monitor(op, latency=latency)
-
-
-def _esc_errors(rise: Any) -> str | None:
-    """One slave's counter rises since the watch's first read: "p0 inv/rx/fwd/lost ...", ports with any."""
-    if rise is None:
-        return None
-    parts = [
-        f"p{k} {c.invalid_frame}/{c.rx_error}/{c.forwarded}/{c.lost_link}"
-        for k, c in enumerate(rise.ports)
-        if c.total
-    ]
-    return " ".join(parts) or "0"
 
 
 def _suspect(watch: Any, names: list[str]) -> str | None:
