@@ -3,6 +3,7 @@
     fieldbus eeprom read eth0 3 -o drive3.bin
     fieldbus eeprom decode drive3.bin
     fieldbus eeprom alias eth0 3 1001
+    fieldbus eeprom word eth0 3 0x0E 12345
     fieldbus eeprom write eth0 3 repaired.bin
 
 SLAVE is the 0-based position in wire order (as ``fieldbus scan`` lists it).
@@ -11,7 +12,8 @@ The EEPROM goes through the slave's EEPROM interface (registers
 waits while busy, clears error bits, writes one word with write enable, and
 every word written is read back. ``write`` recomputes the checksum of the
 configuration area (CRC-8 over words 0-6, in word 7) and refuses an image
-for another vendor or product unless --force. ``alias`` writes word 4 (the
+for another vendor or product unless --force; ``word`` writes one word (in
+the configuration area, words 0-6, the checksum too). ``alias`` writes word 4 (the
 configured station alias) and the checksum; the ESC takes the alias into
 register 0x0012 at its next power-up, not before. ``decode`` reads an image
 file (raw bytes, as SOEM's eepromtool and IgH's ``ethercat sii_read`` save
@@ -71,6 +73,13 @@ def register(sub: Any) -> None:
     w.add_argument("--force", action="store_true", help="write an image whose vendor/product differ")
     w.add_argument("--all-words", action="store_true", help="write every word, not only those that differ")
     w.set_defaults(func=run_write)
+    o = add_command(
+        acts, "word", help="write one word (configuration area: checksum too)", doc=__doc__, codes=CODES
+    )
+    _target(o)
+    o.add_argument("word", metavar="ADDR", type=integer(0, 0xFFFF), help="word address (0x... too)")
+    o.add_argument("value", metavar="VALUE", type=integer(0, 0xFFFF), help="0..65535 (0x... too)")
+    o.set_defaults(func=run_word)
     a = add_command(acts, "alias", help="set the configured station alias (word 4)", doc=__doc__, codes=CODES)
     _target(a)
     a.add_argument("alias", metavar="ALIAS", type=integer(0, 0xFFFF), help="0..65535 (0x... too)")
@@ -204,3 +213,26 @@ def run_alias(args: argparse.Namespace) -> int:
     from fieldbus.core.sii import with_alias
 
     return _write(args, lambda old, _identity: with_alias(old, args.alias))
+
+
+def run_word(args: argparse.Namespace) -> int:
+    from fieldbus.core.sii import CONFIG_BYTES, WORD_CHECKSUM, with_checksum
+    from fieldbus.wire.eeprom import EepromVerifyError
+
+    s = _Session(args.interface, args.slave)
+    try:
+        try:
+            s.port.write_word(args.word, args.value)
+            written = 1
+            if 2 * args.word + 2 <= CONFIG_BYTES:  # the configuration area: its checksum follows
+                head = s.port.read_words(0, 8)
+                fixed = with_checksum(head + bytes(0x80 - len(head)))[: 2 * WORD_CHECKSUM + 2]
+                s.port.write_word(WORD_CHECKSUM, int.from_bytes(fixed[-2:], "little"))
+                written = 2
+        except EepromVerifyError as exc:
+            print(f"fieldbus eeprom: {exc}")
+            return FAILED
+    finally:
+        s.close()
+    print(f"slave {args.slave}: {written} word(s) written and read back")
+    return 0

@@ -115,6 +115,19 @@ def test_a_wrong_checksum_is_reported_after_power_up_and_write_repairs_it(
     emu.command(cmd="power_cycle", slave=0)
     st = emu.command(cmd="sii", slave=0)
     assert st["loaded"] and bytes.fromhex(st["sii"])[:16] == sii.with_checksum(good)[:16]
+    # single words: one outside the configuration area, one inside it (its checksum follows)
+    code, out, err = _run(capsys, "eeprom", "word", emu.iface, "0", "0x0E", "4321")
+    assert code == 0 and "1 word(s)" in out, err
+    code, out, err = _run(capsys, "eeprom", "word", emu.iface, "0", "4", "9")
+    assert code == 0 and "2 word(s)" in out, err
+    emu.command(cmd="power_cycle", slave=0)
+    st = emu.command(cmd="sii", slave=0)
+    assert st["loaded"] and st["alias"] == 9
+    m = _pysoem_master(emu.iface)
+    try:
+        assert int.from_bytes(bytes(m.slaves[0].eeprom_read(0x0E))[:2], "little") == 4321
+    finally:
+        m.close()
 
 
 @pytest.mark.veth

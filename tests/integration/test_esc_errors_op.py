@@ -22,6 +22,9 @@ from fieldbus.runtime.clock import VirtualClock
 REPO = Path(__file__).resolve().parents[2]
 GENERIC = REPO / "fieldbus" / "pdo_maps" / "generic_cia402.yaml"
 CYCLES = 1500
+acyclic_bytes: list[int] = []  # per cycle of the last _run: bytes of the frames beside the process data
+# one FPRD of 20 data bytes: Ethernet header 14 + EtherCAT header 2 + datagram header 10 + 20 + WKC 2
+WATCH_FRAME_BYTES = 14 + 2 + 10 + ERRORS_SIZE + 2
 PD_FRAMES = 1  # 12 generic drives' process data: one LRW frame (checked without the option below)
 
 
@@ -60,13 +63,24 @@ def _run(
         b = net.backend("arm")
         chain = b.chain  # type: ignore[attr-defined]
         events: list[Any] = []
+        sizes: list[int] = []  # bytes of every frame besides the process data (chain.process: not the LRW)
+        process = chain.process
+
+        def counted(frame: Any, now_ns: int) -> Any:
+            sizes.append(len(frame))
+            return process(frame, now_ns)
+
+        chain.process = counted
         per_cycle: list[int] = []
         diags: list[int] = []
+        acyclic_bytes.clear()
         for k in range(cycles):
             if k == 100:
                 chain.bit_errors(4, 0.02, seed=seed)
             before, diag = chain.frames, b.diag_datagrams
+            sizes.clear()
             res = op.exchange()
+            acyclic_bytes.append(sum(sizes))
             per_cycle.append(chain.frames - before)
             diags.append(b.diag_datagrams - diag)
             events += res.events
@@ -99,6 +113,8 @@ def test_bit_errors_between_slaves_4_and_5_are_named_and_the_cycle_keeps_its_bud
     assert b.diag_datagrams <= CYCLES
     assert watch.reads == b.diag_datagrams and watch.reads > CYCLES // 2
     assert set(per_cycle[:100]) == {pd_frames + 1}  # before the fault: the watch's datagram in every cycle
+    assert all(n <= WATCH_FRAME_BYTES for n, d in zip(acyclic_bytes, diags, strict=True) if d)
+    assert max(acyclic_bytes[:100]) == WATCH_FRAME_BYTES
     assert ERRORS_SIZE == 20
 
 
