@@ -202,7 +202,17 @@ class EthercatBackend(Backend):
         self.frame_timeout_us = int(options.get("frame_timeout_us", default))  # type: ignore[call-overload]
         # ESC error counters and DL status read in OP, one datagram in a cycle nothing else took (esc_errors)
         self.error_watch: ErrorWatch | None = None
-        self._watch_errors = bool(options.get("error_counters", False))
+        # True: a read in every free cycle; an integer N: in one cycle of every N (less wire time per cycle)
+        every = options.get("error_counters", False)
+        if isinstance(every, bool) or not isinstance(every, int) or every < 0:
+            if not isinstance(every, bool):
+                raise FieldbusError(
+                    f"bus '{bus.name}': error_counters is True/False or cycles >= 1, not {every!r}"
+                )
+            every = int(every)
+        self._watch_errors = every > 0
+        self._watch_every = max(1, every)
+        self._watch_tick = 0
         self.diag_datagrams = 0  # datagrams the error watch sent
         sdo_timeout_us = 1e6 * float(options.get("sdo_timeout_s", ACYCLIC_SDO_TIMEOUT_US / 1e6))  # type: ignore[arg-type]
         self._sdo_steps_max = max(1, int(sdo_timeout_us) // bus.cycle_time_us)  # datagrams (= cycles) per SDO
@@ -813,6 +823,9 @@ class EthercatBackend(Backend):
         datagram is still free (no SDO, no recovery took it); what changed. Never raises."""
         watch = self.error_watch
         if watch is None or self._frame_sent or self.recovering:
+            return []
+        self._watch_tick += 1
+        if self._watch_tick % self._watch_every:
             return []
         i, reg, size = watch.next_read()
         try:
