@@ -174,7 +174,7 @@ def test_monitor_recording_report_and_the_run_command_show_them(
 
 
 def test_a_period_reads_in_one_free_cycle_of_n_and_a_bad_value_is_refused(tmp_path: Path) -> None:
-    b, _events, _per_cycle, diags, _ = _run(tmp_path, 1, 100, error_counters=10)
+    _b, _events, _per_cycle, diags, _ = _run(tmp_path, 1, 100, error_counters=10)
     assert sum(diags) == 10 and all(diags[k] == (k % 10 == 9) for k in range(100))
     with pytest.raises(fieldbus.FieldbusError, match="error_counters"):
         _open(tmp_path, error_counters="yes")
