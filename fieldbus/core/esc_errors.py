@@ -248,10 +248,10 @@ class ErrorWatch:
         return (i, REG_ERRORS, ERRORS_SIZE) if kind == 0 else (i, REG_DL_STATUS, DL_STATUS_SIZE)
 
     def feed(self, raw: bytes | None) -> list[CounterRise | LinkChange]:
-        i, reg, _ = self.next_read()
+        i, reg, size = self.next_read()
         self.step += 1
         self.reads += 1
-        if raw is None:
+        if raw is None or len(raw) < size:  # no answer, or a short one: this read is missed, nothing judged
             self.missed += 1
             return []
         if reg == REG_DL_STATUS:

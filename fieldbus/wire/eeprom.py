@@ -117,8 +117,13 @@ class EepromPort:
         return bytes(out[: 2 * count])
 
     def read_image(self, *, max_words: int = 0x10000) -> bytes:
-        """The image up to the end of its categories (type 0xFFFF), then to a multiple of 8 bytes."""
+        """The image up to the end of its categories (type 0xFFFF), then to a multiple of 8 bytes.
+
+        Bounded by the EEPROM's size as word 0x3E gives it ((Kbit + 1) x 64 words): a damaged
+        category length stops there instead of reading 64 K words."""
         head = self.read_words(0, 0x40)
+        size_words = (int.from_bytes(head[0x7C:0x7E], "little") + 1) * 64
+        max_words = min(max_words, size_words)
         words = bytearray(head)
         addr = 0x40
         while addr + 2 <= max_words:
@@ -126,6 +131,7 @@ class EepromPort:
             if kind == 0xFFFF:
                 words += struct.pack("<H", kind)
                 break
+            n = min(n, max_words - addr - 2)
             words += struct.pack("<HH", kind, n) + self.read_words(addr + 2, n)
             addr += 2 + n
         words += b"\xff" * (-len(words) % 8)

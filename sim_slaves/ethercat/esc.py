@@ -101,6 +101,10 @@ class Esc:
         dc: EscDc | None = None,
     ) -> None:
         self.sii = sii
+        # the EEPROM is as large as word 0x3E says ((Kbit + 1) x 128 bytes), erased (0xFF) past the image
+        size = min((sii.word(0x3E) + 1) * 128, 0x20000) if sii.word(0x3E) != 0xFFFF else len(sii.data)
+        if len(sii.data) < size:
+            sii.data += b"\xff" * (size - len(sii.data))
         self.od = od
         self.app = app
         self.name = name or sii.name

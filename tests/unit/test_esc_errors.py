@@ -141,3 +141,13 @@ def test_a_flapping_link_counts_lost_links_at_both_ends_and_is_located() -> None
     chain.slaves[8].set_link(0, False)
     events = _frames(chain, 48, watch)
     assert any(isinstance(e, LinkChange) and e.slave == 8 and not e.up for e in events)
+
+
+def test_a_missing_or_short_answer_is_a_missed_read_not_an_error() -> None:
+    watch = ErrorWatch(2)
+    assert watch.feed(None) == [] and watch.feed(b"\x01") == []  # counters of 0, DL status of 0
+    assert watch.feed(bytes(5)) == []  # counters of slave 1: 5 of 20 bytes
+    assert watch.missed == 3 and watch.errors == [None, None]
+    watch.feed(b"\x11\x02")  # DL status of slave 1
+    assert watch.feed(bytes(ERRORS_SIZE)) == []  # slave 0's baseline
+    assert watch.errors[0] is not None and watch.suspects() == []

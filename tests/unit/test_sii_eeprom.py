@@ -158,3 +158,14 @@ def test_decode_of_random_bytes_is_a_result_or_a_typed_error() -> None:
         except sii.SiiFormatError as exc:
             assert "word" in str(exc) or "bytes" in str(exc)
     assert decoded > 100
+
+
+def test_a_damaged_category_length_stops_the_read_at_the_eeprom_size() -> None:
+    chain = _chain(1)
+    esc = chain.slaves[0]
+    esc.sii.write_word(0x41, 0x7FFF)  # the first category claims 32767 words
+    port = _port(chain, 0)
+    image = port.read_image()
+    kbit = esc.sii.word(0x3E) + 1
+    assert len(image) <= kbit * 128  # bytes: (Kbit + 1) x 1024 / 8
+    assert port.datagrams < 4 * kbit * 128  # bounded: about 4 datagrams per 8 bytes
