@@ -178,3 +178,18 @@ def test_a_period_reads_in_one_free_cycle_of_n_and_a_bad_value_is_refused(tmp_pa
     assert sum(diags) == 10 and all(diags[k] == (k % 10 == 9) for k in range(100))
     with pytest.raises(fieldbus.FieldbusError, match="error_counters"):
         _open(tmp_path, error_counters="yes")
+
+
+def test_bring_up_names_a_slave_whose_eeprom_checksum_is_wrong(tmp_path: Path) -> None:
+    net, _clock = _open(tmp_path)
+    try:
+        chain = net.backend("arm").chain  # type: ignore[attr-defined]
+        chain.slaves[3].sii.data[14] ^= 0xFF  # the configuration area's checksum wrong
+        chain.power_cycle(3)
+        with pytest.raises(fieldbus.StateTransitionError) as info:
+            net.bring_up()
+    finally:
+        net.close()
+    text = str(info.value)
+    assert "position 3 (j3): INIT" in text and "did not load the EEPROM" in text
+    assert "position 2" not in text
