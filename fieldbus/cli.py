@@ -42,6 +42,7 @@ COMMANDS = (
     "scan",
     "sdo",
     "register",
+    "eeprom",
     "plot",
     "report",
     "import_",

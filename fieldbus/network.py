@@ -38,6 +38,7 @@ from fieldbus.backends.base import AxisGroup, Backend, SdoRequest
 from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
+from fieldbus.core.esc_errors import describe_change
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
@@ -644,6 +645,14 @@ class Operational(_Phase):
                     req.finish(error=FieldbusError(f"SDO transfer failed in the cycle: {text}"))
                 st.last_error = text
                 events.append(BusEvent(cycle, st.name, "acyclic_error", text))
+        if not st.recovering:
+            try:
+                changes = b.diag_step()  # one diagnostic datagram at most, in a cycle nothing else used
+            except Exception as exc:  # diag_step never raises by contract; a backend bug is a reason
+                changes, st.last_error = [], _reason(exc)
+            if changes:
+                names = [a.slave.name for a in b.areas]
+                events.extend(BusEvent(cycle, st.name, *describe_change(c, names)) for c in changes)
 
     def _bus_of(self, group: str) -> str:
         return next(b.bus.name for b in self._net.backends if any(g.name == group for g in b.groups))

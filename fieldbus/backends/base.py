@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.esc_errors import CounterRise, LinkChange
 from fieldbus.core.network import Bus, Slave
 from fieldbus.core.pdo.image import DirectionImage, ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
@@ -383,6 +384,11 @@ class Backend(abc.ABC):
         except FieldbusError as exc:
             request.finish(error=exc)
         return True
+
+    def diag_step(self) -> list[CounterRise | LinkChange]:
+        """One bounded diagnostic read per cycle in OP (EtherCAT: ESC error counters); what changed.
+        Called after the SDO step, never while recovering. Default: none."""
+        return []
 
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:
         raise FieldbusError(f"{self.kind} backend has no SDO access")

@@ -220,6 +220,20 @@ def check_state(master: Any, state: int, timeout_us: int) -> int:
     return int(master.state_check(state, timeout_us))
 
 
+def _eeprom_not_loaded(slave: Any) -> str:
+    """A slave left in INIT whose ESC did not load its EEPROM (0x0502 bits 11/12: a wrong checksum of the
+    configuration area leaves the PDI off, so its application never answers): the reason, else ""."""
+    if slave.state & 0x0F != 0x01:
+        return ""
+    raw = read_register(slave, 0x0502, 2, 2000)
+    if raw is None or not int.from_bytes(raw, "little") & 0x1800:
+        return ""
+    return (
+        "; its ESC did not load the EEPROM (checksum error in the configuration area): "
+        "fieldbus eeprom write/alias repairs it (docs/eeprom.md)"
+    )
+
+
 def state_error(
     master: Any, slaves: Sequence[Any], names: Sequence[str], target: str, lowest: int, where: str = ""
 ) -> StateTransitionError:
@@ -236,6 +250,7 @@ def state_error(
             lines.append(
                 f"  position {i} ({names[i] if i < len(names) else '?'}): "
                 f"{state_name(s.state)}, AL status code 0x{code:04X} {al_status_name(code)}"
+                + _eeprom_not_loaded(s)
             )
     return StateTransitionError(
         f"{where}not all slaves reached {target} (lowest {state_name(lowest)}):\n" + "\n".join(lines),

@@ -60,6 +60,7 @@ from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFE
 from fieldbus.core.coe_mailbox import SdoTransfer
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.core.ecat import Command, Datagram
+from fieldbus.core.esc_errors import CounterRise, ErrorWatch, LinkChange
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import StepKind, coe_plan
 from fieldbus.core.wkc import Recovery, recovery_action
@@ -199,6 +200,20 @@ class EthercatBackend(Backend):
         cap = int(pysoem.settings.timeouts.ret)
         default = min(bus.receive_timeout_us, FRAME_TIMEOUT_US, cap)
         self.frame_timeout_us = int(options.get("frame_timeout_us", default))  # type: ignore[call-overload]
+        # ESC error counters and DL status read in OP, one datagram in a cycle nothing else took (esc_errors)
+        self.error_watch: ErrorWatch | None = None
+        # True: a read in every free cycle; an integer N: in one cycle of every N (less wire time per cycle)
+        every = options.get("error_counters", False)
+        if isinstance(every, bool) or not isinstance(every, int) or every < 0:
+            if not isinstance(every, bool):
+                raise FieldbusError(
+                    f"bus '{bus.name}': error_counters is True/False or cycles >= 1, not {every!r}"
+                )
+            every = int(every)
+        self._watch_errors = every > 0
+        self._watch_every = max(1, every)
+        self._watch_tick = 0
+        self.diag_datagrams = 0  # datagrams the error watch sent
         sdo_timeout_us = 1e6 * float(options.get("sdo_timeout_s", ACYCLIC_SDO_TIMEOUT_US / 1e6))  # type: ignore[arg-type]
         self._sdo_steps_max = max(1, int(sdo_timeout_us) // bus.cycle_time_us)  # datagrams (= cycles) per SDO
         if not 0 < self.frame_timeout_us <= cap:
@@ -587,6 +602,8 @@ class EthercatBackend(Backend):
         else:
             self._raise_state("OP", self.master.read_state())
         self._confirm_wkc()
+        if self._watch_errors and self._slaves:
+            self.error_watch = ErrorWatch(len(self._slaves))
 
     def _raise_state(self, target: str, lowest: int) -> None:
         names = [a.slave.name for a in self.areas]
@@ -800,6 +817,23 @@ class EthercatBackend(Backend):
             finally:
                 locks, self._locks = self._locks, ()
                 release_all(locks)
+
+    def diag_step(self) -> list[CounterRise | LinkChange]:
+        """One read of the error watch's rotation (counters or DL status of one slave), if this cycle's
+        datagram is still free (no SDO, no recovery took it); what changed. Never raises."""
+        watch = self.error_watch
+        if watch is None or self._frame_sent or self.recovering:
+            return []
+        self._watch_tick += 1
+        if self._watch_tick % self._watch_every:
+            return []
+        i, reg, size = watch.next_read()
+        try:
+            raw = SoemPort(self, self._slaves[i]).read(reg, size)
+        except Exception:  # a fault of the bus: this read is missed, the cycle goes on
+            raw = None
+        self.diag_datagrams += 1
+        return watch.feed(raw)
 
     # -- acyclic ------------------------------------------------------------------------
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:

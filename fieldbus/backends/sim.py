@@ -13,6 +13,8 @@ Options (``open_network(path, backend="sim", **options)``):
 - ``chain_maps``: drive maps the emulated slaves are built from, in wire
   order (default: the network's maps) - a different list makes an identity
   mismatch;
+- ``error_counters``: read the ESC error counters in OP (as the ethercat
+  backend: True, or N for one read in every N free cycles; :mod:`fieldbus.core.esc_errors`).
 - ``clock``: the emulator's time, a :class:`~fieldbus.runtime.clock.Clock`
   or a ``() -> ns`` function (default the wall clock). On a virtual clock
   (:class:`~fieldbus.runtime.clock.VirtualClock`) runs are deterministic,
@@ -72,6 +74,8 @@ class SimBackend(EthercatBackend):
             if not isinstance(maps, Sequence):
                 raise FieldbusError(f"bus '{bus.name}': option chain_maps is not a sequence of drive maps")
             options = {**options, "chain_maps": list(maps)}
+        # as on the ethercat backend: the ESC error counters read in OP, one datagram in a free cycle
+        options = {**options, "error_counters": options.get("error_counters", False)}
         super().__init__(bus, **{**options, "transport": "in-process"})
         self._corrupt: dict[int, int] = {}  # slave -> cycles its inputs still arrive inverted
 

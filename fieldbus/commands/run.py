@@ -16,6 +16,7 @@ from fieldbus.commands.argtypes import integer
 from fieldbus.commands.outputs import check_plot
 from fieldbus.commands.usage import add_command
 from fieldbus.core.network import load_network
+from fieldbus.errors import FieldbusError
 from fieldbus.network import open_network
 from fieldbus.runtime.report import run_report
 
@@ -39,6 +40,12 @@ def register(sub: Any) -> None:
     p.add_argument("network", metavar="NETWORK.yaml", help="network file (buses, slaves and their maps)")
     p.add_argument("--cycles", type=integer(1), default=1000, help="number of cycles, >= 1 (default 1000)")
     p.add_argument("--backend", help="run every bus on this backend instead (e.g. sim)")
+    p.add_argument(
+        "--error-counters",
+        action="store_true",
+        help="EtherCAT: read each slave's ESC error counters and link state in OP (one datagram in a cycle "
+        "nothing else uses); a rise is an event naming the suspect cable (docs/diagnostics.md)",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -50,6 +57,11 @@ def run(args: argparse.Namespace) -> int:
     for text in model.warnings:  # what validate prints too (e.g. a receive timeout longer than the cycle)
         print(f"warning: {text}", file=sys.stderr)
     logs = buslogs.bus_options(args, model, args.backend)
+    if args.error_counters:
+        ecat = [b.name for b in model.buses if b.type == "ethercat"]
+        if not ecat:
+            raise FieldbusError(f"{args.network}: --error-counters needs an ethercat bus")
+        logs = {**logs, **{name: {**logs.get(name, {}), "error_counters": True} for name in ecat}}
     cycleopts.check_record(args)
     with (
         open_network(model, backend=args.backend, bus_options=logs) as net,

@@ -43,6 +43,15 @@ def register(sub: Any) -> None:
     )
     e.add_argument("interface", metavar="IFACE", help="network card, e.g. eth0")
     e.add_argument("--no-sdo-info", action="store_true", help="do not ask for object names and types")
+    e.add_argument(
+        "--errors",
+        action="store_true",
+        help="only the ESC error counters, link state and EEPROM status per slave, and the suspect cable "
+        "(read before any configuration, which would clear them; no state changes)",
+    )
+    e.add_argument(
+        "--reset-errors", action="store_true", help="with --errors: clear the counters after reading"
+    )
     _common(e, cycle_us=1000, timeout_us=500)
     e.set_defaults(func=run_ethercat)
     c = add_command(
@@ -94,6 +103,22 @@ def _common(p: argparse.ArgumentParser, *, cycle_us: int, timeout_us: int) -> No
     )
 
 
+def _errors(args: argparse.Namespace) -> int:
+    from fieldbus.commands.argtypes import UsageError
+    from fieldbus.scan import errors
+
+    if args.write_maps or not args.errors:
+        raise UsageError(
+            "--errors reads the error counters only: without --write-maps; --reset-errors needs --errors"
+        )
+    result = errors.read_errors(args.interface, reset=args.reset_errors)
+    if args.json:
+        print(json.dumps(result.as_json()))
+    else:
+        print(errors.format_text(result))
+    return 0
+
+
 def _source(args: argparse.Namespace) -> str:
     where = args.interface if args.bus_type == "ethercat" else args.channel
     return f"fieldbus scan {args.bus_type} {shlex.quote(where)}"
@@ -101,6 +126,9 @@ def _source(args: argparse.Namespace) -> str:
 
 def run_ethercat(args: argparse.Namespace) -> int:
     from fieldbus.scan import ethercat
+
+    if args.errors or args.reset_errors:
+        return _errors(args)
     from fieldbus.scan.writemaps import BusSpec, Placed, write_maps
 
     check_folder(args.write_maps, "--write-maps")

@@ -53,7 +53,7 @@ PATH_CHARS = 160  # most characters of a map path (from the network file) an err
 
 # Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
-    "sim": ("chain_maps", "clock"),
+    "sim": ("chain_maps", "clock", "error_counters"),
     "ethercat": (
         "exact_timeout",
         "pcap",
@@ -63,6 +63,7 @@ BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
         "transport",
         "clock",
         "chain_maps",
+        "error_counters",
     ),
     "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms", "clock"),
     "rawcan": ("can_bus", "can_log", "clock"),

@@ -11,6 +11,7 @@ A file cut short (a crash, a full disk) loads up to its last complete block;
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,7 +86,8 @@ def load(path: str | Path) -> Recording:
                             stats = dict(record.metadata)
                     elif isinstance(record, Footer):
                         complete = True
-            except (McapError, EOFError, ValueError) as exc:  # cut short: keep what came whole
+            # cut short: keep what came whole (mcap raises struct.error for a record cut inside its header)
+            except (McapError, EOFError, ValueError, struct.error) as exc:
                 if not meta:
                     raise FieldbusError(
                         f"{p}: not a fieldbus recording ({type(exc).__name__})"  # its text quotes bytes

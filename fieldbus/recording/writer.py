@@ -401,7 +401,7 @@ class Recorder:
         for e in events:
             if isinstance(e, DriveFault):
                 self.ring.note(e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name)
-            elif e.kind in ("bus_error", "acyclic_error"):
+            elif e.kind in ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up"):
                 self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
 
     def close(self) -> None:

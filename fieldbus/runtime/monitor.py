@@ -17,6 +17,7 @@ from contextlib import AbstractContextManager
 from typing import Any, Self
 
 from fieldbus.core.cia402 import decode_state
+from fieldbus.core.esc_errors import format_rise
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
 from fieldbus.runtime.timing import CycleLatency
@@ -61,6 +62,8 @@ class Monitor:
             b, policy, st = view.backend, view.policy, view.status
             slaves = []
             emcy_of = getattr(b, "last_emergency", None)
+            watch = getattr(b, "error_watch", None)  # EtherCAT with error_counters: ESC counters in OP
+            rises = watch.since_baseline() if watch is not None else None
             for i, area in enumerate(b.areas):
                 group = b.groups[area.group]
                 sw = _statusword(group.image, area.row)
@@ -77,6 +80,7 @@ class Monitor:
                         "fresh": bool(policy.fresh[i]),
                         "stale_cycles": int(policy.stale_cycles[i]),
                         "last_emcy": str(emcy.name) if emcy is not None else None,
+                        "esc_errors": format_rise(rises[i]) if rises is not None and i < len(rises) else None,
                     }
                 )
             out["buses"].append(
@@ -94,6 +98,7 @@ class Monitor:
                     "recovery_error": st.recovery_error,
                     "last_error": st.last_error,
                     "counters": view.counters(),
+                    "suspect_link": _suspect(watch, [a.slave.name for a in b.areas]),
                     "slaves": slaves,
                 }
             )
@@ -122,15 +127,20 @@ class Monitor:
                     + ("  recovering" if bus["recovering"] else "")
                     + (f"  recoveries {bus['recoveries']}" if bus["recoveries"] else "")
                     + (f"\n[red]{bus['recovery_error']}[/]" if bus["recovery_error"] else "")
+                    + (f"\n[red]suspect: {bus['suspect_link']}[/]" if bus.get("suspect_link") else "")
                 ),
                 title_justify="left",
                 expand=False,
             )
-            for col in ("slave", "AL/NMT", "CiA 402", "inputs", "last EMCY"):
+            counted = any(s["esc_errors"] is not None for s in bus["slaves"])
+            for col in ("slave", "AL/NMT", "CiA 402", "inputs", "last EMCY") + (
+                ("ESC errors",) if counted else ()
+            ):
                 t.add_column(col)
             for s in bus["slaves"]:
                 fresh = "[green]fresh[/]" if s["fresh"] else f"[red]stale {s['stale_cycles']}[/]"
-                t.add_row(s["name"], s["state"], s["cia402"], fresh, s["last_emcy"] or "")
+                row = [s["name"], s["state"], s["cia402"], fresh, s["last_emcy"] or ""]
+                t.add_row(*row, *([s["esc_errors"] or ""] if counted else []))
             parts.append(t)
         return Group(*parts)
 
@@ -168,6 +178,14 @@ def monitor_context(
     except ImportError as exc:
         raise BackendUnavailableError("--monitor needs rich: pip install 'fieldbus[monitor]'") from exc
     return Monitor(op, latency=latency)
+
+
+def _suspect(watch: Any, names: list[str]) -> str | None:
+    """The cable where most errors started since the watch's first read (None: none, or no watch)."""
+    if watch is None:
+        return None
+    found = watch.suspects()
+    return str(found[0].link.describe(names)) + f" ({found[0].errors} errors)" if found else None
 
 
 def _statusword(image: Any, row: int) -> int | None:

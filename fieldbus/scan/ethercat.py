@@ -21,12 +21,23 @@ from fieldbus.core.al import AL_ERROR, al_status_name, state_name
 from fieldbus.core.pdo.load import COE_RANGES
 from fieldbus.core.pdo.model import Direction
 from fieldbus.core.sdo.info import ACCESS_WRITE_PREOP
+from fieldbus.core.sii import (
+    CAT_END,
+    CAT_GENERAL,
+    CAT_RXPDO,
+    CAT_SM,
+    CAT_STRINGS,
+    CAT_TXPDO,
+    MAILBOX_PROTOCOLS,
+    SM_TYPES,
+)
+from fieldbus.core.sii import WORD_ALIAS as SII_ALIAS
+from fieldbus.core.sii import WORD_CATEGORIES as SII_CATEGORIES
+from fieldbus.core.sii import WORD_PROTOCOLS as SII_PROTOCOLS
+from fieldbus.core.sii import WORD_SERIAL as SII_SERIAL
 from fieldbus.errors import FieldbusError
 from fieldbus.scan.model import Device, Identity, PdoEntry, ScannedPdo, entry_name, entry_type, mapping_entry
 
-SII_ALIAS, SII_SERIAL, SII_PROTOCOLS, SII_CATEGORIES = 0x04, 0x0E, 0x1C, 0x40
-CAT_STRINGS, CAT_GENERAL, CAT_SM, CAT_TXPDO, CAT_RXPDO, CAT_END = 10, 30, 41, 50, 51, 0xFFFF
-MAILBOX_PROTOCOLS = {0x01: "AoE", 0x02: "EoE", 0x04: "CoE", 0x08: "FoE", 0x10: "SoE", 0x20: "VoE"}
 COE_DETAIL_NAMES = {
     0x01: "SDO",
     0x02: "SDO info",
@@ -34,7 +45,6 @@ COE_DETAIL_NAMES = {
     0x08: "PDO config",
     0x20: "complete access",
 }
-SM_TYPES = {0: "unused", 1: "mailbox out", 2: "mailbox in", 3: "outputs", 4: "inputs"}
 REG_STATION, REG_ALIAS, REG_FEATURES, REG_DL_STATUS, REG_AL_STATUS = 0x0010, 0x0012, 0x0008, 0x0110, 0x0130
 FEATURE_DC = 0x0004
 RXPDO_ASSIGN, TXPDO_ASSIGN = 0x1C12, 0x1C13

@@ -250,6 +250,33 @@ class Emulation:
         emu, i = self._slave(bus, slave)
         emu.silence(i, silent)
 
+    def bit_errors(self, bus: str, between: tuple[str, str], rate: float = 0.02, *, seed: int = 0) -> None:
+        """EtherCAT: bit errors on the cable between two neighbouring slaves (wire order), until cleared.
+
+        Each pass of a frame over that cable is corrupted with probability ``rate`` (seeded): the frame
+        is lost (SHORT/missed cycles as a real CRC error gives), the ESC that receives it there counts
+        an invalid frame on that port, the ESCs after it a forwarded error. With the bus option
+        ``error_counters`` the master names that cable in ``esc_errors`` events (docs/diagnostics.md).
+        """
+        upstream = self._cable(bus, between)
+        if not 0.0 <= rate <= 1.0:
+            raise FieldbusError(f"rate {rate} is outside 0..1")
+        self._bus(bus)[1].bit_errors(upstream, rate, seed)
+
+    def flap_link(self, bus: str, between: tuple[str, str]) -> None:
+        """EtherCAT: the cable between two neighbouring slaves loses its link for a moment (one frame
+        lost; both ends count a lost link)."""
+        self._bus(bus)[1].flap_link(self._cable(bus, between))
+
+    def _cable(self, bus: str, between: tuple[str, str]) -> int:
+        _, a = self._slave(bus, between[0])
+        _, b = self._slave(bus, between[1])
+        if abs(a - b) != 1:
+            raise FieldbusError(
+                f"bus '{bus}': {between[0]} and {between[1]} are not neighbours (positions {a} and {b})"
+            )
+        return min(a, b)
+
     def error_frames(self, bus: str, count: int = 1) -> None:
         """CAN: ``count`` error frames on the bus.
 

@@ -116,6 +116,13 @@ class BusEmulator:
     def sdo_abort(self, slave: int, index: int, sub_index: int | None, code: int) -> None:
         raise self._unsupported("sdo_abort")
 
+    def bit_errors(self, upstream: int, rate: float, seed: int) -> None:
+        """Bit errors on the cable behind slave ``upstream`` (its port 1, the next slave's port 0)."""
+        raise self._unsupported("bit_errors")
+
+    def flap_link(self, upstream: int) -> None:
+        raise self._unsupported("flap_link")
+
     def clear_faults(self) -> None:
         raise self._unsupported("clear_faults")
 

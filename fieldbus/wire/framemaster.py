@@ -394,15 +394,9 @@ class FrameMaster:
 
 def sii_strings(data: bytes) -> list[str]:
     """The strings of an SII STRINGS category (count, then length-prefixed latin-1 strings)."""
-    out: list[str] = []
-    if not data:
-        return out
-    pos = 1
-    for _ in range(data[0]):
-        n = data[pos]
-        out.append(data[pos + 1 : pos + 1 + n].decode("latin-1"))
-        pos += 1 + n
-    return out
+    from fieldbus.core.sii import strings
+
+    return strings(data)
 
 
 def layout_image(sizes: list[tuple[int, int]]) -> tuple[list[Mapping], int, int]:

@@ -82,6 +82,12 @@ class SimChainBus(BusEmulator):
     def sdo_abort(self, slave: int, index: int, sub_index: int | None, code: int) -> None:
         self.chain.abort_sdo(slave, index, sub_index, code)
 
+    def bit_errors(self, upstream: int, rate: float, seed: int) -> None:
+        self.chain.bit_errors(upstream, rate, seed=seed)
+
+    def flap_link(self, upstream: int) -> None:
+        self.chain.flap_link(upstream)
+
     def clear_faults(self) -> None:
         self.chain.clear_faults()
         self.backend.clear_injections()
@@ -158,6 +164,12 @@ class VethBus(BusEmulator):
 
     def sdo_abort(self, slave: int, index: int, sub_index: int | None, code: int) -> None:
         self._command(cmd="abort_sdo", slave=slave, index=index, sub=sub_index, code=code)
+
+    def bit_errors(self, upstream: int, rate: float, seed: int) -> None:
+        self._command(cmd="bit_errors", slave=upstream, rate=rate, seed=seed)
+
+    def flap_link(self, upstream: int) -> None:
+        self._command(cmd="flap_link", slave=upstream)
 
     def clear_faults(self) -> None:
         self._command(cmd="clear")

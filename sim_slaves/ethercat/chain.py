@@ -27,6 +27,7 @@ next access to a clock (:class:`~sim_slaves.ethercat.dc.DcLine`).
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -77,6 +78,15 @@ class Faults:
     corrupt_delta: int = -1
     corrupt_all: bool = False
     log: list[str] = field(default_factory=list)
+    # bit errors on the cable behind slave ``link_upstream`` (its port 1 -> the next slave's port 0):
+    # each pass of a frame over it is corrupted with probability ``link_rate`` (seeded), for
+    # ``link_frames`` more frames (-1: until cleared); directions "down", "up" or "both"
+    link_upstream: int = -1
+    link_rate: float = 0.0
+    link_direction: str = "both"
+    link_frames: int = -1
+    link_rng: random.Random | None = None
+    link_corrupted: int = 0  # passes corrupted so far
 
 
 class EscChain:
@@ -452,6 +462,8 @@ class EscChain:
         if faults.drop_pd and any(_LRD <= buf[off] <= _LRW for off in offsets):
             faults.drop_pd -= 1
             return 0
+        if faults.link_rng is not None and faults.link_frames and self._corrupt_on_link(faults):
+            return 0
         count = len(slaves)
         logical = False
         for off in offsets:
@@ -720,6 +732,61 @@ class EscChain:
         self.faults.corrupt_frames = count
         self.faults.corrupt_delta = delta
         self.faults.corrupt_all = all_frames
+
+    def bit_errors(
+        self, upstream: int, rate: float, *, seed: int = 0, direction: str = "both", frames: int = -1
+    ) -> None:
+        """Bit errors on the cable between slave ``upstream``'s port 1 and slave ``upstream`` + 1's port 0.
+
+        Each pass of a frame over that cable (``direction``: "down" away from
+        the master, "up" back, or "both") is corrupted with probability
+        ``rate`` (a seeded :class:`random.Random`), for the next ``frames``
+        frames (-1: until cleared). A corrupted frame is lost to the master
+        (its FCS is wrong) and not processed; the ESC that receives it there
+        counts an invalid frame on that port, and every ESC after it on the
+        frame's way back counts a forwarded error, as real ESCs do.
+        """
+        if not 0 <= upstream < len(self.slaves) - 1:
+            raise ValueError(f"no cable behind slave {upstream} in a line of {len(self.slaves)}")
+        if direction not in ("down", "up", "both") or not 0.0 <= rate <= 1.0:
+            raise ValueError(f"direction {direction!r} / rate {rate}: 'down', 'up' or 'both', 0..1")
+        f = self.faults
+        f.link_upstream, f.link_rate, f.link_direction, f.link_frames = upstream, rate, direction, frames
+        f.link_rng = random.Random(seed)
+        f.link_corrupted = 0
+
+    def flap_link(self, upstream: int) -> None:
+        """The cable behind slave ``upstream`` loses its link for a moment: both ends count a lost link,
+        the frame on the wire then is lost (the link is back for the next one)."""
+        if not 0 <= upstream < len(self.slaves) - 1:
+            raise ValueError(f"no cable behind slave {upstream} in a line of {len(self.slaves)}")
+        for esc, port in ((self.slaves[upstream], 1), (self.slaves[upstream + 1], 0)):
+            esc.set_link(port, False)
+            esc.set_link(port, True)
+        self.faults.drop += 1
+
+    def _corrupt_on_link(self, f: Faults) -> bool:
+        """One frame over the faulty cable: corrupted on the way down or back? Counts as the ESCs would."""
+        assert f.link_rng is not None
+        if f.link_frames > 0:
+            f.link_frames -= 1
+        k, slaves = f.link_upstream, self.slaves
+        down = f.link_direction in ("down", "both") and f.link_rng.random() < f.link_rate
+        up = not down and f.link_direction in ("up", "both") and f.link_rng.random() < f.link_rate
+        if down:  # found bad at slave k+1's port 0; marked: forwarded on, and all the way back at port 1
+            slaves[k + 1].count_error(0, "invalid")
+            for s in slaves[k + 2 :]:
+                s.count_error(0, "forwarded")
+            for s in slaves[:-1]:
+                s.count_error(1, "forwarded")
+        elif up:  # fine on the way down, found bad at slave k's port 1 on the way back
+            slaves[k].count_error(1, "invalid")
+            for s in slaves[:k]:
+                s.count_error(1, "forwarded")
+        else:
+            return False
+        f.link_corrupted += 1
+        return True
 
     def power_cycle(self, slave: int) -> None:
         """Slave ``slave`` (0-based) loses power and comes back: registers reset, state INIT.

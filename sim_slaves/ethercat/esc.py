@@ -20,6 +20,7 @@ import struct
 from collections.abc import Callable
 from typing import Protocol
 
+from fieldbus.core.sii import checksum_ok
 from sim_slaves.ethercat.al import AL_ERROR_INDICATOR, TRANSITIONS, AlState, AlStatusCode, Check
 from sim_slaves.ethercat.coe import SdoServer, emergency_payload
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, EscDc
@@ -36,11 +37,21 @@ N_FMMU = 8
 N_SM = 8
 EEPROM_R64 = 0x0040  # EEPROM status: 8-byte reads
 EEPROM_BUSY = 0x8000  # EEPROM status: a command is running
+# EEPROM status error bits (ESC datasheet section II, 0x0502): checksum error in the ESC configuration
+# area, EEPROM not loaded, missing acknowledge / invalid command, write command without write enable
+EEPROM_CHECKSUM_ERROR, EEPROM_NOT_LOADED, EEPROM_NACK, EEPROM_WRITE_ENABLE_ERROR = (
+    0x0800,
+    0x1000,
+    0x2000,
+    0x4000,
+)
+EEPROM_WRITE_BUSY_READS = 2  # reads of 0x0502 that find the interface busy after a word write
+ERR_FIRST, ERR_END = 0x0300, 0x0314  # error counters (fieldbus.core.esc_errors)
 WD_DIVIDER_DEFAULT = 2498  # (2498 + 2) x 40 ns = 100 us
 WD_PD_DEFAULT = 1000  # x 100 us = 100 ms
 DEFAULT_DT_S = 0.001
 
-_RO_RANGES = ((0x0000, 0x0010), (0x0110, 0x0112), (0x0130, 0x0136))
+_RO_RANGES = ((0x0000, 0x0010), (0x0110, 0x0112), (0x0130, 0x0136), (ERR_FIRST, ERR_END))
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _SM = struct.Struct("<HHBBBB")
@@ -90,6 +101,10 @@ class Esc:
         dc: EscDc | None = None,
     ) -> None:
         self.sii = sii
+        # the EEPROM is as large as word 0x3E says ((Kbit + 1) x 128 bytes), erased (0xFF) past the image
+        size = min((sii.word(0x3E) + 1) * 128, 0x20000) if sii.word(0x3E) != 0xFFFF else len(sii.data)
+        if len(sii.data) < size:
+            sii.data += b"\xff" * (size - len(sii.data))
         self.od = od
         self.app = app
         self.name = name or sii.name
@@ -105,6 +120,8 @@ class Esc:
         # EEPROM interface that stays busy
         self.mailbox_fault: str | None = None
         self.eeprom_stuck = False
+        self._eeprom_busy_reads = 0
+        self.links_down: set[int] = set()  # fault hook: ports whose physical link is down
         self.cycles = 0
         self.mem: bytearray | memoryview = bytearray(MEM_SIZE)
         #: called when what the process-data path depends on changes (FMMU, SM, AL state, layout, power)
@@ -130,15 +147,20 @@ class Esc:
         mem[0x0006] = (MEM_SIZE - RAM_START) // 1024
         mem[0x0007] = 0x0F  # ports 0 and 1: MII
         _U16.pack_into(mem, 0x0008, FEATURES)
-        _U16.pack_into(mem, 0x0012, self.sii.word(0x0004))  # configured station alias from SII
+        # the ESC loads its configuration area at power-up: a wrong checksum leaves it unloaded (no alias,
+        # no PDI: the application never runs, the AL state stays INIT) and says so in 0x0502 and 0x0110
+        self.eeprom_loaded = checksum_ok(bytes(self.sii.data[:16]))
+        if self.eeprom_loaded:
+            _U16.pack_into(mem, 0x0012, self.sii.word(0x0004))  # configured station alias from SII
         _U16.pack_into(mem, 0x0110, self._dl_status())
         mem[0x0120] = AlState.INIT
         mem[0x0130] = AlState.INIT
-        mem[0x0140] = self.sii.word(0x0000) & 0xFF
+        mem[0x0140] = self.sii.word(0x0000) & 0xFF if self.eeprom_loaded else 0
         _U16.pack_into(mem, 0x0400, WD_DIVIDER_DEFAULT)
         _U16.pack_into(mem, 0x0410, WD_PD_DEFAULT)
         _U16.pack_into(mem, 0x0420, WD_PD_DEFAULT)
-        _U16.pack_into(mem, 0x0502, EEPROM_R64)
+        _U16.pack_into(mem, 0x0502, self._eeprom_status())
+        self._eeprom_busy_reads = 0
         self.dc.power_on()
         self.state = AlState.INIT
         self.error = False
@@ -169,10 +191,42 @@ class Esc:
             self.on_change()
 
     def _dl_status(self) -> int:
-        """DL status: PDI operational, port 0 link + communication; port 1 too unless last in line."""
+        """DL status: PDI operational (EEPROM loaded), port 0 link + communication; port 1 too unless last."""
         last = self.position == self.chain_length - 1
         port1 = 0x0400 if last else 0x0820  # closed loop / link + open with communication
-        return 0x0001 | 0x0010 | 0x0200 | port1 | 0x1000 | 0x4000
+        raw = (0x0001 if self.eeprom_loaded else 0) | 0x0010 | 0x0200 | port1 | 0x1000 | 0x4000
+        for p in self.links_down:  # no link: no communication, the port's loop closed
+            raw = (raw & ~(0x0010 << p) & ~(0x0200 << 2 * p)) | (0x0100 << 2 * p)
+        return raw
+
+    # -- error counters (0x0300-0x0313) --
+
+    def count_error(self, port: int, kind: str) -> None:
+        """One error on ``port``: "invalid" frame (CRC), "rx" (symbol), "forwarded" or "lost" link (u8, stops at 255)."""
+        reg = {
+            "invalid": 0x0300 + 2 * port,
+            "rx": 0x0301 + 2 * port,
+            "forwarded": 0x0308 + port,
+            "lost": 0x0310 + port,
+        }[kind]
+        if self.mem[reg] < 0xFF:
+            self.mem[reg] += 1
+
+    def set_link(self, port: int, up: bool) -> None:
+        """Port ``port``'s physical link comes up or goes down (a lost link is counted there)."""
+        if up:
+            self.links_down.discard(port)
+        elif port not in self.links_down:
+            self.links_down.add(port)
+            self.count_error(port, "lost")
+        _U16.pack_into(self.mem, 0x0110, self._dl_status())
+
+    def _clear_counters(self, ado: int, end: int) -> None:
+        """A write into 0x0300-0x0313 clears counters (the value is ignored): any of 0x0300-0x030B clears
+        those twelve, 0x030C and 0x030D themselves, any of 0x0310-0x0313 the lost-link counters."""
+        for lo, hi in ((0x0300, 0x030C), (0x030C, 0x030D), (0x030D, 0x030E), (0x0310, 0x0314)):
+            if ado < hi and end > lo:
+                self.mem[lo:hi] = bytes(hi - lo)
 
     # -- addressing --
 
@@ -197,6 +251,11 @@ class Esc:
             return bytes(n)
         if end > RAM_START:
             return self._read_ram(ado, n)
+        if self._eeprom_busy_reads and ado < 0x0504 and end > 0x0502:
+            self._eeprom_busy_reads -= 1
+            if not self._eeprom_busy_reads:
+                stuck = EEPROM_BUSY if self.eeprom_stuck else 0
+                _U16.pack_into(self.mem, 0x0502, self._eeprom_status() | stuck)
         if ado < DC_END and end > DC_FIRST:
             return self._read_dc(ado, end, now_ns)
         return bytes(self.mem[ado:end])
@@ -222,6 +281,8 @@ class Esc:
             if s < end and ado < e:
                 lo, hi = max(s, ado), min(e, end)
                 mem[lo:hi] = old[lo - ado : hi - ado]
+        if ado < ERR_END and end > ERR_FIRST:
+            self._clear_counters(ado, end)
         if ado < 0x0122 and end > 0x0120:
             self._al_control(now_ns)
         if ado < 0x0504 and end > 0x0502:
@@ -323,7 +384,10 @@ class Esc:
         self.mailbox_fault = None
         if self.eeprom_stuck:
             self.eeprom_stuck = False
-            _U16.pack_into(self.mem, 0x0502, EEPROM_R64)
+            _U16.pack_into(self.mem, 0x0502, self._eeprom_status())
+        if self.links_down:
+            self.links_down.clear()
+            _U16.pack_into(self.mem, 0x0110, self._dl_status())
 
     def send_emergency(self, error_code: int, error_register: int = 0, data: bytes = b"") -> None:
         """Queue a CoE emergency message for the master (when the mailbox is in use)."""
@@ -441,6 +505,8 @@ class Esc:
     # -- AL state machine --
 
     def _al_control(self, now_ns: int) -> None:
+        if not self.eeprom_loaded:
+            return  # no PDI (configuration area not loaded): nobody answers AL control, the state stays INIT
         raw = self.mem[0x0120] | self.mem[0x0121] << 8
         req = raw & 0x0F
         if raw & AL_ERROR_INDICATOR:
@@ -557,16 +623,40 @@ class Esc:
 
     # -- EEPROM interface --
 
+    def _eeprom_status(self, errors: int = 0) -> int:
+        loaded = 0 if self.eeprom_loaded else EEPROM_CHECKSUM_ERROR | EEPROM_NOT_LOADED
+        return EEPROM_R64 | loaded | errors
+
     def _eeprom_command(self) -> None:
+        """0x0502 written: NOP clears the error bits; read (1) 8 bytes into 0x0508; write (2) the word in
+        0x0508 only with write enable (bit 0) in the same write, else error bit 14; reload (4; 3 as SOEM's
+        EC_ECMD_RELOAD) checks the configuration area's checksum again; anything else error bit 13. A
+        command while busy is ignored. A write keeps the interface busy for a few status reads."""
         mem = self.mem
+        if self._eeprom_busy_reads:
+            _U16.pack_into(mem, 0x0502, self._eeprom_status() | EEPROM_BUSY)
+            return
         ctrl = mem[0x0502] | mem[0x0503] << 8
         cmd = (ctrl >> 8) & 0x07
         addr = _U32.unpack_from(mem, 0x0504)[0] & 0xFFFF
+        errors = 0
         if cmd == 1:  # read: 8 bytes (status bit 6 advertises it)
             mem[0x0508:0x0510] = self.sii.read(addr, 8)
-        elif cmd == 2 and ctrl & 0x01:  # write one word (write enable set)
-            self.sii.write_word(addr, mem[0x0508] | mem[0x0509] << 8)
+        elif cmd == 2:
+            if not ctrl & 0x01:
+                errors = EEPROM_WRITE_ENABLE_ERROR
+            elif 2 * addr + 2 > len(self.sii.data):
+                errors = EEPROM_NACK  # past the EEPROM's end: no acknowledge
+            else:
+                self.sii.write_word(addr, mem[0x0508] | mem[0x0509] << 8)
+                self._eeprom_busy_reads = EEPROM_WRITE_BUSY_READS
+        elif cmd in (3, 4):
+            self.eeprom_loaded = checksum_ok(bytes(self.sii.data[:16]))
+            _U16.pack_into(mem, 0x0110, self._dl_status())
+        elif cmd != 0:
+            errors = EEPROM_NACK
         if self.eeprom_stuck:
-            _U16.pack_into(mem, 0x0502, EEPROM_R64 | EEPROM_BUSY)  # fault hook: never done
+            _U16.pack_into(mem, 0x0502, self._eeprom_status(errors) | EEPROM_BUSY)  # fault hook: never done
             return
-        _U16.pack_into(mem, 0x0502, EEPROM_R64)  # done at once: never busy, no error
+        busy = EEPROM_BUSY if self._eeprom_busy_reads else 0
+        _U16.pack_into(mem, 0x0502, self._eeprom_status(errors) | busy)

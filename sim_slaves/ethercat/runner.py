@@ -47,6 +47,10 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
                                                         "axis": k (0-based) faults axis k + 1 of a multi-axis slave
     {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
     {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
+    {"cmd": "bit_errors", "slave": 4, "rate": 0.05, "seed": 1, "direction": "both", "frames": -1}
+                                                        bit errors on the cable behind slave 4 (port 1)
+    {"cmd": "flap_link", "slave": 4}                    that cable loses its link for a moment
+    {"cmd": "sii", "slave": 0}                          the slave's EEPROM image (hex) and alias register
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "timing", "reset": false}                   the runner's reply times (see ReplyTimes)
@@ -434,6 +438,19 @@ def handle_control(
         chain.mute_mailbox(slave, stuck=bool(msg.get("stuck")))
     elif cmd == "stick_eeprom":
         chain.stick_eeprom(slave)
+    elif cmd == "bit_errors":
+        chain.bit_errors(
+            slave,
+            float(msg.get("rate", 0.05)),
+            seed=int(msg.get("seed", 0)),
+            direction=str(msg.get("direction", "both")),
+            frames=int(msg.get("frames", -1)),
+        )
+    elif cmd == "flap_link":
+        chain.flap_link(slave)
+    elif cmd == "sii":
+        esc = chain.slaves[slave]
+        return {"ok": True, "sii": bytes(esc.sii.data).hex(), "alias": esc.alias, "loaded": esc.eeprom_loaded}
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "drive_fault":

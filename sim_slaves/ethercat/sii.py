@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.model import DriveMap, Pdo
+from fieldbus.core.sii import crc8
 from fieldbus.errors import FieldbusError
 from fieldbus.wire.framemaster import sii_strings
 
@@ -54,16 +55,6 @@ class SiiSyncManager:
     control: int
     enable: int
     type: int
-
-
-def crc8(data: bytes) -> int:
-    """CRC-8 of the SII configuration area (polynomial 0x07, initial 0xFF)."""
-    crc = 0xFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x07) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc
 
 
 class SiiImage:

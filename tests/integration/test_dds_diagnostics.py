@@ -99,3 +99,24 @@ def test_a_stall_of_the_cycle_is_counted_and_a_safe_stop_after_it_is_put_down_to
         assert cycle.message.endswith("run the cycle at --rt-priority")
     else:
         assert (cycle.level, cycle.message) == (1, "1 stall(s)")
+
+
+def _bus(server: BusServer) -> tuple[Any, dict[str, str]]:
+    bus = [s for s in server.diagnostics().status if s.name == "fieldbus/bus" and s.hardware_id != "bus"]
+    status = next(iter(bus))
+    return status.level, {kv.key: kv.value for kv in status.values}
+
+
+def test_esc_error_counters_and_the_suspect_cable_are_in_the_bus_diagnostics(tmp_path: Path) -> None:
+    """With the bus option error_counters, the bus's status names the cable with bit errors (warning)."""
+    with emulate(_net(tmp_path), bring_up=False, bus_options={"bus": {"error_counters": True}}) as emu:
+        server = BusServer(emu.network, Participant(231, "lo"), ServeOptions("robot"))
+        server.attach(emu.bring_up())
+        emu.run(server.step, 100)
+        assert "suspect_link" not in _bus(server)[1]
+        emu.bit_errors("bus", between=("j1", "j2"), rate=0.05, seed=4)
+        emu.run(server.step, 800)
+        level, values = _bus(server)
+    assert values["suspect_link"].startswith("cable between slave 1 (j1) port 1 and slave 2 (j2) port 0")
+    assert values["j2/esc_errors"].startswith("p0 ")
+    assert level in (1, b"\x01")  # WARN

@@ -52,6 +52,8 @@ COMMANDS: dict[str, Argv] = {
     "import-eds": lambda f, out: ["import", "eds", f, "-o", str(out / "eds.yaml")],
     "report": lambda f, out: ["report", f],
     "plot": lambda f, out: ["plot", f, "-o", str(out / "plot.png")],
+    "eeprom-decode": lambda f, out: ["eeprom", "decode", f],
+    "eeprom-decode-json": lambda f, out: ["eeprom", "decode", "--json", f],
 }
 # Commands that read the file as given whatever its name ends in; import eds and esi also get a copy
 # named .eds / .xml, so the content reaches the parser.
