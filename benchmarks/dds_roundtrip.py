@@ -11,6 +11,10 @@ In-process: the same sine on the same network with ``op.exchange()`` paced by
 is on the wire in the same call). Misses: remote exchanges whose state did not
 come within the deadline (5 cycles); in-process cycles that were not fresh.
 
+Free-running: a client on its own 1 kHz clock sends a command every period without waiting
+(``Remote.send``) and polls the states (``Remote.poll``): latency = sent -> the first state showing it
+applied; commands the bus never applied (superseded by a newer one before a cycle took them) counted.
+
 Stall: a controller process commands the served bus for 1 s, sleeps 200 ms,
 commands again; this process watches the published states (no claim) and
 counts the bus's cycle numbers per wall second before, during and after the
@@ -122,6 +126,48 @@ def remote(net: Path, cycles: int) -> dict[str, Any]:
         "server_missed": report["missed"],
         "server_cycle_us": report["cycle_time_us"],
     }
+
+
+def free_running(net: Path, cycles: int) -> dict[str, Any]:
+    """A client on its own 1 kHz clock: sends a command every period without waiting (``Remote.send``),
+    polls the states (``Remote.poll``). Latency = sent -> the first state that shows it applied;
+    superseded = commands the bus never applied (a newer one came before its cycle)."""
+    domain = 1 + (os.getpid() + 2) % 200
+    server = _server(net, domain, 50_000, 100_000)
+    try:
+        assert server.stdout is not None
+        json.loads(server.stdout.readline())  # ready
+        op = fieldbus.remote.connect("bench", domain=domain, interface="lo", deadline_s=0.005)
+        legs = op["joints"]
+        op.claim("joints")
+        op.enable("joints")
+        tgt, pos = legs.outputs["target_position"], legs.inputs["position_actual_value"]
+        start = pos.copy()
+        sent: dict[int, int] = {}
+        latency: list[int] = []
+        applied_seen = 0
+        superseded = 0
+
+        def step(k: int) -> None:
+            nonlocal applied_seen, superseded
+            tgt[:] = start + 0.5 * (1 - math.cos(2 * math.pi * 0.5 * k / 1000))
+            sent[op.send()] = time.perf_counter_ns()
+            applied = op.poll()
+            now = time.perf_counter_ns()
+            if applied > applied_seen:
+                if applied in sent:
+                    latency.append(now - sent[applied])
+                superseded += sum(1 for q in range(applied_seen + 1, applied) if q in sent)
+                for q in [q for q in sent if q <= applied]:
+                    del sent[q]
+                applied_seen = applied
+
+        fieldbus.run_cycles(step, 1000, cycles)
+        op.close()
+    finally:
+        server.send_signal(signal.SIGTERM)
+        server.communicate(timeout=30)
+    return {**_percentiles(latency), "commands": cycles, "superseded": superseded, "applied": len(latency)}
 
 
 def in_process(net: Path, cycles: int) -> dict[str, Any]:
@@ -253,15 +299,15 @@ def main() -> int:
         if not a.stall_only:
             out["in_process"] = in_process(net, a.cycles)
             out["remote"] = remote(net, a.cycles)
+            out["free_running"] = free_running(net, a.cycles)
         out["stall"] = stall(net)
     if a.json or a.stall_only:
         print(json.dumps(out))
     else:
-        for name in ("in_process", "remote"):
+        for name in ("in_process", "remote", "free_running"):
             r = out[name]
-            print(
-                f"{name:10s} p50 {r['p50_us']} us  p99 {r['p99_us']} us  max {r['max_us']} us  misses {r['misses']}"
-            )
+            extra = f"superseded {r['superseded']}" if "superseded" in r else f"misses {r['misses']}"
+            print(f"{name:12s} p50 {r['p50_us']} us  p99 {r['p99_us']} us  max {r['max_us']} us  {extra}")
         print(f"(load average {out['load_avg']:.1f} on {out['cpus']} CPUs)")
     return 0
 

@@ -326,6 +326,33 @@ class Remote:
         return dict(self[group].command_channels)
 
     # -- the cycle --
+    def send(self) -> int:
+        """Send the outputs of every claimed group as one command now, without waiting; its sequence.
+
+        For a client that keeps its own pace (free-running): :meth:`poll` then tells which command the
+        bus applied last. :meth:`exchange` is ``send`` and a wait for the state that applied it."""
+        self.sequence += 1
+        seq = self.sequence
+        for name in self.claimed:
+            g = self.groups[name]
+            cmd = m.JointCommand(client_id=self.client_id, sequence=seq)
+            for role, chan in g.command_channels.items():
+                setattr(cmd, role, g.outputs.values[chan].astype(np.float64).tolist())
+            self._links[name].writer.write(cmd)
+        return seq
+
+    def poll(self) -> int:
+        """Take the states that have arrived (never waits): the inputs are the newest; returns the newest
+        command sequence every claimed group has applied (0: none yet)."""
+        applied = []
+        for name in self.claimed or self.groups:
+            g = self.groups[name]
+            for st in self._links[name].reader.take(N=16):
+                if isinstance(st, m.AxisState) and st.cycle > g.state.cycle:
+                    g.accept(st)
+            applied.append(int(g.state.command_sequence))
+        return min(applied) if applied else 0
+
     def exchange(self, deadline_s: float | None = None) -> RemoteResult:
         """Send the outputs of every claimed group as a command; wait for the state that applied it.
 
@@ -333,15 +360,8 @@ class Remote:
         raises for a late state: ``result.late`` (and :attr:`misses`) say so and
         the inputs keep the newest state received.
         """
-        self.sequence += 1
-        seq = self.sequence
         t0 = time.perf_counter_ns()
-        for name in self.claimed:
-            g = self.groups[name]
-            cmd = m.JointCommand(client_id=self.client_id, sequence=seq)
-            for role, chan in g.command_channels.items():
-                setattr(cmd, role, g.outputs.values[chan].astype(np.float64).tolist())
-            self._links[name].writer.write(cmd)
+        seq = self.send()
         waiting = dict.fromkeys(self.claimed or self.groups, False)
         last_cycle = {n: self.groups[n].state.cycle for n in waiting}
         end = t0 + int((self.deadline_s if deadline_s is None else deadline_s) * 1e9)
