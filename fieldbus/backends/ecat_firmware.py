@@ -31,7 +31,7 @@ from fieldbus.core.foe import FoeError, FoeTransfer
 from fieldbus.errors import BusTimeoutError, FieldbusError, StateTransitionError
 
 FRAME_TIMEOUT_US = 2000  # one datagram's wait (SOEM's EC_TIMEOUTRET): outside OP, mailbox speed
-STATE_TIMEOUT_US = 5_000_000  # a state change (a boot loader may take seconds to start)
+STATE_POLL_US, STATE_POLLS = 1000, 5000  # a state change: up to 5 s (a boot loader may take seconds to start)
 STEPS_PER_ANSWER = 2000  # datagrams from one FoE answer to the next (polls included; BUSY: more answers)
 EEPROM_POLLS = 100
 SII_BOOT_MAILBOX = 0x14  # SII words 0x14-0x17: bootstrap receive offset, size; send offset, size
@@ -143,19 +143,23 @@ class FirmwareSession:
         return status, code
 
     # -- states --------------------------------------------------------------------------------------
-    def request(self, state: int, timeout_us: int = STATE_TIMEOUT_US) -> None:
-        """Request ``state`` of this slave only (acknowledging an error), wait for it; a refusal raises
-        :class:`StateTransitionError` with the AL status code."""
+    def request(self, state: int, polls: int = STATE_POLLS) -> None:
+        """Request ``state`` of this slave only (acknowledging an error) and wait for it, at most ``polls``
+        waits of 1 ms; a refusal (the error indicator) raises :class:`StateTransitionError` at once, with
+        the AL status code."""
         status, code = self.al_state()
         self.slave.state = state | (AL_ACK if status & AL_ERROR else 0)
         self.slave.write_state()
-        reached = int(self.slave.state_check(state, timeout_us))
-        status, code = self.al_state()
-        if status & 0x0F == state and not status & AL_ERROR:
-            return
+        for _ in range(polls):
+            self.slave.state_check(state, STATE_POLL_US)
+            status, code = self.al_state()
+            if status & 0x0F == state and not status & AL_ERROR:
+                return
+            if status & AL_ERROR:
+                break
         raise StateTransitionError(
             f"{self.where}: {state_name(state)} requested, the slave shows {state_name(status)}"
-            f" (AL status code 0x{code:04X} {al_status_name(code)}; polled {state_name(reached)})",
+            f" (AL status code 0x{code:04X} {al_status_name(code)})",
             al_status=code,
             slave=self.where,
         )

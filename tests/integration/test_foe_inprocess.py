@@ -1,0 +1,188 @@
+"""Firmware over FoE on the in-process transport: our master's steps against the emulated ESC chain.
+
+Witness: the emulator's own state (its AL states, the firmware store, SII and 0x1018:03 after a
+power cycle), not our master's view. Virtual time: every wait passes on a VirtualClock, and the
+transfers count datagrams, not seconds. The independent oracles (pysoem's own FoE calls, tshark)
+are in test_foe_veth.py.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import pytest
+
+from fieldbus.backends.ecat_firmware import FirmwareSession, run_steps
+from fieldbus.backends.ecat_mailbox import SlaveMailbox
+from fieldbus.commands.demo import DEMO_MAP
+from fieldbus.core.al import AL_BOOT, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, AlStatusCode
+from fieldbus.core.coe_mailbox import MailboxProtocolError, SdoTransfer
+from fieldbus.core.foe import FoeError, FoeErrorCode
+from fieldbus.core.pdo import load_drive_map
+from fieldbus.errors import StateTransitionError
+from fieldbus.testing import VirtualClock, firmware_image
+
+pytest.importorskip("pysoem")
+
+from fieldbus.backends.ecat_inprocess import InProcessMaster
+
+OLD_REV = 0  # the demo map's revision
+
+
+def master(n: int) -> Any:
+    m = InProcessMaster([load_drive_map(DEMO_MAP)] * n, clock=VirtualClock())
+    assert m.config_init() == n
+    return m
+
+
+def to_op(m: Any) -> None:
+    m.config_map()
+    assert m.state_check(AL_SAFEOP, 50_000) == AL_SAFEOP
+    m.state = AL_OP
+    m.write_state()
+    m.send_processdata()
+    m.receive_processdata()
+    assert m.state_check(AL_OP, 50_000) == AL_OP
+
+
+def update(m: Any, k: int, image: bytes, *, name: str = "app.efw", password: int = 0) -> FirmwareSession:
+    s = FirmwareSession(m, k)
+    s.enter_bootstrap()
+    run_steps(s.transfer(s.foe(name, image, password=password)))
+    s.leave_bootstrap()
+    return s
+
+
+def revisions(m: Any, k: int) -> tuple[int, int]:
+    esc = m.chain.slaves[k]
+    return esc.sii.revision, int(esc.od.get_value(0x1018, 3))
+
+
+def test_a_firmware_write_takes_effect_at_the_next_power_cycle() -> None:
+    m = master(3)
+    before = FirmwareSession(m, 1).identity(od=False)
+    assert before.revision == OLD_REV
+    update(m, 1, firmware_image(0x00020001, 5000))
+    assert int(m.chain.slaves[1].state) == AL_INIT
+    assert revisions(m, 1) == (OLD_REV, OLD_REV)  # written, not yet running
+    m.chain.power_cycle(1)
+    assert revisions(m, 1) == (0x00020001, 0x00020001)
+    m.config_init()
+    assert m.state_check(AL_PREOP, 50_000) == AL_PREOP
+    after = FirmwareSession(m, 1).identity()
+    assert (after.revision, after.od_revision) == (0x00020001, 0x00020001)
+    m.chain.power_cycle(1)  # and it stays: the next power cycle keeps the new image
+    assert revisions(m, 1) == (0x00020001, 0x00020001)
+
+
+def test_the_bootstrap_mailbox_is_the_one_in_the_sii() -> None:
+    m = master(1)
+    s = FirmwareSession(m, 0)
+    lay = s.enter_bootstrap()
+    sii = m.chain.slaves[0].sii
+    assert (lay.out_start, lay.out_size) == sii.boot_mailbox_out != sii.mailbox_out
+    assert (lay.in_start, lay.in_size) == sii.boot_mailbox_in
+    # CoE has no place in BOOTSTRAP: the slave answers with a mailbox error (unsupported protocol)
+    with pytest.raises(MailboxProtocolError, match="mailbox error 0x0002"):
+        run_steps(
+            SlaveMailbox(lay, s.port).transfer(SdoTransfer(0x1000, 0, None, mailbox_out=lay.out_size), 100)
+        )
+
+
+def test_boot_is_refused_with_the_standard_mailbox_in_sm0() -> None:
+    m = master(1)
+    s = FirmwareSession(m, 0)
+    s.request(AL_INIT)  # SOEM's mailbox layout still in SM0/SM1 (config_init wrote it)
+    with pytest.raises(StateTransitionError) as err:
+        s.request(AL_BOOT)
+    assert err.value.al_status == AlStatusCode.INVALID_BOOT_MAILBOX_CONFIG
+
+
+def test_wrong_password_and_missing_file_are_named_and_leave_the_old_firmware() -> None:
+    m = master(1)
+    m.chain.slaves[0].firmware.password = 0xC0DE
+    s = FirmwareSession(m, 0)
+    s.enter_bootstrap()
+    with pytest.raises(FoeError) as err:
+        run_steps(s.transfer(s.foe("app.efw", firmware_image(5), password=1)))
+    assert (err.value.code, err.value.name, err.value.slave) == (0x800A, "no rights", "slave 0 (demo_joint)")
+    with pytest.raises(FoeError) as err:
+        run_steps(s.transfer(s.foe("other.efw", None, password=0xC0DE)))
+    assert err.value.code == FoeErrorCode.NOT_FOUND
+    s.leave_bootstrap()
+    m.chain.power_cycle(0)
+    m.config_init()
+    assert m.state_check(AL_PREOP, 50_000) == AL_PREOP  # the old firmware runs
+    assert revisions(m, 0) == (OLD_REV, OLD_REV)
+
+
+def test_the_others_stay_in_op_and_exchange_every_cycle_while_one_is_updated() -> None:
+    """12 drives in OP; drive 5 goes to BOOTSTRAP and takes a firmware image, one mailbox datagram
+    between two process-data cycles. Every cycle's WKC counts the 11 others' LRW (3 each)."""
+    m = master(12)
+    to_op(m)
+    full = m.expected_wkc
+    assert full == 36
+    s = FirmwareSession(m, 5)
+    s.enter_bootstrap()
+    steps = s.transfer(s.foe("app.efw", firmware_image(0x00020000, 20_000)))
+    wkcs = []
+    done = False
+    while not done:
+        m.send_processdata()
+        wkcs.append(m.receive_processdata())
+        try:
+            next(steps)
+        except StopIteration:
+            done = True
+    s.leave_bootstrap()
+    states = [int(e.state) for e in m.chain.slaves]
+    assert states == [AL_OP] * 5 + [AL_INIT] + [AL_OP] * 6
+    assert len(wkcs) > 40 and set(wkcs) == {full - 3}  # the 11 others exchanged every cycle
+    m.chain.power_cycle(5)
+    assert revisions(m, 5) == (0x00020000, 0x00020000)
+
+
+def test_100_transfers_interrupted_at_random_points_all_recover_by_running_the_update_again() -> None:
+    """Fixed seed. Each trial stops a firmware write after a random number of datagrams: the master
+    stops (Ctrl-C, cable: the slave stays in BOOTSTRAP) or the slave loses power (it comes back in
+    INIT without valid firmware and refuses PRE-OP, AL 0x0014). Recovery is what docs/firmware.md
+    says: rescan, run the update again, power-cycle. Every slave then runs the new image."""
+    rng = random.Random(37)
+    m = master(4)
+    kinds = {"stop": 0, "power": 0}
+    mid_transfer = 0  # trials cut while the image was half written
+    revision = 0x00010000
+    for trial in range(100):
+        k = rng.randrange(4)
+        revision += 1
+        image = firmware_image(revision, rng.randrange(1, 6000), seed=trial)
+        s = FirmwareSession(m, k)
+        s.enter_bootstrap()
+        steps = s.transfer(s.foe("app.efw", image))
+        cut = rng.randrange(1, 4 * (len(image) // 500 + 2) * 3)
+        for _ in range(cut):
+            try:
+                next(steps)
+            except StopIteration:
+                break
+        kind = rng.choice(("stop", "power"))
+        kinds[kind] += 1
+        esc = m.chain.slaves[k]
+        mid_transfer += not esc.firmware.valid
+        if kind == "power":
+            m.chain.power_cycle(k)
+            if not esc.firmware.valid:
+                m.config_init()  # the rescan the command makes
+                assert int(esc.state) & 0x0F == AL_INIT and esc.status_code == AlStatusCode.NO_VALID_FIRMWARE
+        else:
+            assert int(esc.state) == AL_BOOT  # left in BOOTSTRAP
+        # recovery: run the command again (rescan, update), then power-cycle
+        m.config_init()
+        update(m, k, image)
+        m.chain.power_cycle(k)
+        m.config_init()
+        assert m.state_check(AL_PREOP, 50_000) == AL_PREOP, f"trial {trial}"
+        assert revisions(m, k) == (revision, revision), f"trial {trial}"
+    assert min(kinds.values()) > 30 and mid_transfer > 60
