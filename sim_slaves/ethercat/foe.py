@@ -19,6 +19,7 @@ cycles (:class:`FirmwareStore`); the transfer in progress does not.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from fieldbus.core.coe_mailbox import MailboxProtocolError
@@ -59,6 +60,8 @@ class FirmwareStore:
     valid: bool = True
     writes: int = 0  # firmware writes completed intact
     busy_answers: int = 0  # fault hook: answer the next DATA packets with BUSY
+    cut_after: int | None = None  # fault hook: power lost once a write has taken this many more bytes
+    on_power_loss: Callable[[], None] | None = None  # called then (the chain power-cycles the slave)
 
     def power_on(self) -> int | None:
         """A power cycle: a staged image becomes the running one; the revision to report (None: the map's)."""
@@ -170,6 +173,11 @@ class FoeServer:
             return self._fail(FoeErrorCode.DISK_FULL, f"more than {store.capacity} bytes")
         self._buf += data
         self._packet += 1
+        if store.cut_after is not None:
+            store.cut_after -= len(data)
+            if store.cut_after <= 0 and store.on_power_loss is not None:
+                store.cut_after = None
+                store.on_power_loss()
         if len(data) >= self.size_out - FOE_OVERHEAD:
             return encode_foe(FoeOpCode.ACK, packet)
         name, image = self._name, bytes(self._buf)

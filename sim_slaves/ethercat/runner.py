@@ -47,6 +47,9 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
                                                         "axis": k (0-based) faults axis k + 1 of a multi-axis slave
     {"cmd": "mute_mailbox", "slave": 0, "stuck": false} mailbox requests dropped (stuck: SM0 stays full)
     {"cmd": "stick_eeprom", "slave": 0}                 EEPROM interface busy for ever
+    {"cmd": "foe_power_loss", "slave": 0, "after_bytes": 5000}  power lost during an FoE write
+    {"cmd": "foe_busy", "slave": 0, "answers": 3}       FoE DATA answered with BUSY
+    {"cmd": "firmware", "slave": 0, "password": 4660}   the slave's firmware store (optional: set its password)
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "timing", "reset": false}                   the runner's reply times (see ReplyTimes)
@@ -434,6 +437,15 @@ def handle_control(
         chain.mute_mailbox(slave, stuck=bool(msg.get("stuck")))
     elif cmd == "stick_eeprom":
         chain.stick_eeprom(slave)
+    elif cmd == "foe_power_loss":
+        chain.cut_power_during_foe(slave, int(msg["after_bytes"]))
+    elif cmd == "foe_busy":
+        chain.foe_busy(slave, int(msg.get("answers", 1)))
+    elif cmd == "firmware":
+        store = chain.slaves[slave].firmware
+        if "password" in msg:
+            store.password = int(msg["password"])
+        return {"ok": True, "frames": chain.frames, "firmware": store.status()}
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "drive_fault":
