@@ -21,6 +21,7 @@ from pathlib import Path
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.foe import FoeError, FoeErrorCode
 from fieldbus.core.network import load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
@@ -61,6 +62,8 @@ __all__ = [
     "DriveFault",
     "DriveMap",
     "FieldbusError",
+    "FoeError",
+    "FoeErrorCode",
     "Goal",
     "Homing",
     "HomingPhase",

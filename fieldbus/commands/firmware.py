@@ -118,7 +118,10 @@ def _update(args: argparse.Namespace, name: str, data: bytes | None) -> int:
             ) from None
         except BusTimeoutError as exc:
             bar.end()
-            raise FieldbusError(f"{exc}; {session.where} may be left in BOOTSTRAP: {AGAIN}") from None
+            raise FieldbusError(
+                f"{exc}; {session.where} may be left in BOOTSTRAP, or without valid firmware if it lost"
+                f" power: {AGAIN}"
+            ) from None
         except FieldbusError as exc:
             bar.end()
             _back_to_init(session)

@@ -203,3 +203,37 @@ def test_one_of_12_drives_is_updated_while_pysoem_keeps_the_other_11_in_op(ether
         assert emu.command(cmd="firmware", slave=7)["firmware"]["active_revision"] == 0x00020007
     finally:
         master.close()
+
+
+def test_ctrl_c_mid_transfer_leaves_the_slave_in_bootstrap_and_a_rerun_finishes(
+    ethercat_emulator: Any,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from fieldbus.commands import firmware
+
+    emu = ethercat_emulator([DEMO_MAP], count=2, app="none")
+    image = tmp_path / "app.efw"
+    image.write_bytes(firmware_image(0x00040000, 20_000))
+    bus = ("ethercat", emu.iface, "--slave", "0")
+    shown = firmware.Progress.show
+
+    def interrupt(self: Any, done: int, total: int) -> None:  # Ctrl-C once a quarter is sent
+        shown(self, done, total)
+        if done >= total // 4:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(firmware.Progress, "show", interrupt)
+    code, _, err = run_cli(capsys, "firmware", "write", *bus, str(image))
+    assert code == 130
+    assert (
+        "slave 0 (demo_joint) stays in BOOTSTRAP with an incomplete file; run the same command again" in err
+    )
+    assert emu.command(cmd="status")["states"][0] == 0x03
+    assert not emu.command(cmd="firmware", slave=0)["firmware"]["valid"]
+    monkeypatch.setattr(firmware.Progress, "show", shown)
+    code, _, err = run_cli(capsys, "firmware", "write", *bus, str(image))
+    assert code == 0, err
+    emu.command(cmd="power_cycle", slave=0)
+    assert emu.command(cmd="firmware", slave=0)["firmware"]["active_revision"] == 0x00040000
