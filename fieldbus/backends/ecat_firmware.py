@@ -179,6 +179,16 @@ class FirmwareSession:
         self.layout = MailboxLayout(out_start, out_size, in_start, in_size)
         return self.layout
 
+    def enter_preop(self) -> MailboxLayout:
+        """PRE-OP with the standard mailbox (SII words 0x18-0x1B, as the scan wrote it into SM0/SM1): for
+        files a device takes outside BOOTSTRAP (a configuration file); the mailbox's layout."""
+        self.request(AL_PREOP)
+        layout = MailboxLayout.from_sm_registers(self._read(0x0800, 16, "SM0/SM1"))
+        if layout is None:
+            raise FieldbusError(f"{self.where}: no mailbox in SM0/SM1: no FoE")
+        self.layout = layout
+        return layout
+
     def leave_bootstrap(self) -> None:
         """Back to INIT (a rescan configures the slave again)."""
         self.request(AL_INIT)
@@ -199,7 +209,7 @@ class FirmwareSession:
             raise FoeError(exc.code, text=exc.text, file=exc.file, slave=self.where) from None
 
     def foe(self, name: str, data: bytes | None, *, password: int = 0) -> FoeTransfer:
-        """A read (``data`` None) or write of ``name`` sized for the bootstrap mailbox."""
+        """A read (``data`` None) or write of ``name`` sized for the mailbox entered (bootstrap or standard)."""
         if self.layout is None:
             raise FieldbusError(f"{self.where}: not in BOOTSTRAP (enter_bootstrap first)")
         return FoeTransfer(

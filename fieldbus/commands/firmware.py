@@ -3,12 +3,15 @@
     fieldbus firmware write ethercat eth0 --slave 3 drive-2.1.efw
     fieldbus firmware write ethercat eth0 --slave 3 app.bin --name app.efw --password 0x1234
     fieldbus firmware read ethercat eth0 --slave 3 backup.efw --name app.efw
+    fieldbus firmware write ethercat eth0 --slave 3 config.csv --preop
 
 The slave (position, 0-based) goes INIT -> BOOTSTRAP, the file goes over
 FoE with a progress bar on stderr, the slave goes back to INIT and the
 segment is scanned again; its identity (SII revision, 0x1018:03) is shown
 before and after. Most devices run new firmware from their next power
-cycle. An interrupted transfer (Ctrl-C, a cable, power) leaves the device
+cycle. ``--preop``: the transfer runs in PRE-OP through the standard
+mailbox instead, for files a device takes outside BOOTSTRAP (a
+configuration file). An interrupted transfer (Ctrl-C, a cable, power) leaves the device
 in BOOTSTRAP, or without valid firmware: run the same command again
 (docs/firmware.md).
 """
@@ -66,6 +69,11 @@ def register(sub: Any) -> None:
         v.add_argument(
             "--password", type=integer(0, 0xFFFFFFFF), default=0, help="FoE password, u32 (default 0)"
         )
+        v.add_argument(
+            "--preop",
+            action="store_true",
+            help="transfer in PRE-OP (standard mailbox), not BOOTSTRAP: files a device takes there",
+        )
         v.add_argument("--json", action="store_true", help="one JSON object on stdout")
         v.set_defaults(func=run)
 
@@ -97,8 +105,9 @@ def _update(args: argparse.Namespace, name: str, data: bytes | None) -> int:
         session = FirmwareSession(master, args.slave)
         before = session.identity()
         _say(args, f"before: {before.line()}")
-        layout = session.enter_bootstrap()
-        _say(args, f"{session.where}: BOOTSTRAP (mailbox {layout.out_size}/{layout.in_size} bytes)")
+        layout = session.enter_preop() if args.preop else session.enter_bootstrap()
+        mode = "PRE-OP" if args.preop else "BOOTSTRAP"
+        _say(args, f"{session.where}: {mode} (mailbox {layout.out_size}/{layout.in_size} bytes)")
         t = session.foe(name, data, password=args.password)
         bar = Progress(sys.stderr, name, t.total)
         steps = session.transfer(t)
@@ -112,14 +121,14 @@ def _update(args: argparse.Namespace, name: str, data: bytes | None) -> int:
         except KeyboardInterrupt:
             bar.end()
             raise KeyboardInterrupt(
-                f"{session.where} stays in BOOTSTRAP"
+                f"{session.where} stays in {mode}"
                 + (" with an incomplete file" if data is not None else "")
                 + f"; {AGAIN}"
             ) from None
         except BusTimeoutError as exc:
             bar.end()
             raise FieldbusError(
-                f"{exc}; {session.where} may be left in BOOTSTRAP, or without valid firmware if it lost"
+                f"{exc}; {session.where} may be left in {mode}, or without valid firmware if it lost"
                 f" power: {AGAIN}"
             ) from None
         except FieldbusError as exc:

@@ -186,3 +186,37 @@ def test_100_transfers_interrupted_at_random_points_all_recover_by_running_the_u
         assert m.state_check(AL_PREOP, 50_000) == AL_PREOP, f"trial {trial}"
         assert revisions(m, k) == (revision, revision), f"trial {trial}"
     assert min(kinds.values()) > 30 and mid_transfer > 60
+
+
+def test_a_configuration_file_goes_in_preop_through_the_standard_mailbox() -> None:
+    m = master(2)
+    assert m.state_check(AL_PREOP, 50_000) == AL_PREOP
+    s = FirmwareSession(m, 0)
+    lay = s.enter_preop()
+    assert (lay.out_start, lay.out_size) == m.chain.slaves[0].sii.mailbox_out
+    config = b"0x6072,0,1000\n" * 40
+    run_steps(s.transfer(s.foe("config.csv", config)))
+    assert run_steps(s.transfer(s.foe("config.csv", None))) == config
+    with pytest.raises(FoeError) as err:  # firmware is not taken outside BOOTSTRAP
+        run_steps(s.transfer(s.foe("app.efw", firmware_image(2))))
+    assert err.value.code == FoeErrorCode.BOOTSTRAP_ONLY
+    assert m.chain.slaves[0].firmware.valid
+
+
+def test_the_emulator_cuts_the_power_in_the_middle_of_a_write() -> None:
+    """The fault hook behind Emulation.firmware_power_loss: the slave takes 3000 bytes, then its
+    power goes; the master's steps find no answer and end (a bounded number of datagrams)."""
+    from fieldbus.errors import BusTimeoutError
+
+    m = master(2)
+    m.chain.cut_power_during_foe(1, 3000)
+    s = FirmwareSession(m, 1)
+    s.enter_bootstrap()
+    t = s.foe("app.efw", firmware_image(9, 10_000))
+    with pytest.raises(BusTimeoutError, match="in 2000 datagrams"):
+        run_steps(s.transfer(t))
+    esc = m.chain.slaves[1]
+    assert t.done == 2500 and int(esc.state) == AL_INIT and not esc.firmware.valid  # packet 6 never ACKed
+    assert esc.station_address == 0  # powered up again: registers reset
+    m.config_init()
+    assert esc.status_code == AlStatusCode.NO_VALID_FIRMWARE  # PRE-OP refused

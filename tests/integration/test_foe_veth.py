@@ -237,3 +237,19 @@ def test_ctrl_c_mid_transfer_leaves_the_slave_in_bootstrap_and_a_rerun_finishes(
     assert code == 0, err
     emu.command(cmd="power_cycle", slave=0)
     assert emu.command(cmd="firmware", slave=0)["firmware"]["active_revision"] == 0x00040000
+
+
+def test_a_configuration_file_written_and_read_in_preop(
+    ethercat_emulator: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    emu = ethercat_emulator([DEMO_MAP], count=2, app="none")
+    config = tmp_path / "config.csv"
+    config.write_bytes(b"0x6072,0,1000\n" * 100)
+    bus = ("ethercat", emu.iface, "--slave", "1")
+    code, out, err = run_cli(capsys, "firmware", "write", *bus, str(config), "--preop")
+    assert code == 0 and "PRE-OP (mailbox" in out, err
+    back = tmp_path / "back.csv"
+    code, _, err = run_cli(capsys, "firmware", "read", *bus, str(back), "--name", "config.csv", "--preop")
+    assert code == 0 and back.read_bytes() == config.read_bytes(), err
+    code, _, err = run_cli(capsys, "firmware", "write", *bus, str(config))  # not taken in BOOTSTRAP
+    assert code == 1 and "FoE error 0x8009 not bootstrap for file 'config.csv'" in err
