@@ -21,6 +21,7 @@ Reported: the median time per contender, the paired ratio steps / pysoem
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import random
 import statistics
@@ -98,7 +99,7 @@ def main() -> None:
         "median_s": {k: statistics.median(v) for k, v in times.items()},
         "ratio_steps_over_pysoem": statistics.median(ratios),
         "frames_per_packet": {k: statistics.median(v) / packets for k, v in frames.items()},
-        "load": open("/proc/loadavg").read().split()[:3],
+        "load": [f"{x:.2f}" for x in os.getloadavg()],
     }
     if args.json:
         print(json.dumps(out))
