@@ -21,8 +21,8 @@ Reported: the median time per contender, the paired ratio steps / pysoem
 from __future__ import annotations
 
 import argparse
-import os
 import json
+import os
 import random
 import statistics
 import struct
