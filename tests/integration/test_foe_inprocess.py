@@ -220,3 +220,17 @@ def test_the_emulator_cuts_the_power_in_the_middle_of_a_write() -> None:
     assert esc.station_address == 0  # powered up again: registers reset
     m.config_init()
     assert esc.status_code == AlStatusCode.NO_VALID_FIRMWARE  # PRE-OP refused
+
+
+def test_a_device_without_a_bootstrap_mailbox_is_named_and_refuses_boot() -> None:
+    from fieldbus.errors import FieldbusError
+
+    m = master(1)
+    esc = m.chain.slaves[0]
+    esc.sii.write_word(0x15, 0)  # bootstrap receive mailbox size 0: no BOOTSTRAP
+    s = FirmwareSession(m, 0)
+    with pytest.raises(FieldbusError, match=r"no bootstrap mailbox \(words 0x14-0x17\)"):
+        s.enter_bootstrap()
+    with pytest.raises(StateTransitionError) as err:  # asked anyway: the ESC refuses
+        s.request(AL_BOOT)
+    assert err.value.al_status == AlStatusCode.BOOTSTRAP_NOT_SUPPORTED
