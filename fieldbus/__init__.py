@@ -18,6 +18,7 @@ drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
 
 from pathlib import Path
 
+from fieldbus.backends.ecat_firmware import FileTransferResult, transfer_file
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
@@ -62,6 +63,7 @@ __all__ = [
     "DriveFault",
     "DriveMap",
     "FieldbusError",
+    "FileTransferResult",
     "FoeError",
     "FoeErrorCode",
     "Goal",
@@ -90,4 +92,5 @@ __all__ = [
     "load_network",
     "open_network",
     "run_cycles",
+    "transfer_file",
 ]

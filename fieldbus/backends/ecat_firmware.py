@@ -1,6 +1,7 @@
 """One slave's firmware (or file) update over FoE: INIT -> BOOTSTRAP, the transfer, back to INIT.
 
-Works on a pysoem ``Master`` or the in-process one
+:func:`transfer_file` is the whole procedure on a network card (``fieldbus
+firmware``, ``fieldbus.transfer_file``). Works on a pysoem ``Master`` or the in-process one
 (:class:`~fieldbus.backends.ecat_inprocess.InProcessMaster`): only the
 slave's AL state calls (``state`` / ``write_state`` / ``state_check``) and
 single-datagram register access (``_fprd`` / ``_fpwr``) are used, so the
@@ -19,13 +20,13 @@ a master that keeps cycling them keeps them in OP (docs/firmware.md).
 
 from __future__ import annotations
 
+import contextlib
 import struct
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any
 
 from fieldbus.backends.ecat_mailbox import MailboxLayout, SlaveMailbox
-from fieldbus.backends.ecat_master import read_register, sdo, write_register
 from fieldbus.core.al import AL_ACK, AL_BOOT, AL_ERROR, AL_INIT, AL_PREOP, al_status_name, state_name
 from fieldbus.core.foe import FoeError, FoeTransfer
 from fieldbus.errors import BusTimeoutError, FieldbusError, StateTransitionError
@@ -71,9 +72,13 @@ class _Port:
         self.timeout_us = timeout_us
 
     def read(self, ado: int, size: int) -> bytes | None:
+        from fieldbus.backends.ecat_master import read_register  # pysoem's errors mapped there
+
         return read_register(self.slave, ado, size, self.timeout_us)
 
     def write(self, ado: int, data: bytes) -> bool:
+        from fieldbus.backends.ecat_master import write_register
+
         return write_register(self.slave, ado, data, self.timeout_us)
 
 
@@ -120,6 +125,8 @@ class FirmwareSession:
         above (a pysoem ``sdo_read``)."""
         words = [self.sii_word_pair(w) for w in (0x08, 0x0A, SII_REVISION)]
         vendor, product, revision = (lo | hi << 16 for lo, hi in words)
+        from fieldbus.backends.ecat_master import sdo
+
         od_revision = None
         if od and self.al_state()[0] & 0x0F in (AL_PREOP, 0x04, 0x08):
             try:
@@ -225,3 +232,89 @@ def run_steps(steps: Generator[None, None, bytes | None]) -> bytes | None:
         except StopIteration as done:
             result: bytes | None = done.value
             return result
+
+
+AGAIN = "run the same command again to finish the update (docs/firmware.md)"
+
+
+@dataclass(frozen=True)
+class FileTransferResult:
+    """What :func:`transfer_file` did: the slave's identity before and after, the bytes moved and, for
+    a read, the file."""
+
+    before: Identity
+    after: Identity
+    size: int
+    data: bytes | None
+
+
+def transfer_file(
+    interface: str,
+    slave: int,
+    name: str,
+    data: bytes | None,
+    *,
+    password: int = 0,
+    preop: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    say: Callable[[str], None] | None = None,
+) -> FileTransferResult:
+    """Write ``data`` (or read, ``data`` None) as file ``name`` on slave ``slave`` (0-based) of the
+    segment on ``interface``, over FoE: INIT -> BOOTSTRAP (``preop``: PRE-OP, the standard
+    mailbox), the transfer, INIT, a rescan (:mod:`fieldbus.backends.ecat_firmware`).
+
+    ``progress(done, total)`` after each datagram (a read's total is 0 until the end); ``say``
+    gets the steps as lines. Takes the card (refused while a master runs on it) and every slave
+    out of OP. Errors name the slave's state and the recovery: :class:`FoeError` (the slave is
+    back in INIT), :class:`BusTimeoutError` (it may be left in BOOTSTRAP, or without valid
+    firmware), KeyboardInterrupt (it stays in BOOTSTRAP); docs/firmware.md.
+    """
+    from fieldbus.backends.buslock import lock_network_card
+    from fieldbus.backends.ecat_master import open_segment
+
+    tell = say or (lambda _line: None)
+    with lock_network_card(interface):
+        master = open_segment(interface)
+        try:
+            session = FirmwareSession(master, slave)
+            before = session.identity()
+            tell(f"before: {before.line()}")
+            layout = session.enter_preop() if preop else session.enter_bootstrap()
+            mode = "PRE-OP" if preop else "BOOTSTRAP"
+            tell(f"{session.where}: {mode} (mailbox {layout.out_size}/{layout.in_size} bytes)")
+            t = session.foe(name, data, password=password)
+            steps = session.transfer(t)
+            try:
+                while True:
+                    try:
+                        next(steps)
+                    except StopIteration:
+                        break
+                    if progress is not None:
+                        progress(t.done, t.total)
+            except KeyboardInterrupt:
+                incomplete = " with an incomplete file" if data is not None else ""
+                raise KeyboardInterrupt(f"{session.where} stays in {mode}{incomplete}; {AGAIN}") from None
+            except BusTimeoutError as exc:
+                raise BusTimeoutError(
+                    f"{exc}; {session.where} may be left in {mode}, or without valid firmware if it"
+                    f" lost power: {AGAIN}"
+                ) from None
+            except FoeError as exc:
+                with contextlib.suppress(FieldbusError):  # the error names the first fault
+                    session.leave_bootstrap()
+                raise FoeError(
+                    exc.code, text=exc.text, file=exc.file, slave=f"{exc.slave} (back in INIT)"
+                ) from None
+            if progress is not None:
+                progress(t.done, t.total)
+            session.leave_bootstrap()
+        finally:
+            master.close()
+        master = open_segment(interface)  # the rescan: SOEM configures the slave's mailbox again
+        try:
+            after = FirmwareSession(master, slave).identity()
+        finally:
+            master.close()
+    tell(f"after:  {after.line()}")
+    return FileTransferResult(before, after, t.done, t.result)

@@ -19,16 +19,16 @@ in BOOTSTRAP, or without valid firmware: run the same command again
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, TextIO
 
 from fieldbus.commands.argtypes import integer
 from fieldbus.commands.usage import add_command
-from fieldbus.errors import BusTimeoutError, FieldbusError
+from fieldbus.errors import FieldbusError
 
 EXAMPLES = __doc__.split("\n\n")[1].strip("\n")
 CODES = [
@@ -39,7 +39,6 @@ CODES = [
         "or no answer; the message says what state the slave is left in and how to recover",
     ),
 ]
-AGAIN = "run the same command again to finish the update (docs/firmware.md)"
 
 
 def register(sub: Any) -> None:
@@ -90,88 +89,32 @@ def run(args: argparse.Namespace) -> int:
         parent = args.file.resolve().parent
         if not parent.is_dir() or not os.access(parent, os.W_OK):
             raise FieldbusError(f"{args.file}: its folder does not exist or cannot be written")
-    from fieldbus.backends.buslock import lock_network_card
+    from fieldbus.backends.ecat_firmware import transfer_file
 
-    with lock_network_card(args.target):  # refused while a master runs on the card
-        return _update(args, name, data)
-
-
-def _update(args: argparse.Namespace, name: str, data: bytes | None) -> int:
-    from fieldbus.backends.ecat_firmware import FirmwareSession
-    from fieldbus.backends.ecat_master import open_segment
-
-    master = open_segment(args.target)
+    bar = Progress(sys.stderr, name, len(data) if data is not None else 0)
     try:
-        session = FirmwareSession(master, args.slave)
-        before = session.identity()
-        _say(args, f"before: {before.line()}")
-        layout = session.enter_preop() if args.preop else session.enter_bootstrap()
-        mode = "PRE-OP" if args.preop else "BOOTSTRAP"
-        _say(args, f"{session.where}: {mode} (mailbox {layout.out_size}/{layout.in_size} bytes)")
-        t = session.foe(name, data, password=args.password)
-        bar = Progress(sys.stderr, name, t.total)
-        steps = session.transfer(t)
-        try:
-            while True:
-                try:
-                    next(steps)
-                except StopIteration:
-                    break
-                bar.show(t.done, t.total)
-        except KeyboardInterrupt:
-            bar.end()
-            raise KeyboardInterrupt(
-                f"{session.where} stays in {mode}"
-                + (" with an incomplete file" if data is not None else "")
-                + f"; {AGAIN}"
-            ) from None
-        except BusTimeoutError as exc:
-            bar.end()
-            raise FieldbusError(
-                f"{exc}; {session.where} may be left in {mode}, or without valid firmware if it lost"
-                f" power: {AGAIN}"
-            ) from None
-        except FieldbusError as exc:
-            bar.end()
-            _back_to_init(session)
-            raise FieldbusError(f"{exc}; {session.where} is back in INIT") from None
-        bar.show(t.done, t.total)
+        res = transfer_file(
+            args.target,
+            args.slave,
+            name,
+            data,
+            password=args.password,
+            preop=args.preop,
+            progress=bar.show,
+            say=lambda line: _say(args, line),
+        )
+    finally:
         bar.end()
-        if t.result is not None:
-            args.file.write_bytes(t.result)
-        session.leave_bootstrap()
-    finally:
-        master.close()
-    master = open_segment(args.target)  # the rescan: SOEM configures the slave's mailbox again
-    try:
-        after = FirmwareSession(master, args.slave).identity()
-    finally:
-        master.close()
-    _say(args, f"after:  {after.line()}")
+    if res.data is not None:
+        args.file.write_bytes(res.data)
     note = ""
-    if data is not None and after.revision == before.revision:
+    if data is not None and res.after.revision == res.before.revision:
         note = "the new firmware runs from the device's next power cycle"
         _say(args, note)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "ok": True,
-                    "slave": args.slave,
-                    "file": name,
-                    "bytes": t.done,
-                    "before": before.__dict__,
-                    "after": after.__dict__,
-                    "note": note,
-                }
-            )
-        )
+        out = {"ok": True, "slave": args.slave, "file": name, "bytes": res.size, "note": note}
+        print(json.dumps({**out, "before": asdict(res.before), "after": asdict(res.after)}))
     return 0
-
-
-def _back_to_init(session: Any) -> None:
-    with contextlib.suppress(FieldbusError):  # the message names the first error; the state is then unknown
-        session.leave_bootstrap()
 
 
 def _say(args: argparse.Namespace, line: str) -> None:
@@ -188,6 +131,7 @@ class Progress:
         self.name = name
         self.tty = stream.isatty()
         self.shown = -1
+        self.drawn = False
 
     def show(self, done: int, total: int) -> None:
         pct = 100 * done // total if total else 0
@@ -199,8 +143,9 @@ class Progress:
         text = f"{self.name} [{'#' * fill}{'-' * (self.WIDTH - fill)}] {pct:3d}% {done}/{total or '?'} bytes"
         self.stream.write(("\r" + text) if self.tty else text + "\n")
         self.stream.flush()
+        self.drawn = True
 
     def end(self) -> None:
-        if self.tty:
+        if self.tty and self.drawn:
             self.stream.write("\n")
             self.stream.flush()
