@@ -234,3 +234,22 @@ def test_a_device_without_a_bootstrap_mailbox_is_named_and_refuses_boot() -> Non
     with pytest.raises(StateTransitionError) as err:  # asked anyway: the ESC refuses
         s.request(AL_BOOT)
     assert err.value.al_status == AlStatusCode.BOOTSTRAP_NOT_SUPPORTED
+
+
+def test_bringing_up_a_network_with_a_drive_left_without_firmware_names_it(tmp_path: Any) -> None:
+    """A drive whose update was cut by a power loss: the network's bring-up stops with the drive,
+    its AL status code 0x0014 and its name, instead of a bare timeout."""
+    from fieldbus.network import open_network
+
+    net_file = tmp_path / "net.yaml"
+    net_file.write_text(
+        "cycle_time_us: 1000\nbuses:\n"
+        f"  - {{name: bus, type: ethercat, interface: none0, slaves: [{{name: 'j{{i}}', map: '{DEMO_MAP}', count: 3}}]}}\n"
+    )
+    with open_network(net_file, backend="ethercat", transport="in-process") as net:
+        chain = net.backends[0].master.chain  # type: ignore[attr-defined]
+        chain.slaves[1].firmware.valid = False  # as test_the_emulator_cuts_the_power... leaves it
+        with pytest.raises(StateTransitionError) as err:
+            net.bring_up()
+    assert err.value.al_status == 0x0014
+    assert "position 1" in str(err.value) and "no valid firmware" in str(err.value)
