@@ -253,3 +253,32 @@ def test_a_configuration_file_written_and_read_in_preop(
     assert code == 0 and back.read_bytes() == config.read_bytes(), err
     code, _, err = run_cli(capsys, "firmware", "write", *bus, str(config))  # not taken in BOOTSTRAP
     assert code == 1 and "FoE error 0x8009 not bootstrap for file 'config.csv'" in err
+
+
+def test_busy_answers_are_waited_out_by_pysoem_and_by_our_steps(
+    ethercat_emulator: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str], tshark: Any
+) -> None:
+    """A drive that answers BUSY (erasing flash): both masters send the same DATA again until it is
+    taken; tshark decodes the BUSY answers (op code 6) and nothing malformed."""
+    pcap = tmp_path / "busy.pcap"
+    emu = ethercat_emulator([DEMO_MAP], count=1, pcap=pcap, app="none")
+    image = firmware_image(0x00050000, 5000)
+    master = pysoem.Master()
+    master.open(emu.iface)
+    try:
+        assert master.config_init() == 1
+        to_bootstrap(master.slaves[0])
+        emu.command(cmd="foe_busy", slave=0, answers=2)
+        assert master.slaves[0].foe_write("app.efw", 0, image, FOE_TIMEOUT_US) > 0
+    finally:
+        master.close()
+    assert emu.command(cmd="firmware", slave=0)["firmware"]["writes"] == 1  # complete and intact
+    path = tmp_path / "b.efw"
+    path.write_bytes(image)
+    emu.command(cmd="foe_busy", slave=0, answers=5)
+    code, _, err = run_cli(capsys, "firmware", "write", "ethercat", emu.iface, "--slave", "0", str(path))
+    assert code == 0, err
+    assert emu.command(cmd="firmware", slave=0)["firmware"]["writes"] == 2
+    emu.stop()
+    assert tshark(pcap, "ecat_mailbox.foe_opmode == 6 && eth.src.lg == 1") == 7
+    assert tshark(pcap, "_ws.malformed || ecat_mailbox.foe.invalid") == 0
