@@ -253,3 +253,33 @@ def test_bringing_up_a_network_with_a_drive_left_without_firmware_names_it(tmp_p
             net.bring_up()
     assert err.value.al_status == 0x0014
     assert "position 1" in str(err.value) and "no valid firmware" in str(err.value)
+
+
+def test_the_testing_kit_cuts_a_drives_power_mid_update_and_the_bring_up_names_it(tmp_path: Any) -> None:
+    """fieldbus.testing's hook (Emulation.firmware_power_loss), an update through the bus's own master
+    before bring-up, then bring-up: it stops at PRE-OP naming the drive and AL status code 0x0014."""
+    from fieldbus.errors import BusTimeoutError, FieldbusError
+    from fieldbus.testing import FaultNotSupported, emulate
+
+    net_file = tmp_path / "net.yaml"
+    net_file.write_text(
+        "cycle_time_us: 1000\nbuses:\n"
+        f"  - {{name: arm, type: ethercat, interface: enp3s0, slaves: [{{name: 'j{{i}}', map: '{DEMO_MAP}', count: 3}}]}}\n"
+        f"  - {{name: co, type: canopen, interface: can0, can_interface: socketcan, receive_timeout_us: 2000,\n"
+        f"     slaves: [{{name: 'c{{i}}', map: '{DEMO_MAP}', node_id: 1, count: 1}}]}}\n"
+    )
+    with emulate(net_file, bring_up=False) as emu:
+        with pytest.raises(FieldbusError, match="count >= 1"):
+            emu.firmware_power_loss("arm", "j1", 0)
+        with pytest.raises(FaultNotSupported, match="firmware_power_loss"):
+            emu.firmware_power_loss("co", "c0", 100)
+        emu.firmware_power_loss("arm", "j1", 1000)
+        m = emu.network.backend("arm").master  # type: ignore[attr-defined]
+        assert m.config_init() == 3  # the scan the update starts with
+        s = FirmwareSession(m, 1)
+        s.enter_bootstrap()
+        with pytest.raises(BusTimeoutError):
+            run_steps(s.transfer(s.foe("app.efw", firmware_image(3, 5000))))
+        with pytest.raises(StateTransitionError) as err:
+            emu.bring_up()
+    assert err.value.al_status == AlStatusCode.NO_VALID_FIRMWARE and "position 1 (j1)" in str(err.value)
