@@ -195,7 +195,7 @@ class FoeTransfer:
         if not 0 <= password <= 0xFFFFFFFF:
             raise FieldbusError(f"FoE password {password} out of range 0..0xFFFFFFFF (u32)")
         room_out, room_in = mailbox_out - FOE_OVERHEAD, mailbox_in - FOE_OVERHEAD
-        if room_out < max(1, len(self._raw_name) if data is None else 1) or room_in < 1:
+        if room_out < 1 or room_in < 1:
             raise FieldbusError(f"mailboxes of {mailbox_out}/{mailbox_in} bytes cannot carry FoE")
         if len(self._raw_name) > room_out:
             raise FieldbusError(f"FoE file name {name!r} longer than the mailbox carries ({room_out} bytes)")
