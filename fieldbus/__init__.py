@@ -18,9 +18,11 @@ drive maps speak from the drive's side (RxPDO = outputs, TxPDO = inputs).
 
 from pathlib import Path
 
+from fieldbus.backends.ecat_firmware import FileTransferResult, transfer_file
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.foe import FoeError, FoeErrorCode
 from fieldbus.core.network import load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
@@ -62,6 +64,9 @@ __all__ = [
     "DriveFault",
     "DriveMap",
     "FieldbusError",
+    "FileTransferResult",
+    "FoeError",
+    "FoeErrorCode",
     "Goal",
     "Homing",
     "HomingPhase",
@@ -89,4 +94,5 @@ __all__ = [
     "load_network",
     "open_network",
     "run_cycles",
+    "transfer_file",
 ]

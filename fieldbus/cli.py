@@ -41,6 +41,7 @@ COMMANDS = (
     "decode",
     "scan",
     "sdo",
+    "firmware",
     "register",
     "eeprom",
     "plot",

@@ -343,13 +343,15 @@ class InProcessMaster:
         clock (at least one poll); the state found (the lowest), as SOEM's ``statecheck``."""
         end = self.clock() + timeout_us * 1000
         while True:
-            lowest = 0xFF
+            lowest, error = 0xFF, 0
             for s in slaves:
                 got = self.frames.al_status(s.info.station)
                 s.state, s.al_status = got if got is not None else (0, 0)
-                lowest = min(lowest, s.state & 0x1F)
-            if lowest == expected or self.clock() >= end:
-                return 0 if lowest == 0xFF else lowest
+                lowest = min(lowest, s.state & 0x0F)
+                error |= s.state & 0x10  # a slave that refused: its error indicator shows in the result
+            found = 0 if lowest == 0xFF else lowest | error
+            if found == expected or self.clock() >= end:
+                return found
             self._waits.sleep(STATE_POLL_S)
 
     # -- cycle ----------------------------------------------------------------------------------------

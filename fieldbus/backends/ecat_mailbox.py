@@ -24,6 +24,11 @@ toggle bit 1 of SM1's activate register, FPWR 0x080E), then polled as before.
 A deadline in steps ends the transfer with :class:`BusTimeoutError`: the
 cycle gives a transfer at most one step per cycle and none while the bus
 recovers, so steps, not wall time, say how long the slave had to answer.
+
+The same steps carry an FoE transfer (:class:`~fieldbus.core.foe.FoeTransfer`,
+mailbox type 4: firmware and files): any :class:`MailboxTransfer` - its
+mailbox type, requests and answers - goes through them. An FoE read ends
+with an ACK that gets no answer: written (step 1) after the last answer.
 """
 
 from __future__ import annotations
@@ -40,7 +45,6 @@ from fieldbus.core.coe_mailbox import (
     MBX_TYPE_COE,
     MBX_TYPE_ERROR,
     MailboxProtocolError,
-    SdoTransfer,
     coe_service,
     decode_mailbox,
     encode_mailbox,
@@ -53,6 +57,27 @@ from fieldbus.errors import BusTimeoutError
 REG_SM0, REG_SM1_STATUS, REG_SM1_ACTIVATE = 0x0800, 0x080D, 0x080E  # SM0; SM1 status, activate bytes
 SM_MAILBOX_FULL = 0x08  # SM status bit 3: the mailbox buffer is written and not yet read
 SM_REPEAT = 0x02  # SM activate bit 1: repeat request (toggled by the master)
+
+
+class MailboxTransfer(Protocol):
+    """One transfer through a mailbox (an SDO, an FoE read or write): requests out, answers in."""
+
+    kind: int  # mailbox type of its messages (3 CoE, 4 FoE)
+    result: bytes | None
+
+    def describe(self) -> str: ...
+
+    def request(self) -> bytes:
+        """The payload of the next request."""
+
+    def matches(self, payload: bytes) -> bool:
+        """False for an answer left over from an earlier request or transfer (dropped)."""
+
+    def answer(self, payload: bytes) -> bool:
+        """Take an answer; True when the transfer is complete."""
+
+    def closing(self) -> bytes | None:
+        """A last message after completion that gets no answer, or None."""
 
 
 class RegisterPort(Protocol):
@@ -111,12 +136,16 @@ class SlaveMailbox:
         self.counter = 0 if self.counter is None else next_counter(self.counter)
         return self.counter
 
-    def transfer(self, t: SdoTransfer, max_steps: int) -> Generator[None, None, bytes | None]:
+    def transfer(
+        self, t: MailboxTransfer, max_steps: int, *, per_answer: bool = False
+    ) -> Generator[None, None, bytes | None]:
         """Run ``t`` to the end, one datagram per step; returns the bytes read (None for a download).
 
-        At most ``max_steps`` steps (datagrams): the one after that raises
-        :class:`BusTimeoutError` instead. The last step (the read of the final
-        answer) returns without a further yield: the caller's step ends there.
+        At most ``max_steps`` steps (datagrams) - for the whole transfer, or,
+        ``per_answer``, from one answer to the next (a long file) - the one
+        after that raises :class:`BusTimeoutError` instead. The last step (the
+        read of the final answer, or the write of a closing message) returns
+        without a further yield: the caller's step ends there.
         """
         lay, port = self.layout, self.port
         steps = 1
@@ -125,12 +154,10 @@ class SlaveMailbox:
             nonlocal steps
             steps += 1
             if steps > max_steps:
-                raise BusTimeoutError(
-                    f"no complete SDO answer to 0x{t.index:04X}:{t.sub_index:02X} in {max_steps} datagrams"
-                )
+                raise BusTimeoutError(f"no complete answer to {t.describe()} in {max_steps} datagrams")
 
         while True:
-            message = encode_mailbox(t.request(), self.take_counter(), lay.out_size)
+            message = encode_mailbox(t.request(), self.take_counter(), lay.out_size, t.kind)
             while not port.write(lay.out_start, message):
                 yield
                 waited()
@@ -163,27 +190,36 @@ class SlaveMailbox:
                 if coe is not None:
                     break
             if t.answer(coe):
+                last = t.closing()
+                if last is not None:
+                    yield
+                    waited()
+                    closing = encode_mailbox(last, self.take_counter(), lay.out_size, t.kind)
+                    while not port.write(lay.out_start, closing):
+                        yield
+                        waited()
                 return t.result
+            if per_answer:
+                steps = 0
             yield
             waited()
 
-    def _answer(self, t: SdoTransfer, buf: bytes) -> bytes | None:
-        """The CoE payload in ``buf`` when it answers ``t``; None for what is not (emergency, stale)."""
+    def _answer(self, t: MailboxTransfer, buf: bytes) -> bytes | None:
+        """The payload in ``buf`` when it answers ``t``; None for what is not (emergency, stale)."""
         msg = decode_mailbox(buf)
         if msg.type == MBX_TYPE_ERROR:
-            raise MailboxProtocolError(
-                f"SDO 0x{t.index:04X}:{t.sub_index:02X}: mailbox error 0x{mailbox_error_code(msg):04X}"
-            )
-        if msg.type != MBX_TYPE_COE:
-            return None  # another protocol (EoE, FoE, ...): not ours
-        coe = msg.data
-        service = coe_service(coe)
-        if service == COE_EMERGENCY:
-            e = parse_emergency(coe)
+            raise MailboxProtocolError(f"{t.describe()}: mailbox error 0x{mailbox_error_code(msg):04X}")
+        if msg.type == MBX_TYPE_COE and coe_service(msg.data) == COE_EMERGENCY:
+            e = parse_emergency(msg.data)
             if self.on_emergency is not None:
                 self.on_emergency(e.error_code, e.error_register)
             return None
-        if service in (COE_SDO_RESPONSE, COE_SDO_REQUEST) and not t.matches(coe):
+        if msg.type != t.kind:
+            return None  # another protocol (EoE, ...): not ours
+        stale = not t.matches(msg.data)
+        if t.kind == MBX_TYPE_COE and coe_service(msg.data) not in (COE_SDO_RESPONSE, COE_SDO_REQUEST):
+            stale = False  # another CoE service: the transfer's answer() names it
+        if stale:
             self.stale_answers += 1
             return None
-        return coe
+        return msg.data

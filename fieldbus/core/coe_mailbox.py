@@ -121,6 +121,8 @@ class SdoTransfer:
     Validates its arguments at construction (:class:`FieldbusError`).
     """
 
+    kind = MBX_TYPE_COE
+
     def __init__(self, index: int, sub_index: int, data: bytes | None, *, mailbox_out: int) -> None:
         if not 0 <= index <= 0xFFFF or not 0 <= sub_index <= 0xFF:
             raise FieldbusError(
@@ -144,6 +146,13 @@ class SdoTransfer:
     @property
     def upload(self) -> bool:
         return self.data is None
+
+    def describe(self) -> str:
+        return f"SDO 0x{self.index:04X}:{self.sub_index:02X}"
+
+    def closing(self) -> bytes | None:
+        """An SDO ends with an answer: no last message without one."""
+        return None
 
     def request(self) -> bytes:
         """The CoE payload of the next request."""

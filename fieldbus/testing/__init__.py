@@ -15,6 +15,7 @@ torn down after the test, skipped with the machine's reason where it refuses
 (a veth pair without root). See docs/testing.md.
 """
 
+from fieldbus.core.firmware_image import firmware_image
 from fieldbus.runtime.clock import Clock, VirtualClock, WallClock
 from fieldbus.testing.checks import (
     EmulationAssertion,
@@ -44,4 +45,5 @@ __all__ = [
     "assert_no_safe_stop",
     "assert_safe_stop_latched",
     "emulate",
+    "firmware_image",
 ]

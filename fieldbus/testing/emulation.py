@@ -209,6 +209,14 @@ class Emulation:
         emu, i = self._slave(bus, slave)
         emu.power_cycle(i)
 
+    def firmware_power_loss(self, bus: str, slave: str, after_bytes: int) -> None:
+        """EtherCAT: slave ``slave`` loses power in the middle of its next FoE write, once that has
+        taken ``after_bytes`` more bytes, and comes back in INIT without valid firmware (it refuses
+        PRE-OP, AL status code 0x0014, until a firmware write completes); docs/firmware.md."""
+        self._check_count(after_bytes)
+        emu, i = self._slave(bus, slave)
+        emu.firmware_power_loss(i, after_bytes)
+
     def drive_fault(self, bus: str, slave: str, code: int | str, *, axis: int = 1) -> None:
         """The drive of slave ``slave`` faults with error code ``code`` (0x603F, e.g. 0x7300 sensor).
 

@@ -100,6 +100,10 @@ class BusEmulator:
     def power_cycle(self, slave: int) -> None:
         raise self._unsupported("power_cycle")
 
+    def firmware_power_loss(self, slave: int, after_bytes: int) -> None:
+        """``slave`` loses power once an FoE write has taken ``after_bytes`` more bytes (then comes back)."""
+        raise self._unsupported("firmware_power_loss")
+
     def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         """Fault ``slave``'s drive (``axis``: 0-based axis of a multi-axis slave) with error code ``code``."""
         raise self._unsupported("drive_fault")

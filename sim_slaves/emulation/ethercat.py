@@ -60,6 +60,9 @@ class SimChainBus(BusEmulator):
     def power_cycle(self, slave: int) -> None:
         self.chain.power_cycle(slave)
 
+    def firmware_power_loss(self, slave: int, after_bytes: int) -> None:
+        self.chain.cut_power_during_foe(slave, after_bytes)
+
     def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         app = self.chain.slaves[slave].app
         if not hasattr(app, "inject_fault"):
@@ -149,6 +152,9 @@ class VethBus(BusEmulator):
 
     def power_cycle(self, slave: int) -> None:
         self._command(cmd="power_cycle", slave=slave)
+
+    def firmware_power_loss(self, slave: int, after_bytes: int) -> None:
+        self._command(cmd="foe_power_loss", slave=slave, after_bytes=after_bytes)
 
     def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         self._command(cmd="drive_fault", slave=slave, code=code, axis=axis)

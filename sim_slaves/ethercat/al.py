@@ -20,6 +20,7 @@ class Check(Enum):
 
     NONE = "none"
     MAILBOX = "mailbox"  # SM0/SM1 match the SII mailbox configuration (else 0x0016)
+    BOOT_MAILBOX = "boot_mailbox"  # SM0/SM1 match the SII bootstrap mailbox (words 0x14-0x17; else 0x0016)
     PROCESS_DATA = "process_data"  # SM2/SM3 and FMMUs match the mapped PDOs (else 0x001D / 0x001E)
 
 
@@ -27,7 +28,7 @@ _I, _P, _B, _S, _O = AlState.INIT, AlState.PRE_OP, AlState.BOOT, AlState.SAFE_OP
 
 TRANSITIONS: dict[tuple[AlState, AlState], Check] = {
     (_I, _P): Check.MAILBOX,  # IP
-    (_I, _B): Check.NONE,  # IB
+    (_I, _B): Check.BOOT_MAILBOX,  # IB
     (_B, _I): Check.NONE,  # BI
     (_P, _S): Check.PROCESS_DATA,  # PS
     (_P, _I): Check.NONE,  # PI

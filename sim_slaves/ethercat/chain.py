@@ -120,6 +120,9 @@ class EscChain:
         self.cable_m = float(cable_m)
         self.dc_line.place(self.dc_timing, self.cable_m)
         self._adopt_memory_and_drives()
+        self.power_losses: list[int] = []  # slaves whose power goes at the end of this frame (FoE cut)
+        for i, s in enumerate(self.slaves):
+            s.firmware.on_power_loss = lambda i=i: self.power_losses.append(i)
 
     # -- the fast process-data path --
 
@@ -514,6 +517,10 @@ class EscChain:
         if faults.delay_frames:
             faults.delay_frames -= 1
             self.pending_delay = faults.delay_s
+        if self.power_losses:
+            for i in self.power_losses:
+                self.power_cycle(i)
+            self.power_losses.clear()
         return n
 
     def run_cycles(self, now_ns: int) -> None:
@@ -811,6 +818,15 @@ class EscChain:
         self._stations = None
         self._watchdog_ns = None
         self._rebuild()
+
+    def cut_power_during_foe(self, slave: int, after_bytes: int) -> None:
+        """Slave ``slave`` loses power (and comes back, as :meth:`power_cycle`) once an FoE write has
+        taken ``after_bytes`` more bytes: the frame that carried them is answered, the rest is lost."""
+        self.slaves[slave].firmware.cut_after = after_bytes
+
+    def foe_busy(self, slave: int, answers: int) -> None:
+        """Slave ``slave`` answers its next ``answers`` FoE DATA packets with BUSY (erasing flash)."""
+        self.slaves[slave].firmware.busy_answers = answers
 
     def refuse_state(self, slave: int, state: AlState, code: int) -> None:
         """Slave ``slave`` refuses to enter ``state`` with AL status code ``code`` (until cleared)."""

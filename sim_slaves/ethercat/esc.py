@@ -24,6 +24,7 @@ from fieldbus.core.sii import checksum_ok
 from sim_slaves.ethercat.al import AL_ERROR_INDICATOR, TRANSITIONS, AlState, AlStatusCode, Check
 from sim_slaves.ethercat.coe import SdoServer, emergency_payload
 from sim_slaves.ethercat.dc import DC_END, DC_FIRST, EscDc
+from sim_slaves.ethercat.foe import FirmwareStore, FoeServer
 from sim_slaves.ethercat.mailbox import Mailbox
 from sim_slaves.ethercat.pdo import ProcessImage
 from sim_slaves.ethercat.sii import SM_TYPE_INPUTS, SM_TYPE_OUTPUTS, SiiImage
@@ -113,7 +114,9 @@ class Esc:
         self.dc = dc or EscDc()
         mbx_out = sii.mailbox_out[1] if sii.protocols else 0
         mbx_in = sii.mailbox_in[1] if sii.protocols else 0
-        self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in)
+        #: files and firmware (FoE), kept over power cycles; the bootstrap mailbox from SII words 0x14-0x17
+        self.firmware = FirmwareStore()
+        self.mailbox = Mailbox(SdoServer(od, mbx_in), mbx_out, mbx_in, FoeServer(self.firmware))
         self.refuse: dict[AlState, int] = {}  # fault hook: refuse entering a state with this AL status code
         # fault hooks (kept over a power cycle, until cleared): a mailbox that never answers ("silent":
         # requests are taken and dropped; "stuck": SM0 stays full, so later writes are refused), and an
@@ -174,12 +177,39 @@ class Esc:
         self.sm1_buf = b""
         self._repeat_bit = 0
         self.mailbox.reset()
+        self._use_mailbox(boot=False)
+        self._take_firmware()
         self.image = ProcessImage(self.od, self.name)
         self.last_output_ns: int | None = None
         self.last_step_ns: int | None = None
         self.outputs_written = False
         self.touched = False
         self._changed()
+
+    def _take_firmware(self) -> None:
+        """Power on: a firmware image written completely becomes the running one; report its revision
+        (SII word 0x0C, 0x1018:03)."""
+        revision = self.firmware.power_on()
+        if revision is not None:
+            self.sii.write_word(0x0C, revision & 0xFFFF)
+            self.sii.write_word(0x0D, revision >> 16)
+            if self.od.has(0x1018, 3):
+                self.od.set_value(0x1018, 3, revision)
+
+    def _use_mailbox(self, *, boot: bool) -> None:
+        """The standard mailbox (SII words 0x18-0x1B) or, in BOOTSTRAP, the bootstrap one (0x14-0x17)."""
+        if not self.sii.protocols:
+            return
+        out, inp = (
+            (self.sii.boot_mailbox_out, self.sii.boot_mailbox_in)
+            if boot
+            else (
+                self.sii.mailbox_out,
+                self.sii.mailbox_in,
+            )
+        )
+        self.mailbox.size_out, self.mailbox.size_in = out[1], inp[1]
+        self.mailbox.boot = boot
 
     def use_memory(self, mem: memoryview) -> None:
         """Keep registers and RAM in ``mem`` (``MEM_SIZE`` bytes, e.g. a row of the chain's array)."""
@@ -330,7 +360,7 @@ class Esc:
         return True
 
     def _mailbox_active(self) -> bool:
-        return self.state in (AlState.PRE_OP, AlState.SAFE_OP, AlState.OP)
+        return self.state in (AlState.PRE_OP, AlState.SAFE_OP, AlState.OP, AlState.BOOT)
 
     def _mailbox_written(self, buf: bytes) -> None:
         if not self._mailbox_active():
@@ -531,9 +561,19 @@ class Esc:
         if refused is not None:
             self._fail(refused)
             return
+        if check is Check.MAILBOX and not self.firmware.valid:
+            self._fail(AlStatusCode.NO_VALID_FIRMWARE)  # a firmware write did not complete: BOOTSTRAP only
+            return
         if check is Check.MAILBOX and not self._mailbox_config_ok():
             self._fail(AlStatusCode.INVALID_MAILBOX_CONFIG)
             return
+        if check is Check.BOOT_MAILBOX:
+            if not self.sii.boot_mailbox_out[1] or not self.sii.boot_mailbox_in[1]:
+                self._fail(AlStatusCode.BOOTSTRAP_NOT_SUPPORTED)
+                return
+            if not self._mailbox_config_ok(boot=True):
+                self._fail(AlStatusCode.INVALID_BOOT_MAILBOX_CONFIG)
+                return
         if check is Check.PROCESS_DATA:
             code = self._process_data_config()
             if code:
@@ -558,6 +598,7 @@ class Esc:
             self.mailbox.reset()
             self._reset_mailbox_buffers()
             self._sm_status()
+            self._use_mailbox(boot=target == AlState.BOOT)
         self.state = target
         self.pd_active = target in (AlState.SAFE_OP, AlState.OP)
         self.outputs_active = target == AlState.OP
@@ -571,10 +612,13 @@ class Esc:
         _U16.pack_into(self.mem, 0x0130, int(self.state) | (AL_ERROR_INDICATOR if self.error else 0))
         _U16.pack_into(self.mem, 0x0134, self.status_code)
 
-    def _mailbox_config_ok(self) -> bool:
+    def _mailbox_config_ok(self, *, boot: bool = False) -> bool:
         if not self.mailbox.size_out:
             return True
-        (o_start, o_len), (i_start, i_len) = self.sii.mailbox_out, self.sii.mailbox_in
+        sii = self.sii
+        (o_start, o_len), (i_start, i_len) = (
+            (sii.boot_mailbox_out, sii.boot_mailbox_in) if boot else (sii.mailbox_out, sii.mailbox_in)
+        )
         s0, s1 = self.sm[0], self.sm[1]
         return (
             s0[0] == o_start

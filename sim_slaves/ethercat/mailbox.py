@@ -17,11 +17,13 @@ from collections import deque
 from dataclasses import dataclass
 
 from sim_slaves.ethercat.coe import SdoServer
+from sim_slaves.ethercat.foe import FoeServer
 from sim_slaves.od import CommState
 
 MBX_HEADER = struct.Struct("<HHBB")
 MBX_TYPE_ERROR = 0x00
 MBX_TYPE_COE = 0x03
+MBX_TYPE_FOE = 0x04
 MBX_ERR_UNSUPPORTED_PROTOCOL = 0x0002
 MBX_ERR_INVALID_HEADER = 0x0005
 MBX_ERR_SIZE_TOO_SHORT = 0x0006
@@ -49,8 +51,10 @@ class MailboxHeader:
 class Mailbox:
     """Queue of answers for SM1 and the request handler for SM0 (bytes in, bytes out)."""
 
-    def __init__(self, sdo: SdoServer, size_out: int, size_in: int) -> None:
+    def __init__(self, sdo: SdoServer, size_out: int, size_in: int, foe: FoeServer | None = None) -> None:
         self.sdo = sdo
+        self.foe = foe
+        self.boot = False  # BOOTSTRAP: FoE only (CoE answered "unsupported protocol")
         self.size_out = size_out
         self.size_in = size_in
         self.pending: deque[bytes] = deque()
@@ -65,6 +69,8 @@ class Mailbox:
         self.last_sent = b""
         self._last_counter = 0
         self.sdo.reset()
+        if self.foe is not None:
+            self.foe.reset()
 
     def receive(self, buf: bytes, state: CommState) -> None:
         """A complete SM0 buffer arrived from the master."""
@@ -80,7 +86,12 @@ class Mailbox:
             self._queue(MBX_TYPE_ERROR, struct.pack("<HH", 0x0001, MBX_ERR_SIZE_TOO_SHORT))
             return
         payload = bytes(buf[MBX_HEADER.size : MBX_HEADER.size + head.length])
-        if head.type != MBX_TYPE_COE:
+        if head.type == MBX_TYPE_FOE and self.foe is not None:
+            self.foe.size_out, self.foe.size_in = self.size_out, self.size_in
+            for answer in self.foe.answers(payload, self.boot):
+                self._queue(MBX_TYPE_FOE, answer)
+            return
+        if head.type != MBX_TYPE_COE or self.boot:
             self._queue(MBX_TYPE_ERROR, struct.pack("<HH", 0x0001, MBX_ERR_UNSUPPORTED_PROTOCOL))
             return
         for answer in self.sdo.answers(payload, state):

@@ -51,6 +51,9 @@ datagram (``slave`` is the 0-based wire position, as in ``pysoem.Master.slaves``
                                                         bit errors on the cable behind slave 4 (port 1)
     {"cmd": "flap_link", "slave": 4}                    that cable loses its link for a moment
     {"cmd": "sii", "slave": 0}                          the slave's EEPROM image (hex) and alias register
+    {"cmd": "foe_power_loss", "slave": 0, "after_bytes": 5000}  power lost during an FoE write
+    {"cmd": "foe_busy", "slave": 0, "answers": 3}       FoE DATA answered with BUSY
+    {"cmd": "firmware", "slave": 0, "password": 4660}   the slave's firmware store (optional: set its password)
     {"cmd": "clear"}                                    undo all injections
     {"cmd": "status"}                                   states, AL status codes, frame count
     {"cmd": "timing", "reset": false}                   the runner's reply times (see ReplyTimes)
@@ -451,6 +454,15 @@ def handle_control(
     elif cmd == "sii":
         esc = chain.slaves[slave]
         return {"ok": True, "sii": bytes(esc.sii.data).hex(), "alias": esc.alias, "loaded": esc.eeprom_loaded}
+    elif cmd == "foe_power_loss":
+        chain.cut_power_during_foe(slave, int(msg["after_bytes"]))
+    elif cmd == "foe_busy":
+        chain.foe_busy(slave, int(msg.get("answers", 1)))
+    elif cmd == "firmware":
+        store = chain.slaves[slave].firmware
+        if "password" in msg:
+            store.password = int(msg["password"])
+        return {"ok": True, "frames": chain.frames, "firmware": store.status()}
     elif cmd == "emergency":
         chain.emergency(slave, int(msg["code"]), int(msg.get("register", 0)))
     elif cmd == "drive_fault":

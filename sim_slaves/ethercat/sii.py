@@ -29,6 +29,8 @@ CAT_RXPDO = 51  # outputs (drive receives)
 CAT_END = 0xFFFF
 
 MBX_PROTO_COE = 0x0004
+MBX_PROTO_FOE = 0x0008
+BOOT_MBX_SIZE = 0x200  # bytes of each bootstrap mailbox (SM0 and SM1 in BOOTSTRAP), from MBX_OUT_START
 COE_DETAILS = 0x01 | 0x02 | 0x04 | 0x08  # SDO, SDO info, PDO assign, PDO configuration (no complete access)
 
 # SyncManager defaults: physical start, control byte (ESC register 0x0804+8n), SII type.
@@ -114,6 +116,16 @@ class SiiImage:
         return self.word(0x1A), self.word(0x1B)
 
     @property
+    def boot_mailbox_out(self) -> tuple[int, int]:
+        """(offset, size) of the bootstrap receive mailbox (master -> slave, SM0 in BOOTSTRAP; words 0x14/0x15)."""
+        return self.word(0x14), self.word(0x15)
+
+    @property
+    def boot_mailbox_in(self) -> tuple[int, int]:
+        """(offset, size) of the bootstrap send mailbox (slave -> master, SM1 in BOOTSTRAP; words 0x16/0x17)."""
+        return self.word(0x16), self.word(0x17)
+
+    @property
     def protocols(self) -> int:
         return self.word(0x1C)
 
@@ -169,8 +181,12 @@ def build_sii(drive: DriveMap, *, alias: int = 0) -> SiiImage:
     head[14] = crc8(bytes(head[:14]))
     revision = drive.revision or drive.ethercat.revision
     struct.pack_into("<IIII", head, 0x10, drive.vendor_id, drive.product_id, revision, drive.ethercat.serial)
+    if mbx:  # bootstrap mailbox (FoE), in the same RAM as the standard one: never both in use
+        struct.pack_into(
+            "<HHHH", head, 0x28, MBX_OUT_START, BOOT_MBX_SIZE, MBX_OUT_START + BOOT_MBX_SIZE, BOOT_MBX_SIZE
+        )
     struct.pack_into("<HHHH", head, 0x30, mbx_out, mbx, mbx_in, mbx)
-    struct.pack_into("<H", head, 0x38, MBX_PROTO_COE if mbx else 0)
+    struct.pack_into("<H", head, 0x38, MBX_PROTO_COE | MBX_PROTO_FOE if mbx else 0)
     struct.pack_into("<HH", head, 0x7C, 0x000F, 0x0001)  # 16 Kbit, SII version 1
 
     strings = [drive.name[:255], "Drive"]

@@ -105,7 +105,7 @@ def test_ethercat_scan_write_maps_and_run(
         ident = s["identity"]
         assert (ident["vendor_id"], ident["product_id"], ident["revision"]) == _identity(src)
         assert (s["state"], s["al_status_code"], s["al_status"]) == ("PRE-OP", 0, "no error")
-        assert s["mailbox_protocols"] == ["CoE"]
+        assert s["mailbox_protocols"] == ["CoE", "FoE"]  # the emulator has a bootstrap mailbox and FoE
         assert s["sdo_info"] is True and s["mapping_source"] == "coe"
         assert s["dc"] is True
         assert s["parent"] == (None if pos == 0 else pos - 1)

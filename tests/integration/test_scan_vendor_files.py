@@ -65,7 +65,7 @@ def test_ethercat_emulator_from_esi_files_scans_as_the_files_say(
             src.revision,
         )
         assert _scanned(s) == _entries(src), spec
-    assert slaves[0]["mailbox_protocols"] == ["CoE"] and slaves[0]["mapping_source"] == "coe"
+    assert slaves[0]["mailbox_protocols"] == ["CoE", "FoE"] and slaves[0]["mapping_source"] == "coe"
     assert slaves[1]["mailbox_protocols"] == [] and slaves[1]["mapping_source"] == "sii"
 
 

@@ -232,7 +232,8 @@ def test_sii_identity_and_name_through_eeprom_interface() -> None:
     c = addressed(chain3())
     assert eeprom_read(c, 1, 0x08)[:8] == struct.pack("<II", 0x2, 0x1234)
     assert eeprom_read(c, 1, 0x18)[:8] == struct.pack("<HHHH", 0x1000, 128, 0x1080, 128)
-    assert eeprom_read(c, 1, 0x1C)[:2] == b"\x04\x00"
+    assert eeprom_read(c, 1, 0x1C)[:2] == b"\x0c\x00"  # CoE and FoE
+    assert eeprom_read(c, 1, 0x14)[:8] == struct.pack("<HHHH", 0x1000, 512, 0x1200, 512)  # bootstrap mailbox
     image = c.slaves[1].sii
     assert image.name == "io16"
     assert [s.type for s in image.sms] == [1, 2, 3, 4]
