@@ -236,6 +236,14 @@ class MitMotorSimulator(BusThread):
             return
         n, st.step = min(k - st.step, MAX_CATCH_UP), k
         law = st.law if st.enabled and st.law is not None else FREE
+        if law == FREE:  # no torque: the n steps in closed form (an idle emulator costs no loop)
+            a = 1.0 - STEP_S * st.friction / st.inertia  # the speed's factor per step
+            an = a**n
+            moved = a * (1.0 - an) / (1.0 - a) if a != 1.0 else float(n)  # sum of a**1 .. a**n
+            st.position += STEP_S * st.velocity * moved
+            st.velocity *= an
+            st.torque = 0.0
+            return
         tmax = st.torque_limit if law.torque_limit is None else min(st.torque_limit, law.torque_limit)
         p, v, t = st.position, st.velocity, 0.0
         h, h_j, damp = STEP_S, STEP_S / st.inertia, st.friction

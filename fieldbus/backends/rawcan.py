@@ -612,6 +612,35 @@ class RawCanBackend(CanFaults, Backend):
         self._codes[i] = code = (int(self._reply_rows[i][byte]) >> shift) & mask
         return cfg.damiao is None or code == 1  # Damiao: 1 is ENABLED; CubeMars MIT: 0
 
+    def clear_fault(self, slave: int | str) -> bool:
+        """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
+        session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). Damiao:
+        the clear-error frame, True when its status reply came (its code then in :meth:`error_code`);
+        ODrive: Clear_Errors (the heartbeat tells); declarative: the map's clear pattern. False for a
+        motor whose family has no clear command (MIT, CubeMars)."""
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        cfg = self.areas[i].slave.map.rawcan
+        assert cfg is not None
+        if self._od[i] is not None and cfg.odrive is not None:
+            try:
+                self._od_frame(i, "clear_errors", cfg.odrive.clear)
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("send", exc) from exc
+            return True
+        if cfg.frames is not None and self._frames is not None:
+            if cfg.frames.clear is None:
+                return False
+            frame = next(f for f in self._frames.commands if any(x.motor == i for x in f.slots))
+            self._send_raw(frame.can_id, frame.extended, cfg.frames.clear)
+            return True
+        if cfg.damiao is None or not self._answered(i, cfg.damiao.clear):
+            return False
+        at = self._error_at[i]
+        if at is not None:
+            byte, shift, mask = at
+            self._codes[i] = (int(self._reply_rows[i][byte]) >> shift) & mask
+        return True
+
     def _seed_from_actual(self, i: int) -> None:
         """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
         a = self.areas[i]

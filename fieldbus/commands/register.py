@@ -29,6 +29,7 @@ import struct
 import sys
 from typing import Any
 
+from fieldbus.commands.argtypes import UsageError
 from fieldbus.commands.usage import FAILED, add_command
 from fieldbus.core import damiao_registers
 from fieldbus.core.damiao_registers import Register
@@ -59,12 +60,22 @@ def register(sub: Any) -> None:
     p.add_argument("bus", metavar="BUS", help="a rawcan bus of the network")
     p.add_argument("motor", metavar="MOTOR", help="a motor (slave name) on that bus, e.g. j0")
     p.add_argument(
-        "reg", metavar="REG", help="register name or number (Damiao), endpoint id or name (ODrive)"
+        "reg",
+        metavar="REG",
+        nargs="?",
+        help="register name or number (Damiao), endpoint id or name (ODrive); omit with --clear-fault",
     )
     p.add_argument("value", metavar="VALUE", nargs="?", help="the value to write (omit to read)")
     p.add_argument("--type", dest="type_name", choices=tuple(TYPES), help="value type where REG does not say")
     p.add_argument(
         "--save", action="store_true", help="Damiao: then store the registers to flash (motor disabled)"
+    )
+    p.add_argument(
+        "--clear-fault",
+        action="store_true",
+        help="clear the motor's fault by its family's clear command (Damiao FF x7 FB, ODrive Clear_Errors, "
+        "a declarative map's clear pattern) and show its error code after; the motor stays disabled (in a "
+        "running session, backend.recover(motor) clears and enables it)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     p.set_defaults(func=run)
@@ -114,6 +125,12 @@ def run(args: argparse.Namespace) -> int:
         raise FieldbusError(f"{args.network}: bus '{bus.name}' has no motor '{args.motor}' (motors: {names})")
     cfg = slave.map.rawcan
     family = cfg.family if cfg is not None else "none"
+    if args.clear_fault:
+        if args.reg is not None or args.value is not None or args.save:
+            raise UsageError("--clear-fault takes no REG, VALUE or --save")
+        return _clear_fault(args, bus, slave)
+    if args.reg is None:
+        raise UsageError("give REG (a register or endpoint), or --clear-fault")
     if cfg is not None and cfg.odrive is not None and cfg.odrive.protocol != "0.6":
         raise FieldbusError(
             f"{slave.name} (map {slave.map.name}): ODrive firmware {cfg.odrive.protocol} has no endpoint access "
@@ -177,6 +194,34 @@ def run(args: argparse.Namespace) -> int:
             f"error: {where}: {label} reads back {_show(got, type_name)} "
             f"after writing {_show(value or 0.0, type_name)}",
             file=sys.stderr,
+        )
+        return FAILED
+    return 0
+
+
+def _clear_fault(args: argparse.Namespace, bus: Any, slave: Any) -> int:
+    """``--clear-fault``: the family's clear command to one motor; its error code after (Damiao)."""
+    from fieldbus.backends.rawcan import RawCanBackend
+
+    where = f"{bus.name} {slave.name} (node {slave.node_id})"
+    backend = RawCanBackend(bus)
+    backend.open()
+    try:
+        done = backend.clear_fault(slave.name)
+        code = backend.error_code(slave.name)
+    finally:
+        backend.close()
+    if args.json:
+        print(
+            json.dumps(
+                {"bus": bus.name, "motor": slave.name, "node": slave.node_id, "cleared": done, "code": code}
+            )
+        )
+    elif done:
+        print(f"{where}: fault cleared (error code now {code:#x}); the motor stays disabled")
+    if not done:
+        print(
+            f"error: {where}: no clear command answered (family {slave.map.rawcan.family})", file=sys.stderr
         )
         return FAILED
     return 0

@@ -210,3 +210,20 @@ def test_help_has_examples_and_exit_codes(capsys: pytest.CaptureFixture[str]) ->
     out = capsys.readouterr().out
     assert "fieldbus register robot.yaml arm j0 TIMEOUT 1000" in out
     assert "3  the write was answered but the register reads back another value" in out
+
+
+def test_clear_fault_sends_the_damiao_clear_frame_and_leaves_the_motor_disabled(
+    damiao_net: tuple[Path, str, DamiaoSimulator, can.BusABC], capsys: pytest.CaptureFixture[str]
+) -> None:
+    net, _, sim, listener = damiao_net
+    sim.inject_error(2, 0xE)  # overload
+    code, out, _ = _run(capsys, "register", str(net), "arm", "j1", "--clear-fault", "--json")
+    r = json.loads(out)
+    assert code == 0 and (r["motor"], r["cleared"], r["code"]) == ("j1", True, 0)  # 0: disabled, no fault
+    frames = []
+    while (msg := listener.recv(timeout=0)) is not None:
+        frames.append((msg.arbitration_id, bytes(msg.data)))
+    assert (2, bytes([0xFF] * 7 + [0xFB])) in frames  # the clear-error frame on ESC_ID, by the manual
+    assert sim.state[2].error == 0 and not sim.motor(2).enabled
+    code, _, err = _run(capsys, "register", str(net), "arm", "j1", "PMAX", "--clear-fault")
+    assert code != 0 and "--clear-fault takes no REG" in err
