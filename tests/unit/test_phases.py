@@ -1,9 +1,10 @@
-"""The exchange() phase timer: marks every phase in order when set, nothing when not (counted, not timed)."""
+"""The exchange() phase timer (counted, not timed), and what the cycle of a lost EtherCAT frame sends."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -69,3 +70,33 @@ def test_no_mark_when_the_timer_is_taken_away(op: Operational) -> None:
     for _ in range(3):
         op.exchange()
     assert timer.marks == []
+
+
+def test_a_lost_frame_sends_nothing_more_in_its_cycle_on_the_in_process_chain(op: Operational) -> None:
+    """The ethercat backend on the emulated chain (the same recovery code as over veth): the cycle whose
+    process-data frame is dropped reaches the chain with its LRW only, the next one too (its full WKC
+    ends the recovery); two losses in a row send the recovery's BRD in the second. Counted by the
+    chain's own frame counter; the phases say where the contract's work went (not timed)."""
+    backend: Any = op.network.backends[0]
+    chain = backend.chain
+    status = op.result.buses[0]
+    for _ in range(5):
+        op.exchange()
+    for _ in range(3):
+        before = chain.frames
+        chain.drop_frames(1, process_data=True)
+        op.exchange()
+        assert status.verdict.name == "TIMEOUT" and status.recovering, status
+        assert chain.frames - before == 1  # the LRW, lost; no BRD
+        op.exchange()
+        assert status.verdict.name == "OK" and not status.recovering, status
+        assert chain.frames - before == 2
+    before = chain.frames
+    chain.drop_frames(2, process_data=True)
+    op.exchange()
+    op.exchange()
+    assert chain.frames - before == 3  # LRW, LRW + the pass's BRD
+    assert status.recovering
+    for _ in range(3):
+        op.exchange()
+    assert op.result.fresh and not status.recovering, status
