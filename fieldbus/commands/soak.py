@@ -1,6 +1,6 @@
 """``fieldbus soak``: the cycle against emulated drives under injected faults; every fault accounted for.
 
-    fieldbus soak --demo [--backend sim|ethercat] [--axes N] --cycles N --faults SPEC [--seed S] [--json]
+    fieldbus soak --demo [--backend sim|ethercat] [--axes N] --cycles N --faults SPEC [--seed S] [--phases] [--json]
     fieldbus soak NETWORK.yaml --cycles N --faults SPEC   (its single EtherCAT bus, emulated in-process)
 
 SPEC: ``loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1``
