@@ -12,10 +12,20 @@ demo_joint map) on python-can's virtual bus, in alternating rounds:
 - **fieldbus**: ``Operational.exchange()`` (scaled outputs, RPDOs + SYNC, TPDOs
   into the process image, per-node freshness).
 
-The virtual bus (threads, a deep copy per receiver) dominates both; the
-ratio says what each master adds. tracemalloc: net blocks per ``exchange()``.
+- **floor**: no master at all - fieldbus's own prebuilt RPDO and SYNC frames
+  sent on a bare python-can bus, then the awaited TPDOs received and thrown
+  away: the round trip through the virtual bus and the emulated nodes, which
+  neither master can beat.
 
-    python benchmarks/can_cycle.py [--axes 6] [--rounds 4] [--seconds 2] [--transport virtual|udp]
+The virtual bus (threads, a deep copy per receiver) and the emulated nodes
+(Python threads sharing the interpreter lock with the master) dominate; the
+ratios to the floor say what each master adds. ``--phases``: where one
+fieldbus ``exchange()`` goes (:class:`fieldbus.runtime.phases.PhaseTimer`),
+for a good cycle, a lost one (node 1's TPDOs dropped by the emulator: the
+cycle waits the receive timeout) and the one after. tracemalloc: net blocks
+per ``exchange()``.
+
+    python benchmarks/can_cycle.py [--axes 6] [--rounds 4] [--seconds 2] [--transport virtual|udp] [--phases N]
 
 ``--transport udp`` runs the emulated nodes in their own process on python-can's
 udp_multicast interface (needs msgpack): the masters no longer share the
@@ -26,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -45,6 +56,8 @@ from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.network import open_network
 from fieldbus.runtime.allocs import net_blocks
+from fieldbus.runtime.phases import PHASES, PhaseTimer
+from fieldbus.runtime.rt import RtConfig, realtime
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
 from sim_slaves.canopen import CanopenSimulator
 from sim_slaves.canopen.eds import to_canopen_od
@@ -53,12 +66,18 @@ TIMEOUT_S = 0.02
 
 
 def _rate(step: Callable[[], object], seconds: float) -> float:
-    n = 0
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
+    """Cycles per second from the median cycle of ``seconds`` worth of them (a cycle descheduled by the
+    rest of a busy machine, or one that waited the timeout, moves a mean but not the median)."""
+    times = []
+    t_end = time.perf_counter() + seconds
+    while True:
+        t0 = time.perf_counter()
         step()
-        n += 1
-    return n / (time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        times.append(t1 - t0)
+        if t1 >= t_end:
+            break
+    return 1.0 / statistics.median(times)
 
 
 def fieldbus_round(net_file: Path, seconds: float) -> tuple[float, int]:
@@ -78,6 +97,68 @@ def fieldbus_round(net_file: Path, seconds: float) -> tuple[float, int]:
             step()
         misses = 0
         return _rate(step, seconds), misses
+
+
+def floor_round(net_file: Path, seconds: float) -> tuple[float, int]:
+    """The bus and the nodes alone: fieldbus's RPDO and SYNC frames sent on its own python-can bus (the
+    nodes brought up by fieldbus), the awaited TPDOs taken off it, nothing copied, decoded or judged."""
+    with open_network(net_file) as net:
+        net.bring_up()
+        backend: Any = net.backends[0]
+        frames = [msg for msg, _, _ in backend._rpdos] + [backend._sync]
+        awaited = {cob for cob, hit in backend._tpdos.items() if hit[2] >= 0}
+        bus = backend._bus
+        misses = 0
+
+        def step() -> None:
+            nonlocal misses
+            for msg in frames:
+                bus.send(msg)
+            got = 0
+            deadline = time.perf_counter() + TIMEOUT_S
+            while got < len(awaited):
+                msg = bus.recv(timeout=max(0.0, deadline - time.perf_counter()))
+                if msg is None:
+                    misses += 1
+                    return
+                got += msg.arbitration_id in awaited
+
+        for _ in range(20):
+            step()
+        misses = 0
+        return _rate(step, seconds), misses
+
+
+def phase_breakdown(net_file: Path, sim: Any, losses: int) -> dict[str, dict[str, float]]:
+    """Median µs per phase of fieldbus's exchange(): good cycles, lost ones (node 1's TPDOs dropped), the next."""
+    kinds: dict[str, list[list[int]]] = {k: [[] for _ in PHASES] for k in ("good", "lost", "after")}
+    totals: dict[str, list[int]] = {k: [] for k in kinds}
+    with open_network(net_file) as net:
+        op = net.bring_up()
+        timer = PhaseTimer()
+        op.phases = timer
+        for _ in range(20):
+            op.exchange()
+        for _ in range(losses):
+            for kind in ("good", "lost", "after"):
+                if kind == "lost":
+                    sim.drop_tpdos(1, 2)
+                res = op.exchange()
+                if (kind == "lost") == res.fresh:
+                    continue  # not the kind of cycle asked for (a late TPDO on a busy machine)
+                totals[kind].append(res.exchange_ns)
+                for i, ns in enumerate(timer.last_ns):
+                    kinds[kind][i].append(ns)
+            for _ in range(3):
+                op.exchange()
+    return {
+        k: {
+            "exchange": statistics.median(totals[k]) / 1e3,
+            **{name: statistics.median(v[i]) / 1e3 for i, name in enumerate(PHASES)},
+        }
+        for k, v in kinds.items()
+        if totals[k]
+    }
 
 
 def canopen_round(bus_kwargs: dict[str, Any], ods: dict[int, Any], seconds: float) -> tuple[float, int]:
@@ -143,12 +224,25 @@ def main() -> int:
         default="virtual",
         help="virtual: nodes in this process; udp: nodes in their own process over udp_multicast",
     )
+    p.add_argument("--phases", type=int, default=0, help="lost cycles for the phase breakdown (virtual bus)")
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        help="SCHED_FIFO priority of this process's threads (set first: the nodes' and python-can's "
+        "threads, started later, inherit it)",
+    )
     args = p.parse_args()
     where = f"{args.transport} bus" + (", nodes in another process" if args.transport == "udp" else "")
-    print(f"# CANopen cycle benchmark, {args.axes} CiA 402 nodes, {where} ({machine_note()})\n")
+    print(
+        f"# CANopen cycle benchmark, {args.axes} CiA 402 nodes, {where}, rt priority {args.rt_priority}, "
+        f"load {os.getloadavg()[0]:.1f} ({machine_note()})\n"
+    )
     drive = load_drive_map(DEMO_MAP)
     ids = list(range(1, args.axes + 1))
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
+        if args.rt_priority is not None:  # first: every thread started from here on inherits it
+            rt = realtime(RtConfig(priority=args.rt_priority), warn=lambda line: print(line, file=sys.stderr))
+            stack.enter_context(rt)
         if args.transport == "virtual":
             channel = CanChannel("virtual", f"bench-can-{time.monotonic_ns()}")
             bus = stack.enter_context(can.Bus(interface="virtual", channel=channel.channel))
@@ -167,35 +261,72 @@ def main() -> int:
             f"  - {{name: joints, type: canopen, {channel.network_keys()},\n"
             f"     slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, node_id: 1, count: {args.axes}}}]}}\n"
         )
-        pairs, misses = [], []
+        rounds: list[dict[str, float]] = []
+        misses = []
         shown = RoundProgress(args.rounds)
+        contenders = ("canopen", "fieldbus", "floor")
         for k in range(args.rounds):
-            order = ("canopen", "fieldbus") if k % 2 == 0 else ("fieldbus", "canopen")
+            order = contenders[k % 3 :] + contenders[: k % 3]
             got = {}
             for who in order:
                 got[who] = (
                     canopen_round(bus_kwargs, ods, args.seconds)
                     if who == "canopen"
                     else fieldbus_round(net_file, args.seconds)
+                    if who == "fieldbus"
+                    else floor_round(net_file, args.seconds)
                 )
-            pairs.append((got["fieldbus"][0], got["canopen"][0]))
-            misses.append((got["fieldbus"][1], got["canopen"][1]))
+            rounds.append({who: rate for who, (rate, _) in got.items()})
+            misses.append(tuple(got[who][1] for who in contenders))
             shown.step()
+        phases = phase_breakdown(net_file, sim, args.phases) if args.phases and sim is not None else {}
         with open_network(net_file) as net:
             op = net.bring_up()
             blocks = net_blocks(op.exchange, args.alloc_cycles, warmup=200)
         if sim is not None:
             assert not sim.errors, sim.errors
-    f = statistics.median(x for x, _ in pairs)
-    c = statistics.median(y for _, y in pairs)
-    r = statistics.median(x / y for x, y in pairs)
+
+    def med(who: str) -> float:
+        return statistics.median(r[who] for r in rounds)
+
+    def ratio(a: str, b: str) -> float:  # within each round, then the median
+        return statistics.median(r[a] / r[b] for r in rounds)
+
     print(
         table(
-            ["nodes", "canopen PDO API [cycles/s]", "fieldbus [cycles/s]", "ratio", "net blocks/cycle"],
-            [[str(args.axes), f"{c:,.0f}", f"{f:,.0f}", f"{r:.2f}", f"{blocks / args.alloc_cycles:.4f}"]],
+            [
+                "nodes",
+                "canopen PDO API [cycles/s]",
+                "fieldbus [cycles/s]",
+                "floor [cycles/s]",
+                "fieldbus/canopen",
+                "canopen/floor",
+                "fieldbus/floor",
+                "net blocks/cycle",
+            ],
+            [
+                [
+                    str(args.axes),
+                    f"{med('canopen'):,.0f}",
+                    f"{med('fieldbus'):,.0f}",
+                    f"{med('floor'):,.0f}",
+                    f"{ratio('fieldbus', 'canopen'):.2f}",
+                    f"{ratio('canopen', 'floor'):.2f}",
+                    f"{ratio('fieldbus', 'floor'):.2f}",
+                    f"{blocks / args.alloc_cycles:.4f}",
+                ]
+            ],
         )
     )
-    print(f"\nmissed cycles per round (fieldbus, canopen): {misses}")
+    print(f"\nmissed cycles per round ({', '.join(contenders)}): {misses}")
+    if phases:
+        print("\nfieldbus exchange(), median us per phase:\n")
+        print(
+            table(
+                ["cycle", "exchange", *PHASES],
+                [[k, *(f"{v:.1f}" for v in row.values())] for k, row in phases.items()],
+            )
+        )
     return 0
 
 

@@ -51,6 +51,7 @@ from fieldbus.errors import (
     SdoAbortError,
     abort_name,
 )
+from fieldbus.runtime import phases as ph
 from fieldbus.runtime.clock import WALL, Clock
 
 if TYPE_CHECKING:
@@ -475,6 +476,8 @@ class Operational(_Phase):
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
+        # where exchange() spends its time, phase by phase (fieldbus.runtime.phases); None: not timed
+        self.phases: ph.PhaseTimer | None = None
         self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
         self._bus_off: list[int | None] = [
             int(getattr(b, "bus_off", 0)) if hasattr(b, "bus_off") else None for b in net.backends
@@ -541,6 +544,9 @@ class Operational(_Phase):
             self._cycle_thread = threading.get_ident()
         res = self.result
         cycle = res.cycle
+        pt = self.phases
+        if pt is not None:
+            pt.start(t0)
         if res.events:
             res.events = []  # a new list only after a cycle that had events: the caller may keep the old one
         if res.safe_stop:
@@ -553,9 +559,13 @@ class Operational(_Phase):
                 try:
                     for g in b.groups:
                         g.image.outputs.to_wire()
+                    if pt is not None:
+                        pt.mark(ph.ENCODE)
                     b.send()
                 except Exception as exc:
                     st.error = _reason(exc)
+                if pt is not None:
+                    pt.mark(ph.SEND)
         all_fresh = True
         any_stop = False
         for k, (b, policy, st, _) in enumerate(self._pairs):
@@ -565,6 +575,8 @@ class Operational(_Phase):
             any_stop = any_stop or policy.safe_stop
         if self._code_reads:
             self._collect_codes(cycle)
+            if pt is not None:
+                pt.mark(ph.ACYCLIC)
         res.fresh = all_fresh
         latched = any_stop and not res.safe_stop
         res.safe_stop = any_stop
@@ -578,18 +590,23 @@ class Operational(_Phase):
         if latched:
             for w in self._writers:  # effective from the next cycle's outputs
                 w.apply()
+        if pt is not None:
+            pt.mark(ph.OBSERVERS)
         return res
 
     def _receive(self, k: int, b: Backend, policy: SafetyPolicy, st: BusStatus, cycle: int) -> None:
         """Receive, judge and accept one bus's cycle; recovery and acyclic steps. Never raises (S1)."""
         wkc: int | None = None
         arrived = None
+        pt = self.phases
         if st.error is None:
             try:
                 wkc = b.receive()
                 arrived = b.arrived()
             except Exception as exc:
                 st.error = _reason(exc)
+        if pt is not None:
+            pt.mark(ph.WAIT)
         off_before = self._bus_off[k]
         if off_before is not None:  # a CAN controller that reported bus-off: a bus error (S1)
             off = int(getattr(b, "bus_off", 0))
@@ -613,6 +630,8 @@ class Operational(_Phase):
             events.append(BusEvent(cycle, st.name, "safe_stop", f"{policy.consecutive_misses} misses"))
         if policy.released_now:
             events.append(BusEvent(cycle, st.name, "released"))
+        if pt is not None:
+            pt.mark(ph.JUDGE)
         if verdict is Verdict.OK or (arrived is not None and policy.fresh.any()):
             b.accept_inputs(
                 policy.fresh, verdict is Verdict.OK
@@ -626,6 +645,8 @@ class Operational(_Phase):
         take = self._motor_events[k]
         if take is not None:
             events.extend(take(cycle))
+        if pt is not None:
+            pt.mark(ph.ACCEPT)
         if st.error is None and (verdict is not Verdict.OK or b.recovering):
             try:
                 b.recover_step()
@@ -634,6 +655,8 @@ class Operational(_Phase):
         st.recovering = b.recovering
         st.recoveries = b.recoveries
         st.recovery_error = b.last_recovery_error
+        if pt is not None:
+            pt.mark(ph.CONTRACT)
         if not st.recovering and (self._sdo_current[k] is not None or self._sdo_pending[k]):
             try:
                 self._serve_sdo(k, b)
@@ -653,6 +676,8 @@ class Operational(_Phase):
             if changes:
                 names = [a.slave.name for a in b.areas]
                 events.extend(BusEvent(cycle, st.name, *describe_change(c, names)) for c in changes)
+        if pt is not None:
+            pt.mark(ph.ACYCLIC)
 
     def _bus_of(self, group: str) -> str:
         return next(b.bus.name for b in self._net.backends if any(g.name == group for g in b.groups))

@@ -164,6 +164,8 @@ class EthercatBackend(Backend):
         self._timeout_us = bus.receive_timeout_us
         self._timeout_ns = bus.receive_timeout_us * 1000
         self._sent_ns = 0
+        self._lost = False  # the last LRW's reply did not come back in time (lost or late)
+        self._wkc = -1  # the last LRW's working counter in time (-1: none)
         self._host_sync: HostSync | None = None
         self._dc_correction = 0
         self.late_replies = 0  # replies that came back, but later than the receive timeout
@@ -643,6 +645,7 @@ class EthercatBackend(Backend):
         if wkc >= 0 and not self.in_process and time.perf_counter_ns() - self._sent_ns > self._late_ns:
             self.late_replies += 1
             self.late_wkc, wkc = wkc, -1
+        self._wkc, self._lost = wkc, wkc < 0
         if self._host_sync is not None and wkc >= 0:
             dc = int(self.master.dc_time)
             self.dc_time_ns = dc
@@ -664,6 +667,23 @@ class EthercatBackend(Backend):
         return c
 
     def _recover(self) -> Generator[None, None, bool]:
+        """Recovery after a miss: :meth:`_recover_passes`, but after a lost frame not in the cycle of the loss.
+
+        A frame that did not come back (lost, or late) says nothing about the
+        slaves' states, and the cycle of the loss has already waited the
+        receive timeout: no datagram goes out in it. The next cycle's LRW
+        decides: its full working counter proves that every slave processed
+        it in OP - what the pass's first datagram (a BRD of AL status) would
+        have found - and recovery ends there without a frame of its own;
+        anything else (lost again, a short WKC) starts the passes in that cycle.
+        """
+        if self._lost:
+            yield  # the cycle of the loss: nothing sent
+            if self._wkc == self.expected_wkc:
+                return True
+        return (yield from self._recover_passes())
+
+    def _recover_passes(self) -> Generator[None, None, bool]:
         """SOEM's ecatcheck as steps of one datagram; passes repeat until all are in OP.
 
         A pass starts with one broadcast read of every slave's AL status (as

@@ -1,6 +1,6 @@
 """``fieldbus soak``: the cycle against emulated drives under injected faults; every fault accounted for.
 
-    fieldbus soak --demo [--backend sim|ethercat] [--axes N] --cycles N --faults SPEC [--seed S] [--json]
+    fieldbus soak --demo [--backend sim|ethercat] [--axes N] --cycles N --faults SPEC [--seed S] [--phases] [--json]
     fieldbus soak NETWORK.yaml --cycles N --faults SPEC   (its single EtherCAT bus, emulated in-process)
 
 SPEC: ``loss=0.01,delay=0.001,wkc=0.001,power_cycles=3,bursts=1,sdo_aborts=1``
@@ -79,6 +79,12 @@ def register(sub: Any) -> None:
         f"violation (default {DEFAULT_MARGIN_US:g})",
     )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    p.add_argument(
+        "--phases",
+        action="store_true",
+        help="time exchange() phase by phase (encode, send, wait, judge, accept, contract, acyclic, "
+        "observers): medians per kind of cycle in the report",
+    )
     cycleopts.add_arguments(p, plot=False)
     cycleopts.add_monitor_argument(p)
     p.set_defaults(func=run)
@@ -136,6 +142,7 @@ def soak(args: argparse.Namespace, spec: FaultSpec) -> dict[str, Any]:
         try:
             with cycleopts.rt_context(args) as rt:
                 runner.monitor = args.monitor
+                runner.phases = args.phases
                 rep = runner.run(
                     args.cycles, status=default_status_stream(not args.json and not args.monitor)
                 )
@@ -202,5 +209,11 @@ def describe(r: dict[str, Any]) -> str:
         ),
         f"  invariant violations: {r['violation_count']}",
     ]
+    for kind, ph in r.get("phases_us", {}).items():
+        lines.insert(
+            -1,
+            f"  {kind} ({ph['cycles']} cycles) p50 us: "
+            + ", ".join(f"{k} {v}" for k, v in ph.items() if k != "cycles"),
+        )
     lines += [f"    {v}" for v in r["violations"]]
     return "\n".join(lines)

@@ -49,6 +49,7 @@ from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
 from fieldbus.runtime.loop import gc_held, progress
 from fieldbus.runtime.monitor import monitor_context
+from fieldbus.runtime.phases import PHASES, PhaseTimer
 from fieldbus.runtime.timing import CycleTimer
 
 Control = Callable[..., dict[str, Any]]
@@ -121,6 +122,9 @@ class SoakReport:
     exchange_ns: dict[str, list[int]] = field(
         default_factory=lambda: {"good": [], "miss": [], "recovery": []}
     )
+    # with phases on: per kind of cycle (as above, and "after_miss": the first fresh one after a miss),
+    # per phase of exchange() (fieldbus.runtime.phases.PHASES), ns
+    phase_ns: dict[str, list[list[int]]] = field(default_factory=dict)
 
     def violate(self, cycle: int, what: str) -> None:
         self.violation_count += 1
@@ -140,7 +144,25 @@ class SoakReport:
             "reenabled_after_safe_stop": self.reenabled,
             "seconds": round(self.seconds, 3),
             "exchange_us": {kind: _percentiles(ns) for kind, ns in self.exchange_ns.items()},
+            **({"phases_us": _phase_medians(self.phase_ns)} if self.phase_ns else {}),
         }
+
+    def note_phases(self, kind: str, last_ns: list[int]) -> None:
+        """One cycle's phases (:attr:`PhaseTimer.last_ns`) under ``kind``."""
+        rows = self.phase_ns.setdefault(kind, [[] for _ in PHASES])
+        for row, ns in zip(rows, last_ns, strict=True):
+            row.append(ns)
+
+
+def _phase_medians(phase_ns: dict[str, list[list[int]]]) -> dict[str, dict[str, float | int]]:
+    """Per kind of cycle: how many, and the median µs of each phase."""
+    return {
+        kind: {
+            "cycles": len(rows[0]),
+            **{name: round(float(np.median(row)) / 1000, 1) for name, row in zip(PHASES, rows, strict=True)},
+        }
+        for kind, rows in phase_ns.items()
+    }
 
 
 def _percentiles(ns: list[int]) -> dict[str, float | int]:
@@ -217,6 +239,7 @@ class Soak:
         self.report = SoakReport()
         self.timer = CycleTimer()
         self.monitor = False  # the live view (--monitor) while the soak runs
+        self.phases = False  # time exchange() phase by phase (SoakReport.phase_ns, "phases_us" in the JSON)
 
     # -- bring-up with SDO aborts --------------------------------------------------------
     def bring_up(self) -> Operational:
@@ -278,6 +301,7 @@ class Soak:
         limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
         deadline = time.perf_counter_ns()
         prev_fresh = True
+        timer = op.phases = PhaseTimer() if self.phases else None
         # gc held as run_cycles holds it (fieldbus run): a full collection of a large heap is a pause of
         # many ms in whichever cycle it lands, the harness's doing, not the bus's
         with monitor_context(op, None, self.monitor), gc_held():
@@ -342,6 +366,10 @@ class Soak:
                     "miss" if not fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
                 )
                 rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
+                if timer is not None:
+                    rep.note_phases(kind_of_cycle, timer.last_ns)
+                    if fresh and not prev_fresh:
+                        rep.note_phases("after_miss", timer.last_ns)
                 if res.exchange_ns > limit_ns:
                     rep.violate(
                         k,

@@ -222,3 +222,69 @@ def test_a_power_cycled_slave_is_found_and_configured_again_one_datagram_per_cyc
     assert tally.get("_fpwr", 0) >= 10, tally  # AL control, SyncManagers, the SDO plan, FMMUs
     if eeprom_busy_cycles:
         assert cycles > eeprom_busy_cycles
+
+
+def _frames_of(op: Operational, log: CallLog) -> list[str]:
+    """One exchange; the frames it sent (pysoem calls and raw datagrams), in order."""
+    log.calls.clear()
+    log.active = True
+    try:
+        op.exchange()
+    finally:
+        log.active = False
+    return [f"wait:{args[0]}" if name == "receive_processdata" else name for _, name, args in log.calls]
+
+
+def _settle(op: Operational) -> None:
+    """Exchange until three fresh cycles in a row with no recovery under way (a loaded machine's late
+    replies are misses too)."""
+    streak = 0
+    for _ in range(2000):
+        op.exchange()
+        streak = streak + 1 if op.result.fresh and not op.result.buses[0].recovering else 0
+        if streak >= 3:
+            return
+    raise AssertionError(f"no three fresh cycles in a row: {op.result.buses[0]}")
+
+
+def test_a_lost_frame_costs_one_wait_and_no_datagram_beside_the_lrw(
+    bus: Callable[..., tuple[Network, Any, CallLog]],
+) -> None:
+    """A process-data frame the emulator drops: its cycle sends the LRW and waits for it once (the receive
+    timeout), nothing else - the recovery's first datagram (a BRD of AL status) no longer goes out in the
+    cycle that already waited the timeout; the next cycle's LRW comes back with a full WKC, which ends
+    the recovery without a datagram of its own. Counted by the spy and, independently, by the frames the
+    emulator received (2 for the two cycles; 3 when the BRD went out at the loss). A second loss in a
+    row still starts the recovery's pass (one BRD) in that second cycle. On a loaded machine the cycle
+    after a loss may itself miss (a reply later than the timeout); such a sample is not counted, and at
+    least 5 of at most 40 must be clean."""
+    net, emu, log = bus()
+    op = net.bring_up()
+    status = op.result.buses[0]
+    clean = 0
+    for _ in range(40):
+        _settle(op)
+        frames0 = emu.command(cmd="status")["frames"]
+        emu.command(cmd="drop", count=1, pd=True)
+        lost = _frames_of(op, log)
+        assert status.verdict.name == "TIMEOUT", status
+        assert lost == ["send_processdata", f"wait:{RECEIVE_TIMEOUT_US}"], lost
+        assert status.recovering  # decided by the next cycle's LRW
+        after = _frames_of(op, log)
+        if status.verdict.name != "OK":  # the next reply late as well: the pass starts there
+            continue
+        assert not status.recovering, status
+        assert after == ["send_processdata", f"wait:{RECEIVE_TIMEOUT_US}"], after
+        assert emu.command(cmd="status")["frames"] - frames0 == 2
+        clean += 1
+        if clean == 5:
+            break
+    assert clean == 5, f"only {clean} losses whose next cycle came back in time"
+    _settle(op)
+    emu.command(cmd="drop", count=2, pd=True)
+    first, second = _frames_of(op, log), _frames_of(op, log)
+    assert first == ["send_processdata", f"wait:{RECEIVE_TIMEOUT_US}"], first
+    assert status.verdict.name == "TIMEOUT", status
+    assert second == ["send_processdata", f"wait:{RECEIVE_TIMEOUT_US}", "BRD"], second
+    _settle(op)
+    assert net.policies[0].stats.recoveries >= 6  # every loss ended in fresh cycles again

@@ -125,3 +125,21 @@ def test_faults_without_meaning_on_a_bus_are_refused() -> None:
 
     with pytest.raises(FaultSpecError, match="emcys"):
         soak(_args("sim", cycles=300, faults="emcys=1"), FaultSpec.parse("emcys=1"))
+
+
+def test_soak_phases_report_where_each_kind_of_cycle_went() -> None:
+    """``--phases``: per kind of cycle (good, miss, after_miss, recovery) how many and the median of each
+    phase of exchange(); counted against the report's own cycle counts (no time is asserted)."""
+    from fieldbus.runtime.phases import PHASES
+
+    faults = "loss=0.02"
+    plain = soak(_args("sim", cycles=600, faults=faults, **NO_TIMING), FaultSpec.parse(faults))
+    assert "phases_us" not in plain  # off by default
+    r = soak(_args("sim", cycles=600, faults=faults, phases=True, **NO_TIMING), FaultSpec.parse(faults))
+    phases = r["phases_us"]
+    for kind in ("good", "miss", "recovery"):
+        assert phases.get(kind, {"cycles": 0})["cycles"] == r["exchange_us"][kind]["cycles"]
+    assert phases["miss"]["cycles"] >= r["injected"]["loss"] > 0
+    assert 0 < phases["after_miss"]["cycles"] <= phases["miss"]["cycles"]
+    assert set(phases["good"]) == {"cycles", *PHASES}
+    assert all(v >= 0 for v in phases["good"].values())
