@@ -65,8 +65,12 @@ def _network(tmp: Path, axes: int) -> Path:
     return net
 
 
+RT_PRIORITY = 0  # --rt-priority: the served cycle (and this client) at SCHED_FIFO
+
+
 def _server(net: Path, domain: int, hold_after: int, stop_after: int) -> subprocess.Popen[str]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
+    rt = ["--rt-priority", str(RT_PRIORITY)] if RT_PRIORITY else []
     return subprocess.Popen(
         [
             sys.executable,
@@ -85,6 +89,7 @@ def _server(net: Path, domain: int, hold_after: int, stop_after: int) -> subproc
             str(stop_after),
             "--hold-after",
             str(hold_after),
+            *rt,
         ],
         stdout=subprocess.PIPE,
         text=True,
@@ -147,22 +152,22 @@ def free_running(net: Path, cycles: int) -> dict[str, Any]:
         latency: list[int] = []
         applied_seen = 0
         superseded = 0
-
-        def step(k: int) -> None:
-            nonlocal applied_seen, superseded
+        period = 1_000_000
+        deadline = time.perf_counter_ns()
+        for k in range(cycles):  # its own 1 kHz clock; between two sends it waits for states
             tgt[:] = start + 0.5 * (1 - math.cos(2 * math.pi * 0.5 * k / 1000))
             sent[op.send()] = time.perf_counter_ns()
-            applied = op.poll()
-            now = time.perf_counter_ns()
-            if applied > applied_seen:
-                if applied in sent:
-                    latency.append(now - sent[applied])
-                superseded += sum(1 for q in range(applied_seen + 1, applied) if q in sent)
-                for q in [q for q in sent if q <= applied]:
-                    del sent[q]
-                applied_seen = applied
-
-        fieldbus.run_cycles(step, 1000, cycles)
+            deadline += period
+            while (now := time.perf_counter_ns()) < deadline:
+                applied = op.poll(wait_s=(deadline - now) / 1e9)
+                now = time.perf_counter_ns()
+                if applied > applied_seen:
+                    if applied in sent:
+                        latency.append(now - sent[applied])
+                    superseded += sum(1 for q in range(applied_seen + 1, applied) if q in sent)
+                    for q in [q for q in sent if q <= applied]:
+                        del sent[q]
+                    applied_seen = applied
         op.close()
     finally:
         server.send_signal(signal.SIGTERM)
@@ -287,7 +292,12 @@ def main() -> int:
     ap.add_argument("--axes", type=int, default=12)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--stall-only", action="store_true", help="only the 200 ms stalled-controller run")
+    ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and this client")
     a = ap.parse_args()
+    global RT_PRIORITY
+    RT_PRIORITY = a.rt_priority
+    if a.rt_priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(a.rt_priority - 1))
     with tempfile.TemporaryDirectory(prefix="fieldbus-bench-") as tmp:
         net = _network(Path(tmp), a.axes)
         out: dict[str, Any] = {
@@ -295,6 +305,7 @@ def main() -> int:
             "rate_hz": 1000,
             "cpus": os.cpu_count(),
             "load_avg": os.getloadavg()[0],
+            "rt_priority": a.rt_priority,
         }
         if not a.stall_only:
             out["in_process"] = in_process(net, a.cycles)

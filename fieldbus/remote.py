@@ -341,9 +341,12 @@ class Remote:
             self._links[name].writer.write(cmd)
         return seq
 
-    def poll(self) -> int:
-        """Take the states that have arrived (never waits): the inputs are the newest; returns the newest
-        command sequence every claimed group has applied (0: none yet)."""
+    def poll(self, wait_s: float = 0.0) -> int:
+        """Take the states that have arrived (waiting up to ``wait_s`` seconds for one when none has): the
+        inputs are the newest; returns the newest command sequence every claimed group has applied (0:
+        none yet)."""
+        if wait_s > 0.0:
+            self._ws.wait(int(wait_s * 1e9))
         applied = []
         for name in self.claimed or self.groups:
             g = self.groups[name]

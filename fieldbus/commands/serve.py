@@ -137,7 +137,6 @@ def run(args: argparse.Namespace) -> int:
         base_namespace=check_namespace(args.base_namespace) if args.base_namespace else "",
         ros2_control=_topic_pair(args.ros2_control) if args.ros2_control else None,
     )
-    participant = Participant(args.domain, args.interface, args.peer)
     cycleopts.check_record(args)
     stopping = False
 
@@ -147,44 +146,52 @@ def run(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
-        with open_network(model, backend=args.backend) as net, cycleopts.rt_context(args) as rt:
-            server = BusServer(net, participant, options)
-            op = net.bring_up()
-            server.attach(op)
-            cycleopts.start_recording(op, args)
-            ready = {
-                "ready": True,
-                "namespace": options.namespace,
-                "domain": participant.domain_id,
-                "groups": {n: g.topics for n, g in server.groups.items()},
-                **({"base": server.base.topics} if server.base is not None else {}),
-                **({"ros2_control": server.topic_control.topics} if server.topic_control is not None else {}),
-                "realtime": rt.to_json(),
-            }
-            print(
-                json.dumps(ready)
-                if args.json
-                else f"serving '{options.namespace}' on DDS domain "
-                f"{participant.domain_id}: {', '.join(server.groups)} (ready)",
-                flush=True,
-            )
+        # real-time settings first: the DDS participant's threads (Cyclone's receive threads) are made
+        # next and inherit them, so a command is in the reader before the cycle that takes it
+        with cycleopts.rt_context(args) as rt:
+            participant = Participant(args.domain, args.interface, args.peer)
+            with open_network(model, backend=args.backend) as net:
+                server = BusServer(net, participant, options)
+                op = net.bring_up()
+                server.attach(op)
+                cycleopts.start_recording(op, args)
+                ready = {
+                    "ready": True,
+                    "namespace": options.namespace,
+                    "domain": participant.domain_id,
+                    "groups": {n: g.topics for n, g in server.groups.items()},
+                    **({"base": server.base.topics} if server.base is not None else {}),
+                    **(
+                        {"ros2_control": server.topic_control.topics}
+                        if server.topic_control is not None
+                        else {}
+                    ),
+                    "realtime": rt.to_json(),
+                }
+                print(
+                    json.dumps(ready)
+                    if args.json
+                    else f"serving '{options.namespace}' on DDS domain "
+                    f"{participant.domain_id}: {', '.join(server.groups)} (ready)",
+                    flush=True,
+                )
 
-            def step(k: int) -> bool:
-                server.step(k)
-                return stopping
+                def step(k: int) -> bool:
+                    server.step(k)
+                    return stopping
 
-            period = float(op.cycle_time_us)
-            # an absolute sleep to 30 us before each deadline: a spin of 150 us a cycle on top of the
-            # step kept the SCHED_FIFO thread busy enough for the kernel's RT throttling (docs/dds.md)
-            timer, _ = cycleopts.run_timed(
-                op,
-                step,
-                period,
-                args.cycles or sys.maxsize,
-                status=False,
-                clock=DeadlineClock(args.spin_us * 1000),
-            )
-            report = run_report(op, timer, period)
+                period = float(op.cycle_time_us)
+                # an absolute sleep to 30 us before each deadline: a spin of 150 us a cycle on top of the
+                # step kept the SCHED_FIFO thread busy enough for the kernel's RT throttling (docs/dds.md)
+                timer, _ = cycleopts.run_timed(
+                    op,
+                    step,
+                    period,
+                    args.cycles or sys.maxsize,
+                    status=False,
+                    clock=DeadlineClock(args.spin_us * 1000),
+                )
+                report = run_report(op, timer, period)
     finally:
         signal.signal(signal.SIGTERM, previous)
     report["groups"] = {

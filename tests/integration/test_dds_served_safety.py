@@ -384,3 +384,27 @@ def test_reset_faults_re_arms_a_drive_that_spent_its_fault_reset_budget(served: 
 def test_every_diagnostic_status_has_its_own_name(served: Served) -> None:
     names = [st.name for st in served.server.diagnostics().status]
     assert len(names) == len(set(names)) and "fieldbus/bus/bus" in names and "fieldbus/group/bus" in names
+
+
+# -- issue 36: a remote command costs one cycle ---------------------------------------------------------------
+
+
+def test_a_command_taken_before_a_cycle_is_applied_and_shown_in_that_same_cycle(served: Served) -> None:
+    """Written before cycle k starts: taken by k, on the wire in k's exchange, and the state published
+    right after k's exchange names it (command_sequence) with k's cycle number; never one cycle later."""
+    s = served
+    a = Client(s, "controller")
+    states = DataReader(a.dp, Topic(a.dp, f"rt/robot/{s.group}/axis_state", m.AxisState), qos=REALTIME)
+    _enabled(s, a)
+    hold = s.actual("position_actual_value").tolist()
+    sent_before = s.emu.op.result.cycle
+    for _ in range(50):
+        a.command(position=hold)
+        cycle_before = s.emu.op.result.cycle
+        s.cycles(1)
+        shown = [st for st in states.take(N=16) if isinstance(st, m.AxisState)]
+        assert shown, "no state published in the cycle"
+        newest = shown[-1]
+        assert newest.command_sequence == a.sequence  # applied in this very cycle
+        assert newest.cycle == cycle_before + 1 == s.emu.op.result.cycle
+    assert s.emu.op.result.cycle == sent_before + 50
