@@ -42,6 +42,7 @@ VERBS = (
     "mode",
     "sdo_read",
     "sdo_write",
+    "set_odometry",
 )
 """What a :class:`~fieldbus.dds.messages.Request` may ask."""
 

@@ -10,6 +10,7 @@ created and used in the thread that runs the cycle.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -520,6 +521,8 @@ class BusServer:
             raise FieldbusError(f"unknown request '{verb}' (have: {', '.join(VERBS)})")
         if verb == "describe":
             return self.describe()
+        if verb == "set_odometry":
+            return self._set_odometry(_argument(req))
         g = self.groups.get(req.group)
         if g is None:
             raise FieldbusError(f"no axis group '{req.group}' (have: {', '.join(self.groups)})")
@@ -725,6 +728,20 @@ class BusServer:
             return {"data": got.hex() if got is not None else ""}
 
         return check
+
+    def _set_odometry(self, arg: dict[str, Any]) -> dict[str, Any]:
+        """The wheeled base's pose in the odometry frame: ``x``, ``y`` (m), ``yaw`` (rad); absent: 0.
+        Moves nothing, so anyone may ask (as ``set_pose`` of a localisation node)."""
+        if self.base is None or self.base.base is None:
+            raise FieldbusError("set_odometry: this network has no base: section")
+        pose = []
+        for key in ("x", "y", "yaw"):
+            v = arg.get(key, 0.0)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise FieldbusError(f"set_odometry: {key} must be a finite number, not {v!r}")
+            pose.append(float(v))
+        self.base.base.odometry.reset(*pose)
+        return dict(zip(("x", "y", "yaw"), pose, strict=True))
 
     @staticmethod
     def _cia402(g: ServedGroup) -> Cia402Controller:

@@ -194,3 +194,33 @@ def test_nan_and_a_second_participant_are_refused_and_a_dead_owner_lets_go(serve
     assert base.owner is not None
     served.cycles(800, lambda: rogue.send(0.3, 0.0) if served.k % 50 == 0 else None)
     assert min(served.speeds) > 0.3 / 0.08 * 0.9
+
+
+def test_set_odometry_moves_the_odometry_not_the_base(served: ServedBase) -> None:
+    import json
+
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+
+    from fieldbus.dds import messages as m
+    from fieldbus.dds.participant import RELIABLE
+
+    nav = BaseClient(DOMAIN)
+    dp = DomainParticipant(DOMAIN)
+    req = DataWriter(dp, Topic(dp, "rt/amr/request", m.Request), qos=RELIABLE)
+    rep = DataReader(dp, Topic(dp, "rt/amr/reply", m.Reply), qos=RELIABLE)
+    served.cycles(30)
+    for rid, arg in enumerate(({"x": 1.5, "y": -2.0, "yaw": 0.5}, {"x": float("nan")}), start=1):
+        req.write(m.Request(client_id="op", request_id=rid, verb="set_odometry", argument=json.dumps(arg)))
+        served.cycles(30)
+        replies = [r for r in rep.take(N=8) if isinstance(r, m.Reply) and r.request_id == rid]
+        assert replies and replies[0].ok == (rid == 1), replies
+    served.cycles(30)
+    nav.poll()
+    odo = nav.last_odom
+    assert odo is not None
+    assert (odo.pose.pose.position.x, odo.pose.pose.position.y) == pytest.approx((1.5, -2.0))
+    assert _yaw(odo.pose.pose.orientation) == pytest.approx(0.5)
+    assert served.truth.travel < 1e-6  # nothing moved
