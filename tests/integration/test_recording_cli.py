@@ -42,7 +42,10 @@ def test_run_records_every_cycle(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert np.all(cw[~stopped] == 0) and np.all(np.isin(cw[stopped], (0, 2)))
     # paced by run_cycles: every cycle but the first has its wake-up latency, and they run 1 ms apart
     assert np.all(r.cycles["wakeup_ns"][1:] != NO_VALUE)
-    assert 0.8e6 < float(np.median(np.diff(r.cycles["t_ns"]))) < 1.5e6
+    # one-sided, so a loaded machine cannot fail them (how close to 1 ms is the machine's: benchmarks/):
+    # no cycle woke before its deadline, and the cycles are paced (not run as fast as they go)
+    assert np.all(r.cycles["wakeup_ns"][1:] >= 0)
+    assert float(np.median(np.diff(r.cycles["t_ns"]))) > 0.8e6
 
 
 def test_soak_records_every_cycle_and_its_faults(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
