@@ -301,6 +301,21 @@ class Emulation:
         emu, i = self._slave(bus, slave)
         emu.sdo_abort(i, index, sub_index, code)
 
+    def slow_sdo(self, bus: str, slave: str, cycles: int) -> None:
+        """Slave ``slave``'s SDO server serves each request ``cycles`` cycles (SYNCs) late, with its
+        objects as they are then, until :meth:`clear_faults` (or ``cycles=0``). CANopen only.
+
+        Master: acyclic transfers to it take that much longer (the SDO client's timeout still bounds
+        them). A drive fault's error code (0x603F, read by SDO when the map does not map it) is read
+        that late: a controller that resets the fault before the read is served lets the drive clear
+        the code first, and the ``DriveFault`` comes with code 0 - what ``hold_reset`` (see
+        ``Operational.fault_code_pending``) prevents.
+        """
+        if cycles < 0:
+            raise FieldbusError(f"slow_sdo: cycles must be >= 0, got {cycles}")
+        emu, i = self._slave(bus, slave)
+        emu.slow_sdo(i, cycles)
+
     def clear_faults(self, bus: str) -> None:
         """Undo every pending or lasting injection on bus ``bus`` (not a power cycle already done)."""
         self._bus(bus)[1].clear_faults()

@@ -96,6 +96,10 @@ class BusEmulator:
     def power_cycle(self, slave: int) -> None:
         raise self._unsupported("power_cycle")
 
+    def slow_sdo(self, slave: int, cycles: int) -> None:
+        """``slave``'s SDO server serves each request ``cycles`` cycles late (0: at once again)."""
+        raise self._unsupported("slow_sdo")
+
     def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         """Fault ``slave``'s drive (``axis``: 0-based axis of a multi-axis slave) with error code ``code``."""
         raise self._unsupported("drive_fault")

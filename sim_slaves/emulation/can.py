@@ -324,6 +324,12 @@ class CanBus(BusEmulator):
             raise self._unsupported("sdo_abort", "raw-CAN motors have no object dictionary")
         sim.abort_sdo(self.node_ids[slave], index, sub_index, code)
 
+    def slow_sdo(self, slave: int, cycles: int) -> None:
+        sim = self._need_sim("slow_sdo")
+        if self.kind != "canopen":
+            raise self._unsupported("slow_sdo", "raw-CAN motors have no SDO server")
+        sim.slow_sdo(self.node_ids[slave], cycles)
+
     def clear_faults(self) -> None:
         sim = self._need_sim("clear_faults")
         if self.kind == "canopen":
