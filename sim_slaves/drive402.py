@@ -151,6 +151,7 @@ _CW_NEW_SETPOINT = 1 << 4  # PP: rising edge hands the target (0x607A) to the tr
 _CW_CHANGE_IMMEDIATELY = 1 << 5  # PP: 1 the new set-point replaces the one in progress, 0 it queues
 _CW_RELATIVE = 1 << 6  # PP: 1 the target is relative to the previous target, 0 absolute
 _CW_HALT = 1 << 8  # PP/PV: ramp to a stop at the profile deceleration (a move resumes when it drops)
+_CW_CHANGE_ON_SETPOINT = 1 << 9  # PP: pass the target in progress at speed on to the next set-point
 _SW_SETPOINT_ACK = 1 << 12  # PP: the generator took the set-point (PV: speed = 0)
 
 
@@ -840,16 +841,35 @@ class Cia402Drive:
             self._prof_done = False
 
     def _setpoint(self, cw: int, target_counts: int) -> None:
-        """A new PP set-point (controlword bit-4 edge): take it, queue it, or refuse it (queue full)."""
+        """A new PP set-point (controlword bit-4 edge): take it, queue it, or refuse it (queue full).
+
+        Relative (bit 6): to what 0x60F2 bits 0-1 name - 0 the preceding target, 1 the position demand
+        (the generator's position), 2 the position actual value. Bit 9 (change on set-point) with bit 5
+        low: a set-point beyond the target in progress, in the direction of travel, is taken at once, so
+        the drive passes that target at the profile velocity instead of stopping on it.
+        """
         rpc = self.rad_per_count
         if cw & _CW_RELATIVE:
-            base = self._prof_queued if self._prof_queued is not None else self._prof_target
+            option = self._home_param(POSITIONING_OPTION_CODE, 0, 0) & 0x3
+            if option == 1:
+                base = self._prof_pos
+            elif option == 2:
+                base = self.position_rad
+            else:
+                base = self._prof_queued if self._prof_queued is not None else self._prof_target
             counts = base * self.counts_per_rad + target_counts
         else:
             counts = float(target_counts)
         new = self._limit_position(counts) * rpc
         busy = not self._prof_done or self._prof_halt
-        if cw & _CW_CHANGE_IMMEDIATELY or not busy:
+        ahead = self._prof_target - self._prof_pos  # what is left of the move in progress [rad]
+        on_the_fly = (
+            cw & _CW_CHANGE_ON_SETPOINT
+            and self._prof_queued is None
+            and not self._prof_halt
+            and ahead * (new - self._prof_target) > 0.0
+        )
+        if cw & _CW_CHANGE_IMMEDIATELY or not busy or on_the_fly:
             self._prof_target, self._prof_queued = new, None
             self._prof_done = False
         elif self._prof_queued is None:

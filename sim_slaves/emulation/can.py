@@ -271,7 +271,10 @@ class CanBus(BusEmulator):
                 app.inject_fault(code, axis=axis)
             else:
                 app.inject_fault(code)
-            sim.send_emergency(n, code, 0x01)
+            # a multi-axis node says which axis faulted: manufacturer-specific byte 0 = the axis, 1-based
+            # (CiA 301 leaves the 5 bytes to the manufacturer; this emulator's convention)
+            data = bytes([axis + 1]) if hasattr(app, "drives") else b""
+            sim.send_emergency(n, code, 0x01, data)
             return
         if self.kind == "mit":
             raise self._unsupported("drive_fault", "MIT-mode motors (family mit) report no error code")
