@@ -23,7 +23,7 @@ from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.foe import FoeError, FoeErrorCode
-from fieldbus.core.network import load_network
+from fieldbus.core.network import SHIPPED_MAPS, load_network
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
@@ -48,8 +48,9 @@ from fieldbus.wheeled_base import WheeledBase
 
 __version__ = "0.1.0"
 
-PDO_MAPS = Path(__file__).resolve().parent / "pdo_maps"
-"""Drive maps shipped with the package (Maxon EPOS4, Elmo Gold, Synapticon, Beckhoff EL7201, ...)."""
+PDO_MAPS: Path = SHIPPED_MAPS
+"""Drive maps shipped with the package (Maxon EPOS4, Elmo Gold, Synapticon, Beckhoff EL7201, ...); a
+network file names one as ``map: shipped:NAME`` (e.g. ``shipped:generic_cia402``), wherever it is."""
 
 __all__ = [
     "PDO_MAPS",

@@ -145,10 +145,13 @@ the home point before it saw it.)"""
 _PP, _PV = 1, 3
 PROFILE_VELOCITY, PROFILE_ACCELERATION, PROFILE_DECELERATION = 0x6081, 0x6083, 0x6084
 VELOCITY_THRESHOLD = 0x606F  # PV: statusword bit 12 "speed = 0" while |velocity actual| <= it
+MOTION_PROFILE_TYPE = 0x6086  # PP/PV: 0 linear ramp (the one emulated)
+POSITIONING_OPTION_CODE = 0x60F2  # PP: how a new set-point and a relative target are taken
 _CW_NEW_SETPOINT = 1 << 4  # PP: rising edge hands the target (0x607A) to the trajectory generator
 _CW_CHANGE_IMMEDIATELY = 1 << 5  # PP: 1 the new set-point replaces the one in progress, 0 it queues
 _CW_RELATIVE = 1 << 6  # PP: 1 the target is relative to the previous target, 0 absolute
 _CW_HALT = 1 << 8  # PP/PV: ramp to a stop at the profile deceleration (a move resumes when it drops)
+_CW_CHANGE_ON_SETPOINT = 1 << 9  # PP: pass the target in progress at speed on to the next set-point
 _SW_SETPOINT_ACK = 1 << 12  # PP: the generator took the set-point (PV: speed = 0)
 
 
@@ -223,6 +226,12 @@ class DriveParams:
     profile_velocity: int = 200_000
     profile_acceleration: int = 2_000_000
     profile_deceleration: int = 2_000_000
+    # homing mode: defaults of 0x6098 (37: home at the current position), 0x6099:01/02 search speeds
+    # [velocity units], 0x609A acceleration [acceleration units]; 0x607C home offset starts at 0
+    homing_method: int = 37
+    homing_speed_switch: int = 100_000
+    homing_speed_zero: int = 10_000
+    homing_acceleration: int = 1_000_000
     # homing: where the switches are on the motor shaft [rad from the power-on position] (17/18); the
     # index pulse is at every whole motor revolution from there (33/34)
     negative_switch_rad: float = -1.0
@@ -832,16 +841,35 @@ class Cia402Drive:
             self._prof_done = False
 
     def _setpoint(self, cw: int, target_counts: int) -> None:
-        """A new PP set-point (controlword bit-4 edge): take it, queue it, or refuse it (queue full)."""
+        """A new PP set-point (controlword bit-4 edge): take it, queue it, or refuse it (queue full).
+
+        Relative (bit 6): to what 0x60F2 bits 0-1 name - 0 the preceding target, 1 the position demand
+        (the generator's position), 2 the position actual value. Bit 9 (change on set-point) with bit 5
+        low: a set-point beyond the target in progress, in the direction of travel, is taken at once, so
+        the drive passes that target at the profile velocity instead of stopping on it.
+        """
         rpc = self.rad_per_count
         if cw & _CW_RELATIVE:
-            base = self._prof_queued if self._prof_queued is not None else self._prof_target
+            option = self._home_param(POSITIONING_OPTION_CODE, 0, 0) & 0x3
+            if option == 1:
+                base = self._prof_pos
+            elif option == 2:
+                base = self.position_rad
+            else:
+                base = self._prof_queued if self._prof_queued is not None else self._prof_target
             counts = base * self.counts_per_rad + target_counts
         else:
             counts = float(target_counts)
         new = self._limit_position(counts) * rpc
         busy = not self._prof_done or self._prof_halt
-        if cw & _CW_CHANGE_IMMEDIATELY or not busy:
+        ahead = self._prof_target - self._prof_pos  # what is left of the move in progress [rad]
+        on_the_fly = (
+            cw & _CW_CHANGE_ON_SETPOINT
+            and self._prof_queued is None
+            and not self._prof_halt
+            and ahead * (new - self._prof_target) > 0.0
+        )
+        if cw & _CW_CHANGE_IMMEDIATELY or not busy or on_the_fly:
             self._prof_target, self._prof_queued = new, None
             self._prof_done = False
         elif self._prof_queued is None:
@@ -1145,6 +1173,18 @@ def default_objects(params: DriveParams | None = None) -> dict[tuple[int, int], 
         Obj.MAX_MOTOR_SPEED: round(p.max_motor_speed_rpm),
     }
     out: dict[tuple[int, int], int | float] = {(int(index), 0): value for index, value in values.items()}
+    # the objects of the profile and homing modes (0x6502 advertises them: a real drive has them)
+    out[(PROFILE_VELOCITY, 0)] = p.profile_velocity
+    out[(PROFILE_ACCELERATION, 0)] = p.profile_acceleration
+    out[(PROFILE_DECELERATION, 0)] = p.profile_deceleration
+    out[(VELOCITY_THRESHOLD, 0)] = min(p.velocity_window_counts_s, 0xFFFF)
+    out[(MOTION_PROFILE_TYPE, 0)] = 0
+    out[(POSITIONING_OPTION_CODE, 0)] = 0
+    out[(HOMING_METHOD, 0)] = p.homing_method
+    out[(HOME_OFFSET, 0)] = 0
+    out[(HOMING_SPEEDS, 1)] = p.homing_speed_switch
+    out[(HOMING_SPEEDS, 2)] = p.homing_speed_zero
+    out[(HOMING_ACCELERATION, 0)] = p.homing_acceleration
     gear = Fraction(p.gear_ratio).limit_denominator(GEAR_DENOMINATOR)
     records = {
         Obj.SOFTWARE_POSITION_LIMIT: p.software_position_limit or (INT32_MIN, INT32_MAX),

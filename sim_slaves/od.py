@@ -149,16 +149,43 @@ CIA402_TYPES: dict[int, str] = {
     0x60F4: "int32",  # following error actual [counts]
     0x60FF: "int32",  # target velocity [counts/s]
     0x6502: "uint32",  # supported drive modes
+    # every object of the modes 0x6502 advertises, as a real drive has them whatever the master writes
+    0x606F: "uint16",  # PV: velocity threshold [velocity units]
+    0x607C: "int32",  # HM: home offset [counts]
+    0x6081: "uint32",  # PP: profile velocity [velocity units]
+    0x6083: "uint32",  # PP/PV: profile acceleration [acceleration units]
+    0x6084: "uint32",  # PP/PV: profile deceleration [acceleration units]
+    0x6086: "int16",  # PP/PV: motion profile type (0 linear ramp, the only one emulated)
+    0x6098: "int8",  # HM: homing method
+    0x609A: "uint32",  # HM: homing acceleration [acceleration units]
+    0x60F2: "uint16",  # PP: positioning option code
 }
 # CiA 402 arrays of two sub-indices: type, object name, sub-index names (values: sim_slaves.drive402)
 CIA402_RECORDS: dict[int, tuple[str, str, tuple[str, str]]] = {
     0x607D: ("int32", "Software position limit", ("Min position limit", "Max position limit")),
     0x608F: ("uint32", "Position encoder resolution", ("Encoder increments", "Motor revolutions")),
     0x6091: ("uint32", "Gear ratio", ("Motor revolutions", "Shaft revolutions")),
+    0x6099: ("uint32", "Homing speeds", ("Speed during search for switch", "Speed during search for zero")),
 }
-NOT_MAPPABLE_402 = frozenset({0x6076, 0x6080, 0x6502})  # configuration objects: SDO only
+# names of the mode objects CIA402_NAMES (channel names) leaves out
+MODE_OBJECT_NAMES = {
+    0x606F: "velocity_threshold",
+    0x607C: "home_offset",
+    0x6081: "profile_velocity",
+    0x6083: "profile_acceleration",
+    0x6084: "profile_deceleration",
+    0x6086: "motion_profile_type",
+    0x6098: "homing_method",
+    0x609A: "homing_acceleration",
+    0x60F2: "positioning_option_code",
+}
+NOT_MAPPABLE_402 = frozenset(
+    {0x6076, 0x6080, 0x6502, 0x6086, 0x609A, 0x606F}
+)  # configuration objects: SDO only
 SUPPORTED_MODES_HM_CSP_CSV_CST = 0x000003A5  # 0x6502 bits 0, 2 (PP, PV), 5 (homing), 7, 8, 9 (CSP, CSV, CST)
-CIA402_OUTPUTS = frozenset({0x6040, 0x6060, 0x6071, 0x6072, 0x607A, 0x60FF})  # RxPDO-mappable
+CIA402_OUTPUTS = frozenset(  # RxPDO-mappable
+    {0x6040, 0x6060, 0x6071, 0x6072, 0x607A, 0x60FF, 0x607C, 0x6081, 0x6083, 0x6084, 0x6098, 0x60F2}
+)
 IDENTITY_NAMES = ("Vendor ID", "Product code", "Revision number", "Serial number")
 DEFTYPE_PDO_MAPPING = 0x0021  # CiA 301 structured types (SDO Information data type of records)
 DEFTYPE_IDENTITY = 0x0023
@@ -382,7 +409,9 @@ class ObjectDictionary:
         communication types, 0x1C12/0x1C13 assignment, the map's 0x16xx/0x1Axx
         mapping objects, every mapped object with its type, the start-up SDO
         objects, and the CiA 402 objects for ``profile: cia402`` maps (or maps
-        that map 0x6040), at the values of the drive ``params`` describe
+        that map 0x6040) -- every object of every mode 0x6502 advertises (PP, PV, HM, CSP, CSV, CST),
+        whether or not the map has a ``homing:`` or ``motion_profile:`` section -- at the values of the
+        drive ``params`` describe
         (default: the drive the map implies, :func:`sim_slaves.drive_config.drive_params`):
         units (0x608F, 0x6091), rated torque (0x6076), limits (0x6072, 0x607D,
         0x6080), quick stop (0x605A, 0x6085), windows.
@@ -419,7 +448,7 @@ class ObjectDictionary:
                     0,
                     dt,
                     value,
-                    name=CIA402_NAMES.get((index, 0), f"0x{index:04X}"),
+                    name=CIA402_NAMES.get((index, 0)) or MODE_OBJECT_NAMES.get(index, f"0x{index:04X}"),
                     mappable=mappable,
                     pdo_dir=0 if not mappable else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
                 )

@@ -50,6 +50,8 @@ _SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator")
 _NETWORK_MARKS = ("buses", "cycle_time_us", "receive_timeout_us", "safe_stop_after")
 MAP_SUFFIXES = (".yaml", ".yml")
 PATH_CHARS = 160  # most characters of a map path (from the network file) an error shows
+SHIPPED_MAPS = Path(__file__).resolve().parents[1] / "pdo_maps"  # the drive maps shipped in the package
+SHIPPED = "shipped:"  # ``map: shipped:NAME`` names the shipped map NAME(.yaml), wherever the network file is
 
 # Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
 BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
@@ -469,8 +471,37 @@ def check_open_options(
         check_backend_options((backend or bus.type,), (bus_options or {}).get(bus.name, {}))
 
 
+def shipped_map_names() -> list[str]:
+    """The names of the drive maps shipped in the package (``map: shipped:NAME``), sorted."""
+    return sorted(f.stem for f in SHIPPED_MAPS.glob("*.yaml"))
+
+
+def _shipped(r: Reader, rel: str, path: PathT) -> str:
+    """The file name of the shipped map ``shipped:NAME`` names (``.yaml`` optional), else refused."""
+    name = rel[len(SHIPPED) :].strip()
+    stem = name[: -len(Path(name).suffix)] if Path(name).suffix.lower() in MAP_SUFFIXES else name
+    if stem not in shipped_map_names():
+        close = difflib.get_close_matches(stem, shipped_map_names(), n=1)
+        hint = f"did you mean '{SHIPPED}{close[0]}'? " if close else ""
+        raise r.err(
+            path,
+            f"no shipped drive map '{token(name, PATH_CHARS)}': {hint}the shipped maps are "
+            + ", ".join(shipped_map_names()),
+        )
+    return f"{stem}.yaml"
+
+
+def _shipped_hint(name: str) -> str:
+    """For a map file not found: how to name the shipped map of that name, or that shipped maps exist."""
+    stem = Path(name).stem
+    if stem in shipped_map_names():
+        return f"; the map shipped in the package is 'map: {SHIPPED}{stem}'"
+    return f"; a map shipped in the package is named 'map: {SHIPPED}NAME' (fieldbus.PDO_MAPS)"
+
+
 def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, DriveMap]) -> DriveMap:
-    """The drive map at ``raw``: relative to ``base`` (the network file's folder) or absolute.
+    """The drive map at ``raw``: relative to ``base`` (the network file's folder), absolute, or
+    ``shipped:NAME``, a map shipped in the package (:data:`fieldbus.PDO_MAPS`, no path needed).
 
     Refused before it is read: a path that does not end in .yaml/.yml, a directory, a missing file,
     a symbolic-link loop. Read, it must look like a drive map, else its content is not quoted.
@@ -478,6 +509,8 @@ def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, Drive
     rel = r.string(raw, path)
     if not rel.strip():
         raise r.err(path, "empty: give the drive map's path, relative to this file")
+    if rel.startswith(SHIPPED):
+        rel, base = _shipped(r, rel, path), SHIPPED_MAPS
     if Path(rel).suffix.lower() not in MAP_SUFFIXES:
         raise r.err(
             path, f"'{token(rel, PATH_CHARS)}' is not a drive map: a map's file name ends in .yaml or .yml"
@@ -490,7 +523,7 @@ def _drive(r: Reader, raw: Any, path: PathT, base: Path, cache: dict[Path, Drive
         if target.is_dir():
             raise r.err(path, f"map path {token(rel, PATH_CHARS)} is a directory, not a drive map")
         if not target.exists():
-            raise r.err(path, f"map file not found: {rel} (looked for {target})")
+            raise r.err(path, f"map file not found: {rel} (looked for {target}){_shipped_hint(target.name)}")
         try:
             doc = load_file(target)
         except PdoMapError as exc:

@@ -53,6 +53,15 @@ class _Loader(yaml.SafeLoader):
 
 _Loader.add_implicit_resolver(_FLOAT_TAG, _EXP_FLOAT, list("-+0123456789."))
 
+_FastLoader: type[Any] | None = None
+if getattr(yaml, "__with_libyaml__", False):
+
+    class _CLoader(yaml.CSafeLoader):
+        """libyaml's parser with the same resolvers: the same nodes and marks, several times faster."""
+
+    _CLoader.add_implicit_resolver(_FLOAT_TAG, _EXP_FLOAT, list("-+0123456789."))
+    _FastLoader = _CLoader
+
 
 def token(value: object, limit: int = TOKEN_CHARS) -> str:
     """``value`` as a short, printable token for a message (at most ``limit`` characters)."""
@@ -160,7 +169,25 @@ class Located:
 
 
 def load_located(text: str, file: str = "<string>") -> Located:
-    """Parse one YAML document; any syntax problem is a located :class:`PdoMapError`."""
+    """Parse one YAML document; any syntax problem is a located :class:`PdoMapError`.
+
+    With libyaml installed its parser reads the document; whatever it refuses (or any problem at all)
+    is read again by PyYAML's own, so the errors, their wording and positions are PyYAML's.
+    """
+    if _FastLoader is not None:
+        fast: Any = None
+        try:
+            fast = _FastLoader(text)
+            node = fast.get_single_node()
+            doc = Located(data=None, file=file)
+            if node is not None:
+                doc.data = _Builder(fast, doc).build(node, (), 0)[0]
+            return doc
+        except Exception:  # the pure-Python reader below says what is wrong
+            pass
+        finally:
+            if fast is not None:
+                fast.dispose()
     loader: yaml.SafeLoader | None = None
     try:
         loader = _Loader(text)

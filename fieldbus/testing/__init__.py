@@ -20,14 +20,18 @@ from fieldbus.runtime.clock import Clock, VirtualClock, WallClock
 from fieldbus.testing.checks import (
     EmulationAssertion,
     assert_all_enabled,
+    assert_drive_states,
+    assert_event,
     assert_inputs_held,
+    assert_no_event,
     assert_no_miss,
     assert_no_safe_stop,
+    assert_no_target_jump,
     assert_safe_stop_latched,
 )
 from fieldbus.testing.emulation import Emulation, emulate
 from fieldbus.testing.provider import EmulationError, EmulationUnavailable, FaultNotSupported
-from fieldbus.testing.trace import Trace
+from fieldbus.testing.trace import Trace, TraceEvent
 
 __all__ = [
     "Clock",
@@ -37,12 +41,17 @@ __all__ = [
     "EmulationUnavailable",
     "FaultNotSupported",
     "Trace",
+    "TraceEvent",
     "VirtualClock",
     "WallClock",
     "assert_all_enabled",
+    "assert_drive_states",
+    "assert_event",
     "assert_inputs_held",
+    "assert_no_event",
     "assert_no_miss",
     "assert_no_safe_stop",
+    "assert_no_target_jump",
     "assert_safe_stop_latched",
     "emulate",
     "firmware_image",

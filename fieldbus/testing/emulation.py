@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.core.cia402 import State402
-from fieldbus.core.network import Bus, NetworkConfig, load_network
+from fieldbus.core.network import Bus, NetworkConfig, load_network, row_names
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.runtime.clock import WALL, Clock, VirtualClock, is_virtual
@@ -103,8 +103,22 @@ class Emulation:
 
     def run(self, step: Callable[[int], bool | None], cycles: int, **options: Any) -> CycleTimer:
         """:func:`fieldbus.run_cycles` at the network's cycle time on :attr:`clock`; ``step(k)`` calls
-        ``op.exchange()`` itself, as a controller does. ``options`` go to ``run_cycles``."""
-        return run_cycles(step, self.cycle_time_us, cycles, clock=self.clock, **options)
+        ``op.exchange()`` itself, as a controller does; returning True stops early. ``options`` go to
+        ``run_cycles``.
+
+        ``k`` is the index of the cycle the step's ``exchange()`` runs, counted from bring-up and going
+        on across calls: ``CycleResult.cycle`` before that exchange, the row of :attr:`trace` it fills
+        (``run(step, 100)`` twice: k = 0..99, then 100..199). Before bring-up, 0..cycles-1.
+        """
+        op = self._op
+        if op is None:
+            return run_cycles(step, self.cycle_time_us, cycles, clock=self.clock, **options)
+        result = op.result
+
+        def indexed(_i: int) -> bool | None:
+            return step(result.cycle)
+
+        return run_cycles(indexed, self.cycle_time_us, cycles, clock=self.clock, **options)
 
     def cycles(self, n: int) -> None:
         """``n`` cycles of ``op.exchange()`` alone (outputs as they are), paced on :attr:`clock`."""
@@ -134,7 +148,8 @@ class Emulation:
         )
 
     def drive_states(self, bus: str) -> list[State402 | None]:
-        """Each slave's CiA 402 state as the emulated drive itself has it (None: not a drive).
+        """Each slave's (each axis of a multi-axis slave's) CiA 402 state as the emulated drive itself
+        has it (None: not a drive; :meth:`cia402_states` for a bus of drives, without ``None``).
 
         The emulator's side, not the master's: for checks that the drives really stopped.
         """
@@ -146,6 +161,17 @@ class Emulation:
         counts per unit), an in-process raw-CAN emulator each motor's position in its map's unit (rad),
         never wrapped; elsewhere :class:`FaultNotSupported`."""
         return self._bus(bus)[1].drive_positions()
+
+    def cia402_states(self, bus: str) -> list[State402]:
+        """:meth:`drive_states` of a bus of CiA 402 drives, typed without ``None``: a slave that is not
+        a CiA 402 drive raises :class:`~fieldbus.FieldbusError` naming it."""
+        out: list[State402] = []
+        rows = row_names(self._bus(bus)[0].slaves)  # a row per axis of a multi-axis slave
+        for row, state in zip(rows, self.drive_states(bus), strict=False):
+            if state is None:
+                raise FieldbusError(f"bus '{bus}': '{row}' is not a CiA 402 drive")
+            out.append(state)
+        return out
 
     # -- faults ------------------------------------------------------------------------------------
     def lose_cycles(self, bus: str, cycles: int) -> None:
@@ -316,6 +342,21 @@ class Emulation:
         """
         emu, i = self._slave(bus, slave)
         emu.sdo_abort(i, index, sub_index, code)
+
+    def slow_sdo(self, bus: str, slave: str, cycles: int) -> None:
+        """Slave ``slave``'s SDO server serves each request ``cycles`` cycles (SYNCs) late, with its
+        objects as they are then, until :meth:`clear_faults` (or ``cycles=0``). CANopen only.
+
+        Master: acyclic transfers to it take that much longer (the SDO client's timeout still bounds
+        them). A drive fault's error code (0x603F, read by SDO when the map does not map it) is read
+        that late: a controller that resets the fault before the read is served lets the drive clear
+        the code first, and the ``DriveFault`` comes with code 0 - what ``hold_reset`` (see
+        ``Operational.fault_code_pending``) prevents.
+        """
+        if cycles < 0:
+            raise FieldbusError(f"slow_sdo: cycles must be >= 0, got {cycles}")
+        emu, i = self._slave(bus, slave)
+        emu.slow_sdo(i, cycles)
 
     def clear_faults(self, bus: str) -> None:
         """Undo every pending or lasting injection on bus ``bus`` (not a power cycle already done)."""

@@ -104,6 +104,10 @@ class BusEmulator:
         """``slave`` loses power once an FoE write has taken ``after_bytes`` more bytes (then comes back)."""
         raise self._unsupported("firmware_power_loss")
 
+    def slow_sdo(self, slave: int, cycles: int) -> None:
+        """``slave``'s SDO server serves each request ``cycles`` cycles late (0: at once again)."""
+        raise self._unsupported("slow_sdo")
+
     def drive_fault(self, slave: int, code: int, axis: int = 0) -> None:
         """Fault ``slave``'s drive (``axis``: 0-based axis of a multi-axis slave) with error code ``code``."""
         raise self._unsupported("drive_fault")

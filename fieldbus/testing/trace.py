@@ -3,14 +3,26 @@
 A :class:`Trace` is filled by the emulation after each ``exchange()`` (the
 user's loop does not change): per cycle whether every bus was fresh, the
 safe-stop latch, per bus the verdict, working counter and per-slave
-freshness, and per axis group the inputs (as decoded this cycle) and the
-outputs (as they stand after the cycle: on the cycle a safe stop latches,
-the safe outputs that the next cycle sends). Arrays grow in chunks; the
-cycle index is the position in them (0 = the first cycle after bring-up).
+freshness, per axis group the inputs (as decoded this cycle) and the
+outputs (as this cycle's frame sent them), and every event of the cycle
+(:attr:`CycleResult.events <fieldbus.CycleResult>`: drive faults, safe stop,
+release, bus errors, whatever else a cycle reports) plus a ``recovered``
+event when a bus's recovery brought a slave back. Arrays grow in chunks; the
+cycle index is the position in them (0 = the first cycle after bring-up; it
+equals ``CycleResult.cycle`` before that cycle's ``exchange()``).
+
+Row k of the outputs is what cycle k sent: on the cycle the safe stop latches
+the row still holds the controller's values (that frame left before the
+misses were judged); the safe outputs appear from the next row on::
+
+    at = assert_safe_stop_latched(trace, within=12, since=since)
+    assert (trace.outputs("arm")["controlword"][at + 1] == 0x0002).all()  # quick stop from the next frame
 """
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +44,32 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> npt.NDArray[Any]:
         np.zeros(int(np.prod(shape)) * dt.itemsize, dtype=np.uint8).view(dt).reshape(shape)
     )
     return out
+
+
+def event_kind(event: object) -> str:
+    """The kind of a cycle event: its ``kind`` text (``BusEvent``: ``safe_stop``, ``released``,
+    ``bus_error``, ``acyclic_error``, ``recovered``), ``drive_fault`` for a ``DriveFault`` (raw-CAN
+    motor faults too), else its class name in snake case (``ClampEvent`` -> ``clamp_event``)."""
+    from fieldbus.core.drivefault import DriveFault
+
+    kind = getattr(event, "kind", None)
+    if isinstance(kind, str):
+        return kind
+    if isinstance(event, DriveFault):
+        return "drive_fault"
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", type(event).__name__).lower()
+
+
+@dataclass(frozen=True)
+class TraceEvent:
+    """An event of the cycle at trace row ``cycle``: ``event`` as the cycle reported it."""
+
+    cycle: int
+    kind: str
+    event: object
+
+    def __str__(self) -> str:
+        return f"cycle {self.cycle}: {self.kind}: {self.event}"
 
 
 class Trace:
@@ -61,6 +99,8 @@ class Trace:
         self._outputs = {
             k: np.zeros((0, g.image.n_axes), g.image.outputs.values.dtype) for k, g in op.groups.items()
         }
+        self._events: list[TraceEvent] = []
+        self._recoveries = [st.recoveries for st in op.result.buses]
 
     def _grow(self) -> None:
         cap = self._cap + CHUNK
@@ -78,7 +118,9 @@ class Trace:
         self._cap = cap
 
     def note_events(self, events: list[Any]) -> None:
-        """The cycle's events (kept in the result; nothing more to keep here)."""
+        """Keep the cycle's events (whatever ``CycleResult.events`` carries), at the row of this cycle."""
+        k = self.n
+        self._events.extend(TraceEvent(k, event_kind(e), e) for e in events)
 
     def close(self) -> None:
         """The network closed: the trace stays readable."""
@@ -94,6 +136,9 @@ class Trace:
             self._verdict[k, j] = int(st.verdict)
             self._wkc[k, j] = st.wkc
             self._slave_fresh[j][k] = st.fresh
+            if st.recoveries != self._recoveries[j]:  # a recovery brought a slave back in this cycle
+                self._recoveries[j] = st.recoveries
+                self._events.append(TraceEvent(k, "recovered", _Recovered(k, st.name, st.recoveries)))
         for name, g in self._op.groups.items():
             # field by field: a whole-record copy may carry bytes between the fields along
             for dst, src in (
@@ -146,14 +191,29 @@ class Trace:
             )
 
     def inputs(self, group: str) -> npt.NDArray[Any]:
-        """Per cycle and axis, group ``group``'s inputs in engineering units (a structured array)."""
+        """Per cycle and axis, group ``group``'s inputs in engineering units (a structured array:
+        ``trace.inputs("arm")["position_actual_value"][k, axis]``); a stale cycle's row holds the
+        inputs as they were held."""
         self._group(group)
         return self._inputs[group][: self.n]
 
     def outputs(self, group: str) -> npt.NDArray[Any]:
-        """Per cycle and axis, group ``group``'s outputs as they stood after the cycle."""
+        """Per cycle and axis, group ``group``'s outputs in engineering units as cycle k's frame sent
+        them (row k); the safe outputs of a stop latched in cycle k from row k + 1 on (see the module)."""
         self._group(group)
         return self._outputs[group][: self.n]
+
+    @property
+    def events(self) -> list[TraceEvent]:
+        """Every event so far, in order (a copy)."""
+        return list(self._events)
+
+    def events_of(
+        self, kind: str | None = None, *, since: int = 0, until: int | None = None
+    ) -> list[TraceEvent]:
+        """The events of kind ``kind`` (None: any) in cycles [``since``, ``until``)."""
+        end = self.n if until is None else until
+        return [e for e in self._events if since <= e.cycle < end and (kind is None or e.kind == kind)]
 
     def group_fresh(self, group: str) -> npt.NDArray[np.bool_]:
         """Per cycle and axis of group ``group``: that axis's slave delivered fresh inputs."""
@@ -183,3 +243,16 @@ class Trace:
             out[f"{g}.inputs"] = repack_fields(self.inputs(g))
             out[f"{g}.outputs"] = repack_fields(self.outputs(g))
         return out
+
+
+@dataclass(frozen=True)
+class _Recovered:
+    """A bus's recovery brought a slave back (``BusStatus.recoveries`` rose to ``recoveries``)."""
+
+    cycle: int
+    bus: str
+    recoveries: int
+    kind: str = "recovered"
+
+    def __str__(self) -> str:
+        return f"cycle {self.cycle} bus '{self.bus}': recovered (recoveries {self.recoveries})"

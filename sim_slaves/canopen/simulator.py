@@ -44,7 +44,7 @@ class CanopenSimulator(BusThread):
     """Nodes ``[(drive_map, node_id), ...]`` on ``bus``; a context manager (start/stop).
 
     Fault hooks (thread-safe): :meth:`drop_tpdos`, :meth:`silence_heartbeat`,
-    :meth:`send_emergency`, :meth:`abort_sdo`, :meth:`bus_off`, :meth:`power_cycle`.
+    :meth:`send_emergency`, :meth:`abort_sdo`, :meth:`slow_sdo`, :meth:`bus_off`, :meth:`power_cycle`.
     """
 
     thread_name = "canopen-nodes"
@@ -100,6 +100,8 @@ class CanopenSimulator(BusThread):
         self._next_tick = 0.0
         self._routes: dict[int, list[CanopenNode]] | None = None  # RPDO COB-ID -> consumers
         self._corrupt: dict[int, int] = {}  # node id -> TPDOs still to send inverted
+        self._sdo_delay: dict[int, int] = {}  # node id -> SYNCs its SDO server takes per request
+        self._sdo_held: list[tuple[int, int, bytes]] = []  # (SYNC count when served, node id, request)
 
     def node(self, node_id: int) -> CanopenNode:
         return self.nodes[node_id]
@@ -141,6 +143,25 @@ class CanopenSimulator(BusThread):
         with self._lock:
             self.nodes[node_id].od.inject_abort(index, sub, code)
 
+    def slow_sdo(self, node_id: int, syncs: int) -> None:
+        """The node's SDO server takes ``syncs`` SYNCs (cycles) per request: it serves each request, and
+        answers, only after that many SYNCs, with the objects as they are then (0: at once again)."""
+        with self._lock:
+            self._sdo_delay[node_id] = max(0, int(syncs))
+
+    def _serve_held_sdo(self) -> None:
+        """Serve the held SDO requests whose time has come (after a SYNC)."""
+        due = [h for h in self._sdo_held if h[0] <= self.syncs]
+        if not due:
+            return
+        self._sdo_held = [h for h in self._sdo_held if h[0] > self.syncs]
+        for _, node_id, req in due:
+            node = self.nodes.get(node_id)
+            if node is not None and not node.bus_off:
+                reply = node.sdo(req)
+                if reply is not None:
+                    self._send([reply])
+
     def bus_off(self, node_id: int, off: bool = True) -> None:
         """The node stops sending and receiving (CAN bus-off); back on: it boots again (reset node)."""
         with self._lock:
@@ -159,6 +180,7 @@ class CanopenSimulator(BusThread):
         """Undo every injection: dropped and corrupted TPDOs, silent heartbeats, SDO aborts."""
         with self._lock:
             self._corrupt.clear()
+            self._sdo_delay.clear()
             for node in self.nodes.values():
                 node.drop_tpdos = 0
                 node.heartbeat_silent = False
@@ -207,6 +229,8 @@ class CanopenSimulator(BusThread):
             self._last_sync = now
             self.syncs += 1
             self._sync(dt, now)
+            if self._sdo_held:
+                self._serve_held_sdo()
             self.sync_cpu_s += time.thread_time() - t0
             return
         if cob == COB_NMT:
@@ -227,7 +251,10 @@ class CanopenSimulator(BusThread):
         if COB_RSDO < cob <= COB_RSDO + 127:
             self._routes = None
             target = self.nodes.get(cob - COB_RSDO)
-            if target is not None and not target.bus_off:
+            delay = self._sdo_delay.get(cob - COB_RSDO, 0) if self._sdo_delay else 0
+            if target is not None and not target.bus_off and delay:
+                self._sdo_held.append((self.syncs + delay, target.node_id, data))
+            elif target is not None and not target.bus_off:
                 reply = target.sdo(data)
                 if reply is not None:
                     self._send([reply])

@@ -276,7 +276,10 @@ class CanBus(BusEmulator):
                 app.inject_fault(code, axis=axis)
             else:
                 app.inject_fault(code)
-            sim.send_emergency(n, code, 0x01)
+            # a multi-axis node says which axis faulted: manufacturer-specific byte 0 = the axis, 1-based
+            # (CiA 301 leaves the 5 bytes to the manufacturer; this emulator's convention)
+            data = bytes([axis + 1]) if hasattr(app, "drives") else b""
+            sim.send_emergency(n, code, 0x01, data)
             return
         if self.kind == "mit":
             raise self._unsupported("drive_fault", "MIT-mode motors (family mit) report no error code")
@@ -332,6 +335,12 @@ class CanBus(BusEmulator):
         if self.kind != "canopen":
             raise self._unsupported("sdo_abort", "raw-CAN motors have no object dictionary")
         sim.abort_sdo(self.node_ids[slave], index, sub_index, code)
+
+    def slow_sdo(self, slave: int, cycles: int) -> None:
+        sim = self._need_sim("slow_sdo")
+        if self.kind != "canopen":
+            raise self._unsupported("slow_sdo", "raw-CAN motors have no SDO server")
+        sim.slow_sdo(self.node_ids[slave], cycles)
 
     def clear_faults(self) -> None:
         sim = self._need_sim("clear_faults")

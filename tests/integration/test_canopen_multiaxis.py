@@ -159,3 +159,16 @@ def test_drive_fault_on_axis_2_of_a_canopen_node_is_that_axis_s_event(tmp_path: 
         emu.run(step, cycles=50)
         assert [(f.slave, f.axis, f.slave_axis, f.code) for f in faults] == [("elbow", 3, 1, 0x7300)]
         assert any(e.code == 0x7300 and e.node_id == 4 for e in emu.network.backend("arm").emergencies)
+
+
+def test_a_multi_axis_nodes_emcy_names_the_axis_that_faulted(tmp_path: Path) -> None:
+    """EMCY manufacturer byte 0 is the faulted axis (1-based) on a multi-axis node: the code alone
+    (0x7300 on either axis) would not say which one."""
+    with emulate(_network(tmp_path, _two_axis_map(tmp_path))) as emu:
+        emu.cycles(50)
+        backend = emu.network.backend("arm")
+        emu.drive_fault("arm", "elbow", 0x7300, axis=2)
+        emu.drive_fault("arm", "shoulder", 0x7300, axis=1)
+        emu.cycles(5)
+        got = [(e.node_id, e.code, e.data[0]) for e in backend.emergencies]  # type: ignore[attr-defined]
+    assert got == [(4, 0x7300, 2), (3, 0x7300, 1)], got

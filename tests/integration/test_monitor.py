@@ -21,6 +21,7 @@ from fieldbus.cli import main
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode
 from fieldbus.network import open_network
+from fieldbus.runtime.clock import VirtualClock
 from fieldbus.runtime.monitor import Monitor
 
 pytestmark = pytest.mark.timeout(120)
@@ -36,13 +37,17 @@ def _sim_net(tmp_path: Path, axes: int = 3) -> Path:
 
 
 def test_view_shows_states_freshness_and_misses_as_the_cycle_sees_them(tmp_path: Path) -> None:
-    with open_network(_sim_net(tmp_path), backend="sim") as net:
+    # on a virtual clock (1 ms of it per cycle): a loaded machine cannot make a reply late, so the
+    # misses the view shows are exactly the 3 frames dropped
+    clock = VirtualClock()
+    with open_network(_sim_net(tmp_path), backend="sim", clock=clock) as net:
         op = net.bring_up()
         img = op["legs"]
         ctrl = Cia402Controller(3, mode=Mode.CSP)
         ctrl.set_goal(Goal.ENABLE)
         for _ in range(300):
             op.exchange()
+            clock.advance(1_000_000)
             ctrl.step(img.inputs["statusword"], img.outputs["controlword"])
         mon = Monitor(op)
         snap = mon.snapshot()
@@ -53,6 +58,7 @@ def test_view_shows_states_freshness_and_misses_as_the_cycle_sees_them(tmp_path:
         net.backends[0].chain.drop_frames(3, process_data=True)  # type: ignore[attr-defined]
         for _ in range(3):
             op.exchange()
+            clock.advance(1_000_000)
         snap = mon.snapshot()
         bus = snap["buses"][0]
         assert bus["misses"] == 3 and bus["consecutive_misses"] == 3 and bus["verdict"] == "TIMEOUT"
@@ -114,6 +120,8 @@ def test_canopen_view_names_nmt_states_and_the_last_emcy(tmp_path: Path) -> None
 
 
 def test_demo_with_monitor_runs_and_prints_the_view(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["demo", "--axes", "2", "--cycles", "300", "--monitor"]) == 0
+    # what is checked is the view; the demo runs on the wall clock, where a loaded machine's misses may
+    # latch a safe stop (exit 3: the demo's own verdict, tested in test_demo)
+    assert main(["demo", "--axes", "2", "--cycles", "300", "--monitor"]) in (0, 3)
     err = capsys.readouterr().err
     assert "joints (sim)" in err and "j1" in err

@@ -2,7 +2,8 @@
 the safe stop writes what each map declares, buses run at their own cycle times.
 
 Two EtherCAT buses on the in-process emulator (the sim backend: real frames
-against the ESC chain, emulated CiA 402 drives behind it).
+against the ESC chain, emulated CiA 402 drives behind it). Tests that enable the drives run on a
+virtual clock (1 ms of it per cycle), so a loaded machine cannot turn a slow reply into a miss.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.network import Network
+from fieldbus.runtime.clock import VirtualClock
 from sim_slaves.ethercat.runner import handle_control
 
 
@@ -39,13 +41,20 @@ def _drive_states(net: Network, bus: int) -> list[int]:
     return list(status["drive_states"])
 
 
-def _enable_all(op: fieldbus.Operational) -> None:
+def _open_virtual(path: Path) -> Network:
+    """The network on the sim backend, on a virtual clock (time passes only in :func:`_enable_all`
+    and in the master's own waits)."""
+    return fieldbus.open_network(path, backend="sim", clock=VirtualClock())
+
+
+def _enable_all(op: fieldbus.Operational, clock: Any) -> None:
     ctrls = {}
     for name in op:
         ctrls[name] = Cia402Controller(op[name].n_axes, mode=Mode.CSP)
         ctrls[name].set_goal(Goal.ENABLE)
     for _ in range(200):
         op.exchange()
+        clock.advance(op.cycle_time_us * 1000)
         for name, c in ctrls.items():
             img = op[name]
             c.step(img.inputs["statusword"], img.outputs["controlword"])
@@ -60,9 +69,9 @@ class Boom(RuntimeError):
 
 
 def test_close_closes_every_bus_when_the_first_close_raises(tmp_path: Path) -> None:
-    net = fieldbus.open_network(_two_buses(tmp_path), backend="sim")
+    net = _open_virtual(_two_buses(tmp_path))
     op = net.bring_up()
-    _enable_all(op)
+    _enable_all(op, net.clock)
     legs, arms = net.backends
     real_close = legs.close
     calls: list[str] = []
@@ -91,9 +100,9 @@ def test_close_closes_every_bus_when_the_first_close_raises(tmp_path: Path) -> N
 
 
 def test_a_second_ctrl_c_in_the_wind_down_still_stops_and_closes_every_bus(tmp_path: Path) -> None:
-    net = fieldbus.open_network(_two_buses(tmp_path), backend="sim")
+    net = _open_virtual(_two_buses(tmp_path))
     op = net.bring_up()
-    _enable_all(op)
+    _enable_all(op, net.clock)
     legs, arms = net.backends
     real_send = legs.send
     interrupted = []

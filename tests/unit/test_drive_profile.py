@@ -254,3 +254,74 @@ def test_profile_modes_in_the_drive_and_the_bank_agree_step_for_step_and_end_on_
     assert not sw[1600] & REACHED  # decelerating through zero at 0x6084
     assert abs(vel[2400] + 50_000) <= 1000 and sw[2400] & REACHED
     assert abs(vel[-1]) <= 1000 and sw[-1] & ACK and sw[-1] & REACHED
+
+
+CHANGE_ON_SETPOINT = 0x200  # controlword bit 9
+
+
+def _pp_run(scenario: Scenario, option: int = 0, cycles: int = 2500) -> tuple[np.ndarray, np.ndarray]:
+    """A PP scenario on the scalar drive and the bank side by side (they must agree); positions and
+    statuswords per cycle. ``option``: 0x60F2."""
+    p = DriveParams()
+    drive, bank = Cia402Drive(p), DriveBank([p])
+    s_od, b_od = _od(p, 1), _od(p, 1)
+    for od in (s_od, b_od):
+        od.values[(0x60F2, 0)] = option
+    pos, sws = np.zeros(cycles, dtype=np.int64), np.zeros(cycles, dtype=np.int64)
+    for k in range(cycles):
+        cw, tp, _ = scenario(k)
+        for od in (s_od, b_od):
+            od.values[(Obj.CONTROLWORD, 0)] = cw
+            od.values[(Obj.TARGET_POSITION, 0)] = tp
+        drive.step(s_od, DT)
+        bank.load_inputs(0, b_od)
+        bank.step(0, 1, DT)
+        bank.store_outputs(0, b_od)
+        assert b_od.values[(Obj.STATUSWORD, 0)] == s_od.values[(Obj.STATUSWORD, 0)], k
+        pos[k] = int(s_od.values[(Obj.POSITION_ACTUAL, 0)])
+        sws[k] = int(s_od.values[(Obj.STATUSWORD, 0)])
+    return pos, sws
+
+
+def _two_setpoints(bit9: int) -> Scenario:
+    def scenario(k: int) -> tuple[int, int, int]:
+        if k < 100:
+            return _enable(k) | (NEW if 10 <= k < 15 else 0), 100_000, 0
+        return 0x0F | (NEW | bit9 if 100 <= k < 105 else 0), 200_000, 0
+
+    return scenario
+
+
+def test_change_on_setpoint_passes_the_first_target_at_speed_instead_of_stopping_on_it() -> None:
+    queued, _ = _pp_run(_two_setpoints(0), cycles=3500)
+    flying, sw = _pp_run(_two_setpoints(CHANGE_ON_SETPOINT), cycles=3500)
+    window = DriveParams().position_window_counts
+
+    def speed_at(pos: np.ndarray, where: int) -> float:
+        k = int(np.flatnonzero(pos >= where)[0])
+        return float(pos[k + 1] - pos[k - 1]) / (2 * DT)
+
+    assert speed_at(queued, 100_000) < 0.1 * V_PROFILE  # bit 9 low: rest on the first target
+    assert speed_at(flying, 100_000) > 0.9 * V_PROFILE  # bit 9: through it at the profile velocity
+    assert abs(flying[-1] - 200_000) <= window and abs(queued[-1] - 200_000) <= window and sw[-1] & REACHED
+    assert int(np.flatnonzero(flying >= 200_000 - window)[0]) < int(
+        np.flatnonzero(queued >= 200_000 - window)[0]
+    )
+
+
+@pytest.mark.parametrize("option", [0, 2])
+def test_positioning_option_code_says_what_a_relative_target_is_relative_to(option: int) -> None:
+    """0x60F2 bits 0-1: 0 the preceding target, 2 the actual position. The first relative move of
+    50,000 is halted at ~30,000 (bit 8) and released at once with a second relative 50,000."""
+
+    def scenario(k: int) -> tuple[int, int, int]:
+        edge = 10 <= k < 15 or 700 <= k < 705
+        halt = HALT if 200 <= k < 700 else 0
+        return _enable(k) | (NEW | RELATIVE | IMMEDIATE if edge else 0) | halt, 50_000, 0
+
+    pos, sw = _pp_run(scenario, option, cycles=3000)
+    halted_at = int(pos[699])
+    assert 20_000 < halted_at < 45_000
+    want = 100_000 if option == 0 else halted_at + 50_000
+    assert abs(pos[-1] - want) <= DriveParams().position_window_counts, (pos[-1], want)
+    assert sw[-1] & REACHED
