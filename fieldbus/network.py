@@ -38,7 +38,9 @@ from fieldbus.backends.base import AxisGroup, Backend, SdoRequest
 from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
+from fieldbus.core.output_rules import OutputClamp, OutputRules, channel_limits
 from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.names import STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
 from fieldbus.core.winddown import DISABLE_CYCLES, MAX_BUDGET_S, WindDown, WindDownReport
@@ -86,7 +88,7 @@ class CycleObserver(Protocol):
 
     def capture(self, res: CycleResult, t0_ns: int) -> None: ...
 
-    def note_events(self, events: list[BusEvent | DriveFault]) -> None: ...
+    def note_events(self, events: list[BusEvent | DriveFault | OutputClamp]) -> None: ...
 
     def close(self) -> None: ...
 
@@ -188,7 +190,7 @@ class CycleResult:
     fresh: bool = False  # every slave of every bus fresh
     safe_stop: bool = False  # any bus escalated to a safe stop (latched)
     exchange_ns: int = 0  # time spent in exchange(), ns
-    events: list[BusEvent | DriveFault] = field(
+    events: list[BusEvent | DriveFault | OutputClamp] = field(
         default_factory=list
     )  # what happened in this cycle (new list each)
     drive_faults: dict[str, npt.NDArray[np.int64]] = field(
@@ -473,6 +475,23 @@ class Operational(_Phase):
             plan = safe_stop_plan(g.slaves[0].map, g.image.layout)
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
+        # the one output path: every group's command values pass the rules before any codec (output_rules)
+        self.output_rules: dict[str, OutputRules] = {}
+        self._encoders: list[list[tuple[OutputRules, ProcessImage]]] = []
+        for b in net.backends:
+            enc = []
+            for g in b.groups:
+                lay = g.image.layout
+                sw = lay.inputs.find(STATUSWORD)
+                rules = OutputRules(
+                    g.name,
+                    g.image.outputs,
+                    channel_limits(g.slaves[0].map, lay.outputs, b.bus.cycle_time_us / 1e6),
+                    g.image.inputs.values[sw.name] if sw is not None and not sw.channel.scaled else None,
+                )
+                self.output_rules[g.name] = rules
+                enc.append((rules, g.image))
+            self._encoders.append(enc)
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
         self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
         self._bus_off: list[int | None] = [
@@ -545,13 +564,12 @@ class Operational(_Phase):
         if res.safe_stop:
             for w in self._writers:
                 w.apply()
-        for b, _, st, every in self._pairs:
+        for k, (b, _, st, every) in enumerate(self._pairs):
             st.ran = cycle % every == 0
             st.error = None
             if st.ran:
                 try:
-                    for g in b.groups:
-                        g.image.outputs.to_wire()
+                    self._encode(k, cycle)
                     b.send()
                 except Exception as exc:
                     st.error = _reason(exc)
@@ -578,6 +596,20 @@ class Operational(_Phase):
             for w in self._writers:  # effective from the next cycle's outputs
                 w.apply()
         return res
+
+    def _encode(self, k: int, cycle: int) -> None:
+        """The one output path of bus ``k``: each group's outputs pass the rules, then are encoded.
+
+        A refused value (NaN, infinity, out of the map's window, too big a step) is replaced in the image
+        before ``to_wire()`` and before a raw-CAN family reads it; its streak's first cycle is an
+        :class:`~fieldbus.core.output_rules.OutputClamp` event.
+        """
+        for rules, image in self._encoders[k]:
+            if rules.apply():
+                self.result.events.extend(rules.events(cycle))
+            else:
+                rules.settle()
+            image.outputs.to_wire()
 
     def _receive(self, k: int, b: Backend, policy: SafetyPolicy, st: BusStatus, cycle: int) -> None:
         """Receive, judge and accept one bus's cycle; recovery and acyclic steps. Never raises (S1)."""
@@ -941,11 +973,10 @@ class Operational(_Phase):
             w.apply(word)
         res = self.result
         cycle = res.cycle
-        for b, _, st, _ in self._pairs:
+        for k, (b, _, st, _) in enumerate(self._pairs):
             st.ran, st.error = True, None
             try:
-                for g in b.groups:
-                    g.image.outputs.to_wire()
+                self._encode(k, cycle)
                 b.send()
             except Exception as exc:
                 st.error = _reason(exc)
