@@ -22,6 +22,7 @@ from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import load_network
+from fieldbus.core.output_rules import OutputClamp
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
@@ -66,6 +67,7 @@ __all__ = [
     "HomingPhase",
     "Mode",
     "Operational",
+    "OutputClamp",
     "PdoMapError",
     "PhaseError",
     "ProcessImage",
