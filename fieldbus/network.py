@@ -118,6 +118,7 @@ class BusView:
     backend: Backend
     policy: SafetyPolicy
     status: BusStatus
+    rules: tuple[OutputRules, ...] = ()  # the output path's rules of its groups (S11)
 
     @property
     def name(self) -> str:
@@ -133,12 +134,14 @@ class BusView:
 
     def counters(self) -> dict[str, int]:
         """Faults the bus absorbed since bring-up: late replies, stale and extra frames, transmit errors,
-        bus-off events, emergencies (0 where the bus has no such thing), and the policy's misses and errors.
+        bus-off events, emergencies (0 where the bus has no such thing), the policy's misses and errors,
+        and the command values the output path refused (``output_clamps``).
         """
         out = {name: int(getattr(self.backend, name, 0) or 0) for name in COUNTERS}
         st = self.policy.stats
         out.update(misses=st.misses, timeouts=st.timeouts, short=st.short, errors=st.errors)
         out.update(safe_stops=st.safe_stops, releases=st.releases, recoveries=self.backend.recoveries)
+        out["output_clamps"] = sum(int(r.counts.sum()) for r in self.rules)  # command values refused (S11)
         return out
 
     def slave_state(self, i: int) -> str:
@@ -493,7 +496,10 @@ class Operational(_Phase):
                 enc.append((rules, g.image))
             self._encoders.append(enc)
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
-        self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
+        self.buses: tuple[BusView, ...] = tuple(
+            BusView(b, p, st, tuple(r for r, _ in enc))
+            for (b, p, st, _), enc in zip(self._pairs, self._encoders, strict=True)
+        )
         self._bus_off: list[int | None] = [
             int(getattr(b, "bus_off", 0)) if hasattr(b, "bus_off") else None for b in net.backends
         ]

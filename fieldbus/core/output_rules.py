@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -158,28 +158,38 @@ def channel_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> tup
 
 
 class _Block:
-    """Columns of one dtype the rules work on in place: ``x`` (N, m), or a float64 copy of an integer column."""
+    """Columns of one dtype the rules work on in place: ``x`` (N, m), or a float64 copy of an integer column.
+
+    The clean cycle costs a clamp and one comparison (plus the step's): a side without a limit is
+    clamped at the dtype's largest finite number, so NaN (NaN != NaN) and infinities show up as a
+    change and take the slow path, which tells the reasons apart.
+    """
 
     def __init__(
         self, x: npt.NDArray[Any], names: list[str], limits: list[ChannelLimit], src: Any = None
     ) -> None:
         n, m = x.shape
-        self.x, self.names, self.src = x, names, src  # src: the integer column (N,) copied in and out
+        self.view = x  # the image's columns (strided): gathered into ``x`` once, written back when changed
+        self.x = np.ascontiguousarray(x)
+        self.names, self.src = names, src  # src: the integer column (N,) copied in and out
         dt = x.dtype
+        big = float(np.finfo(dt).max)
+
+        def per_axis(values: list[float]) -> npt.NDArray[Any]:
+            return np.ascontiguousarray(np.broadcast_to(np.array(values, dtype=dt), (n, m)))
+
         self.last = np.array(x, dtype=dt, copy=True)  # what was sent last
-        self.lo = np.ascontiguousarray(
-            np.broadcast_to(np.array([lim.min for lim in limits], dtype=dt), (n, m))
-        )
-        self.hi = np.ascontiguousarray(
-            np.broadcast_to(np.array([lim.max for lim in limits], dtype=dt), (n, m))
-        )
-        steps = np.array([lim.max_step for lim in limits], dtype=dt)
-        self.stepped = bool(np.isfinite(steps).any())
-        self.step = np.ascontiguousarray(np.broadcast_to(steps, (n, m)))
+        self.lo = per_axis([max(lim.min, -big) for lim in limits])
+        self.hi = per_axis([min(lim.max, big) for lim in limits])
+        self.open_lo = per_axis([lim.min == -math.inf for lim in limits]).astype(bool)
+        self.open_hi = per_axis([lim.max == math.inf for lim in limits]).astype(bool)
+        steps = [lim.max_step for lim in limits]
+        self.stepped = any(math.isfinite(v) for v in steps)
+        self.step = per_axis([min(v, big) for v in steps])
         self.nstep = np.negative(self.step)
-        self.limited = bool(np.isfinite(self.lo).any() or np.isfinite(self.hi).any())
         self.asked = np.zeros((n, m), dtype=dt)
         self.work = np.zeros((n, m), dtype=dt)
+        self.delta = np.zeros((n, m), dtype=dt)
         self.ok = np.zeros((n, m), dtype=bool)
         self.flag = [np.zeros((n, m), dtype=bool) for _ in Reason]  # per reason: refused this cycle
         self.was = np.zeros((n, m), dtype=bool)  # refused the cycle before (streaks: one event each)
@@ -187,62 +197,65 @@ class _Block:
         self.per_axis = np.zeros(n, dtype=bool)
         self.hit = False
         self.started = False  # the first cycle sets the reference of the step rule
-        self.col = x[:, 0]
+        self.col = self.x[:, 0]
 
-    def apply(self, engaged: npt.NDArray[np.bool_] | None) -> bool:
+    def apply(self, engaged: Callable[[], npt.NDArray[np.bool_]] | None) -> bool:
         """The rules on this block; True when a value was refused (the flags then say which).
 
-        ``engaged``: (N, 1) per axis, the step rule applies (None: every axis, after the first cycle).
+        ``engaged()``: (N, 1) per axis, the step rule applies (None: every axis, after the first cycle).
         """
-        x, last, ok, asked = self.x, self.last, self.ok, self.asked
+        x, last, w, ok = self.x, self.last, self.work, self.ok
         if self.src is not None:
             np.copyto(self.col, self.src, casting="unsafe")
+        else:
+            np.copyto(x, self.view)
         if self.hit:
             for f in self.flag:
                 f.fill(False)
         hit = False
-        np.isfinite(x, out=ok)
-        if not ok.all():
+        np.minimum(x, self.hi, out=w)
+        np.maximum(w, self.lo, out=w)
+        np.not_equal(w, x, out=ok)  # NaN, an infinity or out of the window
+        if np.count_nonzero(ok):
             hit = True
-            np.copyto(asked, x)
-            nan = self.flag[Reason.NAN]
-            np.isnan(x, out=nan)
-            np.isinf(x, out=self.flag[Reason.INF])
-            np.copyto(x, last, where=nan)
-        if self.limited:
-            np.clip(x, self.lo, self.hi, out=self.work)
-            np.not_equal(self.work, x, out=ok)
-            if ok.any():
-                if not hit:
-                    np.copyto(asked, x)
-                    hit = True
-                rng = self.flag[Reason.RANGE]
-                np.isfinite(asked, out=rng)
-                np.logical_and(rng, ok, out=rng)
-                np.copyto(x, self.work)
-        if hit:  # an infinity with no limit on its side: the value sent last
-            np.isinf(x, out=ok)
-            np.copyto(x, last, where=ok)
+            self._refuse()
         if self.stepped and self.started:
-            w, big = self.work, self.flag[Reason.STEP]
-            np.subtract(x, last, out=w)
-            np.greater(w, self.step, out=big)
-            np.less(w, self.nstep, out=ok)
-            np.logical_or(big, ok, out=big)
-            if engaged is not None:
-                np.logical_and(big, engaged, out=big)
-            if big.any():
+            d, big = self.delta, self.flag[Reason.STEP]
+            np.subtract(x, last, out=d)
+            np.minimum(d, self.step, out=w)
+            np.maximum(w, self.nstep, out=w)
+            np.not_equal(w, d, out=big)
+            if np.count_nonzero(big) and engaged is not None:  # only then: which axes are engaged
+                np.logical_and(big, engaged(), out=big)
+            if np.count_nonzero(big):
                 if not hit:
-                    np.copyto(asked, x)
+                    np.copyto(self.asked, x)
                     hit = True
-                np.clip(w, self.nstep, self.step, out=w)
                 np.add(last, w, out=x, where=big)
         self.started = True
         np.copyto(last, x)
-        if self.src is not None:
-            np.rint(self.col, out=self.src, casting="unsafe")
+        if hit:  # what is sent instead, back into the image (the controller reads what went out)
+            if self.src is not None:
+                np.rint(self.col, out=self.src, casting="unsafe")
+            else:
+                np.copyto(self.view, x)
         self.hit = hit
         return hit
+
+    def _refuse(self) -> None:
+        """The slow path (a value changed by the clamp in ``work``): reasons, and NaN / open-side inf -> last."""
+        x, asked, ok, flag = self.x, self.asked, self.ok, self.flag
+        np.copyto(asked, x)
+        np.isnan(asked, out=flag[Reason.NAN])
+        np.isinf(asked, out=flag[Reason.INF])
+        rng = flag[Reason.RANGE]
+        np.isfinite(asked, out=rng)
+        np.logical_and(rng, ok, out=rng)
+        np.copyto(x, self.work)
+        np.copyto(x, self.last, where=flag[Reason.NAN])
+        # an infinity towards a side without a limit keeps the value sent last (never the dtype's maximum)
+        keep = flag[Reason.INF] & (((asked > 0) & self.open_hi) | ((asked < 0) & self.open_lo))
+        np.copyto(x, self.last, where=keep)
 
 
 class OutputRules:
@@ -292,18 +305,16 @@ class OutputRules:
         self._engaged = np.ones(n, dtype=bool) if statusword is not None else None
         self._engaged2d = self._engaged[:, None] if self._engaged is not None else None
         self._sw = np.zeros(n, dtype=np.uint16)
+        self._mask, self._enabled = np.uint16(OPERATION_ENABLED_MASK), np.uint16(OPERATION_ENABLED)
         self._stepped = any(b.stepped for b in self.blocks)
         self.refused_now = False  # a value was refused in the last apply()
 
     def apply(self) -> bool:
         """The rules on every output value of the group, in place; True when one was refused this cycle."""
-        engaged = self._engaged
-        if engaged is not None and self._stepped and self._statusword is not None:
-            np.bitwise_and(self._statusword, OPERATION_ENABLED_MASK, out=self._sw)
-            np.equal(self._sw, OPERATION_ENABLED, out=engaged)
         hit = False
+        engaged = self._engaged_now if self._engaged is not None else None
         for b in self.blocks:
-            if b.apply(self._engaged2d):
+            if b.apply(engaged):
                 hit = True
                 for r in Reason:
                     np.logical_or.reduce(b.flag[r], axis=1, out=b.per_axis)
@@ -311,6 +322,14 @@ class OutputRules:
                     np.add(col, b.per_axis, out=col)
         self.refused_now = hit
         return hit
+
+    def _engaged_now(self) -> npt.NDArray[np.bool_]:
+        """(N, 1): the axes whose statusword says operation enabled (read when a step is too big only)."""
+        assert self._statusword is not None and self._engaged is not None
+        np.bitwise_and(self._statusword, self._mask, out=self._sw)
+        np.equal(self._sw, self._enabled, out=self._engaged)
+        assert self._engaged2d is not None
+        return self._engaged2d
 
     def events(self, cycle: int) -> list[OutputClamp]:
         """This cycle's new refusals (the first cycle of each streak per axis and channel), as events."""
@@ -339,5 +358,5 @@ class OutputRules:
     def settle(self) -> None:
         """No refusal this cycle: streaks end (call instead of :meth:`events` on a clean cycle)."""
         for b in self.blocks:
-            if b.was.any():
+            if np.count_nonzero(b.was):
                 b.was.fill(False)

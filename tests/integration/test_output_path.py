@@ -97,6 +97,7 @@ def test_ethercat_inf_nan_and_out_of_window_targets_never_reach_the_drive(sim_ne
     ]
     assert clamps[2].asked == 1e6 and clamps[2].sent == pytest.approx(3.0, abs=1e-4)
     assert op.output_rules["arm"].counts.sum(axis=1).tolist() == [1, 1, 1]
+    assert op.buses[0].counters()["output_clamps"] == 3  # what the monitor and the DDS diagnostics show
     out["target_position"][:] = -1e9
     op.exchange()
     assert received_targets(sim_net) == [WINDOW[0]] * 3
