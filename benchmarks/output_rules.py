@@ -57,10 +57,10 @@ def contenders(n: int) -> dict[str, object]:
         ("rules+pack, NaN", True, True),
     ):
         img = ProcessImage(layout(drive), n)
-        rules = OutputRules(
-            "g", img.outputs, channel_limits(drive, img.layout.outputs, 0.001), img.inputs["statusword"]
-        )
-        img.inputs["statusword"][:] = 0x0237  # operation enabled: the step rule applies
+        inp = img.inputs
+        limits = channel_limits(drive, img.layout.outputs, 0.001)
+        rules = OutputRules("g", img.outputs, limits, inp["statusword"], inp["modes_of_operation_display"])
+        inp["statusword"][:], inp["modes_of_operation_display"][:] = 0x0237, 8  # CSP, enabled: steps apply
         q = d.q.copy()
         if nan:
             q[0] = math.nan

@@ -57,6 +57,7 @@ from fieldbus.runtime.clock import WALL, Clock
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder
 
+MODES_DISPLAY = 0x6061  # CiA 402 modes of operation display: the output path's step rule holds in 8-10
 CLOSE_CYCLES = DISABLE_CYCLES  # cycles of disable voltage sent on close, after the quick stop is done
 PER_BUS_OPTIONS = ("can_bus", "can_log", "pcap")  # options naming one bus's own instance or file
 MAX_SDO_BYTES = 1 << 20  # the largest SDO download accepted at submit, bytes
@@ -485,12 +486,13 @@ class Operational(_Phase):
             enc = []
             for g in b.groups:
                 lay = g.image.layout
-                sw = lay.inputs.find(STATUSWORD)
+                sw, md = lay.inputs.find(STATUSWORD), lay.inputs.find(MODES_DISPLAY)
                 rules = OutputRules(
                     g.name,
                     g.image.outputs,
                     channel_limits(g.slaves[0].map, lay.outputs, b.bus.cycle_time_us / 1e6),
                     g.image.inputs.values[sw.name] if sw is not None and not sw.channel.scaled else None,
+                    g.image.inputs.values[md.name] if md is not None and not md.channel.scaled else None,
                 )
                 self.output_rules[g.name] = rules
                 enc.append((rules, g.image))

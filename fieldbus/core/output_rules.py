@@ -9,8 +9,9 @@ family's mode frame built from the image, ``ProfileMove``, ``Homing``, the safe 
   last (it never becomes the wire type's maximum, e.g. INT32_MAX);
 - **out of range** (outside the map's ``min..max`` window) saturates to the window;
 - **too big a step** (``max_step`` per cycle, or ``max_rate`` x the bus cycle time) is clamped to the step,
-  on axes that are engaged (CiA 402: operation enabled); an axis that is not follows what is asked, so
-  enabling it starts from where the controller is;
+  on axes that are engaged (CiA 402: operation enabled in a cyclic synchronous mode, 8-10, when the map
+  has 0x6061); an axis that is not follows what is asked, so enabling it starts from where the controller
+  is, and a profile mode's target (a destination: ``ProfileMove``) is not ramped;
 - every refused value is counted per axis and reason (:attr:`OutputRules.counts`) and the first cycle
   of a refusal streak of one axis's channel is an :class:`OutputClamp` event (asked, sent).
 
@@ -39,6 +40,7 @@ from fieldbus.errors import FieldbusError
 TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE = 0x607A, 0x60FF, 0x6071
 SOFTWARE_POSITION_LIMIT, MAX_PROFILE_VELOCITY, MAX_TORQUE = 0x607D, 0x607F, 0x6072
 OPERATION_ENABLED_MASK, OPERATION_ENABLED = 0x6F, 0x27  # CiA 402 statusword: operation enabled
+CYCLIC_MODES = (8, 10)  # CiA 402 modes of operation: cyclic synchronous position, velocity, torque
 
 
 class Reason(enum.IntEnum):
@@ -270,6 +272,7 @@ class OutputRules:
         image: DirectionImage,
         limits: Sequence[ChannelLimit] = (),
         statusword: npt.NDArray[np.uint16] | None = None,
+        mode_display: npt.NDArray[np.int8] | None = None,
     ) -> None:
         self.group = group
         self.image = image
@@ -302,6 +305,9 @@ class OutputRules:
                 self.blocks.append(_Block(work, [e.name], [lim], src=col))
         self.counts = np.zeros((n, len(Reason)), dtype=np.int64)
         self._statusword = statusword
+        self._mode = mode_display  # 0x6061: the step rule holds in the cyclic synchronous modes only
+        self._in_mode = np.zeros(n, dtype=bool)
+        self._csp, self._cst = np.int8(CYCLIC_MODES[0]), np.int8(CYCLIC_MODES[1])
         self._engaged = np.ones(n, dtype=bool) if statusword is not None else None
         self._engaged2d = self._engaged[:, None] if self._engaged is not None else None
         self._sw = np.zeros(n, dtype=np.uint16)
@@ -328,6 +334,11 @@ class OutputRules:
         assert self._statusword is not None and self._engaged is not None
         np.bitwise_and(self._statusword, self._mask, out=self._sw)
         np.equal(self._sw, self._enabled, out=self._engaged)
+        if self._mode is not None:  # a profile mode's target is a destination, not a step (ProfileMove)
+            np.greater_equal(self._mode, self._csp, out=self._in_mode)
+            np.logical_and(self._engaged, self._in_mode, out=self._engaged)
+            np.less_equal(self._mode, self._cst, out=self._in_mode)
+            np.logical_and(self._engaged, self._in_mode, out=self._engaged)
         assert self._engaged2d is not None
         return self._engaged2d
 

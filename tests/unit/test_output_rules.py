@@ -35,6 +35,7 @@ tpdo:
   - index: 0x1A00
     channels:
       - {index: 0x6041, sub_index: 0, type: uint16}
+      - {index: 0x6061, sub_index: 0, type: int8}
 """
 
 
@@ -42,7 +43,8 @@ def rules_for(text: str, n: int = 3, cycle_s: float = 0.001) -> tuple[ProcessIma
     drive = drive_map_from_text(text, "joint.yaml")
     img = ProcessImage(layout(drive), n)
     lim = channel_limits(drive, img.layout.outputs, cycle_s)
-    return img, OutputRules("g", img.outputs, lim, img.inputs.values["statusword"])
+    inp = img.inputs.values
+    return img, OutputRules("g", img.outputs, lim, inp["statusword"], inp["modes_of_operation_display"])
 
 
 def wire_target(img: ProcessImage) -> list[int]:
@@ -104,6 +106,7 @@ def test_step_is_clamped_only_on_engaged_axes() -> None:
     img, rules = rules_for(text)
     sw, out = img.inputs["statusword"], img.outputs
     sw[:] = [0x0237, 0x0237, 0x0250]  # axes 0, 1 operation enabled; axis 2 switch on disabled
+    img.inputs["modes_of_operation_display"][:] = 8  # CSP
     out["target_position"][:] = 0.0
     rules.apply()
     out["target_position"][:] = [0.001, 1.0, 1.0]
@@ -114,6 +117,10 @@ def test_step_is_clamped_only_on_engaged_axes() -> None:
     out["target_position"][1] = 1.0
     rules.apply()
     assert out["target_position"][1] == 1.0
+    img.inputs["modes_of_operation_display"][0] = 1  # profile position: a destination, not ramped
+    out["target_position"][0] = 2.5
+    rules.apply()
+    assert out["target_position"][0] == 2.5
 
 
 def test_a_raw_integer_channel_with_a_limit_is_clamped() -> None:
