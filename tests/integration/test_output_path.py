@@ -320,3 +320,42 @@ def test_mit_position_step_is_clamped_to_the_maps_max_step(tmp_path: Path) -> No
             (0, "STEP")
         ]
         assert np.isclose(out["position"][0], 0.01)
+
+
+def test_a_profile_move_to_inf_goes_to_the_window_edge_never_int32_max(tmp_path: Path) -> None:
+    """ProfileMove writes its targets into the image: they pass the same rules (PP: not ramped)."""
+    from fieldbus import Cia402Controller, Goal, Mode, ProfileMove
+    from fieldbus.testing import emulate
+
+    joint = windowed_demo_map(
+        tmp_path, "motion_profile: {velocity: 200000, acceleration: 1000000, deceleration: 1000000}\n"
+    )
+    net = tmp_path / "arm.yaml"
+    net.write_text(
+        "cycle_time_us: 1000\nreceive_timeout_us: 5000\nsafe_stop_after: 10\nbuses:\n"
+        f"  - {{name: arm, type: ethercat, interface: sim0, slaves: [{{name: 'j{{i}}', map: {joint}, count: 2}}]}}\n"
+    )
+    with emulate(net) as emu:
+        op = emu.op
+        img = op["arm"]
+        ctrl = Cia402Controller(img.n_axes, mode=Mode.CSP)
+        ctrl.set_goal(Goal.ENABLE)
+        moves = ProfileMove.from_maps(ctrl, [s.map for s in op.groups["arm"].slaves], op.cycle_time_us)
+        seen: list[list[int]] = []
+
+        def step(k: int) -> bool:
+            if op.exchange().fresh:
+                ctrl.step_image(img)
+                moves.step_image(img)
+            seen.append(received_targets(op.network))
+            return False
+
+        emu.run(step, cycles=50)
+        assert ctrl.all_reached
+        moves.move_to([math.inf, math.nan])
+        emu.run(step, cycles=1500)
+        flat = [v for row in seen for v in row]
+        assert INT32_MAX not in flat and all(WINDOW[0] <= v <= WINDOW[1] for v in flat)
+        assert seen[-1][0] == WINDOW[1]  # inf: the window's edge (0x607D:02)
+        assert abs(seen[-1][1]) < 1000  # NaN: the target sent last (where the axis stood)
+        assert moves.done and img.inputs["position_actual_value"][0] == pytest.approx(3.0, abs=0.01)
