@@ -196,6 +196,7 @@ class _Block:
         self.flag = [np.zeros((n, m), dtype=bool) for _ in Reason]  # per reason: refused this cycle
         self.was = np.zeros((n, m), dtype=bool)  # refused the cycle before (streaks: one event each)
         self.any = np.zeros((n, m), dtype=bool)
+        self.keep, self.side, self.new = (np.zeros((n, m), dtype=bool) for _ in range(3))
         self.per_axis = np.zeros(n, dtype=bool)
         self.hit = False
         self.started = False  # the first cycle sets the reference of the step rule
@@ -256,7 +257,13 @@ class _Block:
         np.copyto(x, self.work)
         np.copyto(x, self.last, where=flag[Reason.NAN])
         # an infinity towards a side without a limit keeps the value sent last (never the dtype's maximum)
-        keep = flag[Reason.INF] & (((asked > 0) & self.open_hi) | ((asked < 0) & self.open_lo))
+        keep, side = self.keep, self.side
+        np.greater(asked, 0, out=keep)
+        np.logical_and(keep, self.open_hi, out=keep)
+        np.less(asked, 0, out=side)
+        np.logical_and(side, self.open_lo, out=side)
+        np.logical_or(keep, side, out=keep)
+        np.logical_and(keep, flag[Reason.INF], out=keep)
         np.copyto(x, self.last, where=keep)
 
 
@@ -349,8 +356,9 @@ class OutputRules:
             np.logical_or(b.flag[Reason.NAN], b.flag[Reason.INF], out=b.any)
             np.logical_or(b.any, b.flag[Reason.RANGE], out=b.any)
             np.logical_or(b.any, b.flag[Reason.STEP], out=b.any)
-            if b.hit:
-                for axis, j in zip(*np.nonzero(b.any & ~b.was), strict=True):
+            np.greater(b.any, b.was, out=b.new)  # refused now, not in the cycle before: a streak starts
+            if b.hit and np.count_nonzero(b.new):
+                for axis, j in zip(*np.nonzero(b.new), strict=True):
                     reason = next(r for r in Reason if b.flag[r][axis, j])
                     out.append(
                         OutputClamp(

@@ -141,8 +141,16 @@ def test_limits_off_keeps_only_nan_and_inf() -> None:
 def test_the_clean_cycle_allocates_nothing() -> None:
     from fieldbus.runtime.allocs import net_blocks
 
-    _img, rules = rules_for(MAP + "limits:\n  target_position: {max_rate: 2.0}\n")
+    img, rules = rules_for(MAP + "limits:\n  target_position: {max_rate: 2.0}\n")
     assert net_blocks(rules.apply, cycles=5000) <= 2
+    target = img.outputs["target_position"]
+
+    def refused() -> None:  # a controller that writes NaN and inf every cycle: the refusal path
+        target[0], target[1] = math.nan, math.inf
+        rules.apply()
+
+    assert net_blocks(refused, cycles=5000) <= 2
+    assert rules.counts[0, Reason.NAN] >= 5000 and rules.counts[1, Reason.INF] >= 5000
 
 
 @pytest.mark.parametrize(
