@@ -24,6 +24,7 @@ from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mo
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.foe import FoeError, FoeErrorCode
 from fieldbus.core.network import SHIPPED_MAPS, load_network
+from fieldbus.core.output_rules import OutputClamp
 from fieldbus.core.pdo import DriveMap, drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
@@ -73,6 +74,7 @@ __all__ = [
     "HomingPhase",
     "Mode",
     "Operational",
+    "OutputClamp",
     "PdoMapError",
     "PhaseError",
     "ProcessImage",

@@ -39,7 +39,9 @@ from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
 from fieldbus.core.esc_errors import describe_change
+from fieldbus.core.output_rules import OutputClamp, OutputRules, channel_limits
 from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.names import STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
 from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
 from fieldbus.core.winddown import DISABLE_CYCLES, MAX_BUDGET_S, WindDown, WindDownReport
@@ -57,6 +59,7 @@ from fieldbus.runtime.clock import WALL, Clock
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder
 
+MODES_DISPLAY = 0x6061  # CiA 402 modes of operation display: the output path's step rule holds in 8-10
 CLOSE_CYCLES = DISABLE_CYCLES  # cycles of disable voltage sent on close, after the quick stop is done
 PER_BUS_OPTIONS = ("can_bus", "can_log", "pcap")  # options naming one bus's own instance or file
 MAX_SDO_BYTES = 1 << 20  # the largest SDO download accepted at submit, bytes
@@ -88,7 +91,7 @@ class CycleObserver(Protocol):
 
     def capture(self, res: CycleResult, t0_ns: int) -> None: ...
 
-    def note_events(self, events: list[BusEvent | DriveFault]) -> None: ...
+    def note_events(self, events: list[BusEvent | DriveFault | OutputClamp]) -> None: ...
 
     def close(self) -> None: ...
 
@@ -118,6 +121,7 @@ class BusView:
     backend: Backend
     policy: SafetyPolicy
     status: BusStatus
+    rules: tuple[OutputRules, ...] = ()  # the output path's rules of its groups (S11)
 
     @property
     def name(self) -> str:
@@ -133,12 +137,14 @@ class BusView:
 
     def counters(self) -> dict[str, int]:
         """Faults the bus absorbed since bring-up: late replies, stale and extra frames, transmit errors,
-        bus-off events, emergencies (0 where the bus has no such thing), and the policy's misses and errors.
+        bus-off events, emergencies (0 where the bus has no such thing), the policy's misses and errors,
+        and the command values the output path refused (``output_clamps``).
         """
         out = {name: int(getattr(self.backend, name, 0) or 0) for name in COUNTERS}
         st = self.policy.stats
         out.update(misses=st.misses, timeouts=st.timeouts, short=st.short, errors=st.errors)
         out.update(safe_stops=st.safe_stops, releases=st.releases, recoveries=self.backend.recoveries)
+        out["output_clamps"] = sum(int(r.counts.sum()) for r in self.rules)  # command values refused (S11)
         return out
 
     def slave_state(self, i: int) -> str:
@@ -190,7 +196,7 @@ class CycleResult:
     fresh: bool = False  # every slave of every bus fresh
     safe_stop: bool = False  # any bus escalated to a safe stop (latched)
     exchange_ns: int = 0  # time spent in exchange(), ns
-    events: list[BusEvent | DriveFault] = field(
+    events: list[BusEvent | DriveFault | OutputClamp] = field(
         default_factory=list
     )  # what happened in this cycle (new list each)
     drive_faults: dict[str, npt.NDArray[np.int64]] = field(
@@ -475,10 +481,31 @@ class Operational(_Phase):
             plan = safe_stop_plan(g.slaves[0].map, g.image.layout)
             self.safe_stops[name] = SafeStopWriter(plan, g.image)
         self._writers = list(self.safe_stops.values())
+        # the one output path: every group's command values pass the rules before any codec (output_rules)
+        self.output_rules: dict[str, OutputRules] = {}
+        self._encoders: list[list[tuple[OutputRules, ProcessImage]]] = []
+        for b in net.backends:
+            enc = []
+            for g in b.groups:
+                lay = g.image.layout
+                sw, md = lay.inputs.find(STATUSWORD), lay.inputs.find(MODES_DISPLAY)
+                rules = OutputRules(
+                    g.name,
+                    g.image.outputs,
+                    channel_limits(g.slaves[0].map, lay.outputs, b.bus.cycle_time_us / 1e6),
+                    g.image.inputs.values[sw.name] if sw is not None and not sw.channel.scaled else None,
+                    g.image.inputs.values[md.name] if md is not None and not md.channel.scaled else None,
+                )
+                self.output_rules[g.name] = rules
+                enc.append((rules, g.image))
+            self._encoders.append(enc)
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
         # where exchange() spends its time, phase by phase (fieldbus.runtime.phases); None: not timed
         self.phases: ph.PhaseTimer | None = None
-        self.buses: tuple[BusView, ...] = tuple(BusView(b, p, st) for b, p, st, _ in self._pairs)
+        self.buses: tuple[BusView, ...] = tuple(
+            BusView(b, p, st, tuple(r for r, _ in enc))
+            for (b, p, st, _), enc in zip(self._pairs, self._encoders, strict=True)
+        )
         self._bus_off: list[int | None] = [
             int(getattr(b, "bus_off", 0)) if hasattr(b, "bus_off") else None for b in net.backends
         ]
@@ -552,13 +579,12 @@ class Operational(_Phase):
         if res.safe_stop:
             for w in self._writers:
                 w.apply()
-        for b, _, st, every in self._pairs:
+        for k, (b, _, st, every) in enumerate(self._pairs):
             st.ran = cycle % every == 0
             st.error = None
             if st.ran:
                 try:
-                    for g in b.groups:
-                        g.image.outputs.to_wire()
+                    self._encode(k, cycle)
                     if pt is not None:
                         pt.mark(ph.ENCODE)
                     b.send()
@@ -593,6 +619,20 @@ class Operational(_Phase):
         if pt is not None:
             pt.mark(ph.OBSERVERS)
         return res
+
+    def _encode(self, k: int, cycle: int) -> None:
+        """The one output path of bus ``k``: each group's outputs pass the rules, then are encoded.
+
+        A refused value (NaN, infinity, out of the map's window, too big a step) is replaced in the image
+        before ``to_wire()`` and before a raw-CAN family reads it; its streak's first cycle is an
+        :class:`~fieldbus.core.output_rules.OutputClamp` event.
+        """
+        for rules, image in self._encoders[k]:
+            if rules.apply():
+                self.result.events.extend(rules.events(cycle))
+            else:
+                rules.settle()
+            image.outputs.to_wire()
 
     def _receive(self, k: int, b: Backend, policy: SafetyPolicy, st: BusStatus, cycle: int) -> None:
         """Receive, judge and accept one bus's cycle; recovery and acyclic steps. Never raises (S1)."""
@@ -975,11 +1015,10 @@ class Operational(_Phase):
             w.apply(word)
         res = self.result
         cycle = res.cycle
-        for b, _, st, _ in self._pairs:
+        for k, (b, _, st, _) in enumerate(self._pairs):
             st.ran, st.error = True, None
             try:
-                for g in b.groups:
-                    g.image.outputs.to_wire()
+                self._encode(k, cycle)
                 b.send()
             except Exception as exc:
                 st.error = _reason(exc)

@@ -13,6 +13,8 @@ rotor's state is in rad there, CANSimple speaks turns); what is ODrive's comes f
   being emulated, else ``watchdog_ms`` sets it;
 - a heartbeat every ``heartbeat_ms`` of ``clock`` (the map's rate unless given), and one at once when the
   axis state changes (an emulator convenience: a test's virtual clock need not run for a state change);
+- a set-point carrying a NaN or infinite float32 is refused (counted in ``AxisState.refused``): the
+  rotor keeps its state and the watchdog is not fed;
 - the watchdog: an axis in closed loop whose last set-point is older than the timeout sets
   WATCHDOG_TIMER_EXPIRED and goes IDLE; ``inject_error(node, bits)`` sets any error (IDLE too).
 
@@ -60,6 +62,7 @@ class AxisState:
     watchdog_s: float = 0.0
     frames: list[tuple[int, bytes, bool]] = field(default_factory=list)  # (command id, data, remote)
     reboots: int = 0
+    refused: int = 0  # set-points refused for a NaN or infinite number (they feed neither rotor nor watchdog)
 
 
 class OdriveSimulator(MitMotorSimulator):
@@ -242,6 +245,9 @@ class OdriveSimulator(MitMotorSimulator):
         """A set-point feeds the watchdog; the one of the active control mode is followed from now on."""
         ax, st = self.axes[node], self.motor(node)
         values = damiao.decode_fields(mode.fields, data, {})
+        if not all(math.isfinite(v) for v in values.values()):
+            ax.refused += 1  # a NaN or infinite set-point: refused, the rotor's state never turns NaN
+            return
         ax.setpoint[mode.command] = values
         ax.last_setpoint_t = self.clock()
         st.commands += 1

@@ -129,6 +129,9 @@ class Backend(abc.ABC):
             name = bus.name if len(runs) == 1 else f"{bus.name}.{first.name}"
             axes = first.map.axes  # a multi-axis slave fills one row per axis, its axes' bytes in a row
             image = ProcessImage(layouts[run[0]], len(run) * axes)
+            # inputs start as the decode of their (zero) wire bytes: a row never accepted then reads the
+            # same before and after another row's first accepted cycle decodes the image (S2)
+            image.inputs.from_wire()
             for row, i in enumerate(run):
                 self.areas.append(SlaveArea(bus.slaves[i], layouts[i], len(self.groups), row * axes, axes))
             self.groups.append(AxisGroup(name, tuple(bus.slaves[i] for i in run), image, run[0]))

@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from fieldbus.core.output_rules import finite
 from fieldbus.core.yamlsrc import PathT
 
 CUBEMARS_KEYS = (
@@ -205,7 +206,11 @@ def _limits(kind: str) -> tuple[int, int]:
 
 
 def encode_servo(fields: tuple[ServoField, ...], values: Mapping[str, float]) -> bytes:
-    """The data of a servo packet from engineering values: ``round(value * scale)``, saturated to its type."""
+    """The data of a servo packet from engineering values: ``round(value * scale)``, saturated to its type.
+
+    A NaN or infinite value is refused (:class:`~fieldbus.core.output_rules.UnsafeOutputError`): the
+    cycle's output rules replace those before any codec runs, so one here is a path that bypassed them.
+    """
     return _pack(fields, values, status=False)
 
 
@@ -218,6 +223,10 @@ def _pack(fields: tuple[ServoField, ...], values: Mapping[str, float], *, status
     out = bytearray()
     for f in fields:
         v = float(values.get(f.channel, 0.0))
+        if (
+            not status
+        ):  # a command: only a value that passed the output rules is packed, never NaN as INT32_MAX
+            finite(f.channel, v)
         x = v / f.scale if status else v * f.scale
         lo, hi = _limits(f.type)
         raw = int(min(hi, max(lo, round(x)))) if math.isfinite(x) else (lo if x < 0 else hi)

@@ -22,6 +22,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from fieldbus.core.output_rules import finite
 from fieldbus.core.yamlsrc import PathT
 
 DAMIAO_KEYS = ("mode", "timeout_ms", "clear", "modes", "registers", "error_field", "errors", "ok_codes")
@@ -222,11 +223,15 @@ def encode_mode(mode: Mode, values: Mapping[str, float], maxima: Mapping[str, fl
 def encode_fields(
     fields: tuple[ModeField, ...], values: Mapping[str, float], maxima: Mapping[str, float], size: int = 8
 ) -> bytes:
-    """Little-endian numbers taken from engineering values, zero-padded to ``size`` bytes."""
+    """Little-endian numbers taken from engineering values, zero-padded to ``size`` bytes.
+
+    A NaN or infinite value is refused (:class:`~fieldbus.core.output_rules.UnsafeOutputError`), never
+    packed: the cycle's output rules keep them out of the image before a family codec reads it.
+    """
     out = bytearray(size)
     at = 0
     for f in fields:
-        x = float(values.get(f.source, 0.0))
+        x = finite(f.source, float(values.get(f.source, 0.0)))  # the output rules ran: never NaN on the wire
         if f.per_unit:
             x = abs(x) / maxima[f.source]
         x *= f.scale

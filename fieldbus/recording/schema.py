@@ -89,6 +89,7 @@ EVENT_SCHEMA: dict[str, Any] = {
                 "esc_errors",
                 "link_down",
                 "link_up",
+                "output_clamp",
                 "gap",
             ],
         },
@@ -98,6 +99,10 @@ EVENT_SCHEMA: dict[str, Any] = {
         "old": {"type": ["string", "integer", "null"]},
         "new": {"type": ["string", "integer", "null"]},
         "detail": {"type": "string"},
+        "axis": {"type": "integer", "description": "output_clamp: the row of the group's image"},
+        "channel": {"type": "string", "description": "output_clamp: the output channel"},
+        "asked": {"type": ["number", "string"], "description": "output_clamp: what the controller wrote"},
+        "sent": {"type": "number", "description": "output_clamp: what went to the drive instead"},
         "access": {"enum": ["read", "write"], "description": "sdo_abort: the transfer asked for"},
         "index": {"type": "integer", "description": "sdo_abort: object index"},
         "sub_index": {"type": "integer", "description": "sdo_abort: object sub-index"},
@@ -108,7 +113,8 @@ EVENT_SCHEMA: dict[str, Any] = {
         },
         "name": {
             "type": "string",
-            "description": "sdo_abort: the abort code's name; drive_fault: the error's",
+            "description": "sdo_abort: the abort code's name; drive_fault: the error's; output_clamp: the "
+            "reason (NAN, INF, RANGE, STEP)",
         },
     },
     "required": ["cycle", "t_ns", "kind"],

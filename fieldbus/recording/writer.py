@@ -395,12 +395,24 @@ class Recorder:
         return not self.ring.stopped
 
     def note_events(self, events: list[Any]) -> None:
-        """The cycle's drive faults and bus errors as events in the recording (the cycle calls it)."""
+        """The cycle's drive faults, refused outputs and bus errors as events in the recording (the cycle calls it)."""
         from fieldbus.core.drivefault import DriveFault
+        from fieldbus.core.output_rules import OutputClamp
 
         for e in events:
             if isinstance(e, DriveFault):
                 self.ring.note(e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name)
+            elif isinstance(e, OutputClamp):
+                self.ring.note(
+                    e.cycle,
+                    "output_clamp",
+                    group=e.group,
+                    axis=e.axis,
+                    channel=e.channel,
+                    name=e.reason.name,
+                    asked=e.asked,
+                    sent=e.sent,
+                )
             elif e.kind in ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up"):
                 self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
 

@@ -13,7 +13,11 @@ reported:
 - S4: the latch closes at safe_stop_after misses in a row or at a bus error and opens
   only after clear_safe_stop() and release_after fresh cycles; a clear during an
   outage is refused;
-- S5: a malformed request raises at submit; every request's future is done by close().
+- S5: a malformed request raises at submit; every request's future is done by close();
+- S11: a command written as NaN, +-inf or out of the map's window (rule ``bad_command``) reaches the
+  wire as the model's value: NaN keeps the value sent last, inf and out-of-window values saturate to
+  the window; what the drive received (the emulated ESC's SM2 memory, the CANopen node's dictionary,
+  the raw-CAN frame on the bus) is never outside the window nor the wire type's extreme.
 
 Three networks: EtherCAT on the in-process emulator (sim), CANopen and raw-CAN
 MIT motors on python-can's virtual bus against the emulators in sim_slaves.
@@ -31,7 +35,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
+import struct
 import threading
 from concurrent.futures import Future
 from pathlib import Path
@@ -50,6 +56,27 @@ from fieldbus.errors import PhaseError, RequestError
 
 MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 SAFE_STOP_AFTER = 4
+INT32_MAX, INT32_MIN = 2**31 - 1, -(2**31)
+COUNTS_PER_RAD = 20860.7568  # DEMO_MAP's target_position factor
+WINDOW_COUNTS = (-41721, 62582)  # 0x607D:01..02 written at start-up: -2 rad .. 3 rad
+BAD = st.sampled_from([math.nan, math.inf, -math.inf, 1e9, -1e9, 2.5, -1.5, 0.25, 40.0, -40.0])
+
+
+def windowed_demo_map(folder: Path) -> Path:
+    """DEMO_MAP with the software position limit 0x607D as start-up SDOs (the output path's window)."""
+    f = folder / "joint.yaml"
+    f.write_text(
+        DEMO_MAP.read_text().replace(
+            "sdo:\n",
+            "sdo:\n"
+            f"  - {{index: 0x607D, sub_index: 1, type: int32, value: {WINDOW_COUNTS[0]}}}\n"
+            f"  - {{index: 0x607D, sub_index: 2, type: int32, value: {WINDOW_COUNTS[1]}}}\n",
+            1,
+        )
+    )
+    return f
+
+
 RELEASE_AFTER = 3
 _channels = itertools.count()
 _tmp = Path(os.environ.get("TMPDIR", "/tmp"))
@@ -76,12 +103,14 @@ class _FlakyBus(can.BusABC):  # type: ignore[misc]
         self._inner = can.Bus(interface="virtual", channel=channel)
         self.tx_fail = 0  # the next n sends raise
         self.off = 0  # the next n receives raise (bus-off)
+        self.sent: dict[int, bytes] = {}  # CAN id -> the data of the last frame sent
         super().__init__(channel=channel)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self.tx_fail > 0:
             self.tx_fail -= 1
             raise can.CanOperationError("Transmit buffer full")
+        self.sent[msg.arbitration_id] = bytes(msg.data)
         self._inner.send(msg, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -115,6 +144,14 @@ class ContractMachine(RuleBasedStateMachine):
         self.last_ok = True
         self.accepted: list[tuple[bytes, bytes]] = []  # per slave: values row, wire row last accepted
         self.rows: list[tuple[Any, int]] = []
+        self.expect: dict[int, float] = {}  # axis -> the command value the output path must send (S11)
+
+    # the command channel the rule bad_command writes and its window (engineering units)
+    target = "target_position"
+    window = (WINDOW_COUNTS[0] / COUNTS_PER_RAD, WINDOW_COUNTS[1] / COUNTS_PER_RAD)
+
+    def check_wire(self) -> None:
+        """S11 on what the drives received (each bus its own oracle)."""
 
     # -- subclass hooks ---------------------------------------------------------------------
     def open(self) -> fieldbus.Network:
@@ -153,6 +190,7 @@ class ContractMachine(RuleBasedStateMachine):
                 self.op.exchange()
             return
         res = self.op.exchange()  # S1: never raises
+        self._check_outputs()
         bus = res.buses[0]
         for i in range(len(self.rows)):
             if bus.fresh[i]:
@@ -185,6 +223,29 @@ class ContractMachine(RuleBasedStateMachine):
                 self.latched = True
         self.last_ok = ok
         assert res.safe_stop == self.latched == bus.safe_stop, (res.safe_stop, self.latched, bus)
+
+    # -- the one output path (S11) ------------------------------------------------------------------
+    @rule(axis=st.integers(0, 7), value=BAD)
+    def bad_command(self, axis: int, value: float) -> None:
+        assert self.op is not None
+        if self.closed:
+            return
+        out = self.op["bus"].outputs[self.target]
+        axis %= len(out)
+        prev = float(out[axis])  # after an exchange the image holds what was sent
+        lo, hi = self.window
+        want = prev if math.isnan(value) else min(hi, max(lo, value))
+        out[axis] = value
+        self.expect[axis] = want
+
+    def _check_outputs(self) -> None:
+        assert self.op is not None
+        out = self.op["bus"].outputs[self.target]
+        for axis, want in self.expect.items():
+            assert float(out[axis]) == pytest.approx(want, abs=1e-9), (axis, float(out[axis]), want)
+        lo, hi = self.window
+        assert all(lo - 1e-9 <= float(v) <= hi + 1e-9 for v in out), list(out)
+        self.check_wire()
 
     @rule()
     def clear(self) -> None:
@@ -279,7 +340,7 @@ class SimMachine(ContractMachine):
         f.write_text(
             f"cycle_time_us: 1000\nreceive_timeout_us: 5000\nsafe_stop_after: {SAFE_STOP_AFTER}\nbuses:\n"
             f"  - {{name: bus, type: ethercat, interface: sim0,"
-            f" slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: 3}}]}}\n"
+            f" slaves: [{{name: 'j{{i}}', map: {json.dumps(str(windowed_demo_map(d)))}, count: 3}}]}}\n"
         )
         net = fieldbus.open_network(f, backend="sim", release_after=RELEASE_AFTER)
         b = net.backends[0]
@@ -307,6 +368,19 @@ class SimMachine(ContractMachine):
     def _all(self, n: int) -> None:
         for i in range(3):
             self.destroyed(i, n)
+
+    def check_wire(self) -> None:
+        """The target each emulated ESC holds in its SM2 memory (controlword u16, int32 target)."""
+        for esc in self.chain.slaves:
+            start, length = esc.sm[2][0], esc.sm[2][1]
+            if int(esc.state) != 0x08 or length < 6:  # power-cycled and not back in OP: no outputs mapped
+                continue
+            got = struct.unpack_from("<Hi", esc.mem, start)[1]
+            assert WINDOW_COUNTS[0] <= got <= WINDOW_COUNTS[1], got  # never INT32_MAX / INT32_MIN
+        assert self.op is not None
+        img = self.op["bus"].outputs
+        for axis, want in self.expect.items():  # the master's encoded row: rint(value x factor)
+            assert struct.unpack_from("<i", bytes(img.wire[axis]), 2)[0] == round(want * COUNTS_PER_RAD)
 
     @rule(n=st.integers(1, 8))
     def lose_frames(self, n: int) -> None:
@@ -342,6 +416,20 @@ test_safety_contract_on_sim = SimMachine.TestCase
 
 
 class RawCanMachine(ContractMachine):
+    target = "position"
+    window = (-12.5, 12.5)  # the MIT frame's position field, min..max
+
+    def check_wire(self) -> None:
+        """The MIT command frames on the bus (p16 big-endian over min..max) equal what the rules sent."""
+        lo, hi = self.window
+        sent, self.flaky.sent = self.flaky.sent, {}  # the frames of this exchange only
+        for axis, want in self.expect.items():
+            data = sent.get(1 + axis)
+            if data is None or len(data) != 8 or data[:7] == b"\xff" * 7:  # none, or enter / exit / zero
+                continue
+            got = int.from_bytes(data[:2], "big") / 0xFFFF * (hi - lo) + lo
+            assert got == pytest.approx(want, abs=(hi - lo) / 0xFFFF), (axis, got, want)
+
     def open(self) -> fieldbus.Network:
         from sim_slaves.mit_motor import MitMotorSimulator
 
@@ -410,9 +498,9 @@ class CanopenMachine(ContractMachine):
         f.write_text(
             f"cycle_time_us: 5000\nreceive_timeout_us: 20000\nsafe_stop_after: {SAFE_STOP_AFTER}\nbuses:\n"
             f"  - {{name: bus, type: canopen, interface: {channel}, can_interface: virtual,\n"
-            f"     slaves: [{{name: 'n{{i}}', map: {json.dumps(str(DEMO_MAP))}, node_id: 1, count: 2}}]}}\n"
+            f"     slaves: [{{name: 'n{{i}}', map: {json.dumps(str(windowed_demo_map(d)))}, node_id: 1, count: 2}}]}}\n"
         )
-        drive = fieldbus.load_drive_map(DEMO_MAP)
+        drive = fieldbus.load_drive_map(windowed_demo_map(d))
         self.sim_bus = can.Bus(interface="virtual", channel=channel)
         self.sim = CanopenSimulator(self.sim_bus, [(drive, n) for n in (1, 2)], dt_s=0.005)
         self.sim.__enter__()
@@ -420,6 +508,12 @@ class CanopenMachine(ContractMachine):
         return fieldbus.open_network(
             f, bus_options={"bus": {"can_bus": self.flaky}}, release_after=RELEASE_AFTER
         )
+
+    def check_wire(self) -> None:
+        """The target each emulated node holds in its dictionary (written by its RPDO)."""
+        for node in (1, 2):
+            got = int(self.sim.node(node).od.get_value(0x607A, 0))
+            assert WINDOW_COUNTS[0] <= got <= WINDOW_COUNTS[1], (node, got)
 
     @rule(node=st.integers(1, 2), n=st.integers(1, 5))
     def drop_tpdos(self, node: int, n: int) -> None:

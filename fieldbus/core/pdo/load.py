@@ -26,6 +26,7 @@ from fieldbus.core.pdo.model import (
     EthercatConfig,
     HomingConfig,
     MotionProfileConfig,
+    OutputLimit,
     Pdo,
     SdoWrite,
     SyncManager,
@@ -48,7 +49,7 @@ DEFAULT_COB_IDS = {
 _TOP_KEYS = (
     "name", "description", "vendor_id", "product_id", "revision", "profile",
     "assign_activate", "auto_fault_reset", "homing", "axes", "sdo", "rpdo", "tpdo", "sm", "ethercat", "canopen", "rawcan",
-    "motion_profile",
+    "motion_profile", "limits",
 )  # fmt: skip
 _PDO_KEYS = ("index", "channels", "fixed", "name", "description")
 _CHANNEL_KEYS = (
@@ -56,6 +57,7 @@ _CHANNEL_KEYS = (
     "default", "mask", "factor", "offset", "unit", "description", "safe_value",
 )  # fmt: skip
 _SDO_KEYS = ("index", "sub_index", "type", "value", "description")
+_LIMIT_KEYS = ("min", "max", "max_step", "max_rate")
 _HOMING_KEYS = ("method", "offset", "speeds", "acceleration", "timeout_ms")
 _HOMING_SPEED_KEYS = ("switch", "zero")
 _AXES_KEYS = ("count", "object_offsets", "pdo_offsets")
@@ -190,6 +192,9 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         rawcan=rawcan,
         source=doc.file,
     )
+    if "limits" in top:
+        limits, off = _limits(r, top["limits"], drive)
+        drive = replace(drive, limits=limits, limits_off=off)
     modes = drive.ethercat.dc_modes
     if modes and drive.assign_activate and all(m.assign_activate != drive.assign_activate for m in modes):
         offered = ", ".join(f"{m.name} 0x{m.assign_activate:04X}" for m in modes)
@@ -209,6 +214,45 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         if drive.find(Direction.INPUTS, STATUSWORD) is None:
             raise r.err(("tpdo",), "profile cia402 needs the statusword 0x6041:00 in a tpdo")
     return drive
+
+
+def _limits(r: Reader, raw: Any, drive: DriveMap) -> tuple[tuple[OutputLimit, ...], bool]:
+    """``limits:``: per output channel ``min``/``max`` (``max`` alone: -max..max), ``max_step`` per cycle,
+    ``max_rate`` per second; or ``off`` (no window, no step: only the NaN and infinity rules)."""
+    path: PathT = ("limits",)
+    if raw is False or raw == "off":
+        return (), True
+    outputs = {c.name: c for c in drive.channels(Direction.OUTPUTS)}
+    m = r.mapping(raw, path, outputs)
+    out: list[OutputLimit] = []
+    for name, item in m.items():
+        cp: PathT = (*path, name)
+        lm = r.mapping(item, cp, _LIMIT_KEYS)
+        if not lm:
+            raise r.err(cp, f"give {', '.join(_LIMIT_KEYS)} (or leave '{name}' out)")
+        got = {k: r.number(v, (*cp, k)) for k, v in lm.items()}
+        lo, hi = got.get("min"), got.get("max")
+        if hi is not None and lo is None:
+            if hi <= 0:
+                raise r.err(
+                    (*cp, "max"), f"max {hi:g} alone means -max..max: give a positive max, or a min too"
+                )
+            lo = -hi
+        if lo is not None and hi is not None and not lo < hi:
+            raise r.err((*cp, "max"), f"max {hi:g} must be greater than min {lo:g}")
+        for key in ("max_step", "max_rate"):
+            if key in got and not got[key] > 0:
+                raise r.err((*cp, key), f"{key} must be greater than 0, not {got[key]:g}")
+        ch = outputs[name]
+        if not ch.scaled and not ch.type.is_float and lo is not None and hi is not None:
+            for key, v in (("min", lo), ("max", hi)):
+                if not ch.type.min <= v <= ch.type.max:
+                    raise r.err(
+                        (*cp, key if key in got else "max"),
+                        f"{v:g} is outside what {ch.type.name} '{name}' holds ({ch.type.min:g}..{ch.type.max:g})",
+                    )
+        out.append(OutputLimit(name, lo, hi, got.get("max_step"), got.get("max_rate")))
+    return tuple(out), False
 
 
 def _check_can_pdos(r: Reader, can_pdos: dict[int, tuple[int, PathT]], have: set[int]) -> None:

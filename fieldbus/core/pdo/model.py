@@ -137,6 +137,21 @@ class SdoWrite:
 
 
 @dataclass(frozen=True)
+class OutputLimit:
+    """A map's ``limits:`` entry for one output channel, in the units the image shows (None: not given).
+
+    ``min``/``max``: the window (a value outside saturates to it); ``max_step``: the largest change per
+    cycle; ``max_rate``: the largest change per second (``max_rate`` x the bus cycle time per cycle).
+    """
+
+    channel: str
+    min: float | None = None
+    max: float | None = None
+    max_step: float | None = None
+    max_rate: float | None = None
+
+
+@dataclass(frozen=True)
 class HomingConfig:
     """A drive map's ``homing:`` section (CiA 402-2 homing mode); bring-up writes it as start-up SDOs.
 
@@ -257,6 +272,9 @@ class DriveMap:
     pdo_offsets: tuple[int, ...] = (0,)
     # CANopen communication parameters of axes 2..n's PDO copies, by their mapping index (0x1602 -> ...)
     axis_canopen: tuple[tuple[int, CanopenPdo], ...] = ()
+    # the output path's limits (fieldbus.core.output_rules): the map's own; ``limits: off`` drops the defaults
+    limits: tuple[OutputLimit, ...] = ()
+    limits_off: bool = False
 
     @property
     def axes(self) -> int:

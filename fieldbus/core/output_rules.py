@@ -1,0 +1,381 @@
+"""The one output path's rules: what a command value must pass before any codec encodes it (no I/O).
+
+Every command value a drive receives, whatever wrote it (the controller into the process image, a CAN
+family's mode frame built from the image, ``ProfileMove``, ``Homing``, the safe stop), passes
+:meth:`OutputRules.apply` in the cycle, before ``to_wire()`` and before any family codec reads the image:
+
+- **NaN** keeps the value sent last (initially the channel's default), never a jump to 0 nor garbage;
+- **±inf** saturates to the map's limit on that side; with no limit on that side it keeps the value sent
+  last (it never becomes the wire type's maximum, e.g. INT32_MAX);
+- **out of range** (outside the map's ``min..max`` window) saturates to the window;
+- **too big a step** (``max_step`` per cycle, or ``max_rate`` x the bus cycle time) is clamped to the step,
+  on axes that are engaged (CiA 402: operation enabled in a cyclic synchronous mode, 8-10, when the map
+  has 0x6061); an axis that is not follows what is asked, so enabling it starts from where the controller
+  is, and a profile mode's target (a destination: ``ProfileMove``) is not ramped;
+- every refused value is counted per axis and reason (:attr:`OutputRules.counts`) and the first cycle
+  of a refusal streak of one axis's channel is an :class:`OutputClamp` event (asked, sent).
+
+The limits come from the map (:func:`channel_limits`): its ``limits:`` section, else the start-up
+SDOs' software position limit (0x607D), maximum profile velocity (0x607F) and maximum torque (0x6072)
+for the CiA 402 targets, and each scaled raw-CAN command field's ``min..max``. ``limits: off`` keeps only
+NaN and inf rules. Vectorised over axes; :meth:`OutputRules.apply` allocates nothing on a clean cycle.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from fieldbus.core.pdo.image import DirectionImage
+from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout
+from fieldbus.core.pdo.model import DriveMap
+from fieldbus.errors import FieldbusError
+
+TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE = 0x607A, 0x60FF, 0x6071
+SOFTWARE_POSITION_LIMIT, MAX_PROFILE_VELOCITY, MAX_TORQUE = 0x607D, 0x607F, 0x6072
+OPERATION_ENABLED_MASK, OPERATION_ENABLED = 0x6F, 0x27  # CiA 402 statusword: operation enabled
+CYCLIC_MODES = (8, 10)  # CiA 402 modes of operation: cyclic synchronous position, velocity, torque
+
+
+class Reason(enum.IntEnum):
+    """Why a command value was refused (a column of :attr:`OutputRules.counts`)."""
+
+    NAN = 0  # not a number: the value sent last was kept
+    INF = 1  # infinite: saturated to the limit, or the value sent last kept where there is none
+    RANGE = 2  # outside the map's window: saturated to it
+    STEP = 3  # changed more than the map's step per cycle: clamped to the step
+
+
+class UnsafeOutputError(FieldbusError, ValueError):
+    """A codec was handed a command value that did not pass the rules (NaN or infinite): refused, not packed."""
+
+
+def finite(name: str, value: float) -> float:
+    """``value`` when finite; otherwise :class:`UnsafeOutputError` (the guard at a family codec's boundary)."""
+    if not math.isfinite(value):
+        raise UnsafeOutputError(
+            f"command '{name}' is {value}: refused at the codec (the output rules keep NaN out)"
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class OutputClamp:
+    """A command value refused in one cycle: ``asked`` by the controller, ``sent`` instead (channel units)."""
+
+    cycle: int
+    group: str
+    axis: int  # row of the group's image
+    channel: str
+    reason: Reason
+    asked: float
+    sent: float
+
+    @property
+    def kind(self) -> str:
+        return "output_clamp"
+
+    def __str__(self) -> str:
+        return (
+            f"cycle {self.cycle} group '{self.group}' axis {self.axis}: {self.channel} {self.reason.name} "
+            f"asked {self.asked:g}, sent {self.sent:g}"
+        )
+
+
+@dataclass(frozen=True)
+class ChannelLimit:
+    """The limits of one output channel, in the units the image shows (engineering units when scaled)."""
+
+    channel: str
+    min: float = -math.inf
+    max: float = math.inf
+    max_step: float = math.inf  # largest change per cycle (on engaged axes)
+    source: str = "map"  # where the limit comes from: "map", "0x607D", "rawcan min..max", ...
+
+
+def _raw_to_value(e: EntryLayout, raw: float) -> float:
+    """An output channel's raw value in image units (outputs: ``raw = factor * value + offset``)."""
+    ch = e.channel
+    return (raw - ch.offset) / ch.factor if ch.scaled else raw
+
+
+def _sdo_value(drive: DriveMap, index: int, sub_index: int) -> float | None:
+    for s in drive.sdo:
+        if s.index == index and s.sub_index == sub_index:
+            return float(s.value)
+    return None
+
+
+def channel_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> tuple[ChannelLimit, ...]:
+    """The limits of ``drive``'s output channels (``lay``: its outputs layout), ``cycle_s`` seconds a cycle.
+
+    The map's ``limits:`` win; otherwise CiA 402 targets take the start-up SDOs' window 0x607D:01..02,
+    +-0x607F (target velocity), +-0x6072 (target torque); scaled raw-CAN command fields their
+    ``min..max``. ``limits: off`` gives none.
+    """
+    if drive.limits_off:
+        return ()
+    found: dict[str, ChannelLimit] = {}
+
+    def window(index: int, lo_raw: float | None, hi_raw: float | None, source: str) -> None:
+        e = lay.find(index)
+        if e is None or lo_raw is None or hi_raw is None or lo_raw >= hi_raw:
+            return
+        a, b = sorted((_raw_to_value(e, lo_raw), _raw_to_value(e, hi_raw)))
+        found[e.name] = ChannelLimit(e.name, a, b, source=source)
+
+    window(
+        TARGET_POSITION,
+        _sdo_value(drive, SOFTWARE_POSITION_LIMIT, 1),
+        _sdo_value(drive, SOFTWARE_POSITION_LIMIT, 2),
+        "0x607D",
+    )
+    for index, obj in ((TARGET_VELOCITY, MAX_PROFILE_VELOCITY), (TARGET_TORQUE, MAX_TORQUE)):
+        top = _sdo_value(drive, obj, 0)
+        if top is not None and top > 0:
+            window(index, -top, top, f"0x{obj:04X}")
+    if drive.rawcan is not None:
+        for f in drive.rawcan.command:
+            if f.min is not None and f.max is not None:
+                found[f.name] = ChannelLimit(f.name, f.min, f.max, source="rawcan min..max")
+    for lim in drive.limits:
+        old = found.get(lim.channel, ChannelLimit(lim.channel))
+        step = lim.max_step if lim.max_step is not None else math.inf
+        if lim.max_rate is not None:
+            step = min(step, lim.max_rate * cycle_s)
+        found[lim.channel] = ChannelLimit(
+            lim.channel,
+            old.min if lim.min is None else lim.min,
+            old.max if lim.max is None else lim.max,
+            step,
+            "map",
+        )
+    return tuple(found.values())
+
+
+class _Block:
+    """Columns of one dtype the rules work on in place: ``x`` (N, m), or a float64 copy of an integer column.
+
+    The clean cycle costs a clamp and one comparison (plus the step's): a side without a limit is
+    clamped at the dtype's largest finite number, so NaN (NaN != NaN) and infinities show up as a
+    change and take the slow path, which tells the reasons apart.
+    """
+
+    def __init__(
+        self, x: npt.NDArray[Any], names: list[str], limits: list[ChannelLimit], src: Any = None
+    ) -> None:
+        n, m = x.shape
+        self.view = x  # the image's columns (strided): gathered into ``x`` once, written back when changed
+        self.x = np.ascontiguousarray(x)
+        self.names, self.src = names, src  # src: the integer column (N,) copied in and out
+        dt = x.dtype
+        big = float(np.finfo(dt).max)
+
+        def per_axis(values: list[float]) -> npt.NDArray[Any]:
+            return np.ascontiguousarray(np.broadcast_to(np.array(values, dtype=dt), (n, m)))
+
+        self.last = np.array(x, dtype=dt, copy=True)  # what was sent last
+        self.lo = per_axis([max(lim.min, -big) for lim in limits])
+        self.hi = per_axis([min(lim.max, big) for lim in limits])
+        self.open_lo = per_axis([lim.min == -math.inf for lim in limits]).astype(bool)
+        self.open_hi = per_axis([lim.max == math.inf for lim in limits]).astype(bool)
+        steps = [lim.max_step for lim in limits]
+        self.stepped = any(math.isfinite(v) for v in steps)
+        self.step = per_axis([min(v, big) for v in steps])
+        self.nstep = np.negative(self.step)
+        self.asked = np.zeros((n, m), dtype=dt)
+        self.work = np.zeros((n, m), dtype=dt)
+        self.delta = np.zeros((n, m), dtype=dt)
+        self.ok = np.zeros((n, m), dtype=bool)
+        self.flag = [np.zeros((n, m), dtype=bool) for _ in Reason]  # per reason: refused this cycle
+        self.was = np.zeros((n, m), dtype=bool)  # refused the cycle before (streaks: one event each)
+        self.any = np.zeros((n, m), dtype=bool)
+        self.keep, self.side, self.new = (np.zeros((n, m), dtype=bool) for _ in range(3))
+        self.per_axis = np.zeros(n, dtype=bool)
+        self.hit = False
+        self.started = False  # the first cycle sets the reference of the step rule
+        self.col = self.x[:, 0]
+
+    def apply(self, engaged: Callable[[], npt.NDArray[np.bool_]] | None) -> bool:
+        """The rules on this block; True when a value was refused (the flags then say which).
+
+        ``engaged()``: (N, 1) per axis, the step rule applies (None: every axis, after the first cycle).
+        """
+        x, last, w, ok = self.x, self.last, self.work, self.ok
+        if self.src is not None:
+            np.copyto(self.col, self.src, casting="unsafe")
+        else:
+            np.copyto(x, self.view)
+        if self.hit:
+            for f in self.flag:
+                f.fill(False)
+        hit = False
+        np.minimum(x, self.hi, out=w)
+        np.maximum(w, self.lo, out=w)
+        np.not_equal(w, x, out=ok)  # NaN, an infinity or out of the window
+        if np.count_nonzero(ok):
+            hit = True
+            self._refuse()
+        if self.stepped and self.started:
+            d, big = self.delta, self.flag[Reason.STEP]
+            np.subtract(x, last, out=d)
+            np.minimum(d, self.step, out=w)
+            np.maximum(w, self.nstep, out=w)
+            np.not_equal(w, d, out=big)
+            if np.count_nonzero(big) and engaged is not None:  # only then: which axes are engaged
+                np.logical_and(big, engaged(), out=big)
+            if np.count_nonzero(big):
+                if not hit:
+                    np.copyto(self.asked, x)
+                    hit = True
+                np.add(last, w, out=x, where=big)
+        self.started = True
+        np.copyto(last, x)
+        if hit:  # what is sent instead, back into the image (the controller reads what went out)
+            if self.src is not None:
+                np.rint(self.col, out=self.src, casting="unsafe")
+            else:
+                np.copyto(self.view, x)
+        self.hit = hit
+        return hit
+
+    def _refuse(self) -> None:
+        """The slow path (a value changed by the clamp in ``work``): reasons, and NaN / open-side inf -> last."""
+        x, asked, ok, flag = self.x, self.asked, self.ok, self.flag
+        np.copyto(asked, x)
+        np.isnan(asked, out=flag[Reason.NAN])
+        np.isinf(asked, out=flag[Reason.INF])
+        rng = flag[Reason.RANGE]
+        np.isfinite(asked, out=rng)
+        np.logical_and(rng, ok, out=rng)
+        np.copyto(x, self.work)
+        np.copyto(x, self.last, where=flag[Reason.NAN])
+        # an infinity towards a side without a limit keeps the value sent last (never the dtype's maximum)
+        keep, side = self.keep, self.side
+        np.greater(asked, 0, out=keep)
+        np.logical_and(keep, self.open_hi, out=keep)
+        np.less(asked, 0, out=side)
+        np.logical_and(side, self.open_lo, out=side)
+        np.logical_or(keep, side, out=keep)
+        np.logical_and(keep, flag[Reason.INF], out=keep)
+        np.copyto(x, self.last, where=keep)
+
+
+class OutputRules:
+    """The rules for one axis group's outputs (:mod:`fieldbus.core.output_rules`); call :meth:`apply` once a cycle.
+
+    ``counts[axis, reason]``: refused values since bring-up, per row of the image and :class:`Reason`.
+    """
+
+    def __init__(
+        self,
+        group: str,
+        image: DirectionImage,
+        limits: Sequence[ChannelLimit] = (),
+        statusword: npt.NDArray[np.uint16] | None = None,
+        mode_display: npt.NDArray[np.int8] | None = None,
+    ) -> None:
+        self.group = group
+        self.image = image
+        n = image.n_axes
+        by_name = {lim.channel: lim for lim in limits}
+        for name in by_name:
+            if name not in image.names:
+                raise FieldbusError(
+                    f"group '{group}': limits name no output channel '{name}' ({', '.join(image.names)})"
+                )
+        self.limits = tuple(limits)
+        self.blocks: list[_Block] = []
+        il = image.image_layout
+        scaled = [e.name for e in il.scaled]
+        if scaled:  # the image's float64 block of engineering values, in place
+            self.blocks.append(
+                _Block(image._scaled, scaled, [by_name.get(s, ChannelLimit(s)) for s in scaled])
+            )
+        values = image.values
+        for e in image.layout.channels:
+            if e.channel.scaled:
+                continue
+            lim = by_name.get(e.name)
+            col = values[e.name]
+            if col.dtype.kind == "f":  # an unscaled float on the wire (raw-CAN float32 fields)
+                view = col.reshape(n, 1)
+                self.blocks.append(_Block(view, [e.name], [lim or ChannelLimit(e.name)]))
+            elif lim is not None and col.dtype.kind in "iu":  # an integer channel with limits
+                work = np.array(col, dtype=np.float64).reshape(n, 1)
+                self.blocks.append(_Block(work, [e.name], [lim], src=col))
+        self.counts = np.zeros((n, len(Reason)), dtype=np.int64)
+        self._statusword = statusword
+        self._mode = mode_display  # 0x6061: the step rule holds in the cyclic synchronous modes only
+        self._in_mode = np.zeros(n, dtype=bool)
+        self._csp, self._cst = np.int8(CYCLIC_MODES[0]), np.int8(CYCLIC_MODES[1])
+        self._engaged = np.ones(n, dtype=bool) if statusword is not None else None
+        self._engaged2d = self._engaged[:, None] if self._engaged is not None else None
+        self._sw = np.zeros(n, dtype=np.uint16)
+        self._mask, self._enabled = np.uint16(OPERATION_ENABLED_MASK), np.uint16(OPERATION_ENABLED)
+        self._stepped = any(b.stepped for b in self.blocks)
+        self.refused_now = False  # a value was refused in the last apply()
+
+    def apply(self) -> bool:
+        """The rules on every output value of the group, in place; True when one was refused this cycle."""
+        hit = False
+        engaged = self._engaged_now if self._engaged is not None else None
+        for b in self.blocks:
+            if b.apply(engaged):
+                hit = True
+                for r in Reason:
+                    np.logical_or.reduce(b.flag[r], axis=1, out=b.per_axis)
+                    col = self.counts[:, r]
+                    np.add(col, b.per_axis, out=col)
+        self.refused_now = hit
+        return hit
+
+    def _engaged_now(self) -> npt.NDArray[np.bool_]:
+        """(N, 1): the axes whose statusword says operation enabled (read when a step is too big only)."""
+        assert self._statusword is not None and self._engaged is not None
+        np.bitwise_and(self._statusword, self._mask, out=self._sw)
+        np.equal(self._sw, self._enabled, out=self._engaged)
+        if self._mode is not None:  # a profile mode's target is a destination, not a step (ProfileMove)
+            np.greater_equal(self._mode, self._csp, out=self._in_mode)
+            np.logical_and(self._engaged, self._in_mode, out=self._engaged)
+            np.less_equal(self._mode, self._cst, out=self._in_mode)
+            np.logical_and(self._engaged, self._in_mode, out=self._engaged)
+        assert self._engaged2d is not None
+        return self._engaged2d
+
+    def events(self, cycle: int) -> list[OutputClamp]:
+        """This cycle's new refusals (the first cycle of each streak per axis and channel), as events."""
+        out: list[OutputClamp] = []
+        for b in self.blocks:
+            np.logical_or(b.flag[Reason.NAN], b.flag[Reason.INF], out=b.any)
+            np.logical_or(b.any, b.flag[Reason.RANGE], out=b.any)
+            np.logical_or(b.any, b.flag[Reason.STEP], out=b.any)
+            np.greater(b.any, b.was, out=b.new)  # refused now, not in the cycle before: a streak starts
+            if b.hit and np.count_nonzero(b.new):
+                for axis, j in zip(*np.nonzero(b.new), strict=True):
+                    reason = next(r for r in Reason if b.flag[r][axis, j])
+                    out.append(
+                        OutputClamp(
+                            cycle,
+                            self.group,
+                            int(axis),
+                            b.names[j],
+                            reason,
+                            float(b.asked[axis, j]),
+                            float(b.x[axis, j]),
+                        )
+                    )
+            np.copyto(b.was, b.any)
+        return out
+
+    def settle(self) -> None:
+        """No refusal this cycle: streaks end (call instead of :meth:`events` on a clean cycle)."""
+        for b in self.blocks:
+            if np.count_nonzero(b.was):
+                b.was.fill(False)

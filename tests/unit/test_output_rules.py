@@ -1,0 +1,197 @@
+"""The output path's rules (fieldbus.core.output_rules) on a process image, and the map's ``limits:`` section."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from fieldbus.core.cubemars import ServoField, encode_servo
+from fieldbus.core.damiao import ModeField, encode_fields
+from fieldbus.core.output_rules import OutputRules, Reason, UnsafeOutputError, channel_limits
+from fieldbus.core.pdo import drive_map_from_text
+from fieldbus.core.pdo.image import ProcessImage
+from fieldbus.core.pdo.layout import layout
+from fieldbus.errors import PdoMapError
+
+MAP = """
+name: joint
+vendor_id: 1
+product_id: 2
+profile: cia402
+sdo:
+  - {index: 0x607D, sub_index: 1, type: int32, value: -20000}
+  - {index: 0x607D, sub_index: 2, type: int32, value: 40000}
+rpdo:
+  - index: 0x1600
+    channels:
+      - {index: 0x6040, sub_index: 0, type: uint16}
+      - {index: 0x607A, sub_index: 0, type: int32, factor: 10000.0, unit: rad}
+      - {index: 0x6071, sub_index: 0, type: int16, factor: 1000.0, unit: N·m}
+      - {index: 0x60FF, sub_index: 0, type: int32}
+tpdo:
+  - index: 0x1A00
+    channels:
+      - {index: 0x6041, sub_index: 0, type: uint16}
+      - {index: 0x6061, sub_index: 0, type: int8}
+"""
+
+
+def rules_for(text: str, n: int = 3, cycle_s: float = 0.001) -> tuple[ProcessImage, OutputRules]:
+    drive = drive_map_from_text(text, "joint.yaml")
+    img = ProcessImage(layout(drive), n)
+    lim = channel_limits(drive, img.layout.outputs, cycle_s)
+    inp = img.inputs.values
+    return img, OutputRules("g", img.outputs, lim, inp["statusword"], inp["modes_of_operation_display"])
+
+
+def wire_target(img: ProcessImage) -> list[int]:
+    img.outputs.to_wire()
+    return [struct.unpack_from("<i", bytes(img.outputs.wire[i]), 2)[0] for i in range(img.n_axes)]
+
+
+def test_nan_keeps_the_last_value_sent_and_is_counted_per_axis() -> None:
+    img, rules = rules_for(MAP)
+    out = img.outputs
+    out["target_position"][:] = [0.5, 1.0, 1.5]
+    assert not rules.apply()
+    out["target_position"][1] = math.nan
+    assert rules.apply()
+    assert list(out["target_position"]) == [0.5, 1.0, 1.5]
+    assert wire_target(img) == [5000, 10000, 15000]
+    assert rules.counts[:, Reason.NAN].tolist() == [0, 1, 0]
+    (ev,) = rules.events(7)
+    assert (ev.cycle, ev.axis, ev.channel, ev.reason, ev.sent) == (7, 1, "target_position", Reason.NAN, 1.0)
+    assert math.isnan(ev.asked)
+
+
+def test_inf_and_out_of_range_saturate_to_the_maps_window_from_0x607d_not_the_wire_type() -> None:
+    img, rules = rules_for(MAP)
+    out = img.outputs
+    out["target_position"][:] = [math.inf, -math.inf, 1e9]
+    assert rules.apply()
+    assert wire_target(img) == [40000, -20000, 40000]  # 0x607D:02 / :01, never INT32_MAX
+    assert rules.counts[:, Reason.INF].tolist() == [1, 1, 0]
+    assert rules.counts[:, Reason.RANGE].tolist() == [0, 0, 1]
+    events = rules.events(0)
+    assert [(e.axis, e.reason, e.sent) for e in events] == [
+        (0, Reason.INF, 4.0),
+        (1, Reason.INF, -2.0),
+        (2, Reason.RANGE, 4.0),
+    ]
+    out["target_position"][2] = 1e9  # the controller asks again: counted, no new event (one per streak)
+    rules.apply()
+    assert rules.events(1) == [] and rules.counts[:, Reason.RANGE].tolist() == [0, 0, 2]
+
+
+def test_inf_without_a_limit_keeps_the_last_value() -> None:
+    img, rules = rules_for(
+        MAP.replace(
+            "sdo:\n  - {index: 0x607D, sub_index: 1, type: int32, value: -20000}\n  - {index: 0x607D, sub_index: 2, type: int32, value: 40000}\n",
+            "",
+        )
+    )
+    out = img.outputs
+    out["target_position"][:] = 0.25
+    rules.apply()
+    out["target_position"][:] = math.inf
+    rules.apply()
+    assert wire_target(img) == [2500, 2500, 2500]
+
+
+def test_step_is_clamped_only_on_engaged_axes() -> None:
+    text = MAP + "limits:\n  target_position: {max_rate: 2.0}\n"  # 2 rad/s at 1 ms: 0.002 rad a cycle
+    img, rules = rules_for(text)
+    sw, out = img.inputs["statusword"], img.outputs
+    sw[:] = [0x0237, 0x0237, 0x0250]  # axes 0, 1 operation enabled; axis 2 switch on disabled
+    img.inputs["modes_of_operation_display"][:] = 8  # CSP
+    out["target_position"][:] = 0.0
+    rules.apply()
+    out["target_position"][:] = [0.001, 1.0, 1.0]
+    assert rules.apply()
+    assert out["target_position"].tolist() == pytest.approx([0.001, 0.002, 1.0])
+    assert rules.counts[:, Reason.STEP].tolist() == [0, 1, 0]
+    sw[1] = 0x0233  # no longer enabled: follows what is asked
+    out["target_position"][1] = 1.0
+    rules.apply()
+    assert out["target_position"][1] == 1.0
+    img.inputs["modes_of_operation_display"][0] = 1  # profile position: a destination, not ramped
+    out["target_position"][0] = 2.5
+    rules.apply()
+    assert out["target_position"][0] == 2.5
+
+
+def test_a_raw_integer_channel_with_a_limit_is_clamped() -> None:
+    text = MAP + "limits:\n  target_velocity: {max: 5000}\n"
+    img, rules = rules_for(text)
+    img.outputs["target_velocity"][:] = [2**31 - 1, -(2**31), 100]
+    rules.apply()
+    assert img.outputs["target_velocity"].tolist() == [5000, -5000, 100]
+
+
+def test_limits_off_keeps_only_nan_and_inf() -> None:
+    img, rules = rules_for(MAP + "limits: off\n")
+    img.outputs["target_position"][:] = 100.0
+    rules.apply()
+    assert wire_target(img) == [1_000_000] * 3
+
+
+def test_the_clean_cycle_allocates_nothing() -> None:
+    from fieldbus.runtime.allocs import net_blocks
+
+    img, rules = rules_for(MAP + "limits:\n  target_position: {max_rate: 2.0}\n")
+    assert net_blocks(rules.apply, cycles=5000) <= 2
+    target = img.outputs["target_position"]
+
+    def refused() -> None:  # a controller that writes NaN and inf every cycle: the refusal path
+        target[0], target[1] = math.nan, math.inf
+        rules.apply()
+
+    assert net_blocks(refused, cycles=5000) <= 2
+    assert rules.counts[0, Reason.NAN] >= 5000 and rules.counts[1, Reason.INF] >= 5000
+
+
+@pytest.mark.parametrize(
+    ("limits", "where", "what"),
+    [
+        ("  target_postion: {max: 1}\n", "limits.target_postion", "did you mean target_position"),
+        ("  target_position: {min: 2, max: 1}\n", "limits.target_position.max", "greater than min"),
+        ("  target_position: {max_rate: 0}\n", "limits.target_position.max_rate", "greater than 0"),
+        ("  target_velocity: {max: 1e12}\n", "limits.target_velocity.max", "outside what int32"),
+        ("  target_position: {}\n", "limits.target_position", "give min"),
+        ("  target_position: {max: -1}\n", "limits.target_position.max", "positive max"),
+    ],
+)
+def test_bad_limits_are_located_errors(limits: str, where: str, what: str) -> None:
+    with pytest.raises(PdoMapError) as err:
+        drive_map_from_text(MAP + "limits:\n" + limits, "joint.yaml")
+    text = str(err.value)
+    assert err.value.path == where and "joint.yaml:" in text and what in text, text
+    assert err.value.line == MAP.count("\n") + 2
+
+
+def test_family_codecs_refuse_a_value_that_did_not_pass_the_rules() -> None:
+    with pytest.raises(UnsafeOutputError, match="position"):
+        encode_servo((ServoField("position", "int32", 572957.795),), {"position": math.nan})
+    with pytest.raises(UnsafeOutputError, match="velocity"):
+        encode_fields((ModeField("velocity", "float32"),), {"velocity": math.inf}, {})
+    assert struct.unpack(">i", encode_servo((ServoField("position", "int32", 10.0),), {"position": 1.0})) == (
+        10,
+    )
+
+
+def test_rules_vectorise_over_every_scaled_channel_of_a_rawcan_map() -> None:
+    from fieldbus import PDO_MAPS
+
+    drive = drive_map_from_text((PDO_MAPS / "damiao_dm_j4310.yaml").read_text(), "dm.yaml")
+    img = ProcessImage(layout(drive, pdo_align=8), 2)
+    rules = OutputRules("g", img.outputs, channel_limits(drive, img.layout.outputs, 0.001))
+    out = img.outputs
+    out["velocity"][:] = [1000.0, math.nan]
+    out["kp"][:] = [-5.0, 600.0]
+    rules.apply()
+    assert out["velocity"].tolist() == [30.0, 0.0]  # VMAX; NaN keeps the default (0)
+    assert out["kp"].tolist() == [0.0, 500.0]
+    assert np.isfinite(out["position"]).all()
