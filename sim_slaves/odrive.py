@@ -34,7 +34,7 @@ from typing import Any
 
 import can
 
-from fieldbus.core import damiao, odrive
+from fieldbus.core import odrive
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.mit_motor import Law, MitMotorSimulator
 
@@ -241,7 +241,7 @@ class OdriveSimulator(MitMotorSimulator):
     def _setpoint(self, node: int, mode: odrive.OdriveMode, data: bytes) -> None:
         """A set-point feeds the watchdog; the one of the active control mode is followed from now on."""
         ax, st = self.axes[node], self.motor(node)
-        values = damiao.decode_fields(mode.fields, data, {})
+        values = odrive.decode_setpoint(mode, data)
         ax.setpoint[mode.command] = values
         ax.last_setpoint_t = self.clock()
         st.commands += 1

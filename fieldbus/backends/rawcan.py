@@ -936,15 +936,15 @@ class RawCanBackend(CanFaults, Backend):
 
     def _send_odrive(self, i: int, proto: odrive.OdriveProtocol) -> None:
         """One ODrive's cycle: Set_Axis_State when the image asks a new state; the set-point unless IDLE; the RTR."""
-        values = self._mode_values(i)
-        want = int(values[proto.request_field])
+        row = self.out_row(i)  # the wire bytes (byte_order little: in frame order)
+        want = odrive.requested_state(proto, row)
         if want and want != self._od_sent_state[i]:
             self._od_request_state(i, want)
         mode = self._od_mode[i]
         assert mode is not None
         if want != proto.idle:
             m = self._od_msgs[i][mode.command]
-            m.data[:] = damiao.encode_fields(mode.fields, values, {})
+            odrive.encode_setpoint(mode, row, m.data)
             self._bus.send(m)
         self._bus.send(self._od_rtr[i])
 
