@@ -360,6 +360,7 @@ class FramesFamily(CanFamily):
     and safe-stop frames; a motor's ``config`` is its :class:`FramesProtocol`."""
 
     name = "frames"
+    emulator = "sim_slaves.frames_motor:FramesMotorSimulator"
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         import numpy as np

@@ -38,6 +38,7 @@ rawcan:
   fault: {field: code, codes: {0: ok, 7: stall}}
   enable: [0x01]
   disable: [0x00]
+  clear: [0x03]
 """
 
 
@@ -159,3 +160,32 @@ def test_the_backend_runs_a_third_party_family_through_the_protocol(acme_network
                 ) < frames.index(b"\x00")
         finally:
             notifier.stop()
+
+
+def test_the_testing_kit_emulates_a_third_party_family_through_the_table(
+    acme_network: tuple[Path, str], tmp_path: Path
+) -> None:
+    """The kit finds the family's emulator in its class (here the declarative one): the wheels turn at the
+    commanded speed, a stall is a named fault, recovery by name clears it and enables the motor again."""
+    from fieldbus.testing import emulate
+
+    net_file, _ = acme_network
+    kit_net = tmp_path / "kit.yaml"
+    kit_net.write_text(
+        net_file.read_text()
+        .replace("can_interface: virtual", "can_interface: socketcan")
+        .replace("receive_timeout_us: 50000", "receive_timeout_us: 500")
+    )
+    with emulate(kit_net) as emu:
+        wheels = emu.op["wheels"]
+        wheels.outputs["velocity"][:] = [100, -50]  # raw 1 per rad/s: the map's scale 1
+        emu.cycles(500)
+        pos = list(wheels.inputs["position"])
+        assert pos[0] > 0.5 and pos[1] < -0.2, pos  # turning, each its own way (feedback: 100 counts per rad)
+        emu.drive_fault("wheels", "w1", 7)
+        emu.cycles(10)
+        backend = emu.op.network.backend("wheels")
+        assert [(f.slave, f.code, f.name) for f in backend.faults] == [("w1", 7, "stall")]
+        assert emu.recover_motor("wheels", "w1")
+        emu.cycles(10)
+        assert backend.error_code("w1") == 0 and backend.motor_faults == 1
