@@ -189,3 +189,16 @@ def test_the_testing_kit_emulates_a_third_party_family_through_the_table(
         assert emu.recover_motor("wheels", "w1")
         emu.cycles(10)
         assert backend.error_code("w1") == 0 and backend.motor_faults == 1
+
+
+def test_a_motor_without_a_slot_in_a_shared_frame_is_refused_naming_the_bus(
+    acme_network: tuple[Path, str],
+) -> None:
+    """A family's ``ValueError`` for a bus it cannot run (node 3 in a frame of 2 motors) becomes a typed
+    error naming the bus, at open."""
+    net_file, _ = acme_network
+    drive = net_file.parent / "acme_wheel.yaml"
+    drive.write_text(drive.read_text().replace("{id: 0x210,", "{id: 0x210, motors: 2,"))
+    net_file.write_text(net_file.read_text().replace("node_id: 1, count: 2", "node_id: 2, count: 2"))
+    with pytest.raises(FieldbusError, match=r"bus 'wheels'.*node_id 3 has no slot in frame 0x210"):
+        open_network(net_file).bring_up()
