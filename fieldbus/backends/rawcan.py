@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import struct
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -1147,11 +1148,15 @@ class RawCanBackend(CanFaults, Backend):
             self._arrived[i] = True
         return len(motors)
 
-    def _family_carries(self, msg: Any) -> bool:
+    def _family_carries(self, msg: Any) -> Sequence[int]:
+        """The motors a family's reply ``msg`` is for (empty: no family's)."""
         if msg.is_remote_frame or msg.is_error_frame:
-            return False
+            return ()
         data = bytes(msg.data)
-        return any(f.carries(msg.arbitration_id, msg.is_extended_id, data) for f in self._fams)
+        for f in self._fams:
+            if motors := f.carries(msg.arbitration_id, msg.is_extended_id, data):
+                return motors
+        return ()
 
     def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
         """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
@@ -1173,8 +1178,12 @@ class RawCanBackend(CanFaults, Backend):
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
-                if self._fams and self._family_carries(msg):
-                    self.late_frames += 1
+                motors = self._family_carries(msg) if self._fams else ()
+                if motors:  # a family's reply: extra when its motors answered this cycle, else late
+                    if all(self._arrived[j] for j in motors):
+                        self.extra_frames += 1
+                    else:
+                        self.late_frames += 1
                     continue
                 i = self._motor(msg)
                 if i >= 0:

@@ -743,8 +743,8 @@ def can_frames(
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
         if s.map.rawcan is not None and s.map.rawcan.protocol is not None:  # shared frames: once per bus
-            for f in protocol_frames(s.name, s.map.rawcan, node, fb, fd_bus):
-                if (f.can_id, f.extended) not in shared:
+            for f, once in protocol_frames(s.name, s.map.rawcan, node, fb, fd_bus):
+                if not once or (f.can_id, f.extended) not in shared:
                     shared.add((f.can_id, f.extended))
                     frames.append(f)
             continue
@@ -808,12 +808,16 @@ def _motor_frames(
 
 def protocol_frames(
     name: str, cfg: RawCanConfig, node: int, frame_bits: int | None, fd: bool = False
-) -> list[CanFrame]:
+) -> list[tuple[CanFrame, bool]]:
     """One cycle of a motor whose family runs on the protocol (:mod:`fieldbus.core.canfamily`), as its
-    family reports its frames (a frame several motors share comes once per motor, the same id)."""
+    family reports its frames, each with whether several motors share it (then it comes once per motor,
+    the same id, and is counted once)."""
     family = families()[cfg.family]
     return [
-        CanFrame(t.can_id, t.data_bytes, t.label, t.extended, fd, frame_bits=frame_bits, after=t.after)
+        (
+            CanFrame(t.can_id, t.data_bytes, t.label, t.extended, fd, frame_bits=frame_bits, after=t.after),
+            t.shared,
+        )
         for t in family.wire_frames(name, cfg.protocol, node)
     ]
 

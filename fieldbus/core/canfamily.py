@@ -25,8 +25,8 @@ from importlib.metadata import entry_points
 from typing import Any, ClassVar, NamedTuple, Protocol
 
 GROUP = "fieldbus.rawcan_families"
-#: Built-in families ported to the protocol (the others still run on the backend's own paths).
-BUILTIN = {"frames": "fieldbus.core.canframes:FramesFamily"}
+#: Built-in families ported to the protocol (damiao, odrive, cubemars still run on the backend's own paths).
+BUILTIN = {"frames": "fieldbus.core.canframes:FramesFamily", "mit": "fieldbus.core.mitfamily:MitFamily"}
 
 Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data)
 
@@ -40,6 +40,7 @@ class FrameTime(NamedTuple):
     label: str
     extended: bool = False
     after: str | None = None
+    shared: bool = False  # one frame for several motors of the bus: counted once (same id from each)
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,7 @@ class CanFamily(ABC):
     @abstractmethod
     def wire_frames(cls, name: str, config: Any, node: int) -> list[FrameTime]:
         """Motor ``name``'s frames of one cycle for the bandwidth calculator (a frame shared by several
-        motors: the same ``(can_id, extended)`` from each, counted once per bus)."""
+        motors: ``shared``, the same ``(can_id, extended)`` from each, counted once per bus)."""
 
     @abstractmethod
     def cycle(self) -> Sequence[CycleFrame]:

@@ -401,7 +401,8 @@ class FramesFamily(CanFamily):
         for spec, what in ((config.command, "command"), (config.feedback, "feedback")):
             cid = spec.frame_id(node)
             label = f"0x{cid:X} {what}" if spec.shared else f"{name} {what}"
-            out.append(FrameTime(cid, spec.length, label, spec.extended, out[0].label if out else None))
+            after = out[0].label if out else None
+            out.append(FrameTime(cid, spec.length, label, spec.extended, after, spec.shared))
         return out
 
     def cycle(self) -> list[WireFrame]:

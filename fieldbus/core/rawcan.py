@@ -111,9 +111,11 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
     """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""
     path: PathT = ("rawcan",)
     registered = families()
-    name = raw.get("family") if isinstance(raw, Mapping) else None
+    name = raw.get("family", "mit") if isinstance(raw, Mapping) else None
     if isinstance(name, str) and name in registered:  # a family on the protocol (fieldbus.core.canfamily)
         proto, rpdo, tpdo = registered[name].parse(r, raw, path)
+        if isinstance(proto, RawCanConfig):  # a family of the classic section (mit)
+            return replace(proto, protocol=proto), rpdo, tpdo
         cfg = RawCanConfig(command=(), reply=(), enter=b"", exit=b"", zero=b"", family=name, protocol=proto)
         if name == "frames":  # its ids and patterns where the emulators and tools look for them
             cfg = replace(
@@ -121,6 +123,13 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
                 exit=proto.disable or b"", zero=proto.zero or b"", frames=proto,
             )  # fmt: skip
         return cfg, rpdo, tpdo
+    return parse_classic(r, raw)
+
+
+def parse_classic(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
+    """A classic ``rawcan:`` section (command and reply fields; families mit, damiao, odrive, cubemars)."""
+    path: PathT = ("rawcan",)
+    registered = families()
     m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
     family = r.choice(m.get("family", "mit"), (*path, "family"), (*FAMILIES, *registered))
