@@ -202,3 +202,24 @@ def test_a_motor_without_a_slot_in_a_shared_frame_is_refused_naming_the_bus(
     net_file.write_text(net_file.read_text().replace("node_id: 1, count: 2", "node_id: 2, count: 2"))
     with pytest.raises(FieldbusError, match=r"bus 'wheels'.*node_id 3 has no slot in frame 0x210"):
         open_network(net_file).bring_up()
+
+
+def test_mit_motors_that_answer_alike_are_refused_naming_the_bus(tmp_path: Path) -> None:
+    """Family mit on the protocol: two motors replying on one id with no node byte to tell them apart."""
+    from fieldbus import PDO_MAPS
+
+    text = (
+        (PDO_MAPS / "cubemars_ak80_9_mit.yaml")
+        .read_text()
+        .replace("  node_field: motor_id\n", "  reply_id: 0x100\n")
+    )
+    drive = tmp_path / "mit.yaml"
+    drive.write_text(text)
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 2000\nbuses:\n"
+        f"  - {{name: legs, type: rawcan, interface: fb-mit-refused-{os.getpid()}, can_interface: virtual,\n"
+        f"     slaves: [{{name: 'm{{i}}', map: '{drive}', node_id: 1, count: 2}}]}}\n"
+    )
+    with pytest.raises(FieldbusError, match=r"bus 'legs'.*two motors answer as CAN id 0x100"):
+        open_network(net).bring_up()
