@@ -1,8 +1,9 @@
 """Which emulator speaks a raw-CAN drive map's family, for the testing kit, the emulator process and the demo.
 
 A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``mit`` (the MIT frame
-alone), ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by its ``protocol``) or ``frames`` (a protocol
-described in data: :mod:`sim_slaves.frames_motor`). One emulator object
+alone), ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by its ``protocol``), or a family on the protocol
+(:func:`fieldbus.core.canfamily.families`: ``frames``, described in data, :mod:`sim_slaves.frames_motor`,
+or a third party's) whose class names its emulator. One emulator object
 serves the motors of one bus, so the motors of a bus must be of one family (and, for CubeMars, of one
 protocol); :func:`bus_family` refuses a mix, naming the maps.
 """
@@ -10,8 +11,10 @@ protocol); :func:`bus_family` refuses a mix, naming the maps.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from importlib import import_module
 from typing import Any
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.rawcan import FAMILIES
 from fieldbus.runtime.clock import Clock, monotonic_s
@@ -61,6 +64,13 @@ def simulator(
     """
     family = bus_family(d for d, _ in motors)
     items = list(motors)
+    registered = families().get(family)
+    if registered is not None and registered.emulator is not None:  # a family on the protocol names its own
+        module, _, attr = registered.emulator.partition(":")
+        emulator: MitMotorSimulator = getattr(import_module(module), attr)(
+            bus, items, dt_s=dt_s, log=log, clock=clock
+        )
+        return emulator
     if family == "damiao":
         from sim_slaves.damiao import DamiaoSimulator
 
@@ -69,10 +79,6 @@ def simulator(
         from sim_slaves.odrive import OdriveSimulator
 
         return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
-    if family == "frames":
-        from sim_slaves.frames_motor import FramesMotorSimulator
-
-        return FramesMotorSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
     if family == "cubemars-servo":
         from sim_slaves.cubemars import CubemarsServoSimulator
 

@@ -56,9 +56,9 @@ class FramesMotorSimulator(MitMotorSimulator):
         self._commands: dict[tuple[int, bool], list[int]] = {}  # command frame -> its nodes
         for drive, node in motors:
             cfg = drive.rawcan
-            if cfg is None or cfg.frames is None:
+            if cfg is None or not isinstance(cfg.protocol, FramesProtocol):
                 raise ValueError(f"{drive.name} is not a declarative map (rawcan family frames)")
-            proto = cfg.frames
+            proto = cfg.protocol
             self.proto[node] = proto
             self.error[node] = 0
             key = (proto.command.frame_id(node), proto.command.extended)

@@ -36,7 +36,7 @@ from typing import Any
 
 import can
 
-from fieldbus.core import damiao, odrive
+from fieldbus.core import odrive
 from fieldbus.core.pdo.model import DriveMap
 from sim_slaves.mit_motor import Law, MitMotorSimulator
 
@@ -244,7 +244,7 @@ class OdriveSimulator(MitMotorSimulator):
     def _setpoint(self, node: int, mode: odrive.OdriveMode, data: bytes) -> None:
         """A set-point feeds the watchdog; the one of the active control mode is followed from now on."""
         ax, st = self.axes[node], self.motor(node)
-        values = damiao.decode_fields(mode.fields, data, {})
+        values = odrive.decode_setpoint(mode, data)
         if not all(math.isfinite(v) for v in values.values()):
             ax.refused += 1  # a NaN or infinite set-point: refused, the rotor's state never turns NaN
             return

@@ -47,11 +47,13 @@ current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` len
 reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
 outside 0 are counted, named faults as for Damiao.
 
-Family ``frames`` (:mod:`fieldbus.core.canframes`): a protocol described in data; its command frames
-(per motor, or shared by several motors of the bus) are filled from the image's output rows and its
-feedback frames routed into the motors' input rows by :class:`~fieldbus.core.canframes.FramesBus`;
-enable / disable / zero are the map's byte patterns (no answer awaited), and ``stop()`` sends every
-motor's ``safe_value`` command before the disable pattern.
+Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
+a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
+cycle frames, reply routing, special and stop frames, recovery requests and error codes. Family ``frames``
+(:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
+shared by several motors of the bus) are filled from the image's output rows and its feedback frames
+routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
+awaited), and ``stop()`` sends every motor's ``safe_value`` command before the disable pattern.
 
 CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
 with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
@@ -61,6 +63,7 @@ from __future__ import annotations
 
 import struct
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,7 +75,7 @@ from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import cubemars, damiao, odrive
-from fieldbus.core.canframes import FramesBus
+from fieldbus.core.canfamily import CanFamily, FamilyMotor, Request, families
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -198,8 +201,8 @@ class RawCanBackend(CanFaults, Backend):
             str, tuple[int, int]
         ] = {}  # 0.6 Get_Error answers: (active errors, disarm reason)
         self._sdo_answer: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
-        declared: list[Any] = []  # family frames: (index, node, protocol, output row, input row)
-        self._fr = [False] * self.n_slaves
+        declared: dict[str, list[FamilyMotor]] = {}  # families on the protocol: their motors
+        self._fr = [False] * self.n_slaves  # motor i runs on a CanFamily
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
             if cfg is None:
@@ -213,9 +216,10 @@ class RawCanBackend(CanFaults, Backend):
             )
             # the frame's data bytearray seen as a numpy array: encoding writes straight into it
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
-            if cfg.frames is not None:
+            if cfg.protocol is not None:
                 self._fr[i] = True
-                declared.append((i, node, cfg.frames, out_row, self._in_rows[i]))
+                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i])
+                declared.setdefault(cfg.family, []).append(motor)
                 continue
             reply_id = cfg.reply_can_id(node)
             if cfg.damiao is not None:
@@ -245,18 +249,24 @@ class RawCanBackend(CanFaults, Backend):
                     f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
                 )
             self._route[key] = i
+        registered = families() if declared else {}
         try:
-            self._frames = FramesBus(declared) if declared else None
+            self._fams: list[CanFamily] = [registered[name](ms) for name, ms in declared.items()]
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
-        self._fr_msgs = [
-            (self._message(arbitration_id=f.can_id, data=f.data, is_extended_id=f.extended))
-            for f in (self._frames.commands if self._frames is not None else ())
+        self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
+        # each family's cycle frames, a message built once around each (their data rewritten in place)
+        self._fam_msgs = [
+            (
+                f,
+                [
+                    self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
+                    for c in f.cycle()
+                ],
+            )
+            for f in self._fams
         ]
-        self._fr_faults = [
-            i for i, node, proto, _, _ in declared if proto.fault_field is not None
-        ]  # family frames with a fault field
-        self._families = any(at is not None for at in self._error_at) or bool(self._fr_faults)
+        self._families = any(at is not None for at in self._error_at) or bool(self._fam_of)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -589,13 +599,10 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("send", exc) from exc
             self._codes[i] = 0
             return True
-        if self._fr[i]:
-            if self._frames is not None:  # the patterns of the motor's command frame: clear, then enable
-                frame = next(f for f in self._frames.commands if any(x.motor == i for x in f.slots))
-                proto_f = self._frames.protocols[i]
-                for data in (proto_f.clear, proto_f.enable):
-                    if data is not None:
-                        self._send_raw(frame.can_id, frame.extended, data)
+        fam = self._fam_of.get(i)
+        if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
+            if self._requests(fam.recover(i)):
+                return False
             self._codes[i] = 0
             return True
         cm = self._cm[i]
@@ -627,12 +634,12 @@ class RawCanBackend(CanFaults, Backend):
             except (can.CanError, OSError) as exc:
                 raise self._io_failed("send", exc) from exc
             return True
-        if cfg.frames is not None and self._frames is not None:
-            if cfg.frames.clear is None:
-                return False
-            frame = next(f for f in self._frames.commands if any(x.motor == i for x in f.slots))
-            self._send_raw(frame.can_id, frame.extended, cfg.frames.clear)
-            return True
+        fam = self._fam_of.get(i)
+        if fam is not None:
+            frames = fam.commands("clear", i)
+            for can_id, ext, data in frames:
+                self._send_raw(can_id, ext, data)
+            return bool(frames)
         if cfg.damiao is None or not self._answered(i, cfg.damiao.clear):
             return False
         at = self._error_at[i]
@@ -672,6 +679,27 @@ class RawCanBackend(CanFaults, Backend):
             raise self._io_failed("receive", exc) from exc
         return bool(self._arrived[i])
 
+    def _requests(self, requests: Any) -> list[int]:
+        """Send a family's requests in order, each awaited reply within ``ENTER_TIMEOUT_S``; the motors that
+        did not answer (a step unanswered ends the sequence)."""
+        for req in requests:
+            self._drain()
+            for j in req.awaits:
+                self._arrived[j] = False
+            self._send_raw(*req.frame)
+            if not req.awaits:
+                continue
+            deadline = self._now() + ENTER_TIMEOUT_S
+            try:
+                while not all(self._arrived[j] for j in req.awaits) and self._now() < deadline:
+                    self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
+            except (can.CanError, OSError) as exc:
+                raise self._io_failed("receive", exc) from exc
+            missing = [j for j in req.awaits if not self._arrived[j]]
+            if missing:
+                return missing
+        return []
+
     def _mode_values(self, i: int) -> dict[str, float]:
         a = self.areas[i]
         row = self.groups[a.group].image.outputs.values[a.row]
@@ -680,14 +708,11 @@ class RawCanBackend(CanFaults, Backend):
 
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
-        for i in self._fr_faults:
-            if self._arrived[i] and self._frames is not None:
-                fp = self._frames.protocols[i]
-                code = fp.fault_code(self._in_rows[i])
-                if code is not None and code != self._codes[i]:
-                    if code not in fp.ok_codes:
-                        self._fault(i, code, fp.fault_name(code))
-                    self._codes[i] = code
+        for i, fam in self._fam_of.items():
+            if self._arrived[i] and (err := fam.error(i)) is not None and err[0] != self._codes[i]:
+                if err[1] is not None:
+                    self._fault(i, err[0], err[1])
+                self._codes[i] = err[0]
         for i, at in enumerate(self._error_at):
             if at is None or not self._arrived[i]:
                 continue
@@ -912,15 +937,15 @@ class RawCanBackend(CanFaults, Backend):
 
     def _send_odrive(self, i: int, proto: odrive.OdriveProtocol) -> None:
         """One ODrive's cycle: Set_Axis_State when the image asks a new state; the set-point unless IDLE; the RTR."""
-        values = self._mode_values(i)
-        want = int(values[proto.request_field])
+        row = self.out_row(i)  # the wire bytes (byte_order little: in frame order)
+        want = odrive.requested_state(proto, row)
         if want and want != self._od_sent_state[i]:
             self._od_request_state(i, want)
         mode = self._od_mode[i]
         assert mode is not None
         if want != proto.idle:
             m = self._od_msgs[i][mode.command]
-            m.data[:] = damiao.encode_fields(mode.fields, values, {})
+            odrive.encode_setpoint(mode, row, m.data)
             self._bus.send(m)
         self._bus.send(self._od_rtr[i])
 
@@ -956,12 +981,13 @@ class RawCanBackend(CanFaults, Backend):
         """
         self._drain()
         try:
-            if self._frames is not None:  # patterns, no answer awaited; the safe command before disabling
-                frames = self._frames.safe_frames() if which == "exit" else []
-                for can_id, ext, data in frames + self._frames.special(
-                    {"enter": "enable", "exit": "disable"}.get(which, which)
-                ):
+            awaited: set[int] = set()
+            for fam in self._fams:  # the families' requests (declarative: patterns, no answer awaited)
+                reqs: list[Request] = list(fam.bring_up(which))
+                for req in reqs:
+                    can_id, ext, data = req.frame
                     self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=ext))
+                    awaited.update(req.awaits)
             for i, area in enumerate(self.areas):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
@@ -995,7 +1021,8 @@ class RawCanBackend(CanFaults, Backend):
         self._arrived.fill(False)
         for i, proto in enumerate(self._od):
             cm = self._cm[i]
-            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or self._fr[i]
+            fam_done = self._fr[i] and i not in awaited
+            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or fam_done
         if which == "clear":
             for i, area in enumerate(self.areas):
                 self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
@@ -1013,9 +1040,9 @@ class RawCanBackend(CanFaults, Backend):
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
         try:
-            if self._frames is not None:
-                self._frames.fill()
-                for m in self._fr_msgs:
+            for fam, msgs in self._fam_msgs:
+                fam.cycle()
+                for m in msgs:
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
                 if self._fr[i]:
@@ -1085,8 +1112,11 @@ class RawCanBackend(CanFaults, Backend):
         """Take ``msg`` as a reply; the number of motors it answered for (a shared frame: several)."""
         if msg is None:
             return 0
-        if self._frames is not None and self._frames.is_feedback(msg.arbitration_id, msg.is_extended_id):
-            return self._accept_shared(msg, copy=copy)
+        if self._fams and not (msg.is_remote_frame or msg.is_error_frame):
+            for fam in self._fams:
+                motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+                if motors:
+                    return self._accept_family(fam, motors, msg, copy=copy)
         i = self._motor(msg)
         if i < 0:
             return False
@@ -1106,25 +1136,27 @@ class RawCanBackend(CanFaults, Backend):
         self._arrived[i] = True
         return True
 
-    def _accept_shared(self, msg: Any, *, copy: bool) -> int:
-        """A feedback frame of family ``frames``: its slots into the rows of the motors not yet arrived."""
-        if msg.is_remote_frame or msg.is_error_frame:
-            return 0
-        motors = self._frames_motors(msg)
+    def _accept_family(self, fam: CanFamily, motors: Any, msg: Any, *, copy: bool) -> int:
+        """A reply of a family on the protocol (one frame may carry several motors): into the rows of its
+        motors when none of them has answered this cycle yet, else counted extra."""
         if any(self._arrived[i] for i in motors):
             self.extra_frames += 1
             return 0
-        if copy and self._frames is not None:
-            motors = self._frames.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+        if copy:
+            motors = fam.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
         for i in motors:
             self._arrived[i] = True
         return len(motors)
 
-    def _frames_motors(self, msg: Any) -> list[int]:
-        frame = self._frames.feedback.get((msg.arbitration_id, msg.is_extended_id)) if self._frames else None
-        if frame is None or len(msg.data) < len(frame.data):
-            return []
-        return [s.motor for s in frame.slots]
+    def _family_carries(self, msg: Any) -> Sequence[int]:
+        """The motors a family's reply ``msg`` is for (empty: no family's)."""
+        if msg.is_remote_frame or msg.is_error_frame:
+            return ()
+        data = bytes(msg.data)
+        for f in self._fams:
+            if motors := f.carries(msg.arbitration_id, msg.is_extended_id, data):
+                return motors
+        return ()
 
     def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
         """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
@@ -1146,9 +1178,12 @@ class RawCanBackend(CanFaults, Backend):
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
-                shared = self._frames_motors(msg) if self._frames is not None else []
-                if shared:
-                    self.late_frames += 1
+                motors = self._family_carries(msg) if self._fams else ()
+                if motors:  # a family's reply: extra when its motors answered this cycle, else late
+                    if all(self._arrived[j] for j in motors):
+                        self.extra_frames += 1
+                    else:
+                        self.late_frames += 1
                     continue
                 i = self._motor(msg)
                 if i >= 0:

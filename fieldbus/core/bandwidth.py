@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 from fieldbus.core import cubemars
-from fieldbus.core.canframes import FramesProtocol
+from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
@@ -742,9 +742,9 @@ def can_frames(
         cfg = s.map.canopen or CanopenConfig()
         fd = fd_bus or cfg.fd
         limit = 64 if fd else 8
-        if s.map.rawcan is not None and s.map.rawcan.frames is not None:  # shared frames: once per bus
-            for f in declared_frames(s.name, s.map.rawcan.frames, node, fb, fd_bus):
-                if (f.can_id, f.extended) not in shared:
+        if s.map.rawcan is not None and s.map.rawcan.protocol is not None:  # shared frames: once per bus
+            for f, once in protocol_frames(s.name, s.map.rawcan, node, fb, fd_bus):
+                if not once or (f.can_id, f.extended) not in shared:
                     shared.add((f.can_id, f.extended))
                     frames.append(f)
             continue
@@ -806,18 +806,20 @@ def _motor_frames(
     return [command, reply]
 
 
-def declared_frames(
-    name: str, proto: FramesProtocol, node: int, frame_bits: int | None, fd: bool = False
-) -> list[CanFrame]:
-    """A declarative motor's command frame and the feedback that answers it (a shared frame is named
-    by its id: it carries several motors)."""
-    out: list[CanFrame] = []
-    for spec, what in ((proto.command, "command"), (proto.feedback, "feedback")):
-        cid = spec.frame_id(node)
-        label = f"0x{cid:X} {what}" if spec.shared else f"{name} {what}"
-        after = out[0].label if out else None
-        out.append(CanFrame(cid, spec.length, label, spec.extended, fd, frame_bits=frame_bits, after=after))
-    return out
+def protocol_frames(
+    name: str, cfg: RawCanConfig, node: int, frame_bits: int | None, fd: bool = False
+) -> list[tuple[CanFrame, bool]]:
+    """One cycle of a motor whose family runs on the protocol (:mod:`fieldbus.core.canfamily`), as its
+    family reports its frames, each with whether several motors share it (then it comes once per motor,
+    the same id, and is counted once)."""
+    family = families()[cfg.family]
+    return [
+        (
+            CanFrame(t.can_id, t.data_bytes, t.label, t.extended, fd, frame_bits=frame_bits, after=t.after),
+            t.shared,
+        )
+        for t in family.wire_frames(name, cfg.protocol, node)
+    ]
 
 
 #: Data bytes the master puts in every Damiao mode frame and ODrive set-point: the rawcan backend

@@ -35,11 +35,12 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from fieldbus.core import datatypes
+from fieldbus.core.canfamily import CanFamily, FamilyMotor, Frame, FrameTime
 from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.rawcan import field_channel
 from fieldbus.core.yamlsrc import PathT
@@ -353,24 +354,28 @@ class WireFrame:
     slots: list[_Slot]
 
 
-class FramesBus:
+class FramesFamily(CanFamily):
     """The declarative family's frames of one bus, sans I/O: the cycle's command frames from the image's
-    output rows (:meth:`fill`), feedback frames routed into the input rows (:meth:`route`), the special
-    and safe-stop frames. ``motors``: ``(slave index, node id, protocol, output row, input row)``."""
+    output rows (:meth:`cycle`), feedback frames routed into the input rows (:meth:`route`), the special
+    and safe-stop frames; a motor's ``config`` is its :class:`FramesProtocol`."""
 
-    def __init__(self, motors: list[tuple[int, int, FramesProtocol, Any, Any]]) -> None:
+    name = "frames"
+    emulator = "sim_slaves.frames_motor:FramesMotorSimulator"
+
+    def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         import numpy as np
 
+        super().__init__(motors)
         self._np = np
-        self.commands: list[WireFrame] = []
+        self._commands: list[WireFrame] = []
         self.feedback: dict[tuple[int, bool], WireFrame] = {}
-        self.protocols = {i: proto for i, _, proto, _, _ in motors}
-        self.nodes = {i: node for i, node, _, _, _ in motors}
+        self.protocols: dict[int, FramesProtocol] = {m.index: m.config for m in motors}
         by_id: dict[tuple[int, bool], WireFrame] = {}
-        for i, node, proto, out_row, in_row in motors:
+        for m in motors:
+            i, node, proto = m.index, m.node, m.config
             for spec, row, table in (
-                (proto.command, out_row, by_id),
-                (proto.feedback, in_row, self.feedback),
+                (proto.command, m.outputs, by_id),
+                (proto.feedback, m.inputs, self.feedback),
             ):
                 if spec.shared and not 1 <= node <= spec.motors:
                     raise ValueError(
@@ -382,16 +387,32 @@ class FramesBus:
                 if any(s.offset == offset for s in frame.slots):
                     raise ValueError(f"two motors in slot {node} of frame 0x{key[0]:X}")
                 frame.slots.append(_Slot(i, offset, row, np.array(spec.swap, dtype=np.intp)))
-        self.commands = list(by_id.values())
+        self._commands = list(by_id.values())
 
-    def fill(self) -> list[WireFrame]:
+    @classmethod
+    def parse(cls, r: Any, raw: Any, path: PathT) -> tuple[FramesProtocol, tuple[Pdo, ...], tuple[Pdo, ...]]:
+        return parse_frames(r, raw, path)
+
+    @classmethod
+    def wire_frames(cls, name: str, config: Any, node: int) -> list[FrameTime]:
+        """The motor's command frame and the feedback that answers it (a shared frame is named by its id:
+        it carries several motors)."""
+        out: list[FrameTime] = []
+        for spec, what in ((config.command, "command"), (config.feedback, "feedback")):
+            cid = spec.frame_id(node)
+            label = f"0x{cid:X} {what}" if spec.shared else f"{name} {what}"
+            after = out[0].label if out else None
+            out.append(FrameTime(cid, spec.length, label, spec.extended, after, spec.shared))
+        return out
+
+    def cycle(self) -> list[WireFrame]:
         """The cycle's command frames, their data taken from the output rows (the image's ``to_wire``)."""
         np = self._np
-        for frame in self.commands:
+        for frame in self._commands:
             data = np.frombuffer(frame.data, dtype=np.uint8)
             for s in frame.slots:
                 np.take(s.row, s.swap, out=data[s.offset : s.offset + len(s.swap)])
-        return self.commands
+        return self._commands
 
     def route(self, can_id: int, extended: bool, data: bytes) -> list[int]:
         """Copy a feedback frame's slots into their motors' input rows; the motors it carried (none when
@@ -405,23 +426,29 @@ class FramesBus:
             np.take(raw[s.offset : s.offset + len(s.swap)], s.swap, out=s.row[: len(s.swap)])
         return [s.motor for s in frame.slots]
 
-    def is_feedback(self, can_id: int, extended: bool) -> bool:
-        return (can_id, extended) in self.feedback
+    def carries(self, can_id: int, extended: bool, data: bytes) -> list[int]:
+        frame = self.feedback.get((can_id, extended))
+        if frame is None or len(data) < len(frame.data):
+            return []
+        return [s.motor for s in frame.slots]
 
-    def special(self, which: str) -> list[tuple[int, bool, bytes]]:
-        """The ``enable`` / ``disable`` / ``zero`` pattern on each command frame whose motors have one."""
+    def commands(self, which: str, motor: int | None = None) -> list[Frame]:
+        """The ``enable`` / ``disable`` / ``zero`` / ``clear`` pattern on each command frame whose motors have
+        one (``motor``: on that motor's frame only)."""
         out = []
-        for frame in self.commands:
-            pattern = getattr(self.protocols[frame.slots[0].motor], which)
+        for frame in self._commands:
+            if motor is not None and all(s.motor != motor for s in frame.slots):
+                continue
+            pattern = getattr(self.protocols[frame.slots[0].motor if motor is None else motor], which)
             if pattern is not None:
                 out.append((frame.can_id, frame.extended, pattern))
         return out
 
-    def safe_frames(self) -> list[tuple[int, bool, bytes]]:
+    def stop_frames(self) -> list[Frame]:
         """Command frames of the safe stop: every motor's slot at its fields' ``safe_value``, the rest 0
         (NaN-free: built from the map, not from the image)."""
         out = []
-        for frame in self.commands:
+        for frame in self._commands:
             data = bytearray(len(frame.data))
             for s in frame.slots:
                 slot = self.protocols[s.motor].safe_slot()
@@ -429,10 +456,10 @@ class FramesBus:
             out.append((frame.can_id, frame.extended, bytes(data)))
         return out
 
-    def fault(self, motor: int, values: Mapping[str, float]) -> tuple[int, str] | None:
-        """``(code, name)`` when motor ``motor``'s fault field (decoded ``values``) holds a fault code."""
+    def error(self, motor: int) -> tuple[int, str | None] | None:
+        """The fault field's code in the motor's input row and its name (None for an ``ok`` code)."""
         proto = self.protocols[motor]
-        if proto.fault_field is None:
+        code = proto.fault_code(self.motors[motor].inputs)
+        if code is None:
             return None
-        code = int(values[proto.fault_field])
-        return None if code in proto.ok_codes else (code, proto.fault_name(code))
+        return code, None if code in proto.ok_codes else proto.fault_name(code)

@@ -25,7 +25,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from fieldbus.core.damiao import MODE_FIELD_KEYS, MODE_TYPES, ModeField
 from fieldbus.core.yamlsrc import PathT
 
 ODRIVE_KEYS = (
@@ -33,6 +32,8 @@ ODRIVE_KEYS = (
     "state_field", "error_field", "request_field", "clear",
 )  # fmt: skip
 MODE_KEYS = ("name", "command", "control_mode", "input_mode", "fields")
+SETPOINT_KEYS = ("from", "type", "scale")
+SETPOINT_TYPES = {"float32": ("<f", 4), "int16": ("<h", 2)}  # int16: the feed-forwards of Set_Input_Pos
 CONFIG_KEYS = ("name", "endpoint", "type", "value")
 CONFIG_TYPES = {"float32": "<f", "uint32": "<I", "int32": "<i", "bool": "<I"}
 STATE_KEYS = ("idle", "closed_loop")
@@ -49,6 +50,20 @@ SDO_READ, SDO_WRITE = 0, 1  # RxSdo opcodes
 
 
 @dataclass(frozen=True)
+class SetpointField:
+    """One number of a set-point frame: ``raw = value * scale`` of command field ``source`` (an int16
+    saturates at -32768..32767, NaN sends 0). ``at``: the source's byte offset in the image's output row
+    (its wire bytes, little-endian: a float32, or an integer of ``source_bytes`` bytes, signed or not)."""
+
+    source: str
+    type: str  # float32 | int16
+    scale: float = 1.0
+    at: int = 0
+    source_type: str = "float32"  # float32 | int | uint
+    source_bytes: int = 4
+
+
+@dataclass(frozen=True)
 class OdriveMode:
     """A controller mode: Set_Controller_Mode values and the set-point command whose frame carries it."""
 
@@ -56,7 +71,7 @@ class OdriveMode:
     command: int  # the command id of the set-point (0x0C, 0x0D, 0x0E)
     control_mode: int
     input_mode: int
-    fields: tuple[ModeField, ...]
+    fields: tuple[SetpointField, ...]
 
 
 @dataclass(frozen=True)
@@ -84,6 +99,7 @@ class OdriveProtocol:
     heartbeat_ms: float
     config: tuple[ConfigItem, ...]
     request_field: str  # command channel whose value is the requested axis state (0: none)
+    request_at: tuple[int, int]  # its byte offset and size in the output row (unsigned little-endian)
     state_field: str  # reply channel holding the heartbeat's axis state
     error_field: str  # reply channel holding the heartbeat's axis error
     clear: bytes
@@ -125,6 +141,11 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
     if len(set(commands.values())) != len(commands):
         raise r.err(cp, "two commands share an id")
     by_name = {f.name: f for f in command}
+    offsets: dict[str, tuple[int, int]] = {}  # byte offset and size of each command field in the row
+    bit = 0
+    for f in command:
+        offsets[f.name] = (bit // 8, f.bits // 8)
+        bit += f.bits
     modes: list[OdriveMode] = []
     for i, item in enumerate(r.sequence(m["modes"], (*path, "modes"))):
         mp: PathT = (*path, "modes", i)
@@ -132,19 +153,26 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         cmd = r.choice(
             mm["command"], (*mp, "command"), ("set_input_pos", "set_input_vel", "set_input_torque")
         )
-        fields: list[ModeField] = []
+        fields: list[SetpointField] = []
         size = 0
         for j, fraw in enumerate(r.sequence(mm["fields"], (*mp, "fields"))):
             fp: PathT = (*mp, "fields", j)
-            fm = r.mapping(
-                fraw, fp, tuple(k for k in MODE_FIELD_KEYS if k != "per_unit"), required=("from", "type")
-            )
+            fm = r.mapping(fraw, fp, SETPOINT_KEYS, required=("from", "type"))
             src = r.string(fm["from"], (*fp, "from"))
             if src not in by_name:
                 raise r.err((*fp, "from"), f"'{src}' is not a command field ({', '.join(by_name)})")
-            kind = r.choice(fm["type"], (*fp, "type"), ("float32", "int16"))
-            size += MODE_TYPES[kind][1]
-            fields.append(ModeField(src, kind, r.number(fm.get("scale", 1.0), (*fp, "scale"))))
+            if by_name[src].scaled or by_name[src].bits % 8:
+                raise r.err(
+                    (*fp, "from"), f"'{src}' is scaled or not whole bytes: a set-point takes a number as is"
+                )
+            kind = r.choice(fm["type"], (*fp, "type"), tuple(SETPOINT_TYPES))
+            size += SETPOINT_TYPES[kind][1]
+            at, nbytes = offsets[src]
+            fields.append(
+                SetpointField(
+                    src, kind, r.number(fm.get("scale", 1.0), (*fp, "scale")), at, by_name[src].type, nbytes
+                )
+            )
         if size > 8:
             raise r.err((*mp, "fields"), f"the fields take {size} bytes; a classic CAN frame has 8")
         modes.append(
@@ -192,6 +220,11 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         if name not in pool:
             raise r.err((*path, key), f"'{name}' is not a {'command' if pool is by_name else 'reply'} field")
         fields_named[key] = name
+    request = by_name[fields_named["request_field"]]
+    if request.scaled or request.type != "uint" or request.bits % 8:
+        raise r.err(
+            (*path, "request_field"), f"'{request.name}' is not an unscaled uint field of whole bytes"
+        )
     clear = bytes(
         r.integer(v, (*path, "clear", i), 0, 255)
         for i, v in enumerate(r.sequence(m.get("clear", []), (*path, "clear")))
@@ -208,6 +241,7 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         heartbeat_ms=r.number(m.get("heartbeat_ms", 100.0), (*path, "heartbeat_ms")),
         config=tuple(config),
         request_field=fields_named["request_field"],
+        request_at=offsets[request.name],
         state_field=fields_named["state_field"],
         error_field=fields_named["error_field"],
         clear=clear,
@@ -255,3 +289,44 @@ def pack_config(item: ConfigItem, value: float | None = None) -> bytes:
 
 def unpack_config(item: ConfigItem, data: bytes) -> float:
     return float(struct.unpack(CONFIG_TYPES[item.type], data)[0])
+
+
+def _source(f: SetpointField, row: Any) -> float:
+    """Field ``f``'s value from an output row's wire bytes (``row``: any buffer, e.g. a numpy uint8 row)."""
+    if f.source_type == "float32":
+        return float(struct.unpack_from("<f", row, f.at)[0])
+    return float(
+        int.from_bytes(bytes(row[f.at : f.at + f.source_bytes]), "little", signed=f.source_type == "int")
+    )
+
+
+def encode_setpoint(mode: OdriveMode, row: Any, out: bytearray) -> None:
+    """Mode ``mode``'s set-point frame data from an output row's wire bytes into ``out`` (8 bytes, zero
+    padded); NaN in an int16 sends 0, out of range saturates (a float32 is sent as the image has it)."""
+    at = 0
+    out[:] = bytes(len(out))
+    for f in mode.fields:
+        x = _source(f, row) * f.scale
+        fmt, size = SETPOINT_TYPES[f.type]
+        if f.type == "int16":
+            struct.pack_into(fmt, out, at, 0 if x != x else int(min(32767.0, max(-32768.0, round(x)))))
+        else:
+            struct.pack_into(fmt, out, at, x)
+        at += size
+
+
+def decode_setpoint(mode: OdriveMode, data: bytes) -> dict[str, float]:
+    """The engineering values a set-point frame carries, keyed by their command field (``value = raw / scale``)."""
+    out: dict[str, float] = {}
+    at = 0
+    for f in mode.fields:
+        fmt, size = SETPOINT_TYPES[f.type]
+        out[f.source] = float(struct.unpack_from(fmt, data, at)[0]) / f.scale
+        at += size
+    return out
+
+
+def requested_state(proto: OdriveProtocol, row: Any) -> int:
+    """The axis state the image asks for (its request field, from an output row's wire bytes; 0: none)."""
+    at, size = proto.request_at
+    return int.from_bytes(bytes(row[at : at + size]), "little")

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from fieldbus.core import datatypes
+from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.yamlsrc import PathT
 
@@ -95,6 +96,7 @@ class RawCanConfig:
     byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
     cubemars: CubemarsProtocol | None = None  # family "cubemars": servo packets or MIT unwrapping
     frames: FramesProtocol | None = None  # family "frames": the protocol described in data
+    protocol: Any = None  # a family on the protocol (fieldbus.core.canfamily): its parsed map section
 
     def reply_can_id(self, node: int) -> int:
         """The CAN id motor ``node`` answers on."""
@@ -108,19 +110,29 @@ class RawCanConfig:
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
     """Validate a ``rawcan:`` section (``r`` is the map loader's Reader); returns config, rpdo, tpdo."""
     path: PathT = ("rawcan",)
-    if isinstance(raw, Mapping) and raw.get("family") == "frames":
-        from fieldbus.core.canframes import parse_frames
-
-        proto, rpdo, tpdo = parse_frames(r, raw, path)
-        cfg = RawCanConfig(
-            command=(), reply=(), command_id=proto.command.can_id, reply_id=proto.feedback.can_id,
-            enter=proto.enable or b"", exit=proto.disable or b"", zero=proto.zero or b"",
-            family="frames", frames=proto,
-        )  # fmt: skip
+    registered = families()
+    name = raw.get("family", "mit") if isinstance(raw, Mapping) else None
+    if isinstance(name, str) and name in registered:  # a family on the protocol (fieldbus.core.canfamily)
+        proto, rpdo, tpdo = registered[name].parse(r, raw, path)
+        if isinstance(proto, RawCanConfig):  # a family of the classic section (mit)
+            return replace(proto, protocol=proto), rpdo, tpdo
+        cfg = RawCanConfig(command=(), reply=(), enter=b"", exit=b"", zero=b"", family=name, protocol=proto)
+        if name == "frames":  # its ids and patterns where the emulators and tools look for them
+            cfg = replace(
+                cfg, command_id=proto.command.can_id, reply_id=proto.feedback.can_id, enter=proto.enable or b"",
+                exit=proto.disable or b"", zero=proto.zero or b"", frames=proto,
+            )  # fmt: skip
         return cfg, rpdo, tpdo
+    return parse_classic(r, raw)
+
+
+def parse_classic(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
+    """A classic ``rawcan:`` section (command and reply fields; families mit, damiao, odrive, cubemars)."""
+    path: PathT = ("rawcan",)
+    registered = families()
     m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
-    family = r.choice(m.get("family", "mit"), (*path, "family"), FAMILIES)
+    family = r.choice(m.get("family", "mit"), (*path, "family"), (*FAMILIES, *registered))
     order = r.choice(m.get("byte_order", "big"), (*path, "byte_order"), ("big", "little"))
     # an ODrive's image is not one frame: its set-points are built per mode, its reply plus the heartbeat
     max_bits = {"odrive": 128, "cubemars": 256}.get(family, 64)

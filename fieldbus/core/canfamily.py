@@ -1,0 +1,165 @@
+"""The raw-CAN family protocol: one motor family's CAN protocol as a small sans-I/O object.
+
+A family (``rawcan: family: <name>`` in a drive map) is a subclass of :class:`CanFamily`. The
+raw-CAN backend keeps the transport (the interface lock, drain, deadlines, counters, error frames)
+and talks to each family of its bus through these methods only; the family never sends, receives,
+sleeps or reads a clock. One instance serves every motor of that family on one bus.
+
+Directions: *command* frames go master -> motor (built from the process image's output rows, its
+wire bytes: the image's ``to_wire`` already applied); *replies* go motor -> master (copied into the
+input rows, which the image's ``from_wire`` decodes). A frame is ``(can id, extended, data)``.
+
+Families are registered in one table, :func:`families`: the built-in ones plus every entry point of
+group ``fieldbus.rawcan_families`` (``name = "package.module:FamilyClass"``), so a third party ships a
+family as a package. The map loader, the backend, the bandwidth calculator and the emulators find a
+family there and nowhere else.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from importlib import import_module
+from importlib.metadata import entry_points
+from typing import Any, ClassVar, NamedTuple, Protocol
+
+GROUP = "fieldbus.rawcan_families"
+#: Built-in families ported to the protocol (damiao, odrive, cubemars still run on the backend's own paths).
+BUILTIN = {"frames": "fieldbus.core.canframes:FramesFamily", "mit": "fieldbus.core.mitfamily:MitFamily"}
+
+Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data)
+
+
+class FrameTime(NamedTuple):
+    """One frame of a cycle for the bandwidth calculator: ``data_bytes`` on the wire, ``after``: the label
+    of the frame it answers (a reply follows its command), or None (queued at the cycle's start)."""
+
+    can_id: int
+    data_bytes: int
+    label: str
+    extended: bool = False
+    after: str | None = None
+    shared: bool = False  # one frame for several motors of the bus: counted once (same id from each)
+
+
+@dataclass(frozen=True)
+class FamilyMotor:
+    """One motor of a family on a bus: the backend's slave ``index``, its ``node`` id, its map section as
+    the family parsed it (``config``), and its image rows as uint8 arrays (``outputs``: the command's wire
+    bytes; ``inputs``: where its replies go)."""
+
+    index: int
+    node: int
+    config: Any
+    outputs: Any
+    inputs: Any
+
+
+@dataclass(frozen=True)
+class Request:
+    """One step of a bring-up or recovery: send ``frame``, then await a reply from each motor index in
+    ``awaits`` (empty: nothing to await, the next cycle's replies tell)."""
+
+    frame: Frame
+    awaits: tuple[int, ...] = ()
+
+
+class CycleFrame(Protocol):
+    """A command frame of the cycle; its ``data`` bytearray is rewritten in place by every
+    :meth:`CanFamily.cycle`, so the transport builds its message around it once."""
+
+    can_id: int
+    extended: bool
+    data: bytearray
+
+
+class CanFamily(ABC):
+    """One family's protocol on one bus (sans I/O). Subclasses set :attr:`name` and implement the
+    abstract methods; ``motors`` are the family's motors on the bus (:class:`FamilyMotor`).
+
+    Raise ``ValueError`` from ``__init__`` for a bus the family cannot run (two motors in one slot, ...):
+    the backend names the bus and refuses the configuration."""
+
+    name: ClassVar[str]
+    #: ``"module:Class"`` of the family's emulator (for the testing kit and the emulator process), or None:
+    #: a class taking ``(bus, [(drive_map, node_id), ...], dt_s=, log=, clock=)`` (a python-can bus, the
+    #: motors of the bus, a :class:`~fieldbus.runtime.clock.Clock` or None), named, not imported: the
+    #: emulators sit above fieldbus.
+    emulator: ClassVar[str | None] = None
+
+    def __init__(self, motors: Sequence[FamilyMotor]) -> None:
+        self.motors = {m.index: m for m in motors}
+
+    @classmethod
+    @abstractmethod
+    def parse(cls, r: Any, raw: Any, path: tuple[Any, ...]) -> tuple[Any, tuple[Any, ...], tuple[Any, ...]]:
+        """The family's map section ``raw`` (``r``: the map loader's Reader, raising typed errors naming
+        file, line, field): ``(config, rpdo, tpdo)``; the PDOs compile into the process image
+        (rpdo = command = master outputs, tpdo = replies = master inputs)."""
+
+    @classmethod
+    @abstractmethod
+    def wire_frames(cls, name: str, config: Any, node: int) -> list[FrameTime]:
+        """Motor ``name``'s frames of one cycle for the bandwidth calculator (a frame shared by several
+        motors: ``shared``, the same ``(can_id, extended)`` from each, counted once per bus)."""
+
+    @abstractmethod
+    def cycle(self) -> Sequence[CycleFrame]:
+        """The command frames of one cycle, their data from the motors' output rows (same objects every
+        call, data rewritten in place: no allocation per cycle)."""
+
+    @abstractmethod
+    def carries(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
+        """The motor indices a received frame is a reply of (empty: not this family's, or malformed);
+        copies nothing (the transport counts late and extra replies with it)."""
+
+    @abstractmethod
+    def route(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
+        """Copy a reply into its motors' input rows; the motor indices it carried (as :meth:`carries`)."""
+
+    @abstractmethod
+    def commands(self, which: str, motor: int | None = None) -> list[Frame]:
+        """The family's special frames ``which`` (``enable``, ``disable``, ``zero``, ``clear``) for every
+        motor, or for motor index ``motor`` only; empty when the family has none."""
+
+    @abstractmethod
+    def stop_frames(self) -> list[Frame]:
+        """The safe stop's command frames (the map's safe values, never the image: NaN-free)."""
+
+    @abstractmethod
+    def error(self, motor: int) -> tuple[int, str | None] | None:
+        """Motor index ``motor``'s error code in its last reply (its input row) and the fault's name, None
+        for a code that is no fault; None when the family reports no error code."""
+
+    def bring_up(self, which: str) -> Iterator[Request]:
+        """The requests of a transition: ``enter`` (enable), ``exit`` (safe command, then disable),
+        ``zero``, ``clear``. Default: the :meth:`commands` of ``which``, no answer awaited; ``exit`` sends
+        :meth:`stop_frames` first."""
+        if which == "exit":
+            yield from (Request(f) for f in self.stop_frames())
+        kind = {"enter": "enable", "exit": "disable"}.get(which, which)
+        yield from (Request(f) for f in self.commands(kind))
+
+    def recover(self, motor: int) -> Iterator[Request]:
+        """Clear motor index ``motor``'s fault and enable it (the backend seeds its set-points from where
+        it is first). Default: its ``clear`` then ``enable`` frames, no answer awaited."""
+        for kind in ("clear", "enable"):
+            yield from (Request(f) for f in self.commands(kind, motor))
+
+
+def families() -> dict[str, type[CanFamily]]:
+    """The registered families by name: built-in ones, then entry points of group ``fieldbus.rawcan_families``
+    (a built-in name is not replaced). Raises ``TypeError`` for an entry point that is no :class:`CanFamily`."""
+    out: dict[str, type[CanFamily]] = {}
+    for name, target in BUILTIN.items():
+        module, _, attr = target.partition(":")
+        out[name] = getattr(import_module(module), attr)
+    for ep in entry_points(group=GROUP):
+        if ep.name in out:
+            continue
+        cls = ep.load()
+        if not (isinstance(cls, type) and issubclass(cls, CanFamily)):
+            raise TypeError(f"entry point {ep.name} = {ep.value} of {GROUP} is not a CanFamily subclass")
+        out[ep.name] = cls
+    return out
