@@ -38,8 +38,8 @@ def test_one_cycle_s_wire_bytes_are_the_drive_s_byte_table() -> None:
     with emulate(EXAMPLE) as emu:
         base = emu.op["base"]
         sim = _sim(emu)
-        # the master's command: 100 rpm left, -250 rpm right (in rad/s in the image)
-        base.outputs["velocity"][:] = np.array([100, -250]) / RPM_PER_RAD_S
+        # the master's command: 100 rpm left, -240 rpm right (in rad/s in the image; the map allows 248)
+        base.outputs["velocity"][:] = np.array([100, -240]) / RPM_PER_RAD_S
         # the motors hold still at known encoder counts, then answer the next command
         for node, counts in ((1, 1234), (2, -4321)):
             st = sim.motor(node)
@@ -48,7 +48,7 @@ def test_one_cycle_s_wire_bytes_are_the_drive_s_byte_table() -> None:
         sim.sent.clear()
         res = emu.op.exchange()
         assert res.fresh
-        assert sim.frames == [(0x200, struct.pack("<hh", 100, -250))]
+        assert sim.frames == [(0x200, struct.pack("<hh", 100, -240))]
         assert sim.sent == [(0x300, struct.pack(">hh", 1234, -4321))]
         assert base.inputs["position"] == pytest.approx(np.array([1234, -4321]) / COUNTS_PER_RAD, abs=1e-12)
 
@@ -84,10 +84,11 @@ def test_a_nan_or_huge_speed_never_reaches_the_wire() -> None:
         base.outputs["velocity"][:] = [math.nan, math.inf]
         emu.cycles(1)
         left = struct.unpack("<hh", sim.frames[-1][1])
-        assert left == (struct.unpack("<hh", sent[1])[0], 32767)  # NaN: the last value sent; inf: saturated
+        rpm = round(26.0 * 60 / (2 * math.pi))  # the map's limits: 26 rad/s = 248 rpm
+        assert left == (struct.unpack("<hh", sent[1])[0], rpm)  # NaN: the last value sent; inf: the map's max
         base.outputs["velocity"][:] = [-1e9, 0.0]
         emu.cycles(1)
-        assert struct.unpack("<hh", sim.frames[-1][1]) == (-32768, 0)
+        assert struct.unpack("<hh", sim.frames[-1][1]) == (-rpm, 0)  # never the int16's -32768
 
 
 def test_the_safe_stop_sends_zero_speed_on_the_shared_frame() -> None:
