@@ -306,14 +306,23 @@ def transfer_file(
                 raise FoeError(
                     exc.code, text=exc.text, file=exc.file, slave=f"{exc.slave} (back in INIT)"
                 ) from None
-            if progress is not None:
-                progress(t.done, t.total)
-            session.leave_bootstrap()
+            try:  # the file is whole: a Ctrl-C from here on still says where the device is
+                if progress is not None:
+                    progress(t.done, t.total)
+                session.leave_bootstrap()
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt(
+                    f"{session.where}: the file was transferred whole, the device may stay in {mode}; {AGAIN}"
+                ) from None
         finally:
             master.close()
         master = open_segment(interface)  # the rescan: SOEM configures the slave's mailbox again
         try:
             after = FirmwareSession(master, slave).identity()
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(
+                f"{session.where}: the update is complete; interrupted while reading its identity back"
+            ) from None
         finally:
             master.close()
     tell(f"after:  {after.line()}")
