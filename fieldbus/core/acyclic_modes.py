@@ -42,7 +42,12 @@ class AcyclicModes:
     returns its future. :meth:`for_group` builds both from a running network.
     """
 
-    def __init__(self, targets: Sequence[tuple[str, int]], submit: Submit) -> None:
+    def __init__(
+        self,
+        targets: Sequence[tuple[str, int]],
+        submit: Submit,
+        fresh: npt.NDArray[np.bool_] | None = None,
+    ) -> None:
         n = len(targets)
         self.targets = tuple(targets)
         self.request: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)  # what the controller asks for
@@ -56,13 +61,22 @@ class AcyclicModes:
         self._busy = 0
         self._differs = np.zeros(n, dtype=bool)
         self._differs2 = np.zeros(n, dtype=bool)
+        # recovery: per slave, fresh this cycle (a view the network updates); a stale row forgets the display
+        self._fresh = fresh
+        self._axes_per_slave = n // len(fresh) if fresh is not None and len(fresh) else 1
+        self.forgotten: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # displays forgotten per axis
+        self._generation = np.zeros(n, dtype=np.int64)  # bumped by forget(): older transfers count no more
+        self._sent_generation = np.zeros(n, dtype=np.int64)
+        self._recheck = np.zeros(n, dtype=bool)  # the next read decides whether 0x6060 is written again
 
     @classmethod
     def for_group(cls, op: Any, group: str) -> AcyclicModes:
         """For the group ``group`` of the running network ``op`` (a ``fieldbus.Operational``)."""
         g = op.groups[group]
         names = [s.name for s in g.slaves]
-        bus = next(v.name for v in op.buses if names[0] in v.slaves)
+        view = next(v for v in op.buses if names[0] in v.slaves)
+        bus = view.name
+        fresh = view.policy.fresh[g.first : g.first + len(g.slaves)]
         axes = g.image.n_axes // len(g.slaves)
         targets = [
             (names[i // axes], g.slaves[i // axes].map.axis_index(MODES_OF_OPERATION, i % axes))
@@ -76,20 +90,39 @@ class AcyclicModes:
             w: Future[bytes | None] = op.submit_sdo_write(bus, slave, index, sub_index, data)
             return w
 
-        return cls(targets, submit)
+        return cls(targets, submit, fresh)
 
     @property
     def settled(self) -> bool:
         """Every axis's display shows its request and no transfer is pending."""
         return self._busy == 0 and bool(np.array_equal(self.request, self.display))
 
+    def forget(self, axes: npt.NDArray[np.bool_]) -> None:
+        """Forget the display of ``axes`` (a mask): read 0x6061 again, write 0x6060 again if it differs.
+
+        Called for a recovery (see the module docstring); a transfer already in
+        flight for such an axis counts no more (its answer may predate the recovery).
+        """
+        self.display[axes] = UNKNOWN_MODE
+        self._recheck[axes] = True
+        self._generation[axes] += 1
+        self.forgotten[axes] += 1
+
+    def forget_stale(self) -> None:
+        """Forget the displays of the axes whose slave is not fresh this cycle (no-op when all are)."""
+        if self._fresh is not None and not self._fresh.all():  # rare path: a miss, maybe a power cycle
+            self.forget(np.repeat(~self._fresh, self._axes_per_slave))
+
     def step(self) -> None:
         """One cycle: poll the pending transfers, queue the next (never waits; no allocation when settled).
 
         Per axis: a finished download is followed by an upload of 0x6061; an upload
-        that does not show the request yet is asked again next cycle. A failed
-        transfer raises :class:`AcyclicModeError` naming the axis and object.
+        that does not show the request yet is asked again next cycle. A slave not
+        fresh this cycle forgets its axes' displays (:meth:`forget`). A failed
+        transfer raises :class:`AcyclicModeError` naming the axis and object
+        (one that a recovery made obsolete is just asked again).
         """
+        self.forget_stale()
         np.not_equal(self.request, self._written, out=self._differs)
         np.not_equal(self.request, self.display, out=self._differs2)
         np.logical_or(self._differs, self._differs2, out=self._differs)
@@ -110,23 +143,32 @@ class AcyclicModes:
             if want != int(self._written[i]):
                 self._pending[i] = self._submit(slave, index, 0, want.to_bytes(1, "little", signed=True))
                 self._reading[i] = False
+                self._sent_generation[i] = self._generation[i]
                 self._written[i] = want
                 self.writes[i] += 1
             else:
                 self._pending[i] = self._submit(slave, index + 1, 0, None)  # 0x6061 (+0x800 per axis)
                 self._reading[i] = True
+                self._sent_generation[i] = self._generation[i]
                 self.reads[i] += 1
             self._busy += 1
 
     def _finish(self, i: int, f: Future[bytes | None]) -> None:
         slave, index = self.targets[i]
         obj = index + 1 if self._reading[i] else index
+        obsolete = self._sent_generation[i] != self._generation[i]  # asked before a recovery
         try:
             data = f.result()
         except Exception as exc:
             self._written[i] = UNKNOWN_MODE  # write it again on the next request
+            if obsolete:
+                return
             raise AcyclicModeError(f"{slave} (row {i}): SDO 0x{obj:04X} failed: {exc}") from exc
-        if self._reading[i]:
+        if self._reading[i] and not obsolete:
             if not data:
                 raise AcyclicModeError(f"{slave} (row {i}): SDO 0x{obj:04X} answered no data")
             self.display[i] = int.from_bytes(data[:1], "little", signed=True)
+            if self._recheck[i]:  # the first read after a recovery: the drive's own mode
+                self._recheck[i] = False
+                if self.display[i] != self.request[i]:
+                    self._written[i] = UNKNOWN_MODE  # e.g. its start-up SDO's mode: write ours again
