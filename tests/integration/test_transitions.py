@@ -196,3 +196,68 @@ def test_enable_in_csv_while_the_joint_coasts_commands_zero_velocity_not_the_coa
         assert drive.velocity_rad_s > 9.0
     finally:
         net.close()
+
+
+def test_a_power_cycle_under_acyclic_modes_then_clear_starts_no_motion_on_canopen(tmp_path: Path) -> None:
+    """Issue 33 item 6 on CANopen (reported there at 109 rad/s): our CANopen backend on python-can's
+    virtual bus against the CANopen emulator; the node reset (NMT 0x81) restarts its drive and the
+    recovery writes the start-up SDOs (0x6060 = CSP). Counted in cycles: the emulator steps its drive
+    once per SYNC, so the drive's physics follow the cycles whatever the machine's load."""
+    import can
+
+    from sim_slaves.canopen import CanopenSimulator
+
+    map_file = csv_map_without_modes(tmp_path)
+    drive_map = fieldbus.load_drive_map(map_file)
+    channel = f"fb-transitions-{tmp_path.name}"
+    f = tmp_path / "net.yaml"
+    f.write_text(
+        "cycle_time_us: 5000\nreceive_timeout_us: 50000\nsafe_stop_after: 4\nbuses:\n"
+        f"  - {{name: bus, type: canopen, interface: {channel}, can_interface: virtual,\n"
+        f"     slaves: [{{name: j, map: {json.dumps(str(map_file))}, node_id: 5}}]}}\n"
+    )
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        CanopenSimulator(bus, [(drive_map, 5)], dt_s=0.005) as sim,
+        fieldbus.open_network(f, release_after=3) as net,
+    ):
+        op = net.bring_up()
+        img = op["bus"]
+        ctrl = Cia402Controller(1, mode=Mode.CSP)
+        modes = AcyclicModes.for_group(op, "bus")
+        ctrl.set_goal(Goal.ENABLE)
+        command: list[float | None] = [None]
+
+        def run(n: int, until: Callable[[], bool] = lambda: False, watch: Watch | None = None) -> bool:
+            for _ in range(n):
+                op.exchange()
+                ctrl.step_image(img, modes=modes)
+                if command[0] is not None:
+                    img.outputs["target_velocity"][:] = command[0]
+                if watch is not None:
+                    watch.sample()
+                if until():
+                    return True
+            return False
+
+        assert run(600, lambda: ctrl.all_reached and modes.settled)
+        ctrl.request_mode(Mode.CSV)
+        assert run(600, lambda: ctrl.all_reached and modes.settled and modes.display[0] == Mode.CSV)
+        drive = sim.node(5).app
+        command[0] = 10.0  # rad/s, the user's command
+        run(250)
+        command[0] = None  # the user writes nothing from here on
+        assert drive.velocity_rad_s > 9.0 and abs(drive.position_rad) > 9.0
+        sim.power_cycle(5)
+        assert run(400, lambda: op.result.safe_stop)
+        assert run(3000, lambda: net.backend("bus").recoveries > 0 and op.result.fresh)
+        assert run(3000, lambda: op.clear_safe_stop())
+        drive = sim.node(5).app  # the drive after its restart
+        watch = Watch([drive])
+        run(600, watch=watch)
+        print(f"after the clear: peak {watch.peak[0]:.1f} rad/s, travel {watch.travel():.2f} rad")
+        assert watch.peak[0] <= STILL_RAD_S, f"peak {watch.peak[0]:.1f} rad/s after the clear"
+        assert watch.travel() < 0.01 and watch.faults == [0]
+        assert ctrl.all_reached and modes.display[0] == Mode.CSV
+        assert sim.node(5).od.get_value(0x6061, 0) == Mode.CSV  # the drive's own mode: written again
+    assert not sim.errors
