@@ -490,7 +490,7 @@ class ProcessImageLike(Protocol):
 
 _SEEDED: tuple[tuple[str, str | None], ...] = (
     ("target_position", "position_actual_value"),  # CSP, PP, IP: where the axis is
-    ("target_velocity", "velocity_actual_value"),  # CSV, PV: 0 (the actual value only through a switch)
+    ("target_velocity", None),  # CSV, PV: 0, stand still (never the actual velocity: that keeps it going)
     ("target_torque", None),  # CST, PT: 0, no jump whatever the load
 )
 """Every target (master output) a transition overwrites, and the actual value (master input) it may take."""
@@ -514,17 +514,12 @@ class _ImageBinding:
         has_display = "modes_of_operation_display" in inp.names
         self.modes_display = inp["modes_of_operation_display"] if has_display else None
         self.zero = np.zeros((), dtype=np.float64)
-        # (target, actual it is seeded from or None for 0, the actual only through a switch while enabled)
-        self.seeds: list[tuple[npt.NDArray[Any], npt.NDArray[Any] | None, bool]] = []
+        # (target, the actual value it is seeded from; None: 0)
+        self.seeds: list[tuple[npt.NDArray[Any], npt.NDArray[Any] | None]] = []
         for target, actual in _SEEDED:
-            if target not in out.names:
-                continue
-            have = actual is not None and actual in inp.names
-            if target == "target_position" and not have:
-                continue  # no position to hold: left to the user
-            self.seeds.append(
-                (out[target], inp[actual] if have and actual else None, target != "target_position")
-            )
+            if target not in out.names or (actual is not None and actual not in inp.names):
+                continue  # no target; or a position with nothing to hold it at: left to the user
+            self.seeds.append((out[target], None if actual is None else inp[actual]))
 
 
 class Cia402Controller:
@@ -618,10 +613,9 @@ class Cia402Controller:
         self._bit7 = np.uint16(FAULT_RESET_BIT)
         self._switch_on = np.uint16(CONTROLWORD[Trigger.SWITCH_ON])
         self._zero_i32 = np.int32(0)
-        # bumpless targets (step_image)
+        # the targets of every transition (step_image)
         self._binding: _ImageBinding | None = None
         self.seeded: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)  # step_image seeded the targets now
-        self._bump = np.zeros(n, dtype=bool)
         self._left = np.zeros(n, dtype=bool)
         self._old_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
@@ -771,7 +765,7 @@ class Cia402Controller:
         write_command_word(controlword_out, self.safe_stop_word)
         self._last_sm.fill(self.safe_stop_word)
 
-    # -- the whole image: bumpless targets --
+    # -- the whole image: the targets of every transition --
 
     def step_image(
         self,
@@ -791,10 +785,10 @@ class Cia402Controller:
         :meth:`request_mode` until the display shows the new mode) - **every**
         target in the image is overwritten with its seed, whatever the requested
         mode: target_position <- position_actual_value (CSP, PP), target_velocity
-        <- 0 (CSV, PV), target_torque <- 0 (CST). Through a switch while the axis
-        stays enabled, target_velocity takes velocity_actual_value instead (the
-        motion goes on bumpless; it does not start). :attr:`seeded` says which
-        axes were seeded this cycle.
+        <- 0 (CSV, PV), target_torque <- 0 (CST; the axis coasts). A position
+        seed is bumpless; a velocity seed of 0 brakes an axis that was moving
+        (never the actual velocity: that would keep it going after an enable).
+        :attr:`seeded` says which axes were seeded this cycle.
 
         So a command older than the transition is gone from the image: only a
         value written *after* this call, in the transition's last seeded cycle
@@ -837,25 +831,14 @@ class Cia402Controller:
         np.not_equal(self.state, self._enabled_code, out=seed)
         np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
         np.logical_or(seed, self._switching, out=seed)
-        # a switch while enabled (not its first enabled cycle): velocity stays bumpless
-        bump = self._bump
-        np.equal(self.state, self._enabled_code, out=bump)
-        np.logical_and(bump, self._switching, out=bump)
-        np.greater(bump, self._changed, out=bump)
         if display is not None:
             np.logical_and(self._switching, self._goal_not_enable, out=self._b1)  # nothing to wait for
             np.logical_or(self._b1, self.mode_ok, out=self._b1)
         else:
             self._b1.fill(True)
         np.greater(self._switching, self._b1, out=self._switching)  # done once the display follows
-        for target, actual, zero_unless_switching in b.seeds:
-            if zero_unless_switching:
-                np.copyto(target, b.zero, where=seed, casting="unsafe")
-                if actual is not None:
-                    np.copyto(target, actual, where=bump, casting="unsafe")
-            else:
-                assert actual is not None
-                np.copyto(target, actual, where=seed, casting="unsafe")
+        for target, actual in b.seeds:
+            np.copyto(target, b.zero if actual is None else actual, where=seed, casting="unsafe")
 
     @property
     def all_reached(self) -> bool:

@@ -39,14 +39,18 @@ from typing import Any
 
 import can
 import pytest
+import yaml
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
-from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
+from fieldbus.core.acyclic_modes import AcyclicModes
+from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.errors import PhaseError, RequestError
+from fieldbus.runtime.clock import VirtualClock
 
 MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 SAFE_STOP_AFTER = 4
@@ -273,19 +277,23 @@ class ContractMachine(RuleBasedStateMachine):
 
 class SimMachine(ContractMachine):
     def open(self) -> fieldbus.Network:
+        return self.open_sim(DEMO_MAP)
+
+    def open_sim(self, drive_map: Path, **options: Any) -> fieldbus.Network:
         d = _tmp / f"fb-model-{os.getpid()}-{next(_channels)}"
         d.mkdir(parents=True, exist_ok=True)
         f = d / "net.yaml"
         f.write_text(
             f"cycle_time_us: 1000\nreceive_timeout_us: 5000\nsafe_stop_after: {SAFE_STOP_AFTER}\nbuses:\n"
             f"  - {{name: bus, type: ethercat, interface: sim0,"
-            f" slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_MAP))}, count: 3}}]}}\n"
+            f" slaves: [{{name: 'j{{i}}', map: {json.dumps(str(drive_map))}, count: 3}}]}}\n"
         )
-        net = fieldbus.open_network(f, backend="sim", release_after=RELEASE_AFTER)
+        net = fieldbus.open_network(f, backend="sim", release_after=RELEASE_AFTER, **options)
         b = net.backends[0]
         self.chain: Any = b.chain  # type: ignore[attr-defined]
         self.send_fail = 0
         self.recv_fail = 0
+        self.on_receive: Any = None  # called after every receive (a probe of the drives)
         real_send, real_receive = b.send, b.receive
 
         def send() -> None:
@@ -298,7 +306,10 @@ class SimMachine(ContractMachine):
             if self.recv_fail > 0:
                 self.recv_fail -= 1
                 raise OSError(100, "Network is down")
-            return real_receive()
+            got = real_receive()
+            if self.on_receive is not None:
+                self.on_receive()
+            return got
 
         b.send = send  # type: ignore[method-assign]
         b.receive = receive  # type: ignore[method-assign]
@@ -336,6 +347,213 @@ class SimMachine(ContractMachine):
 
 SimMachine.TestCase.settings = _profile(examples=40, steps=60)
 test_safety_contract_on_sim = SimMachine.TestCase
+
+
+# -- S11 and S6 under a controller: transitions and closes on the in-process emulator -------------------
+
+
+def _csv_map_without_modes() -> Path:
+    """The demo joint with target_velocity (0x60FF) in its RxPDOs, 0x6060/0x6061 only by SDO."""
+    f = _tmp / f"fb-model-{os.getpid()}-csv-no-modes.yaml"
+    if not f.exists():
+        doc = yaml.safe_load(Path(DEMO_MAP).read_text())
+        for section in ("rpdo", "tpdo"):
+            for pdo in doc[section]:
+                pdo["channels"] = [c for c in pdo["channels"] if c["index"] not in (0x6060, 0x6061)]
+        doc["rpdo"][1]["channels"].append(
+            {"index": 0x60FF, "sub_index": 0, "type": "int32", "factor": 20860.7568, "unit": "rad/s"}
+        )
+        doc["name"] = "joint_csv_no_modes"
+        f.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return f
+
+
+class _HookClock(VirtualClock):
+    """Virtual time (the drives' and the wind-down's); runs ``hook`` on its ``at``-th sleep."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sleeps = 0
+        self.at = -1
+        self.hook: Any = None
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps += 1
+        if self.sleeps == self.at and self.hook is not None:
+            self.hook()
+        super().sleep(seconds)
+
+
+TOL_RAD_S = 1.0  # what a drive may still gain after the transition cycle (its own response), rad/s
+STILL_RAD_S = 0.05  # at rest, rad/s
+SETTLE_CYCLES = 800  # enabled in CSP/CSV with no command for this long: at rest
+POWER_OFF_RAD_S = 0.5  # a drive's own |velocity| when the close takes its power: stopped, not coasting
+
+
+class TransitionMachine(SimMachine):
+    """Three drives in CSP/CSV/CST by SDO (AcyclicModes) under a Cia402Controller, plus the S11 model.
+
+    S11, no transition starts motion: a command counts from its write until the next cycle in which
+    step_image seeds the axis (a transition); from then until the next write the drive's own
+    |velocity| never exceeds what it had at the transition (+ TOL_RAD_S over its first 5 cycles),
+    and once it has been enabled in CSP or CSV for SETTLE_CYCLES it is at rest. S6 on the close
+    rules: every drive powered when the close began is stopped when its power goes off, except a
+    power-cycled one (no power to stop) - a short working counter, a power cycle, a second close.
+    """
+
+    N = 3
+
+    def open(self) -> fieldbus.Network:
+        self.clock = _HookClock()
+        self.ctrl = Cia402Controller(self.N, mode=Mode.CSP)
+        self.ctrl.set_goal(Goal.ENABLE)
+        self.armed = [False] * self.N
+        self.ceiling = [TOL_RAD_S] * self.N
+        self.window = [0] * self.N
+        self.calm = [0] * self.N
+        self.cycles_run = 0
+        return self.open_sim(_csv_map_without_modes(), clock=self.clock)
+
+    @initialize()
+    def bring_up(self) -> None:
+        super().bring_up()
+        assert self.op is not None
+        self.img = self.op["bus"]
+        self.modes = AcyclicModes.for_group(self.op, "bus")
+        self.drives = [s.app for s in self.chain.slaves]
+
+    def _exchange(self) -> None:
+        self.clock.advance(1_000_000)
+        self.cycles_run += 1
+        super()._exchange()
+        if self.closed:
+            return
+        self.ctrl.step_image(self.img, modes=self.modes)
+        for i, d in enumerate(self.drives):
+            v = abs(d.velocity_rad_s)
+            if self.ctrl.seeded[i]:
+                if self.armed[i]:
+                    self.armed[i], self.ceiling[i], self.window[i] = False, v + TOL_RAD_S, 5
+                elif self.window[i] > 0:
+                    self.ceiling[i] = max(self.ceiling[i], v + TOL_RAD_S)
+                    self.window[i] -= 1
+            if self.armed[i]:
+                self.calm[i] = 0
+                continue
+            assert v <= self.ceiling[i], (
+                f"S11: drive {i} at {v:.2f} rad/s after a transition, no command since (was {self.ceiling[i]:.2f})"
+            )
+            steady = self.ctrl.state[i] == State402.OPERATION_ENABLED and not self.ctrl.seeded[i]
+            steady = steady and int(self.modes.display[i]) in (Mode.CSP, Mode.CSV)
+            self.calm[i] = self.calm[i] + 1 if steady else 0
+            if self.calm[i] >= SETTLE_CYCLES:
+                assert v <= STILL_RAD_S, (
+                    f"S11: drive {i} moves at {v:.2f} rad/s, no command since a transition"
+                )
+
+    # -- the user ---------------------------------------------------------------------------------
+    @rule(axis=st.integers(0, N - 1), x=st.floats(-1.0, 1.0))
+    def command(self, axis: int, x: float) -> None:
+        """Write a target in the axis's mode, only while it is enabled and not in a transition."""
+        if self.closed or self.ctrl.seeded[axis] or self.ctrl.state[axis] != State402.OPERATION_ENABLED:
+            return
+        mode = int(self.modes.display[axis])
+        out, inp = self.img.outputs, self.img.inputs
+        if mode == Mode.CSP:
+            out["target_position"][axis] = inp["position_actual_value"][axis] + 0.05 * x
+        elif mode == Mode.CSV:
+            out["target_velocity"][axis] = 3.0 * x
+        elif mode == Mode.CST:
+            out["target_torque"][axis] = 0.1 * x
+        else:
+            return
+        self.armed[axis] = True
+
+    @rule(axis=st.integers(0, N - 1), mode=st.sampled_from([Mode.CSP, Mode.CSV, Mode.CST]))
+    def request_mode(self, axis: int, mode: Mode) -> None:
+        self.ctrl.request_mode(mode, axis)
+
+    @rule(enable=st.booleans())
+    def goal(self, enable: bool) -> None:
+        self.ctrl.set_goal(Goal.ENABLE if enable else Goal.DISABLE)
+
+    @rule()
+    def settle(self) -> None:
+        for _ in range(SETTLE_CYCLES + 50):
+            self._exchange()
+
+    # -- closes under faults (S6), each after a while of transitions -------------------------------------
+    def ready_to_close(self) -> bool:
+        return self.cycles_run >= 300
+
+    @precondition(ready_to_close)
+    @rule()
+    def close(self) -> None:
+        super().close()
+
+    def _close_watched(self, spared: set[int], before: Any = None) -> None:
+        """close() with every drive's |velocity| taken when its power goes (first seen unpowered)."""
+        if self.closed:
+            return
+        self.chain.clear_faults()
+        self.must_stale.clear()
+        self.send_fail = self.recv_fail = 0
+        powered = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE)
+        was = [d.state in powered for d in self.drives]
+        off: list[float | None] = [None] * self.N
+
+        def probe() -> None:
+            for i, d in enumerate(self.drives):
+                if off[i] is None and d.state not in powered:
+                    off[i] = abs(d.velocity_rad_s)
+
+        self.on_receive = probe
+        if before is not None:
+            before()
+        self.close()
+        self.on_receive = None
+        for i in range(self.N):
+            if was[i] and i not in spared:
+                d = self.drives[i]
+                assert off[i] is not None, (
+                    f"S6: drive {i} left {State402(d.state).name} at {d.velocity_rad_s:.1f}"
+                )
+                assert off[i] < POWER_OFF_RAD_S, f"S6: drive {i} lost power at {off[i]:.2f} rad/s"
+
+    @precondition(ready_to_close)
+    @rule(n=st.integers(1, 6))
+    def close_with_a_short_working_counter(self, n: int) -> None:
+        self._close_watched(set(), lambda: self.chain.corrupt_wkc(-1, n))
+
+    @precondition(ready_to_close)
+    @rule(slave=st.integers(0, N - 1))
+    def close_after_a_power_cycle(self, slave: int) -> None:
+        self._close_watched({slave}, lambda: self.chain.power_cycle(slave))
+
+    @precondition(ready_to_close)
+    @rule(delay=st.integers(1, 30), other_thread=st.booleans())
+    def close_twice(self, delay: int, other_thread: bool) -> None:
+        assert self.net is not None
+        net = self.net
+        t = threading.Thread(target=net.close)
+
+        def second() -> None:
+            if other_thread:
+                t.start()
+                t.join(0.2)  # it waits for the first
+            else:
+                net.close()  # a signal handler in the closing thread
+
+        def arm() -> None:
+            self.clock.at, self.clock.hook = self.clock.sleeps + delay, second
+
+        self._close_watched(set(), arm)
+        if t.is_alive() or t.ident is not None:
+            t.join()
+
+
+TransitionMachine.TestCase.settings = _profile(examples=15, steps=40)
+test_no_transition_starts_motion_on_sim = TransitionMachine.TestCase
 
 
 # -- raw-CAN MIT motors on python-can's virtual bus -----------------------------------------------------
