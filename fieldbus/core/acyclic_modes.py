@@ -39,14 +39,16 @@ class AcyclicModes:
     ``targets``: per axis (row), the slave's name and its 0x6060 index (+0x800
     per axis of a multi-axis slave). ``submit(slave, index, sub_index, data)``
     queues an SDO download (``data`` bytes) or upload (``data`` None) and
-    returns its future. :meth:`for_group` builds both from a running network.
+    returns its future. ``recoveries()``: how many recoveries the bus has
+    completed so far (a rise forgets every display). :meth:`for_group` builds
+    all three from a running network.
     """
 
     def __init__(
         self,
         targets: Sequence[tuple[str, int]],
         submit: Submit,
-        fresh: npt.NDArray[np.bool_] | None = None,
+        recoveries: Callable[[], int] | None = None,
     ) -> None:
         n = len(targets)
         self.targets = tuple(targets)
@@ -61,9 +63,8 @@ class AcyclicModes:
         self._busy = 0
         self._differs = np.zeros(n, dtype=bool)
         self._differs2 = np.zeros(n, dtype=bool)
-        # recovery: per slave, fresh this cycle (a view the network updates); a stale row forgets the display
-        self._fresh = fresh
-        self._axes_per_slave = n // len(fresh) if fresh is not None and len(fresh) else 1
+        self._recoveries = recoveries
+        self._recoveries_seen = recoveries() if recoveries is not None else 0
         self.forgotten: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # displays forgotten per axis
         self._generation = np.zeros(n, dtype=np.int64)  # bumped by forget(): older transfers count no more
         self._sent_generation = np.zeros(n, dtype=np.int64)
@@ -76,7 +77,7 @@ class AcyclicModes:
         names = [s.name for s in g.slaves]
         view = next(v for v in op.buses if names[0] in v.slaves)
         bus = view.name
-        fresh = view.policy.fresh[g.first : g.first + len(g.slaves)]
+        backend = view.backend
         axes = g.image.n_axes // len(g.slaves)
         targets = [
             (names[i // axes], g.slaves[i // axes].map.axis_index(MODES_OF_OPERATION, i % axes))
@@ -90,7 +91,7 @@ class AcyclicModes:
             w: Future[bytes | None] = op.submit_sdo_write(bus, slave, index, sub_index, data)
             return w
 
-        return cls(targets, submit, fresh)
+        return cls(targets, submit, lambda: int(backend.recoveries))
 
     @property
     def settled(self) -> bool:
@@ -108,21 +109,25 @@ class AcyclicModes:
         self._generation[axes] += 1
         self.forgotten[axes] += 1
 
-    def forget_stale(self) -> None:
-        """Forget the displays of the axes whose slave is not fresh this cycle (no-op when all are)."""
-        if self._fresh is not None and not self._fresh.all():  # rare path: a miss, maybe a power cycle
-            self.forget(np.repeat(~self._fresh, self._axes_per_slave))
+    def forget_recovered(self) -> None:
+        """Forget every display when the bus completed a recovery since the last call (else nothing)."""
+        if self._recoveries is None:
+            return
+        done = self._recoveries()
+        if done != self._recoveries_seen:  # rare path: a slave came back, maybe in another mode
+            self._recoveries_seen = done
+            self.forget(np.ones(len(self.targets), dtype=bool))
 
     def step(self) -> None:
         """One cycle: poll the pending transfers, queue the next (never waits; no allocation when settled).
 
         Per axis: a finished download is followed by an upload of 0x6061; an upload
-        that does not show the request yet is asked again next cycle. A slave not
-        fresh this cycle forgets its axes' displays (:meth:`forget`). A failed
+        that does not show the request yet is asked again next cycle. A recovery
+        of the bus forgets the displays (:meth:`forget_recovered`). A failed
         transfer raises :class:`AcyclicModeError` naming the axis and object
         (one that a recovery made obsolete is just asked again).
         """
-        self.forget_stale()
+        self.forget_recovered()
         np.not_equal(self.request, self._written, out=self._differs)
         np.not_equal(self.request, self.display, out=self._differs2)
         np.logical_or(self._differs, self._differs2, out=self._differs)

@@ -804,8 +804,8 @@ class Cia402Controller:
         modes_of_operation / its display (0x6060/0x6061 not in the PDOs), an
         :class:`~fieldbus.core.acyclic_modes.AcyclicModes` of the same group that
         carries them by SDO; it is stepped here, once per call, never waiting,
-        and told of every recovery (a stale slave, an axis leaving OPERATION
-        ENABLED) so that it reads the display again before the next enable.
+        and told of every recovery (the bus brought a slave back, an axis left
+        OPERATION ENABLED) so that it reads the display again before the next enable.
         """
         b = self._binding
         if b is None or b.img is not img:
@@ -815,7 +815,7 @@ class Cia402Controller:
         if acyclic:
             assert modes is not None
             display, out = modes.display, modes.request
-            modes.forget_stale()  # before the controller compares it: a stale slave's display is unknown
+            modes.forget_recovered()  # before the controller compares it: after a recovery it is unknown
         np.copyto(self._old_state, self.state)
         self.step(b.statusword, b.controlword, display, out, hold_reset)
         if acyclic:

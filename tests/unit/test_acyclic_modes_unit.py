@@ -60,16 +60,16 @@ def test_a_failed_download_names_the_axis_and_object() -> None:
 
 
 def test_a_recovery_forgets_the_display_and_a_changed_mode_is_written_again() -> None:
-    """A stale slave (maybe power-cycled: back in its start-up mode) forgets its display; the read
-    that follows decides: the request shown, nothing written; another mode, 0x6060 written again.
-    An answer to a transfer asked before the recovery counts no more."""
+    """A recovery of the bus (a slave power-cycled: back in its start-up mode) forgets the display;
+    the read that follows decides: the request shown, nothing written; another mode, 0x6060 written
+    again. An answer to a transfer asked before the recovery counts no more."""
     import numpy as np
 
     from fieldbus.core.acyclic_modes import UNKNOWN_MODE
 
     q = _Queue()
-    fresh = np.ones(1, dtype=bool)
-    modes = AcyclicModes([("j0", 0x6060)], q.submit, fresh)
+    recoveries = [0]
+    modes = AcyclicModes([("j0", 0x6060)], q.submit, lambda: recoveries[0])
     modes.request[:] = 9
     modes.step()
     q.sent[-1][3].set_result(None)
@@ -77,13 +77,13 @@ def test_a_recovery_forgets_the_display_and_a_changed_mode_is_written_again() ->
     q.sent[-1][3].set_result(b"\x09")
     modes.step()
     assert modes.settled and list(modes.writes) == [1]
-    fresh[0] = False  # a miss: the display is forgotten, the next read decides
+    recoveries[0] += 1  # the bus brought a slave back: the display is forgotten, the next read decides
     modes.step()
     assert modes.display[0] == UNKNOWN_MODE and not modes.settled and modes.forgotten[0] == 1
     assert q.sent[-1][1:3] == (0x6061, None)
     early = q.sent[-1][3]
-    modes.step()  # still stale: forgotten again; the read in flight is now obsolete
-    fresh[0] = True
+    recoveries[0] += 1  # another recovery: forgotten again; the read in flight is now obsolete
+    modes.step()
     early.set_result(b"\x09")  # asked during the outage: does not count
     modes.step()
     assert modes.display[0] == UNKNOWN_MODE and q.sent[-1][1:3] == (0x6061, None)
