@@ -109,6 +109,7 @@ class ContractMachine(RuleBasedStateMachine):
         self.closed = False
         self.futures: list[Future[bytes | None]] = []
         self.must_stale: dict[int, int] = {}  # slave index -> cycles from the next one that must be stale
+        self.corrupt_must = 0  # cycles whose working counter is corrupted (a new injection replaces it)
         self.silent: set[int] = set()  # slaves that must be stale from the next cycle on (after grace)
         self.grace = 0
         # the latch model (S4)
@@ -163,6 +164,9 @@ class ContractMachine(RuleBasedStateMachine):
                 self.accepted[i] = self._row(i)
             else:  # S2: untouched, bit for bit
                 assert self._row(i) == self.accepted[i], f"stale slave {i} changed"
+        if self.corrupt_must > 0:  # S3
+            assert not bus.fresh.any(), "a slave fresh in a cycle whose working counter was corrupted"
+            self.corrupt_must -= 1
         for i, left in list(self.must_stale.items()):  # S3
             assert not bus.fresh[i], f"slave {i} fresh in a cycle whose reply was destroyed"
             if left <= 1:
@@ -326,8 +330,8 @@ class SimMachine(ContractMachine):
 
     @rule(n=st.integers(1, 6), delta=st.sampled_from([-1, -2, 1]))
     def bad_working_counter(self, n: int, delta: int) -> None:  # short, or corrupted (too big)
-        self.chain.corrupt_wkc(delta, n)
-        self._all(n)
+        self.chain.corrupt_wkc(delta, n)  # replaces a pending corruption (frame losses add up)
+        self.corrupt_must = n
 
     @rule(slave=st.integers(0, 2))
     def power_cycle(self, slave: int) -> None:
@@ -386,7 +390,7 @@ class _HookClock(VirtualClock):
 
 TOL_RAD_S = 1.0  # what a drive may still gain after the transition cycle (its own response), rad/s
 STILL_RAD_S = 0.05  # at rest, rad/s
-SETTLE_CYCLES = 800  # enabled in CSP/CSV with no command for this long: at rest
+SETTLE_CYCLES = 200  # enabled in CSP/CSV with no command for this long: at rest
 POWER_OFF_RAD_S = 0.5  # a drive's own |velocity| when the close takes its power: stopped, not coasting
 
 
@@ -452,9 +456,14 @@ class TransitionMachine(SimMachine):
                 )
 
     # -- the user ---------------------------------------------------------------------------------
-    @rule(axis=st.integers(0, N - 1), x=st.floats(-1.0, 1.0))
-    def command(self, axis: int, x: float) -> None:
-        """Write a target in the axis's mode, only while it is enabled and not in a transition."""
+    @rule(axis=st.integers(0, N - 1), x=st.floats(-1.0, 1.0), cycles=st.integers(0, 300))
+    def command(self, axis: int, x: float, cycles: int) -> None:
+        """Write a target in the axis's mode (only while it is enabled, not in a transition), run on."""
+        self._command(axis, x)
+        for _ in range(cycles):
+            self._exchange()
+
+    def _command(self, axis: int, x: float) -> None:
         if self.closed or self.ctrl.seeded[axis] or self.ctrl.state[axis] != State402.OPERATION_ENABLED:
             return
         mode = int(self.modes.display[axis])
@@ -477,10 +486,52 @@ class TransitionMachine(SimMachine):
     def goal(self, enable: bool) -> None:
         self.ctrl.set_goal(Goal.ENABLE if enable else Goal.DISABLE)
 
-    @rule()
-    def settle(self) -> None:
-        for _ in range(SETTLE_CYCLES + 50):
+    def _run(self, n: int) -> None:
+        for _ in range(n):
             self._exchange()
+
+    def _back(self, limit: int = 3000) -> None:
+        """Cycles until the bus is fresh again, then clear the safe stop until it opens."""
+        for _ in range(limit):
+            if self.closed or (
+                self.last_ok and self.op is not None and not self.op.result.buses[0].recovering
+            ):
+                break
+            self._exchange()
+        for _ in range(2 * RELEASE_AFTER + 2):
+            if self.closed or not self.latched:
+                break
+            if self.last_ok:
+                self.clear()
+            self._exchange()
+
+    @rule(
+        kind=st.sampled_from(["reenable", "switch", "safe_stop", "power_cycle", "fault"]),
+        axis=st.integers(0, N - 1),
+        mode=st.sampled_from([Mode.CSP, Mode.CSV, Mode.CST]),
+        x=st.floats(-1.0, 1.0),
+    )
+    def transition(self, kind: str, axis: int, mode: Mode, x: float) -> None:
+        """A command, motion, then one transition, then SETTLE_CYCLES and more with no command."""
+        if self.closed:
+            return
+        self._command(axis, x)
+        self._run(150)
+        if kind == "reenable":
+            self.ctrl.set_goal(Goal.DISABLE, axis)
+            self._run(30)
+            self.ctrl.set_goal(Goal.ENABLE, axis)
+        elif kind == "switch":
+            self.ctrl.request_mode(mode, axis)
+        elif kind == "safe_stop":
+            self.lose_frames(SAFE_STOP_AFTER + 1)
+            self._back()
+        elif kind == "power_cycle":
+            self.power_cycle(axis)
+            self._back()
+        else:
+            self.drives[axis].inject_fault(0x8611)  # the controller resets it and enables again
+        self._run(SETTLE_CYCLES + 150)
 
     # -- closes under faults (S6), each after a while of transitions -------------------------------------
     def ready_to_close(self) -> bool:
@@ -497,6 +548,7 @@ class TransitionMachine(SimMachine):
             return
         self.chain.clear_faults()
         self.must_stale.clear()
+        self.corrupt_must = 0
         self.send_fail = self.recv_fail = 0
         powered = (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE)
         was = [d.state in powered for d in self.drives]
