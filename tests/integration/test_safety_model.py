@@ -455,6 +455,18 @@ class TransitionMachine(SimMachine):
                 assert v <= STILL_RAD_S, (
                     f"S11: drive {i} moves at {v:.2f} rad/s, no command since a transition"
                 )
+        fresh = self.op is not None and self.op.result.fresh  # the controller sees the drives as they are
+        for i, d in enumerate(self.drives):  # enabled in a mode nobody read: the drive's own 0x6061 says
+            if (
+                fresh
+                and self.ctrl.reached[i]
+                and self.ctrl.goal[i] == Goal.ENABLE
+                and not self.ctrl.seeded[i]
+            ):
+                assert d.mode_display == self.ctrl.mode_request[i], (
+                    f"S11: axis {i} enabled as {Mode(int(self.modes.display[i])).name}, the drive is in "
+                    f"{Mode(d.mode_display).name}"
+                )
 
     # -- the user ---------------------------------------------------------------------------------
     @rule(axis=st.integers(0, N - 1), x=st.floats(-1.0, 1.0), cycles=st.integers(0, 300))
@@ -493,10 +505,9 @@ class TransitionMachine(SimMachine):
 
     def _back(self, limit: int = 3000) -> None:
         """Cycles until the bus is fresh again, then clear the safe stop until it opens."""
-        for _ in range(limit):
-            if self.closed or (
-                self.last_ok and self.op is not None and not self.op.result.buses[0].recovering
-            ):
+        for k in range(limit):  # a fault injected just now shows only from the next cycles
+            back = self.last_ok and self.op is not None and not self.op.result.buses[0].recovering
+            if self.closed or (back and k > SAFE_STOP_AFTER + 2):
                 break
             self._exchange()
         for _ in range(2 * RELEASE_AFTER + 2):
