@@ -595,6 +595,10 @@ class TransitionMachine(SimMachine):
                     f"S6: drive {i} left {State402(d.state).name} at {d.velocity_rad_s:.1f}"
                 )
                 assert off[i] < POWER_OFF_RAD_S, f"S6: drive {i} lost power at {off[i]:.2f} rad/s"
+        assert self.net is not None and self.net.last_wind_down is not None
+        for axis in self.net.last_wind_down.axes:  # watched to the end, not given up nor timed out
+            if was[axis.axis] and axis.axis not in spared:
+                assert axis.how in ("stopped", "state"), f"S6: {axis}"
 
     @precondition(ready_to_close)
     @rule(n=st.integers(1, 6))
@@ -630,6 +634,33 @@ class TransitionMachine(SimMachine):
 
 TransitionMachine.TestCase.settings = _profile(examples=15, steps=40)
 test_no_transition_starts_motion_on_sim = TransitionMachine.TestCase
+
+
+@pytest.mark.parametrize(
+    "close",
+    ["close_with_a_short_working_counter", "close_after_a_power_cycle", "same_thread", "other_thread"],
+)
+def test_every_close_under_a_fault_stops_every_moving_drive(close: str) -> None:
+    """The machine's close rules on three drives moving in CSV at 3 rad/s (S6 checked by the rule)."""
+    machine = TransitionMachine()
+    try:
+        machine.bring_up()
+        machine.ctrl.request_mode(Mode.CSV)
+        machine._run(300)
+        assert machine.ctrl.all_reached
+        for axis in range(TransitionMachine.N):
+            machine._command(axis, 1.0)
+        machine._run(300)
+        assert all(d.velocity_rad_s > 2.5 for d in machine.drives)
+        if close == "close_with_a_short_working_counter":
+            machine.close_with_a_short_working_counter(6)
+        elif close == "close_after_a_power_cycle":
+            machine.close_after_a_power_cycle(1)
+        else:
+            machine.close_twice(10, close == "other_thread")
+        assert machine.closed
+    finally:
+        machine.teardown()
 
 
 @pytest.mark.parametrize("kind", ["reenable", "switch", "safe_stop", "power_cycle", "fault"])
