@@ -12,8 +12,11 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
+from fieldbus.core.al import AlState
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.runtime.clock import VirtualClock
 
@@ -92,17 +95,23 @@ def _watched(net: fieldbus.Network, drives: list[Any]) -> PowerOff:
     return off
 
 
+@pytest.mark.parametrize("comes_back", [True, False])
 def test_a_power_cycled_slave_during_close_stops_the_healthy_drive_before_its_power_goes(
-    tmp_path: Path,
+    tmp_path: Path, comes_back: bool
 ) -> None:
     """Issue 33 item 7: one slave power-cycled, close(). The reply arrives every cycle with a short
     working counter; before, the wind-down saw no row fresh, called both axes silent after 10 cycles
     and disabled the healthy drive at 24 rad/s (it coasted). Now the recovery's AL readings tell
-    which slave answered: the healthy drive is watched to its stop, the power-cycled one given up."""
+    which slave answered: the healthy drive is watched to its stop, the power-cycled one given up.
+    ``comes_back=False``: the power-cycled slave then refuses PRE-OP (its recovery never ends), so the
+    healthy drive can only be seen through the per-slave rule, never through a full counter again."""
     clock = SleepHook()
     net, drives = moving_arm(tmp_path, clock)
     off = _watched(net, drives)
-    net.backend("arm").chain.power_cycle(1)  # type: ignore[attr-defined]
+    chain = net.backend("arm").chain  # type: ignore[attr-defined]
+    chain.power_cycle(1)
+    if not comes_back:
+        chain.refuse_state(1, AlState.PRE_OP, 0x0011)  # invalid requested state change
     net.close()
     report = net.last_wind_down
     assert report is not None
@@ -111,6 +120,8 @@ def test_a_power_cycled_slave_during_close_stops_the_healthy_drive_before_its_po
     assert off.at[0] is not None and off.at[0] < STOPPED_RAD_S, f"disabled at {off.at[0]} rad/s"
     assert healthy.how == "stopped" and healthy.cycles > 50  # it waited for the ramp
     assert cycled.how in ("silent", "state", "stopped")
+    if not comes_back:
+        assert cycled.how == "silent" and chain.slaves[1].app.state != State402.OPERATION_ENABLED
 
 
 def test_a_second_close_from_another_thread_waits_for_the_wind_down(tmp_path: Path) -> None:
