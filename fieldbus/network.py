@@ -319,6 +319,8 @@ class Network(_Phase):
         self._opened = False
         self._closed = False
         self._open_backends: list[Backend] = []  # every backend whose close() has not succeeded yet
+        self._close_lock = threading.Lock()  # one close() at a time: a second one waits for the first
+        self._closing_thread: int | None = None  # the thread inside close() now
 
     def backend(self, bus: str) -> Backend:
         """The backend of bus ``bus`` (by name)."""
@@ -367,7 +369,24 @@ class Network(_Phase):
         KeyboardInterrupt or SystemExit meanwhile does not cut it short and is
         raised again at the end. Calling it again retries what did not close;
         once all closed it does nothing.
+
+        Re-entrant and thread-safe: a close() from another thread while one
+        runs waits for it to finish (the wind-down is never skipped, nor run
+        twice); a close() from the same thread while it runs (a signal handler
+        that interrupts it) returns at once and the first one completes the
+        controlled stop.
         """
+        me = threading.get_ident()
+        if self._closing_thread == me:
+            return  # re-entered (a signal handler): the close under way finishes the stop
+        with self._close_lock:
+            self._closing_thread = me
+            try:
+                self._close()
+            finally:
+                self._closing_thread = None
+
+    def _close(self) -> None:
         if self._closed and not self._open_backends:
             return
         self._closed = True
@@ -978,21 +997,26 @@ class Operational(_Phase):
         outcome is in :attr:`Network.last_wind_down`.
         """
         net = self._net
-        groups = [
-            (g.name, g.image, g.slaves[0].map, p.fresh[g.first : g.first + len(g.slaves)])
-            for b, p, _, _ in self._pairs
-            for g in b.groups
-        ]
+        # per bus, its slaves heard not to answer in this wind-down cycle (S6: a slave is given up alone)
+        self._unheard = [np.zeros(b.n_slaves, dtype=bool) for b in net.backends]
+        groups = []
+        group_bus: list[int] = []
+        for k, (b, p, _, _) in enumerate(self._pairs):
+            for g in b.groups:
+                rows = slice(g.first, g.first + len(g.slaves))
+                groups.append((g.name, g.image, g.slaves[0].map, p.fresh[rows], self._unheard[k][rows]))
+                group_bus.append(k)
         dead_after = min(p.config.safe_stop_after for _, p, _, _ in self._pairs)
         wd = WindDown(groups, self.cycle_time_us, cap_s=net.wind_down_cap_s, dead_after=dead_after)
         net.last_wind_down = wd.report
         first: BaseException | None = None
         period_s = self.cycle_time_us / 1e6
         done = False
+        statuses = [st for _, _, st, _ in self._pairs]
         for _ in range(wd.budget_cycles + 1):
             try:
                 self._wind_down_cycle(SafeStop.QUICK_STOP)
-                done = wd.step()
+                done = wd.step([statuses[k].ran for k in group_bus])
             except BaseException as exc:  # a second Ctrl-C: finish stopping the drives first
                 first = first or exc
             if done:
@@ -1010,18 +1034,44 @@ class Operational(_Phase):
             raise first
 
     def _wind_down_cycle(self, word: SafeStop) -> None:
-        """One cycle of the wind-down on every bus, the safe outputs with ``word`` written first."""
+        """One cycle of the wind-down on every bus that is due (each at its own rate, as in
+        :meth:`exchange`), the safe outputs with ``word`` written first.
+
+        A bus whose reply came back short is judged per slave here (S6): the
+        slaves the backend can tell answered (``Backend.slaves_answered``) are
+        fresh and their inputs accepted, so a healthy drive is watched to its
+        stop beside a power-cycled one; those it can tell did not are marked
+        unheard. A bus with no reply (timeout, error) leaves every slave unheard.
+        """
         for w in self._writers:
             w.apply(word)
         res = self.result
         cycle = res.cycle
-        for k, (b, _, st, _) in enumerate(self._pairs):
-            st.ran, st.error = True, None
+        for k, (b, _, st, every) in enumerate(self._pairs):
+            st.ran, st.error = cycle % every == 0, None
+            if not st.ran:
+                continue
             try:
                 self._encode(k, cycle)
                 b.send()
             except Exception as exc:
                 st.error = _reason(exc)
         for k, (b, policy, st, _) in enumerate(self._pairs):
+            if not st.ran:
+                continue
             self._receive(k, b, policy, st, cycle)
+            unheard = self._unheard[k]
+            unheard.fill(st.verdict in (Verdict.TIMEOUT, Verdict.ERROR))  # no reply: nobody heard
+            if st.verdict is not Verdict.SHORT:
+                continue
+            try:
+                answered = b.slaves_answered(policy.last_wkc)
+            except Exception:  # a backend bug: nothing attributed
+                answered = None
+            if answered is None:
+                continue  # a short reply nobody can attribute: every slave stale, none given up
+            np.logical_not(answered, out=unheard)
+            if not np.array_equal(answered, policy.fresh):
+                np.copyto(policy.fresh, answered)
+                b.accept_inputs(policy.fresh)  # only the slaves that answered (S2 for the others)
         res.cycle = cycle + 1

@@ -298,6 +298,12 @@ class Backend(abc.ABC):
         """Per-slave arrival of this cycle's inputs when the bus can tell (CAN); else None."""
         return None
 
+    def slaves_answered(self, wkc: int | None) -> npt.NDArray[np.bool_] | None:
+        """Per slave, whether it answered in a cycle whose working counter ``wkc`` was short, when the
+        bus can tell (CAN: :meth:`arrived`; EtherCAT: :func:`fieldbus.core.wkc.answered_slaves`); None:
+        it cannot. Used by the wind-down on close (S6), not by the cycle's verdict."""
+        return self.arrived()
+
     # distributed clocks (EtherCAT buses with DC slaves; None elsewhere)
     dc_time_ns: int | None = None  # DC system time read in this cycle's frame (reference clock), ns
     dc_sync_error_ns: int | None = None  # host cycle phase minus its target within the DC cycle, ns

@@ -63,7 +63,7 @@ from fieldbus.core.ecat import Command, Datagram
 from fieldbus.core.esc_errors import CounterRise, ErrorWatch, LinkChange
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import StepKind, coe_plan
-from fieldbus.core.wkc import Recovery, recovery_action
+from fieldbus.core.wkc import AL_UNREAD, Recovery, answered_slaves, recovery_action, wkc_weights
 from fieldbus.errors import (
     BusTimeoutError,
     FieldbusError,
@@ -229,6 +229,9 @@ class EthercatBackend(Backend):
         self._acyclic: tuple[SdoRequest, Generator[None, None, bytes | None]] | None = None
         self._raw: RawDatagrams | None = None  # our own frames on SOEM's socket (position addressing)
         self._retry_at = [0.0] * self.n_slaves  # monotonic s: a slave whose reconfiguration failed waits
+        self._wkc_weights: list[int] | None = None
+        # per slave, the AL status this recovery read last (None: no answer; AL_UNREAD: not yet)
+        self.al_read: list[int | None] = [AL_UNREAD] * self.n_slaves
         self._sm_regs: list[list[tuple[int, bytes]]] = []  # per slave: (register, bytes) to write again
         self._fmmu_regs: list[list[tuple[int, bytes]]] = []
         # (slave, error code, error register) seen in SDO answers, newest last
@@ -661,6 +664,13 @@ class EthercatBackend(Backend):
                 mv[:] = s.input
         return wkc
 
+    def slaves_answered(self, wkc: int | None) -> npt.NDArray[np.bool_] | None:
+        """Which slaves processed a short LRW, from this recovery's AL readings (:func:`answered_slaves`)."""
+        if self._wkc_weights is None:
+            self._wkc_weights = wkc_weights([a.layout for a in self.areas])
+        got = answered_slaves(wkc, self._wkc_weights, self.al_read)
+        return None if got is None else np.array(got, dtype=bool)
+
     def dc_correction_ns(self) -> int:
         """Correction for the next deadline from the host PI (SOEM's ec_sync), ns; 0 without DC."""
         c, self._dc_correction = self._dc_correction, 0
@@ -696,6 +706,7 @@ class EthercatBackend(Backend):
         cycle at moments nobody chose.
         """
         worked = False
+        self.al_read = [AL_UNREAD] * len(self._slaves)  # this run's readings only
         while True:
             if not any(s.is_lost for s in self._slaves) and (yield from self._all_in_op()):
                 self.recoveries += worked
@@ -703,6 +714,7 @@ class EthercatBackend(Backend):
             all_ok = True
             for i, s in enumerate(self._slaves):
                 state = None if s.is_lost else self._al_status(i)
+                self.al_read[i] = state
                 yield
                 action = recovery_action(state)
                 if action is Recovery.NONE:

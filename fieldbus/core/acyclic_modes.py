@@ -39,10 +39,17 @@ class AcyclicModes:
     ``targets``: per axis (row), the slave's name and its 0x6060 index (+0x800
     per axis of a multi-axis slave). ``submit(slave, index, sub_index, data)``
     queues an SDO download (``data`` bytes) or upload (``data`` None) and
-    returns its future. :meth:`for_group` builds both from a running network.
+    returns its future. ``recoveries()``: how many recoveries the bus has
+    completed so far (a rise forgets every display). :meth:`for_group` builds
+    all three from a running network.
     """
 
-    def __init__(self, targets: Sequence[tuple[str, int]], submit: Submit) -> None:
+    def __init__(
+        self,
+        targets: Sequence[tuple[str, int]],
+        submit: Submit,
+        recoveries: Callable[[], int] | None = None,
+    ) -> None:
         n = len(targets)
         self.targets = tuple(targets)
         self.request: npt.NDArray[np.int8] = np.zeros(n, dtype=np.int8)  # what the controller asks for
@@ -56,13 +63,21 @@ class AcyclicModes:
         self._busy = 0
         self._differs = np.zeros(n, dtype=bool)
         self._differs2 = np.zeros(n, dtype=bool)
+        self._recoveries = recoveries
+        self._recoveries_seen = recoveries() if recoveries is not None else 0
+        self.forgotten: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # displays forgotten per axis
+        self._generation = np.zeros(n, dtype=np.int64)  # bumped by forget(): older transfers count no more
+        self._sent_generation = np.zeros(n, dtype=np.int64)
+        self._recheck = np.zeros(n, dtype=bool)  # the next read decides whether 0x6060 is written again
 
     @classmethod
     def for_group(cls, op: Any, group: str) -> AcyclicModes:
         """For the group ``group`` of the running network ``op`` (a ``fieldbus.Operational``)."""
         g = op.groups[group]
         names = [s.name for s in g.slaves]
-        bus = next(v.name for v in op.buses if names[0] in v.slaves)
+        view = next(v for v in op.buses if names[0] in v.slaves)
+        bus = view.name
+        backend = view.backend
         axes = g.image.n_axes // len(g.slaves)
         targets = [
             (names[i // axes], g.slaves[i // axes].map.axis_index(MODES_OF_OPERATION, i % axes))
@@ -76,20 +91,43 @@ class AcyclicModes:
             w: Future[bytes | None] = op.submit_sdo_write(bus, slave, index, sub_index, data)
             return w
 
-        return cls(targets, submit)
+        return cls(targets, submit, lambda: int(backend.recoveries))
 
     @property
     def settled(self) -> bool:
         """Every axis's display shows its request and no transfer is pending."""
         return self._busy == 0 and bool(np.array_equal(self.request, self.display))
 
+    def forget(self, axes: npt.NDArray[np.bool_]) -> None:
+        """Forget the display of ``axes`` (a mask): read 0x6061 again, write 0x6060 again if it differs.
+
+        Called for a recovery (see the module docstring); a transfer already in
+        flight for such an axis counts no more (its answer may predate the recovery).
+        """
+        self.display[axes] = UNKNOWN_MODE
+        self._recheck[axes] = True
+        self._generation[axes] += 1
+        self.forgotten[axes] += 1
+
+    def forget_recovered(self) -> None:
+        """Forget every display when the bus completed a recovery since the last call (else nothing)."""
+        if self._recoveries is None:
+            return
+        done = self._recoveries()
+        if done != self._recoveries_seen:  # rare path: a slave came back, maybe in another mode
+            self._recoveries_seen = done
+            self.forget(np.ones(len(self.targets), dtype=bool))
+
     def step(self) -> None:
         """One cycle: poll the pending transfers, queue the next (never waits; no allocation when settled).
 
         Per axis: a finished download is followed by an upload of 0x6061; an upload
-        that does not show the request yet is asked again next cycle. A failed
-        transfer raises :class:`AcyclicModeError` naming the axis and object.
+        that does not show the request yet is asked again next cycle. A recovery
+        of the bus forgets the displays (:meth:`forget_recovered`). A failed
+        transfer raises :class:`AcyclicModeError` naming the axis and object
+        (one that a recovery made obsolete is just asked again).
         """
+        self.forget_recovered()
         np.not_equal(self.request, self._written, out=self._differs)
         np.not_equal(self.request, self.display, out=self._differs2)
         np.logical_or(self._differs, self._differs2, out=self._differs)
@@ -110,23 +148,32 @@ class AcyclicModes:
             if want != int(self._written[i]):
                 self._pending[i] = self._submit(slave, index, 0, want.to_bytes(1, "little", signed=True))
                 self._reading[i] = False
+                self._sent_generation[i] = self._generation[i]
                 self._written[i] = want
                 self.writes[i] += 1
             else:
                 self._pending[i] = self._submit(slave, index + 1, 0, None)  # 0x6061 (+0x800 per axis)
                 self._reading[i] = True
+                self._sent_generation[i] = self._generation[i]
                 self.reads[i] += 1
             self._busy += 1
 
     def _finish(self, i: int, f: Future[bytes | None]) -> None:
         slave, index = self.targets[i]
         obj = index + 1 if self._reading[i] else index
+        obsolete = self._sent_generation[i] != self._generation[i]  # asked before a recovery
         try:
             data = f.result()
         except Exception as exc:
             self._written[i] = UNKNOWN_MODE  # write it again on the next request
+            if obsolete:
+                return
             raise AcyclicModeError(f"{slave} (row {i}): SDO 0x{obj:04X} failed: {exc}") from exc
-        if self._reading[i]:
+        if self._reading[i] and not obsolete:
             if not data:
                 raise AcyclicModeError(f"{slave} (row {i}): SDO 0x{obj:04X} answered no data")
             self.display[i] = int.from_bytes(data[:1], "little", signed=True)
+            if self._recheck[i]:  # the first read after a recovery: the drive's own mode
+                self._recheck[i] = False
+                if self.display[i] != self.request[i]:
+                    self._written[i] = UNKNOWN_MODE  # e.g. its start-up SDO's mode: write ours again

@@ -488,12 +488,12 @@ class ProcessImageLike(Protocol):
     def inputs(self) -> DirectionLike: ...
 
 
-_SEEDED: tuple[tuple[Mode, str, str | None], ...] = (
-    (Mode.CSP, "target_position", "position_actual_value"),
-    (Mode.CSV, "target_velocity", "velocity_actual_value"),
-    (Mode.CST, "target_torque", None),  # torque 0: no jump whatever the load
+_SEEDED: tuple[tuple[str, str | None], ...] = (
+    ("target_position", "position_actual_value"),  # CSP, PP, IP: where the axis is
+    ("target_velocity", None),  # CSV, PV: 0, stand still (never the actual velocity: that keeps it going)
+    ("target_torque", None),  # CST, PT: 0, no jump whatever the load
 )
-"""Per cyclic mode: its target (master output) and the actual value it is seeded from (master input)."""
+"""Every target (master output) a transition overwrites, and the actual value (master input) it may take."""
 
 
 class _ImageBinding:
@@ -514,11 +514,12 @@ class _ImageBinding:
         has_display = "modes_of_operation_display" in inp.names
         self.modes_display = inp["modes_of_operation_display"] if has_display else None
         self.zero = np.zeros((), dtype=np.float64)
-        self.seeds: list[tuple[np.int8, npt.NDArray[Any], npt.NDArray[Any] | None]] = []
-        for mode, target, actual in _SEEDED:
+        # (target, the actual value it is seeded from; None: 0)
+        self.seeds: list[tuple[npt.NDArray[Any], npt.NDArray[Any] | None]] = []
+        for target, actual in _SEEDED:
             if target not in out.names or (actual is not None and actual not in inp.names):
-                continue
-            self.seeds.append((np.int8(mode), out[target], None if actual is None else inp[actual]))
+                continue  # no target; or a position with nothing to hold it at: left to the user
+            self.seeds.append((out[target], None if actual is None else inp[actual]))
 
 
 class Cia402Controller:
@@ -612,9 +613,11 @@ class Cia402Controller:
         self._bit7 = np.uint16(FAULT_RESET_BIT)
         self._switch_on = np.uint16(CONTROLWORD[Trigger.SWITCH_ON])
         self._zero_i32 = np.int32(0)
-        # bumpless targets (step_image)
+        # the targets of every transition (step_image)
         self._binding: _ImageBinding | None = None
-        self._seed = np.zeros(n, dtype=bool)
+        self.seeded: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)  # step_image seeded the targets now
+        self._left = np.zeros(n, dtype=bool)
+        self._old_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
         self._enabled_code = np.int8(State402.OPERATION_ENABLED)
 
@@ -762,7 +765,7 @@ class Cia402Controller:
         write_command_word(controlword_out, self.safe_stop_word)
         self._last_sm.fill(self.safe_stop_word)
 
-    # -- the whole image: bumpless targets --
+    # -- the whole image: the targets of every transition --
 
     def step_image(
         self,
@@ -770,38 +773,61 @@ class Cia402Controller:
         hold_reset: npt.NDArray[np.bool_] | None = None,
         modes: AcyclicModes | None = None,
     ) -> None:
-        """One cycle on a group's process image: :meth:`step` plus bumpless targets.
+        """One cycle on a group's process image: :meth:`step` plus the targets of every transition.
 
         Reads the statusword and, where the map has them, modes_of_operation_display
         and the actual values (master inputs); writes the controlword and
         modes_of_operation (master outputs) as :meth:`step` does. Then, per axis,
-        the target of the requested mode is **seeded from the actual value**
-        (target_position <- position_actual_value in CSP, target_velocity <-
-        velocity_actual_value in CSV, target_torque <- 0 in CST) while the axis
-        is not OPERATION ENABLED, on the cycle it is first seen enabled, and on
-        every cycle of a mode switch (from :meth:`request_mode` until the display
-        shows the new mode). A user who writes nothing yet holds the axis where
-        it is; a target the user writes after this call takes over from then on.
-        Channels are found by their CiA 402 names; a mode whose target (or, for
-        CSP/CSV, actual value) is not in the image is left alone. Values are
+        **no transition starts motion** (invariant S11 of ``docs/safety.md``): in
+        every cycle of a transition - the axis not OPERATION ENABLED (disabled, a
+        safe stop, a fault and its reset, a power cycle and its recovery), the
+        cycle it is first seen enabled again, every cycle of a mode switch (from
+        :meth:`request_mode` until the display shows the new mode) - **every**
+        target in the image is overwritten with its seed, whatever the requested
+        mode: target_position <- position_actual_value (CSP, PP), target_velocity
+        <- 0 (CSV, PV), target_torque <- 0 (CST; the axis coasts). A position
+        seed is bumpless; a velocity seed of 0 brakes an axis that was moving
+        (never the actual velocity: that would keep it going after an enable).
+        :attr:`seeded` says which axes were seeded this cycle.
+
+        So a command older than the transition is gone from the image: only a
+        value written *after* this call, in the transition's last seeded cycle
+        or later, reaches the drive. A loop that keeps its own command (a
+        trajectory) must restart it from the image's target while
+        :attr:`seeded` is set: the library cannot tell an old value written
+        again from a new one. Channels are found by their CiA 402 names; a
+        target_position without position_actual_value is left alone. Values are
         copied in the image's units: the target and the actual value must share
         a unit (both counts, or both rad...), as the map loader checks for the
         shipped maps. Allocation-free after the first call on an image.
         ``hold_reset``: as in :meth:`step`. ``modes``: for an image without
         modes_of_operation / its display (0x6060/0x6061 not in the PDOs), an
         :class:`~fieldbus.core.acyclic_modes.AcyclicModes` of the same group that
-        carries them by SDO; it is stepped here, once per call, never waiting.
+        carries them by SDO; it is stepped here, once per call, never waiting,
+        and told of every recovery (the bus brought a slave back, an axis left
+        OPERATION ENABLED) so that it reads the display again before the next enable.
         """
         b = self._binding
         if b is None or b.img is not img:
             b = self._binding = _ImageBinding(img, self.n_axes)
         display, out = b.modes_display, b.modes_out
-        if modes is not None and out is None and display is None:  # the mode objects go by SDO
+        acyclic = modes is not None and out is None and display is None  # the mode objects go by SDO
+        if acyclic:
+            assert modes is not None
             display, out = modes.display, modes.request
+            modes.forget_recovered()  # before the controller compares it: after a recovery it is unknown
+        np.copyto(self._old_state, self.state)
         self.step(b.statusword, b.controlword, display, out, hold_reset)
-        if modes is not None and out is modes.request:
+        if acyclic:
+            assert modes is not None
+            left = self._left  # axes that left OPERATION ENABLED: the next enable is a re-enable
+            np.equal(self._old_state, self._enabled_code, out=left)
+            np.not_equal(self.state, self._enabled_code, out=self._b1)
+            np.logical_and(left, self._b1, out=left)
+            if left.any():
+                modes.forget(left)
             modes.step()
-        seed = self._seed
+        seed = self.seeded
         np.not_equal(self.state, self._enabled_code, out=seed)
         np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
         np.logical_or(seed, self._switching, out=seed)
@@ -811,13 +837,8 @@ class Cia402Controller:
         else:
             self._b1.fill(True)
         np.greater(self._switching, self._b1, out=self._switching)  # done once the display follows
-        for mode, target, actual in b.seeds:
-            np.equal(self.mode_request, mode, out=self._b2)
-            np.logical_and(self._b2, seed, out=self._b2)
-            if actual is None:
-                np.copyto(target, b.zero, where=self._b2)
-            else:
-                np.copyto(target, actual, where=self._b2, casting="unsafe")
+        for target, actual in b.seeds:
+            np.copyto(target, b.zero if actual is None else actual, where=seed, casting="unsafe")
 
     @property
     def all_reached(self) -> bool:

@@ -12,14 +12,20 @@ out. An axis is done when its statusword shows
   ON, SWITCHED ON), or FAULT (the drive's own fault reaction ran).
 
 Every step is bounded: a budget in cycles derived from the map (max velocity
-over the quick-stop deceleration 0x6085, x1.5 plus 100 ms) and capped; a bus
-that stays silent for ``dead_after`` cycles cannot be watched and is given up
-(its drives stop on their own watchdogs). The outcome, per axis, is in
-:class:`WindDownReport`.
+over the quick-stop deceleration 0x6085, x1.5 plus 100 ms) and capped. A slave
+is judged on its own: an axis is watched while its slave's inputs are fresh,
+and given up as ``silent`` only when its slave was *heard not to answer* for
+``dead_after`` cycles of its bus in a row (no reply at all on the bus, or a
+short working counter the recovery can attribute to other slaves; see
+:func:`fieldbus.core.wkc.answered_slaves`). A short reply that cannot be
+attributed stales every slave of the bus but silences none: the quick stop
+goes on to its budget. A bus that runs every n-th cycle is judged on the
+cycles it ran. The outcome, per axis, is in :class:`WindDownReport`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,19 +119,21 @@ class _GroupWatch:
         self.how = ["" for _ in range(n)]
         self.cycles = np.zeros(n, dtype=np.int64)
         self.state = np.full(n, -1, dtype=np.int8)
+        self.unheard = np.zeros(n, dtype=np.int64)  # bus cycles in a row its slave did not answer
         self.last_velocity: list[float | None] = [None] * n
 
 
 class WindDown:
     """Steps a close(): :meth:`step` once per cycle with each group's freshness; True when disable may go out.
 
-    ``groups``: (name, image, drive map, rows fresh this cycle) per axis group;
-    the rows array is read at every :meth:`step` (a view the caller updates).
+    ``groups``: (name, image, drive map, rows fresh this cycle, rows heard not
+    to answer this cycle) per axis group, one flag per slave; both arrays are
+    read at every :meth:`step` (views the caller updates).
     """
 
     def __init__(
         self,
-        groups: list[tuple[str, ProcessImage, DriveMap, npt.NDArray[np.bool_]]],
+        groups: list[tuple[str, ProcessImage, DriveMap, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]],
         cycle_time_us: int,
         *,
         cap_s: float = MAX_BUDGET_S,
@@ -133,31 +141,38 @@ class WindDown:
     ) -> None:
         self._groups = [
             _GroupWatch(name, image, drive, max(1, round(stop_budget_s(drive, cap_s) * 1e6 / cycle_time_us)))
-            for name, image, drive, _ in groups
+            for name, image, drive, _, _ in groups
         ]
-        self._fresh = [fresh for _, _, _, fresh in groups]
+        self._fresh = [g[3] for g in groups]
+        self._unheard = [g[4] for g in groups]
         self.dead_after = dead_after
         self.report = WindDownReport()
-        self._silent = [0 for _ in groups]
 
     @property
     def budget_cycles(self) -> int:
         """The longest budget of any group, cycles."""
         return max((g.budget for g in self._groups), default=0)
 
-    def step(self) -> bool:
-        """Judge this cycle's inputs (call after the cycle's exchange); True: every axis is done."""
+    def step(self, ran: Sequence[bool] | None = None) -> bool:
+        """Judge this cycle's inputs (call after the cycle's exchange); True: every axis is done.
+
+        ``ran``: per group, its bus exchanged this cycle (default: all did); a
+        group whose bus did not run is not judged, only its budget runs on.
+        """
         self.report.quick_stop_cycles += 1
         all_done = True
         for k, g in enumerate(self._groups):
-            fresh = self._fresh[k]
-            self._silent[k] = 0 if fresh.any() else self._silent[k] + 1
             if g.statusword is None or g.done.all():
                 continue
-            decode_states(g.statusword, g.state)
+            fresh, unheard = self._fresh[k], self._unheard[k]
+            judged = ran is None or ran[k]
+            if judged:
+                decode_states(g.statusword, g.state)
             for i in np.flatnonzero(~g.done):
                 g.cycles[i] += 1
-                if fresh[i * len(fresh) // len(g.done)]:  # fresh per slave; a multi-axis slave has rows
+                row = i * len(fresh) // len(g.done)  # fresh per slave; a multi-axis slave has rows
+                if judged and fresh[row]:
+                    g.unheard[i] = 0
                     v = abs(float(g.velocity[i])) if g.velocity is not None else None
                     g.last_velocity[i] = v
                     s = int(g.state[i])
@@ -165,7 +180,9 @@ class WindDown:
                         g.done[i], g.how[i] = True, "stopped"
                     elif s in _DONE_STATES:
                         g.done[i], g.how[i] = True, "state"
-                if not g.done[i] and self._silent[k] >= self.dead_after:
+                elif judged and unheard[row]:
+                    g.unheard[i] += 1
+                if not g.done[i] and g.unheard[i] >= self.dead_after:
                     g.done[i], g.how[i] = True, "silent"
                 elif not g.done[i] and g.cycles[i] >= g.budget:
                     g.done[i], g.how[i] = True, "budget"

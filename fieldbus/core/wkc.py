@@ -10,8 +10,9 @@ outputs adds 2 (write), every slave with inputs adds 1 (read).
 from __future__ import annotations
 
 import enum
+from collections.abc import Sequence
 
-from fieldbus.core.al import AL_ERROR, AL_OP, AL_SAFEOP
+from fieldbus.core.al import AL_BOOT, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP
 from fieldbus.core.pdo.layout import MapLayout
 from fieldbus.core.safety import PolicyConfig, PolicyStats, SafetyPolicy, Verdict
 
@@ -24,6 +25,7 @@ __all__ = [
     "SafetyPolicy",
     "Verdict",
     "WkcPolicy",
+    "answered_slaves",
     "expected_wkc",
     "recovery_action",
 ]
@@ -42,6 +44,49 @@ def expected_wkc(layouts: list[MapLayout], *, lrw: bool = True) -> int:
         total += 2 if lay.outputs.bits else 0
         total += 1 if lay.inputs.bits else 0
     return total
+
+
+AL_UNREAD = -1
+"""A slave's AL status not read since the recovery began (see :func:`answered_slaves`)."""
+
+
+def wkc_weights(layouts: list[MapLayout]) -> list[int]:
+    """Per slave, what it adds to an LRW's working counter in OP: 2 with outputs, 1 with inputs."""
+    return [(2 if lay.outputs.bits else 0) + (1 if lay.inputs.bits else 0) for lay in layouts]
+
+
+def answered_slaves(
+    wkc: int | None, weights: Sequence[int], al_status: Sequence[int | None]
+) -> list[bool] | None:
+    """Which slaves processed a short LRW, when the recovery's AL readings can tell; else None.
+
+    ``al_status``: per slave, the AL status the recovery read last in its
+    present run (None: no answer at its address; :data:`AL_UNREAD`: not read
+    yet). The working counter alone names no slave; so the rule is: every
+    slave was read, each is either in OP without the error flag (it processes
+    the LRW and adds its weight) or in INIT, PRE-OP or BOOT or gone (its
+    FMMUs are off: it adds nothing), and the counter is exactly the sum of
+    the OP slaves' weights. Then those answered and the others did not. A
+    slave in SAFE-OP (which may add its read but not its write), one in OP
+    with an error, an unread one, or any other counter: None (cannot tell).
+    """
+    if wkc is None or wkc < 0 or len(weights) != len(al_status):
+        return None
+    in_op: list[bool] = []
+    for st in al_status:
+        if st is None:  # gone from its address (power-cycled): adds nothing
+            in_op.append(False)
+        elif st == AL_UNREAD:
+            return None
+        elif st & 0x0F == AL_OP and not st & AL_ERROR:
+            in_op.append(True)
+        elif st & 0x0F in (AL_INIT, AL_PREOP, AL_BOOT):
+            in_op.append(False)
+        else:  # SAFE-OP, or OP with an error: what it adds is not known
+            return None
+    if wkc != sum(w for w, ok in zip(weights, in_op, strict=True) if ok):
+        return None
+    return in_op
 
 
 class Recovery(enum.Enum):

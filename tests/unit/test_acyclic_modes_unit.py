@@ -57,3 +57,46 @@ def test_a_failed_download_names_the_axis_and_object() -> None:
         modes.step()
     modes.step()  # written again on the next step
     assert [d for _, _, d, _ in q.sent] == [b"\x09", b"\x09"]
+
+
+def test_a_recovery_forgets_the_display_and_a_changed_mode_is_written_again() -> None:
+    """A recovery of the bus (a slave power-cycled: back in its start-up mode) forgets the display;
+    the read that follows decides: the request shown, nothing written; another mode, 0x6060 written
+    again. An answer to a transfer asked before the recovery counts no more."""
+    import numpy as np
+
+    from fieldbus.core.acyclic_modes import UNKNOWN_MODE
+
+    q = _Queue()
+    recoveries = [0]
+    modes = AcyclicModes([("j0", 0x6060)], q.submit, lambda: recoveries[0])
+    modes.request[:] = 9
+    modes.step()
+    q.sent[-1][3].set_result(None)
+    modes.step()
+    q.sent[-1][3].set_result(b"\x09")
+    modes.step()
+    assert modes.settled and list(modes.writes) == [1]
+    recoveries[0] += 1  # the bus brought a slave back: the display is forgotten, the next read decides
+    modes.step()
+    assert modes.display[0] == UNKNOWN_MODE and not modes.settled and modes.forgotten[0] == 1
+    assert q.sent[-1][1:3] == (0x6061, None)
+    early = q.sent[-1][3]
+    recoveries[0] += 1  # another recovery: forgotten again; the read in flight is now obsolete
+    modes.step()
+    early.set_result(b"\x09")  # asked during the outage: does not count
+    modes.step()
+    assert modes.display[0] == UNKNOWN_MODE and q.sent[-1][1:3] == (0x6061, None)
+    q.sent[-1][3].set_result(b"\x08")  # the drive came back in CSP (its start-up SDO)
+    modes.step()
+    assert q.sent[-1][1:3] == (0x6060, b"\x09") and list(modes.writes) == [2]  # ours, again
+    q.sent[-1][3].set_result(None)
+    modes.step()
+    q.sent[-1][3].set_result(b"\x09")
+    modes.step()
+    assert modes.settled and modes.display[0] == 9
+    modes.forget(np.ones(1, dtype=bool))  # e.g. the axis left OPERATION ENABLED
+    modes.step()
+    q.sent[-1][3].set_result(b"\x09")  # still in our mode: nothing written
+    modes.step()
+    assert modes.settled and list(modes.writes) == [2]

@@ -87,3 +87,20 @@ def test_recovery_actions_follow_ecatcheck() -> None:
     assert recovery_action(AL_INIT) is Recovery.RECONFIGURE
     assert recovery_action(AL_PREOP) is Recovery.RECONFIGURE
     assert recovery_action(None) is Recovery.RECOVER
+
+
+def test_a_short_working_counter_is_attributed_only_when_the_al_readings_account_for_it() -> None:
+    """The wind-down's per-slave rule (S6): OP slaves' weights must sum to the counter exactly."""
+    from fieldbus.core.al import AL_BOOT
+    from fieldbus.core.wkc import AL_UNREAD, answered_slaves
+
+    w = [3, 3, 1]
+    assert answered_slaves(4, w, [AL_OP, None, AL_OP]) == [True, False, True]  # slave 1 power-cycled
+    assert answered_slaves(3, w, [AL_OP, AL_INIT, AL_PREOP]) == [True, False, False]
+    assert answered_slaves(4, w, [AL_OP, AL_BOOT | AL_ERROR, AL_OP]) == [True, False, True]
+    assert answered_slaves(5, w, [AL_OP, None, AL_OP]) is None  # the counter says otherwise
+    assert answered_slaves(4, w, [AL_OP, AL_SAFEOP, AL_OP]) is None  # SAFE-OP may add its read
+    assert answered_slaves(4, w, [AL_OP, AL_OP | AL_ERROR, AL_INIT]) is None  # OP with an error
+    assert answered_slaves(4, w, [AL_OP, AL_UNREAD, AL_OP]) is None  # not read in this recovery
+    assert answered_slaves(None, w, [AL_OP, None, AL_OP]) is None  # no reply at all
+    assert answered_slaves(4, w, [AL_OP, None]) is None
