@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import struct
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -183,13 +184,25 @@ def test_one_of_12_drives_is_updated_while_pysoem_keeps_the_other_11_in_op(ether
                 wkcs.append(master.receive_processdata(20_000, release_gil=True))
                 stop.wait(0.001)
 
+        def cycles_see(wkc: int, since: int) -> bool:
+            """The cycle thread records ``wkc`` after entry ``since`` (bounded wait: a loaded machine may
+            give that thread few turns, but it must get some while drive 7 is out of OP)."""
+            end = time.monotonic() + 30.0
+            while time.monotonic() < end:
+                if wkc in wkcs[since:]:
+                    return True
+                time.sleep(0.005)
+            return False
+
         t = threading.Thread(target=cycle)
         t.start()
         try:
             s = master.slaves[7]
             to_bootstrap(s)
+            assert cycles_see(33, 0), wkcs[-20:]  # the others exchange while drive 7 is in BOOTSTRAP
             image = firmware_image(0x00020007, 40_000)
             assert s.foe_write("app.efw", 0, image, FOE_TIMEOUT_US, release_gil=True) > 0
+            assert cycles_see(33, len(wkcs)), wkcs[-20:]  # and after its transfer, still out of OP
             s.state = pysoem.INIT_STATE
             s.write_state()
             assert s.state_check(pysoem.INIT_STATE, 2_000_000) == pysoem.INIT_STATE
