@@ -59,10 +59,6 @@ def base_topics(namespace: str = "") -> dict[str, str]:
     }
 
 
-def _stamp(ns: int) -> m.Time:
-    return m.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
 def _covariance(diagonal: tuple[float, ...]) -> list[float]:
     cov = [0.0] * 36
     for i, v in enumerate(diagonal):
@@ -251,7 +247,7 @@ class BaseService:
         base = self.base
         assert base is not None
         p, odo = self.params, base.odometry
-        header = m.Header(stamp=_stamp(stamp_ns), frame_id=p.frame(p.odom_frame_id))
+        header = m.Header(stamp=m.Time.of_ns(stamp_ns), frame_id=p.frame(p.odom_frame_id))
         child = p.frame(p.base_frame_id)
         qx, qy, qz, qw = quaternion_z(odo.heading)
         msg = r.Odometry(header=header, child_frame_id=child)
@@ -267,7 +263,7 @@ class BaseService:
             tf.transform.translation = r.Vector3(odo.x, odo.y, 0.0)
             tf.transform.rotation = r.Quaternion(qx, qy, qz, qw)
             self.tf_writer.write(r.TFMessage(transforms=[tf]))
-        js = m.JointState(header=m.Header(stamp=_stamp(stamp_ns)), name=list(p.wheel_names))
+        js = m.JointState(header=m.Header(stamp=m.Time.of_ns(stamp_ns)), name=list(p.wheel_names))
         for w in base.wheels:
             img = w.image.inputs
             js.position.append(float(img[w.position][w.row]) if w.position else math.nan)
@@ -304,4 +300,4 @@ class BaseService:
             hardware_id="base",
             values=values,
         )
-        return m.DiagnosticArray(header=m.Header(stamp=_stamp(stamp_ns)), status=[status])
+        return m.DiagnosticArray(header=m.Header(stamp=m.Time.of_ns(stamp_ns)), status=[status])

@@ -34,6 +34,11 @@ class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
     sec: t.int32 = 0
     nanosec: t.uint32 = 0
 
+    @classmethod
+    def of_ns(cls, ns: int) -> "Time":
+        """A stamp from nanoseconds since the Unix epoch."""
+        return cls(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
 
 @dataclass
 class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):

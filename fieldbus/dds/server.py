@@ -91,10 +91,6 @@ class ServeOptions:
                 raise FieldbusError(f"{what} must be a whole number of cycles >= 1, not {v!r}")
 
 
-def _stamp(ns: int) -> m.Time:
-    return m.Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
 def _channel(image: ProcessImage, direction: str, index: int | None, name: str) -> str | None:
     """The scaled channel mapping ``index`` (CiA 402), else the channel called ``name``, else None."""
     lay = image.layout.outputs if direction == "out" else image.layout.inputs
@@ -289,7 +285,7 @@ class ServedGroup:
         inp = self.image.inputs.values
         if self.slave_fresh is not None and self.fresh is not self.slave_fresh:  # each slave's, per axis
             self.fresh[:] = np.repeat(self.slave_fresh, self.rows_per_slave)
-        header = m.Header(stamp=_stamp(stamp_ns), frame_id="")
+        header = m.Header(stamp=m.Time.of_ns(stamp_ns), frame_id="")
         js = m.JointState(header=header, name=list(self.axes))
         for field_name, chan in self.in_roles.items():
             setattr(js, field_name, inp[chan].astype(np.float64).tolist())
@@ -817,7 +813,7 @@ class BusServer:
                     values=values,
                 )
             )
-        return m.DiagnosticArray(header=m.Header(stamp=_stamp(time.time_ns())), status=status)
+        return m.DiagnosticArray(header=m.Header(stamp=m.Time.of_ns(time.time_ns())), status=status)
 
 
 def _argument(req: m.Request) -> dict[str, Any]:

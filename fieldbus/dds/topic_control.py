@@ -138,7 +138,7 @@ class TopicControl:
 
     def publish(self, stamp_ns: int) -> None:
         """Every served joint's state: positions, velocities and efforts as the groups' JointState has them."""
-        msg = m.JointState(header=m.Header(stamp=m.Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)))
+        msg = m.JointState(header=m.Header(stamp=m.Time.of_ns(stamp_ns)))
         for name, (g, row) in self.joints.items():
             inp = g.image.inputs.values
             msg.name.append(name)
