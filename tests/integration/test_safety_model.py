@@ -33,11 +33,14 @@ tests/integration/test_safety_model.py`` (random seeds unless
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import json
 import math
 import os
+import shutil
 import struct
+import tempfile
 import threading
 from concurrent.futures import Future
 from pathlib import Path
@@ -83,7 +86,9 @@ def windowed_demo_map(folder: Path) -> Path:
 
 RELEASE_AFTER = 3
 _channels = itertools.count()
-_tmp = Path(os.environ.get("TMPDIR", "/tmp"))
+# one folder per test process for the machines' network files, removed when the process ends
+_tmp = Path(tempfile.mkdtemp(prefix="fb-model-"))
+atexit.register(shutil.rmtree, _tmp, True)
 
 
 def _profile(examples: int, steps: int) -> settings:
