@@ -65,14 +65,6 @@ def wrap_period(drive: DriveMap, channel: str) -> float | None:
     return None
 
 
-def _channel(image: ProcessImage, out: bool, index: int, name: str) -> str | None:
-    lay = image.layout.outputs if out else image.layout.inputs
-    e = lay.find(index)
-    if e is not None:
-        return e.name
-    return name if name in lay.names else None
-
-
 def find_wheels(op: Operational, params: DiffDriveParams) -> tuple[Wheel, ...]:
     """Each wheel of ``params`` located in ``op``'s groups; a missing channel is a FieldbusError."""
     where: dict[str, tuple[str, int, str, int, DriveMap]] = {}
@@ -87,13 +79,13 @@ def find_wheels(op: Operational, params: DiffDriveParams) -> tuple[Wheel, ...]:
             raise FieldbusError(f"wheel '{joint}' is not a joint of this network")
         gname, row, bus, slave, drive = where[joint]
         image = op[gname]
-        target = _channel(image, True, TARGET_VELOCITY, "velocity")
+        target = image.layout.outputs.channel_for(TARGET_VELOCITY, "velocity")
         if target is None:
             raise FieldbusError(
                 f"wheel '{joint}': its map has no velocity target (0x60FF, or an output named 'velocity')"
             )
-        pos = _channel(image, False, POSITION_ACTUAL, "position")
-        vel = _channel(image, False, VELOCITY_ACTUAL, "velocity")
+        pos = image.layout.inputs.channel_for(POSITION_ACTUAL, "position")
+        vel = image.layout.inputs.channel_for(VELOCITY_ACTUAL, "velocity")
         need = "position" if params.position_feedback else "velocity"
         if not params.open_loop and (pos if params.position_feedback else vel) is None:
             raise FieldbusError(

@@ -91,16 +91,6 @@ class ServeOptions:
                 raise FieldbusError(f"{what} must be a whole number of cycles >= 1, not {v!r}")
 
 
-def _channel(image: ProcessImage, direction: str, index: int | None, name: str) -> str | None:
-    """The scaled channel mapping ``index`` (CiA 402), else the channel called ``name``, else None."""
-    lay = image.layout.outputs if direction == "out" else image.layout.inputs
-    if index is not None:
-        e = lay.find(index)
-        if e is not None:
-            return e.name
-    return name if name in lay.names else None
-
-
 def _unscaled(image: ProcessImage, direction: str, index: int) -> str | None:
     lay = image.layout.outputs if direction == "out" else image.layout.inputs
     e = lay.find(index)
@@ -139,8 +129,12 @@ class ServedGroup:
         self.writer: SafeStopWriter | None = None  # the group's safe outputs, from attach()
         self.gate = CommandGate(server.options.deadline)
         out, inp = image.outputs, image.inputs
-        self.out_roles = {r: c for r, i in OUTPUT_ROLES.items() if (c := _channel(image, "out", i, r))}
-        self.in_roles = {r: c for r, (i, n) in INPUT_ROLES.items() if (c := _channel(image, "in", i, n))}
+        self.out_roles = {
+            r: c for r, i in OUTPUT_ROLES.items() if (c := image.layout.outputs.channel_for(i, r))
+        }
+        self.in_roles = {
+            r: c for r, (i, n) in INPUT_ROLES.items() if (c := image.layout.inputs.channel_for(i, n))
+        }
         self.input_names = list(inp.values.dtype.names or ())
         self._inputs = np.zeros((self.n, len(self.input_names)))
         cw, sw = _unscaled(image, "out", CONTROLWORD), _unscaled(image, "in", STATUSWORD)

@@ -111,6 +111,14 @@ class DirectionLayout:
                 return e
         return None
 
+    def channel_for(self, index: int | None, name: str) -> str | None:
+        """The channel mapping object ``index`` (CiA 402), else the channel called ``name``, else None."""
+        if index is not None:
+            e = self.find(index)
+            if e is not None:
+                return e.name
+        return name if name in self.names else None
+
 
 @dataclass(frozen=True)
 class MapLayout:
