@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -92,6 +93,138 @@ def package_graph() -> dict[str, set[str]]:
     return graph
 
 
+# The drawing: rooms (the package's subpackages and top-level modules), each
+# on a floor (1 = bottom: a room sits one floor above the highest room it
+# imports), the arrows that run back up (imports that close a circle of rooms)
+# and the circles (modules that import each other, directly or around).
+EXTENSIONS = ("fieldbus._codec",)  # built from C: a module without a .py
+
+
+def room_of(module: str) -> str:
+    """The room a module of fieldbus belongs to (``fieldbus``: the facade, ``__init__``; ``__main__`` is the CLI's)."""
+    parts = module.split(".")
+    if len(parts) == 1:
+        return "fieldbus"
+    if parts[1] == "__main__":
+        return "fieldbus.cli"
+    return ".".join(parts[:2])
+
+
+def module_edges(root: Path = PACKAGE) -> set[tuple[str, str]]:
+    """``(importer, imported)`` between modules of fieldbus, read with ast.
+
+    ``from a.b import c`` is an arrow to ``a.b.c`` when that is a module, else
+    to ``a.b``; a name is cut back to the module that holds it. The parent
+    packages Python runs on the way are not arrows.
+    """
+    sources = {module_name(p): p for p in root.rglob("*.py")}
+    modules = set(sources) | set(EXTENSIONS)
+
+    def held(name: str) -> str:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name
+
+    edges = set()
+    for importer, path in sources.items():
+        package = importer if path.name == "__init__.py" else importer.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [held(alias.name) for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join([*up, base] if base else up)
+                targets = [
+                    f"{base}.{a.name}" if f"{base}.{a.name}" in modules else held(base) for a in node.names
+                ]
+            edges.update((importer, t) for t in targets if t and t != importer)
+    return edges
+
+
+@dataclass(frozen=True)
+class Drawing:
+    floors: dict[str, int]  # room -> floor, 1 = bottom
+    arrows_up: tuple[
+        tuple[str, str], ...
+    ]  # (importer, imported) modules, the import points to a higher floor
+    circles: tuple[tuple[str, ...], ...]  # modules that import each other, each circle sorted
+
+    def figures(self) -> dict[str, int]:
+        return {
+            "rooms": len(self.floors),
+            "floors": max(self.floors.values(), default=0),
+            "arrows back up": len(self.arrows_up),
+            "circles": len(self.circles),
+        }
+
+    def render(self) -> str:
+        lines = [", ".join(f"{k} {v}" for k, v in self.figures().items())]
+        for floor in range(max(self.floors.values(), default=0), 0, -1):
+            rooms = sorted(r.removeprefix("fieldbus.") for r, f in self.floors.items() if f == floor)
+            lines.append(f"{floor:2d}  {'  '.join(rooms)}")
+        lines += [f"up: {a} -> {b}" for a, b in self.arrows_up]
+        lines += [f"circle: {' <-> '.join(m.removeprefix('fieldbus.') for m in c)}" for c in self.circles]
+        return "\n".join(lines)
+
+
+def draw(edges: set[tuple[str, str]]) -> Drawing:
+    """Rooms on floors from the imports (ast, type-only imports included)."""
+    rooms = sorted({room_of(m) for edge in edges for m in edge})
+    deps: dict[str, set[str]] = {r: set() for r in rooms}
+    for a, b in edges:
+        if room_of(a) != room_of(b):
+            deps[room_of(a)].add(room_of(b))
+    # depth-first in name order: an arrow to a room still open closes a circle
+    back: set[tuple[str, str]] = set()
+    state: dict[str, int] = {}  # 1 open, 2 done
+
+    def visit(room: str) -> None:
+        state[room] = 1
+        for dep in sorted(deps[room]):
+            if state.get(dep) == 1:
+                back.add((room, dep))
+            elif dep not in state:
+                visit(dep)
+        state[room] = 2
+
+    for room in rooms:
+        if room not in state:
+            visit(room)
+    floors: dict[str, int] = {}
+
+    def floor(room: str) -> int:
+        if room not in floors:
+            below = [floor(d) for d in deps[room] if (room, d) not in back]
+            floors[room] = 1 + max(below, default=0)
+        return floors[room]
+
+    for room in rooms:
+        floor(room)
+    up = tuple(sorted((a, b) for a, b in edges if floors[room_of(b)] > floors[room_of(a)]))
+    modules: dict[str, set[str]] = {m: set() for edge in edges for m in edge}
+    for a, b in edges:
+        modules[a].add(b)
+    return Drawing(floors=floors, arrows_up=up, circles=_circles(modules))
+
+
+def _circles(deps: dict[str, set[str]]) -> tuple[tuple[str, ...], ...]:
+    """The strongly connected groups of more than one node (each node's reach, intersected)."""
+    reach: dict[str, set[str]] = {}
+    for room in deps:
+        seen, todo = set(), [room]
+        while todo:
+            for dep in deps[todo.pop()]:
+                if dep not in seen:
+                    seen.add(dep)
+                    todo.append(dep)
+        reach[room] = seen
+    groups = {tuple(sorted({r} | {o for o in reach[r] if r in reach[o]})) for r in deps}
+    return tuple(sorted(g for g in groups if len(g) > 1))
+
+
 def test_no_module_of_fieldbus_breaks_a_layer_rule() -> None:
     graph = package_graph()
     assert len(graph) > 80  # the whole package was read
@@ -146,3 +279,7 @@ def test_fieldbus_imports_and_builds_a_network_without_sim_slaves() -> None:
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[-1] == "ok"
     assert "refused: the emulator part 'ethercat_chain' needs the Python package 'sim_slaves" in out.stdout
+
+
+if __name__ == "__main__":
+    print(draw(module_edges()).render())
