@@ -43,8 +43,8 @@ from fieldbus.errors import (
     WorkingCounterError,
 )
 from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
-from fieldbus.runtime.loop import run_cycles
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.platform.loop import run_cycles
+from fieldbus.platform.timing import CycleTimer
 from fieldbus.wheeled_base import WheeledBase
 
 __version__ = "0.1.0"

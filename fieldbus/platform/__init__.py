@@ -1,1 +1,1 @@
-"""Runtime: the cyclic loop, timing statistics, gc control, allocation checks."""
+"""The host under the backends: clocks, the cyclic loop, timing statistics, real-time set-up, capabilities, allocation checks."""
