@@ -45,9 +45,8 @@ from fieldbus.errors import (
 from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
 from fieldbus.platform.loop import run_cycles
 from fieldbus.platform.timing import CycleTimer
+from fieldbus.version import __version__
 from fieldbus.wheeled_base import WheeledBase
-
-__version__ = "0.1.0"
 
 PDO_MAPS: Path = SHIPPED_MAPS
 """Drive maps shipped with the package (Maxon EPOS4, Elmo Gold, Synapticon, Beckhoff EL7201, ...); a

@@ -5,8 +5,8 @@ class for a backend registered in the ``fieldbus.backends`` entry-point group
 (name = bus ``type``): the ``open_network(**options)`` names it reads and
 whether it is a CAN bus. Loading a network file asks this module which types
 exist, so a bus of a registered type can be named in a file. This module
-imports nothing but ``errors``: the core reads it, the backends are imported
-only when a bus is opened (:func:`backend_class`).
+imports no backend: the core reads it; :func:`fieldbus.backends.backend_class`
+imports a backend when a bus is opened.
 
 A registered class may set ``bus_options`` (a tuple of option names; absent:
 any option is passed through) and ``can_bus`` (bool, default False).
@@ -14,15 +14,8 @@ any option is passed through) and ``can_bus`` (bool, default False).
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
-from typing import TYPE_CHECKING
-
-from fieldbus.errors import BackendUnavailableError
-
-if TYPE_CHECKING:
-    from fieldbus.backends.base import Backend
 
 GROUP = "fieldbus.backends"
 
@@ -67,14 +60,14 @@ BUILT_IN: dict[str, BusType] = {
 }
 
 
-def _registered() -> dict[str, EntryPoint]:
+def registered() -> dict[str, EntryPoint]:
     """The entry points of the group, by bus type (a built-in name is not taken over)."""
     return {ep.name: ep for ep in entry_points(group=GROUP) if ep.name not in BUILT_IN}
 
 
 def bus_type_names() -> tuple[str, ...]:
     """Every bus type a network file may name: the built-in ones, then the registered ones (sorted)."""
-    return (*BUILT_IN, *sorted(_registered()))
+    return (*BUILT_IN, *sorted(registered()))
 
 
 def bus_type(name: str) -> BusType | None:
@@ -85,7 +78,7 @@ def bus_type(name: str) -> BusType | None:
     """
     if name in BUILT_IN:
         return BUILT_IN[name]
-    ep = _registered().get(name)
+    ep = registered().get(name)
     if ep is None:
         return None
     try:
@@ -98,25 +91,3 @@ def bus_type(name: str) -> BusType | None:
         tuple(str(o) for o in options) if isinstance(options, tuple | list) else None,
         can=bool(getattr(cls, "can_bus", False)),
     )
-
-
-def backend_class(kind: str) -> type[Backend]:
-    """The backend class for bus type ``kind``."""
-    if kind in BACKENDS:
-        module_name, cls_name, extra = BACKENDS[kind]
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("fieldbus"):
-                raise BackendUnavailableError(f"the {kind} backend is not built yet ({exc.name})") from None
-            hint = f"pip install 'fieldbus[{extra}]'" if extra else "reinstall fieldbus"
-            raise BackendUnavailableError(
-                f"the {kind} backend needs the Python package '{exc.name}': {hint}"
-            ) from None
-        cls: type[Backend] = getattr(module, cls_name)
-        return cls
-    ep = _registered().get(kind)
-    if ep is not None:
-        loaded: type[Backend] = ep.load()
-        return loaded
-    raise BackendUnavailableError(f"no backend for bus type '{kind}' (known: {', '.join(bus_type_names())})")

@@ -127,7 +127,7 @@ class Recorder:
             from mcap.writer import CompressionType, Writer
         except ImportError:
             raise BackendUnavailableError("recording needs mcap: pip install 'fieldbus[record]'") from None
-        from fieldbus import __version__
+        from fieldbus.version import __version__
 
         self.path = Path(path)
         self.raw = raw
