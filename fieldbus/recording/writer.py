@@ -39,7 +39,7 @@ from fieldbus.recording.events import EventDeriver
 from fieldbus.recording.ring import BUS, COMMON, Ring, Snapshot
 
 if TYPE_CHECKING:
-    from fieldbus.network import CycleResult, Operational
+    from fieldbus.recording.source import CycleResult, Operational
 
 BLOCK_CYCLES = 256
 RING_BLOCKS = 16
