@@ -89,3 +89,35 @@ def test_built_in_types_keep_their_declarations() -> None:
     assert is_can_type("canopen") and is_can_type("rawcan")
     assert not is_can_type("ethercat") and not is_can_type("sim") and not is_can_type("nope")
     assert backend_options("nope") is None  # no backend: nothing to check against
+
+
+class AcmeCanBackend:
+    """A registered CAN backend: its buses take node ids and a bit rate."""
+
+    can_bus: ClassVar[bool] = True  # no bus_options: it takes any option
+
+
+def test_a_registered_can_type_takes_node_ids_and_a_bitrate(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    module = types.ModuleType("acme_can")
+    module.AcmeCanBackend = AcmeCanBackend  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "acme_can", module)
+    ep = EntryPoint("acmecan", "acme_can:AcmeCanBackend", registry.GROUP)
+    monkeypatch.setattr(
+        registry, "entry_points", lambda **kw: [ep] if kw.get("group") == registry.GROUP else []
+    )
+    path = tmp_path / "can.yaml"
+    path.write_text(
+        NETWORK.format(kind="acmecan")
+        .replace("    slaves:", "    bitrate: 500000\n    slaves:")
+        .replace('"shipped:generic_cia402"}', '"shipped:generic_cia402", node_id: 5}')
+    )
+    bus = load_network(path).buses[0]
+    assert bus.is_can and bus.bitrate == 500_000
+    assert [s.node_id for s in bus.slaves] == [5]
+    assert backend_options("acmecan") is None
+    check_open_options(load_network(path), None, {"whatever": 1})  # declares none: any option passes
+    path.write_text(NETWORK.format(kind="acmecan"))
+    with pytest.raises(PdoMapError, match="a CAN slave needs 'node_id'"):
+        load_network(path)
