@@ -32,7 +32,7 @@ class RoundProgress:
         self.stream = sys.stderr if sys.stderr.isatty() else None
 
     def step(self) -> None:
-        from fieldbus.runtime.loop import progress
+        from fieldbus.platform.loop import progress
 
         self.done += 1
         if self.stream is not None:

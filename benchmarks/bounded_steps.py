@@ -53,7 +53,7 @@ EEPROM_BUSY_CYCLES = 300
 
 
 def run(scenario: str, cycles: int, receive_timeout_us: int, rt_priority: int | None) -> dict[str, Any]:
-    from fieldbus.runtime.rt import RtConfig, realtime
+    from fieldbus.platform.rt import RtConfig, realtime
     from sim_slaves.ethercat.veth import emulated_segment
 
     with (

@@ -20,7 +20,7 @@ demo_joint map) on python-can's virtual bus, in alternating rounds:
 The virtual bus (threads, a deep copy per receiver) and the emulated nodes
 (Python threads sharing the interpreter lock with the master) dominate; the
 ratios to the floor say what each master adds. ``--phases``: where one
-fieldbus ``exchange()`` goes (:class:`fieldbus.runtime.phases.PhaseTimer`),
+fieldbus ``exchange()`` goes (:class:`fieldbus.platform.phases.PhaseTimer`),
 for a good cycle, a lost one (node 1's TPDOs dropped by the emulator: the
 cycle waits the receive timeout) and the one after. tracemalloc: net blocks
 per ``exchange()``.
@@ -55,9 +55,9 @@ from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.network import open_network
-from fieldbus.runtime.allocs import net_blocks
-from fieldbus.runtime.phases import PHASES, PhaseTimer
-from fieldbus.runtime.rt import RtConfig, realtime
+from fieldbus.platform.allocs import net_blocks
+from fieldbus.platform.phases import PHASES, PhaseTimer
+from fieldbus.platform.rt import RtConfig, realtime
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
 from sim_slaves.canopen import CanopenSimulator
 from sim_slaves.canopen.eds import to_canopen_od

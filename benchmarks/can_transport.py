@@ -55,9 +55,9 @@ from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus import PDO_MAPS
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.network import open_network
-from fieldbus.runtime.loop import gc_held, run_cycles
-from fieldbus.runtime.report import run_report
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.operations.report import run_report
+from fieldbus.platform.loop import gc_held, run_cycles
+from fieldbus.platform.timing import CycleTimer
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
 from sim_slaves.damiao import DamiaoSimulator
 from sim_slaves.mit_motor import MitMotorSimulator

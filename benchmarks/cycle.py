@@ -65,8 +65,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import RoundProgress, machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.network import Operational, open_network
-from fieldbus.runtime import capabilities
-from fieldbus.runtime.allocs import net_blocks
+from fieldbus.platform import capabilities
+from fieldbus.platform.allocs import net_blocks
 
 RECEIVE_TIMEOUT_US = 10_000
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from fieldbus.network import Operational, open_network
-from fieldbus.runtime.loop import run_cycles
+from fieldbus.platform.loop import run_cycles
 
 REPO = Path(__file__).resolve().parent.parent
 EPOS4 = REPO / "pdo_maps" / "maxon_epos4.yaml"

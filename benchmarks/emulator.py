@@ -32,7 +32,7 @@ from pathlib import Path
 from fieldbus.core.cia402 import State402
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import load_drive_map
-from fieldbus.runtime import capabilities
+from fieldbus.platform import capabilities
 from sim_slaves.ethercat import EscChain
 from sim_slaves.ethercat.bringup import bring_up
 

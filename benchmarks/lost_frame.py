@@ -8,7 +8,7 @@ only), paced at 1 kHz. Each loss: a few good cycles, the emulator told to
 drop the next process-data frame (``{"cmd": "drop", "pd": true}``), the lost
 cycle, the cycle right after it. Per kind of cycle (``good``: the one before
 the drop, ``lost``, ``after``) the exchange() time and its phases
-(:class:`fieldbus.runtime.phases.PhaseTimer`), and how many cycles sent a
+(:class:`fieldbus.platform.phases.PhaseTimer`), and how many cycles sent a
 datagram beside the LRW (counted: the backend's one-datagram budget flag).
 
 Two recoveries alternate round by round on the same network:
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import machine_note, table
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.network import open_network
-from fieldbus.runtime.phases import PHASES, PhaseTimer
+from fieldbus.platform.phases import PHASES, PhaseTimer
 
 KINDS = ("good", "lost", "after")
 VARIANTS = ("passes-at-loss", "deferred")
@@ -51,7 +51,7 @@ def _pct(values: list[int], q: float) -> float:
 
 
 def run(rounds: int, losses: int, receive_timeout_us: int, rt_priority: int | None) -> dict[str, Any]:
-    from fieldbus.runtime.rt import RtConfig, realtime
+    from fieldbus.platform.rt import RtConfig, realtime
     from sim_slaves.ethercat.veth import emulated_segment
 
     # per variant and kind: exchange_ns list, phases (list of per-phase ns lists), cycles with a datagram

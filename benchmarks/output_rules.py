@@ -35,8 +35,8 @@ from fieldbus.core.output_rules import OutputRules, channel_limits
 from fieldbus.core.pdo import drive_map_from_text
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
-from fieldbus.runtime.allocs import net_blocks
-from fieldbus.runtime.loop import gc_held
+from fieldbus.platform.allocs import net_blocks
+from fieldbus.platform.loop import gc_held
 
 AXES = (12, 64)
 LIMITS = """\

@@ -32,7 +32,7 @@ scaled output, and decoding every input channel.
 
 Before timing, the three produce the same output bytes and the same decoded
 inputs for the same data (asserted). Allocations: ``net_blocks`` from
-``fieldbus.runtime.allocs`` (net tracemalloc blocks still allocated after the
+``fieldbus.platform.allocs`` (net tracemalloc blocks still allocated after the
 measured cycles; transient allocations freed within a cycle are not counted).
 
     python benchmarks/pack_unpack.py            # ~45 s
@@ -62,8 +62,8 @@ from _common import Samples, interleaved, machine_note, table
 from fieldbus.core.pdo import drive_map_from_text
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
-from fieldbus.runtime.allocs import net_blocks
-from fieldbus.runtime.loop import gc_held
+from fieldbus.platform.allocs import net_blocks
+from fieldbus.platform.loop import gc_held
 
 AXES = (12, 64)
 Step = Callable[[], None]
@@ -411,7 +411,7 @@ def run(rounds: int, batch_s: float, alloc_cycles: int, alloc_cycles_canopen: in
 
     groups = {f"{n}": {name: step for name, (step, _) in b.items()} for n, b in built.items()}
     t0 = time.perf_counter()
-    with gc_held():  # as in fieldbus.runtime.loop: no collector pauses inside the cycle
+    with gc_held():  # as in fieldbus.platform.loop: no collector pauses inside the cycle
         samples: dict[str, Samples] = interleaved(groups, rounds=rounds, batch_s=batch_s)
     timing_s = time.perf_counter() - t0
 

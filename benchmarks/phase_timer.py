@@ -6,7 +6,7 @@ One in-process network (the ethercat backend on the emulated ESC chain, no
 wire: the cycle is all host work, so any cost of the hooks shows in full).
 Contenders in shuffled order each round (:func:`benchmarks._common.interleaved`):
 ``off`` (``Operational.phases`` None, the default) and ``on`` (a
-:class:`fieldbus.runtime.phases.PhaseTimer`: eight clock reads per exchange).
+:class:`fieldbus.platform.phases.PhaseTimer`: eight clock reads per exchange).
 Reported: median µs per exchange and the within-round ratios on/off.
 A third contender, ``off-again``, is ``off`` timed twice, so the noise of
 the machine between two identical contenders is in the same table.
@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import interleaved, machine_note, table
 from fieldbus.commands.demo import demo_network
 from fieldbus.network import open_network
-from fieldbus.runtime.loop import gc_held
-from fieldbus.runtime.phases import PhaseTimer
+from fieldbus.platform.loop import gc_held
+from fieldbus.platform.phases import PhaseTimer
 
 
 def main(argv: list[str] | None = None) -> int:

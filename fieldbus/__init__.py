@@ -43,11 +43,10 @@ from fieldbus.errors import (
     WorkingCounterError,
 )
 from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
-from fieldbus.runtime.loop import run_cycles
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.platform.loop import run_cycles
+from fieldbus.platform.timing import CycleTimer
+from fieldbus.version import __version__
 from fieldbus.wheeled_base import WheeledBase
-
-__version__ = "0.1.0"
 
 PDO_MAPS: Path = SHIPPED_MAPS
 """Drive maps shipped with the package (Maxon EPOS4, Elmo Gold, Synapticon, Beckhoff EL7201, ...); a

@@ -53,8 +53,8 @@ from fieldbus.errors import (
     SdoAbortError,
     abort_name,
 )
-from fieldbus.runtime import phases as ph
-from fieldbus.runtime.clock import WALL, Clock
+from fieldbus.platform import phases as ph
+from fieldbus.platform.clock import WALL, Clock
 
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder
@@ -255,7 +255,7 @@ class Network(_Phase):
             raise FieldbusError(
                 f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
             )
-        # ``clock``: a fieldbus.runtime.clock.Clock paces the close wind-down and is the time of every
+        # ``clock``: a fieldbus.platform.clock.Clock paces the close wind-down and is the time of every
         # backend that reads a clock (sim, CAN); a bare ``() -> ns`` callable is the sim backend's option
         clock = backend_options.get("clock")
         if clock is not None and hasattr(clock, "now_ns") and hasattr(clock, "sleep"):
@@ -519,7 +519,7 @@ class Operational(_Phase):
                 enc.append((rules, g.image))
             self._encoders.append(enc)
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
-        # where exchange() spends its time, phase by phase (fieldbus.runtime.phases); None: not timed
+        # where exchange() spends its time, phase by phase (fieldbus.platform.phases); None: not timed
         self.phases: ph.PhaseTimer | None = None
         self.buses: tuple[BusView, ...] = tuple(
             BusView(b, p, st, tuple(r for r, _ in enc))

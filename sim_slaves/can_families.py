@@ -17,7 +17,7 @@ from typing import Any
 from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.rawcan import FAMILIES
-from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.platform.clock import Clock, monotonic_s
 from sim_slaves.mit_motor import MitMotorSimulator
 
 __all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]

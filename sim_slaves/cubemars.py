@@ -29,7 +29,7 @@ import can
 
 from fieldbus.core import cubemars
 from fieldbus.core.pdo.model import DriveMap
-from fieldbus.runtime.clock import Clock
+from fieldbus.platform.clock import Clock
 from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator, MotorState
 
 KT = 0.091 * 9  # N·m/A at the output: AK80-9's Kt 0.091 times its 9:1 gear (TMotorCANControl servo_can.py)

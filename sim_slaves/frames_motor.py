@@ -27,7 +27,7 @@ import can
 
 from fieldbus.core.canframes import FrameSpec, FramesProtocol
 from fieldbus.core.pdo.model import DriveMap
-from fieldbus.runtime.clock import Clock
+from fieldbus.platform.clock import Clock
 from sim_slaves.mit_motor import Law, MitMotorSimulator, MotorState
 
 POSITION_GAIN = 20.0  # 1/s: speed per rad of position error (position set-points)

@@ -13,7 +13,7 @@ clock's watcher), so a set-point is followed after the last frame as a real moto
 run on a virtual clock is the same, bit for bit, every time.
 Fault hooks: ``drop_replies(node, n)``, ``corrupt_replies(node, n)``,
 ``silence(node)`` and ``power_cycle(node)``. ``clock``: the time the motors
-read (a :class:`~fieldbus.runtime.clock.Clock` or a function giving seconds;
+read (a :class:`~fieldbus.platform.clock.Clock` or a function giving seconds;
 default the machine's; ``dt_s`` given: the physics' time is ``dt_s`` per command instead, for tests
 without a virtual clock); without a thread, :meth:`MitMotorSimulator.deliver`
 takes each frame (virtual time, :mod:`fieldbus.testing`). A motor answers a CAN FD command with
@@ -33,7 +33,7 @@ from typing import Any
 import can
 
 from fieldbus.core.pdo.model import DriveMap
-from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.platform.clock import Clock, monotonic_s
 from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
 
@@ -107,7 +107,7 @@ FREE = Law()  # no torque: a disabled motor coasts to rest on its friction
 
 
 def seconds_of(clock: Any) -> Callable[[], float]:
-    """Seconds on ``clock``: a :class:`~fieldbus.runtime.clock.Clock`, a function giving seconds, or None
+    """Seconds on ``clock``: a :class:`~fieldbus.platform.clock.Clock`, a function giving seconds, or None
     (the machine's monotonic clock)."""
     if clock is None:
         return time.monotonic

@@ -1,4 +1,4 @@
-"""Bus backends, registered by name and imported lazily.
+"""Bus backends, declared in :mod:`fieldbus.registry` and imported lazily, when a bus opens.
 
 A missing optional dependency raises :class:`BackendUnavailableError` naming
 the ``pip install`` that fixes it. Third-party backends register through the
@@ -8,21 +8,15 @@ the ``pip install`` that fixes it. Third-party backends register through the
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
 
 from fieldbus.errors import BackendUnavailableError
+from fieldbus.registry import BACKENDS, bus_type_names, registered
 
 if TYPE_CHECKING:
     from fieldbus.backends.base import Backend
 
-# bus type -> (module, class, the extra that provides its dependencies)
-BACKENDS: dict[str, tuple[str, str, str | None]] = {
-    "sim": ("fieldbus.backends.sim", "SimBackend", "ethercat"),  # the ethercat backend in process
-    "ethercat": ("fieldbus.backends.ethercat", "EthercatBackend", "ethercat"),
-    "canopen": ("fieldbus.backends.canopen", "CanopenBackend", "can"),
-    "rawcan": ("fieldbus.backends.rawcan", "RawCanBackend", "can"),
-}
+__all__ = ["BACKENDS", "backend_class"]
 
 
 def backend_class(kind: str) -> type[Backend]:
@@ -40,8 +34,8 @@ def backend_class(kind: str) -> type[Backend]:
             ) from None
         cls: type[Backend] = getattr(module, cls_name)
         return cls
-    for ep in entry_points(group="fieldbus.backends"):
-        if ep.name == kind:
-            loaded: type[Backend] = ep.load()
-            return loaded
-    raise BackendUnavailableError(f"no backend for bus type '{kind}' (known: {', '.join(BACKENDS)})")
+    ep = registered().get(kind)
+    if ep is not None:
+        loaded: type[Backend] = ep.load()
+        return loaded
+    raise BackendUnavailableError(f"no backend for bus type '{kind}' (known: {', '.join(bus_type_names())})")

@@ -55,7 +55,6 @@ import numpy.typing as npt
 
 from fieldbus.backends.base import Backend, SdoRequest, SlaveArea
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
-from fieldbus.backends.can_sdo import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
 from fieldbus.backends.sdo_exec import apply_plan
@@ -64,6 +63,7 @@ from fieldbus.core.emcy import Emergency
 from fieldbus.core.liveness import tpdo_deadline, unwatched_reason
 from fieldbus.core.network import Bus
 from fieldbus.core.sdo import StepKind, canopen_plan
+from fieldbus.core.sdo.canopen_client import ABORT_TIMEOUT, SdoSteps, sdo_download, sdo_upload
 from fieldbus.errors import (
     BackendUnavailableError,
     BusTimeoutError,
@@ -72,7 +72,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
-from fieldbus.runtime.clock import monotonic_s
+from fieldbus.platform.clock import monotonic_s
 from fieldbus.wire.canlog import open_log
 
 try:

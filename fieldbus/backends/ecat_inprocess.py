@@ -26,7 +26,7 @@ Distributed clocks as SOEM sets them up (``config_dc``: delays and offsets
 on a line, the first slave the reference; ``dc_sync``; the cycle's FRMW of
 0x0910 gives ``dc_time``). Not (yet) offered: a redundant port, SOEM's own ``recover`` / ``reconfig`` (the backend uses its
 own, :mod:`.ecat_raw`-free steps on ``_fprd`` / ``_fpwr`` here).
-Time: the chain runs on ``clock`` (a :class:`~fieldbus.runtime.clock.Clock`,
+Time: the chain runs on ``clock`` (a :class:`~fieldbus.platform.clock.Clock`,
 default the wall clock); a lost reply, or one held back longer than the
 wait, counts as no frame (-1). On a virtual clock the master's waits pass
 there (a lost frame costs its timeout, a state poll 1 ms, as in SOEM), so
@@ -48,7 +48,7 @@ from fieldbus.core.dc.model import DcRegister, SyncActivation
 from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError
-from fieldbus.runtime.clock import Clock, WallClock, is_virtual
+from fieldbus.platform.clock import Clock, WallClock, is_virtual
 from fieldbus.wire.framemaster import (
     SII_SM_INPUTS,
     SII_SM_OUTPUTS,

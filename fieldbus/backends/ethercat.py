@@ -71,7 +71,7 @@ from fieldbus.errors import (
     SdoMismatchError,
     StateTransitionError,
 )
-from fieldbus.runtime.clock import Clock, is_virtual
+from fieldbus.platform.clock import Clock, is_virtual
 from fieldbus.wire.pcap import EthercatCapture
 
 STATE_TIMEOUT_US = 2_000_000
@@ -146,7 +146,7 @@ class EthercatBackend(Backend):
             emulated = [emulator_options(s.emulator) if s.emulator else None for s in bus.slaves]
             clock = options.get("clock")  # the emulated chain's time (a virtual one: deterministic runs)
             if clock is not None and not isinstance(clock, Clock):
-                raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.runtime.clock.Clock")
+                raise FieldbusError(f"bus '{bus.name}': option clock is not a fieldbus.platform.clock.Clock")
             self.master: Any = InProcessMaster(
                 chain_maps, drive_params=emulated if len(emulated) == len(chain_maps) else None, clock=clock
             )

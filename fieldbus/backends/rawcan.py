@@ -80,7 +80,7 @@ from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
-from fieldbus.runtime.clock import monotonic_s
+from fieldbus.platform.clock import monotonic_s
 from fieldbus.wire.canlog import open_log
 
 try:

@@ -15,9 +15,9 @@ Options (``open_network(path, backend="sim", **options)``):
   mismatch;
 - ``error_counters``: read the ESC error counters in OP (as the ethercat
   backend: True, or N for one read in every N free cycles; :mod:`fieldbus.core.esc_errors`).
-- ``clock``: the emulator's time, a :class:`~fieldbus.runtime.clock.Clock`
+- ``clock``: the emulator's time, a :class:`~fieldbus.platform.clock.Clock`
   or a ``() -> ns`` function (default the wall clock). On a virtual clock
-  (:class:`~fieldbus.runtime.clock.VirtualClock`) runs are deterministic,
+  (:class:`~fieldbus.platform.clock.VirtualClock`) runs are deterministic,
   and the master's waits pass on that clock: a lost frame costs the receive
   timeout, a delayed reply its delay.
 
@@ -42,11 +42,11 @@ import numpy as np
 from fieldbus.backends.ethercat import EthercatBackend
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
-from fieldbus.runtime.clock import Clock
+from fieldbus.platform.clock import Clock
 
 
 class _TimeSource:
-    """A ``() -> ns`` function as a (real-time) :class:`~fieldbus.runtime.clock.Clock`."""
+    """A ``() -> ns`` function as a (real-time) :class:`~fieldbus.platform.clock.Clock`."""
 
     def __init__(self, now_ns: Callable[[], int]) -> None:
         self.now_ns = now_ns

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from fieldbus.commands.outputs import check_file
-from fieldbus.core.network import CAN_TYPES, NetworkConfig
+from fieldbus.core.network import NetworkConfig, is_can_type
 from fieldbus.errors import FieldbusError
 
 
@@ -34,7 +34,7 @@ def bus_options(
     """Per-bus backend options for the log flags given; refuses a flag no bus can take."""
     out: dict[str, dict[str, object]] = {}
     wanted = (
-        ("can_log", getattr(args, "can_log", None), lambda kind: kind in CAN_TYPES, "a CAN bus"),
+        ("can_log", getattr(args, "can_log", None), is_can_type, "a CAN bus"),
         (
             "pcap",
             getattr(args, "pcap", None),

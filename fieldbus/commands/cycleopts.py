@@ -12,11 +12,11 @@ from typing import TYPE_CHECKING, Any
 from fieldbus.commands.argtypes import integer
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
-from fieldbus.runtime.clock import Clock
-from fieldbus.runtime.loop import default_status_stream, run_cycles
-from fieldbus.runtime.monitor import monitor_context
-from fieldbus.runtime.rt import RtConfig, RtState, realtime
-from fieldbus.runtime.timing import CycleLatency, CycleTimer, LatencyHistogram
+from fieldbus.operations.monitor import monitor_context
+from fieldbus.platform.clock import Clock
+from fieldbus.platform.loop import default_status_stream, run_cycles
+from fieldbus.platform.rt import RtConfig, RtState, realtime
+from fieldbus.platform.timing import CycleLatency, CycleTimer, LatencyHistogram
 
 if TYPE_CHECKING:
     from fieldbus.recording import Recorder

@@ -36,8 +36,8 @@ from fieldbus.core.network import load_network
 from fieldbus.emulators import emulator_part
 from fieldbus.errors import FieldbusError, PdoMapError
 from fieldbus.network import Network, Operational, open_network
-from fieldbus.runtime.report import run_report
-from fieldbus.runtime.rt import RtState
+from fieldbus.operations.report import run_report
+from fieldbus.platform.rt import RtState
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
 BACKENDS = ("sim", "ethercat", "canopen", "rawcan")

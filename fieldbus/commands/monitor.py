@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.errors import FieldbusError
 
     dds.require()
-    from fieldbus.dds.view import ServedView, render
+    from fieldbus.operations.served_view import ServedView, render
 
     if args.refreshes < 0 or not 0 < args.rate <= 10:
         raise FieldbusError("--refreshes must be >= 0 and --rate within (0, 10] views per second")

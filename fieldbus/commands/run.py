@@ -18,7 +18,7 @@ from fieldbus.commands.usage import add_command
 from fieldbus.core.network import load_network
 from fieldbus.errors import FieldbusError
 from fieldbus.network import open_network
-from fieldbus.runtime.report import run_report
+from fieldbus.operations.report import run_report
 
 
 def register(sub: Any) -> None:

@@ -266,7 +266,7 @@ def _print_written(args: argparse.Namespace, where: str, type_name: str, data: b
 
 # -- CANopen -----------------------------------------------------------------------------------
 def _canopen(args: argparse.Namespace) -> int:
-    from fieldbus.backends.can_sdo import sdo_download, sdo_upload
+    from fieldbus.core.sdo.canopen_client import sdo_download, sdo_upload
     from fieldbus.scan.canopen import SdoRunner, open_bus
 
     if args.verb == "list":

@@ -121,8 +121,8 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.dds.server import BusServer, ServeOptions
     from fieldbus.errors import FieldbusError
     from fieldbus.network import open_network
-    from fieldbus.runtime.clock import DeadlineClock
-    from fieldbus.runtime.report import run_report
+    from fieldbus.operations.report import run_report
+    from fieldbus.platform.clock import DeadlineClock
 
     if args.cycles < 0:
         raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")

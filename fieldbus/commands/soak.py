@@ -24,8 +24,8 @@ from fieldbus.commands.argtypes import SEED, UsageError, integer, non_negative, 
 from fieldbus.commands.demo import check_axes
 from fieldbus.commands.usage import add_command
 from fieldbus.network import Network, Operational, open_network
-from fieldbus.runtime.loop import default_status_stream
-from fieldbus.runtime.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
+from fieldbus.operations.soak import DEFAULT_MARGIN_US, Control, FaultSpec, Soak
+from fieldbus.platform.loop import default_status_stream
 
 DEFAULT_FAULTS = "loss=0.01,power_cycles=3,bursts=1,sdo_aborts=1"
 

@@ -84,7 +84,7 @@ class CanFamily(ABC):
     name: ClassVar[str]
     #: ``"module:Class"`` of the family's emulator (for the testing kit and the emulator process), or None:
     #: a class taking ``(bus, [(drive_map, node_id), ...], dt_s=, log=, clock=)`` (a python-can bus, the
-    #: motors of the bus, a :class:`~fieldbus.runtime.clock.Clock` or None), named, not imported: the
+    #: motors of the bus, a :class:`~fieldbus.platform.clock.Clock` or None), named, not imported: the
     #: emulators sit above fieldbus.
     emulator: ClassVar[str | None] = None
 

@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from fieldbus.core.output_rules import finite
+from fieldbus.core.command_guard import finite
 from fieldbus.core.yamlsrc import PathT
 
 CUBEMARS_KEYS = (

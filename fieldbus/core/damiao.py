@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from fieldbus.core.output_rules import finite
+from fieldbus.core.command_guard import finite
 from fieldbus.core.yamlsrc import PathT
 
 DAMIAO_KEYS = ("mode", "timeout_ms", "clear", "modes", "registers", "error_field", "errors", "ok_codes")

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.diagnosis import DiagMessage, DiagnosisReader
 from fieldbus.core.emcy import emcy_name
 from fieldbus.core.pdo.image import ProcessImage
-from fieldbus.diagnosis import DiagMessage, DiagnosisReader
 
 STATUSWORD = 0x6041
 ERROR_CODE = 0x603F

@@ -32,9 +32,8 @@ from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.yamlread import Reader
 from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located, token
 from fieldbus.errors import FieldbusError, PdoMapError
+from fieldbus.registry import BACKEND_OPTIONS, bus_type, bus_type_names
 
-BUS_TYPES = ("ethercat", "canopen", "rawcan", "sim")
-CAN_TYPES = ("canopen", "rawcan")
 DEFAULT_CYCLE_US = 1000
 DEFAULT_RECEIVE_TIMEOUT_US = (
     500  # legged-robot hardware tutorial §62.5: short receive timeout, reuse last data
@@ -52,24 +51,6 @@ MAP_SUFFIXES = (".yaml", ".yml")
 PATH_CHARS = 160  # most characters of a map path (from the network file) an error shows
 SHIPPED_MAPS = Path(__file__).resolve().parents[1] / "pdo_maps"  # the drive maps shipped in the package
 SHIPPED = "shipped:"  # ``map: shipped:NAME`` names the shipped map NAME(.yaml), wherever the network file is
-
-# Keyword options of open_network(**options) that each built-in backend reads (fieldbus/backends/*.py).
-BACKEND_OPTIONS: dict[str, tuple[str, ...]] = {
-    "sim": ("chain_maps", "clock", "error_counters"),
-    "ethercat": (
-        "exact_timeout",
-        "pcap",
-        "frame_timeout_us",
-        "sdo_timeout_s",
-        "iomap",
-        "transport",
-        "clock",
-        "chain_maps",
-        "error_counters",
-    ),
-    "canopen": ("can_bus", "can_log", "sdo_timeout_s", "heartbeat_consumer_ms", "clock"),
-    "rawcan": ("can_bus", "can_log", "clock"),
-}
 
 
 @dataclass(frozen=True)
@@ -109,7 +90,7 @@ class Bus:
 
     @property
     def is_can(self) -> bool:
-        return self.type in CAN_TYPES
+        return is_can_type(self.type)
 
 
 @dataclass(frozen=True)
@@ -214,8 +195,8 @@ def _bus(
 ) -> Bus:
     m = r.mapping(raw, path, _BUS_KEYS, required=("name", "type", "slaves"))
     name = r.name(m["name"], (*path, "name"))
-    kind = r.choice(m["type"], (*path, "type"), BUS_TYPES)
-    is_can = kind in CAN_TYPES
+    kind = r.choice(m["type"], (*path, "type"), bus_type_names())
+    is_can = is_can_type(kind)
     for key in ("can_interface", "can_options", "bitrate", "data_bitrate"):
         if key in m and not is_can:
             raise r.err((*path, key), f"'{key}' is for CAN buses, this bus is {kind}", key=True)
@@ -405,16 +386,24 @@ def _classic_frames_only(r: Reader, drive: DriveMap, path: PathT) -> None:
                 )
 
 
+def is_can_type(kind: str) -> bool:
+    """Whether bus type ``kind`` is a CAN bus (as its backend declares, :mod:`fieldbus.registry`)."""
+    declared = bus_type(kind)
+    return declared is not None and declared.can
+
+
 def backend_options(kind: str) -> tuple[str, ...] | None:
-    """The ``open_network(**options)`` names the built-in backend ``kind`` reads; None for another backend."""
-    return BACKEND_OPTIONS.get(kind)
+    """The ``open_network(**options)`` names the backend of ``kind`` declares; None: it takes any."""
+    declared = bus_type(kind)
+    return None if declared is None else declared.options
 
 
 def check_backend_options(kinds: Iterable[str], options: Iterable[str]) -> None:
     """Refuse an option that none of the backends ``kinds`` reads, with a did-you-mean.
 
     ``kinds`` are the backends that receive ``options`` (a network's bus types, or the ``backend=``
-    override). A kind that is not built in (an entry-point backend) accepts anything.
+    override). A kind whose backend declares no options (an entry-point backend without
+    ``bus_options``) accepts anything.
     """
     accepted: set[str] = set()
     for kind in kinds:

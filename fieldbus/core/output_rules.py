@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.command_guard import UnsafeOutputError as UnsafeOutputError
+from fieldbus.core.command_guard import finite as finite
 from fieldbus.core.pdo.image import DirectionImage
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout
 from fieldbus.core.pdo.model import DriveMap
@@ -50,19 +52,6 @@ class Reason(enum.IntEnum):
     INF = 1  # infinite: saturated to the limit, or the value sent last kept where there is none
     RANGE = 2  # outside the map's window: saturated to it
     STEP = 3  # changed more than the map's step per cycle: clamped to the step
-
-
-class UnsafeOutputError(FieldbusError, ValueError):
-    """A codec was handed a command value that did not pass the rules (NaN or infinite): refused, not packed."""
-
-
-def finite(name: str, value: float) -> float:
-    """``value`` when finite; otherwise :class:`UnsafeOutputError` (the guard at a family codec's boundary)."""
-    if not math.isfinite(value):
-        raise UnsafeOutputError(
-            f"command '{name}' is {value}: refused at the codec (the output rules keep NaN out)"
-        )
-    return value
 
 
 @dataclass(frozen=True)

@@ -18,19 +18,18 @@ library). That is an affine map, i.e. a ``factor``/``offset`` of the PDO model.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from dataclasses import replace
+from typing import Any
 
 from fieldbus.core import datatypes
 from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import Channel, Pdo
+from fieldbus.core.rawcan_config import MIT_ENTER as MIT_ENTER
+from fieldbus.core.rawcan_config import MIT_EXIT as MIT_EXIT
+from fieldbus.core.rawcan_config import MIT_ZERO as MIT_ZERO
+from fieldbus.core.rawcan_config import RawCanConfig as RawCanConfig
+from fieldbus.core.rawcan_config import RawCanField as RawCanField
 from fieldbus.core.yamlsrc import PathT
-
-if TYPE_CHECKING:
-    from fieldbus.core.canframes import FramesProtocol
-    from fieldbus.core.cubemars import CubemarsProtocol
-    from fieldbus.core.damiao import DamiaoProtocol
-    from fieldbus.core.odrive import OdriveProtocol
 
 RAWCAN_KEYS = (
     "family", "command_id", "reply_id", "reply_id_offset", "node_field", "span", "enter", "exit", "zero",
@@ -51,60 +50,6 @@ FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little o
 MIT_SAFE_FIELDS = ("kp", "kd", "torque", "t_ff", "tau", "tau_ff")
 COMMAND_OBJECT = 0x2000  # pseudo object indices: the fields have no object dictionary
 REPLY_OBJECT = 0x2001
-MIT_ENTER = bytes([0xFF] * 7 + [0xFC])
-MIT_EXIT = bytes([0xFF] * 7 + [0xFD])
-MIT_ZERO = bytes([0xFF] * 7 + [0xFE])
-
-
-@dataclass(frozen=True)
-class RawCanField:
-    """One field of a frame, in frame order (first = most significant bits)."""
-
-    name: str
-    bits: int
-    min: float | None = None
-    max: float | None = None
-    unit: str | None = None
-    safe_value: float | None = None  # command fields: what the safe stop sends (engineering units)
-    type: str = "uint"  # uint | int | float32 (byte_order little)
-
-    @property
-    def scaled(self) -> bool:
-        return self.min is not None
-
-
-@dataclass(frozen=True)
-class RawCanConfig:
-    """Frame ids and special frames. CAN ids: command ``command_id + node_id``;
-    replies ``reply_id`` (one id for every motor), or ``node_id + reply_id_offset``
-    (Damiao's MST_ID), or else the command's id; routed by the ``node_field`` reply
-    field (the motor id byte) when there is one, else by their CAN id."""
-
-    command: tuple[RawCanField, ...]
-    reply: tuple[RawCanField, ...]
-    command_id: int = 0
-    reply_id: int | None = None
-    node_field: str | None = None
-    span: str = "full"  # "full": 2**bits - 1 steps; "power_of_two": 2**bits
-    enter: bytes = MIT_ENTER
-    exit: bytes = MIT_EXIT
-    zero: bytes = MIT_ZERO
-    family: str = "mit"
-    reply_id_offset: int | None = None
-    damiao: DamiaoProtocol | None = None  # family "damiao": modes, registers, errors
-    odrive: OdriveProtocol | None = None  # family "odrive": CANSimple commands, modes, states, errors
-    byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
-    cubemars: CubemarsProtocol | None = None  # family "cubemars": servo packets or MIT unwrapping
-    frames: FramesProtocol | None = None  # family "frames": the protocol described in data
-    protocol: Any = None  # a family on the protocol (fieldbus.core.canfamily): its parsed map section
-
-    def reply_can_id(self, node: int) -> int:
-        """The CAN id motor ``node`` answers on."""
-        if self.reply_id is not None:
-            return self.reply_id
-        if self.reply_id_offset is not None:
-            return node + self.reply_id_offset
-        return self.command_id + node
 
 
 def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:

@@ -40,7 +40,7 @@ from fieldbus.network import CycleResult, Operational
 from fieldbus.wheeled_base import WheeledBase
 
 if TYPE_CHECKING:
-    from fieldbus.dds.server import BusServer, ServedGroup
+    from fieldbus.dds.parts import BusServer, ServedGroup
 
 REASONS = ("not_finite", "not_owner", "wheels_claimed")
 OWNER_CHECK_EVERY = 10  # cycles between looks at the owner's liveliness

@@ -17,7 +17,7 @@ from fieldbus.core.cia402 import Goal, State402
 from fieldbus.dds.callers import Callers, publication_handle
 
 if TYPE_CHECKING:
-    from fieldbus.dds.server import ServedGroup
+    from fieldbus.dds.parts import ServedGroup
 
 
 class TopicClaim:

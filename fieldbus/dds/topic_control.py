@@ -29,7 +29,7 @@ from fieldbus.dds.participant import COMMANDS, REALTIME
 from fieldbus.dds.topic_claim import TopicClaim
 
 if TYPE_CHECKING:
-    from fieldbus.dds.server import BusServer, ServedGroup
+    from fieldbus.dds.parts import BusServer, ServedGroup
 
 DEFAULT_COMMANDS, DEFAULT_STATES = "/robot_joint_commands", "/robot_joint_states"
 REASONS = ("not_finite", "wrong_length", "unknown_joint", "not_owner", "groups_claimed")

@@ -33,7 +33,7 @@ from fieldbus.recording.schema import NO_VALUE
 
 if TYPE_CHECKING:
     from fieldbus.backends.base import AxisGroup, Backend
-    from fieldbus.network import BusStatus, CycleResult, Operational
+    from fieldbus.recording.source import BusStatus, CycleResult, Operational
 
 COMMON = ("cycle", "t_ns", "wakeup_ns", "exchange_ns", "fresh", "safe_stop")
 BUS = (

@@ -8,9 +8,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.platform.timing import LatencyHistogram
 from fieldbus.recording.load import Recording
 from fieldbus.recording.schema import NO_VALUE
-from fieldbus.runtime.timing import LatencyHistogram
 
 
 def histogram(ns: npt.NDArray[np.int64], max_us: int = 20_000) -> LatencyHistogram:

@@ -39,7 +39,7 @@ from fieldbus.recording.events import EventDeriver
 from fieldbus.recording.ring import BUS, COMMON, Ring, Snapshot
 
 if TYPE_CHECKING:
-    from fieldbus.network import CycleResult, Operational
+    from fieldbus.recording.source import CycleResult, Operational
 
 BLOCK_CYCLES = 256
 RING_BLOCKS = 16
@@ -127,7 +127,7 @@ class Recorder:
             from mcap.writer import CompressionType, Writer
         except ImportError:
             raise BackendUnavailableError("recording needs mcap: pip install 'fieldbus[record]'") from None
-        from fieldbus import __version__
+        from fieldbus.version import __version__
 
         self.path = Path(path)
         self.raw = raw

@@ -6,7 +6,7 @@ once (any answer, an abort too, means a node). Then every node is read by
 SDO - identity 0x1018, device type 0x1000, name 0x1008, heartbeat 0x1017,
 PDO communication 0x1400../0x1800.. and mapping 0x1600../0x1A00.. - with
 all nodes' transfers in flight together: each node runs the project's
-sans-IO SDO client (:mod:`fieldbus.backends.can_sdo`), one transfer at a time
+sans-IO SDO client (:mod:`fieldbus.core.sdo.canopen_client`), one transfer at a time
 per node as CiA 301 requires. Nothing is written; no NMT command is sent.
 """
 
@@ -18,7 +18,7 @@ from collections.abc import Generator
 from dataclasses import dataclass, field
 from typing import Any
 
-from fieldbus.backends.can_sdo import sdo_upload
+from fieldbus.core.sdo.canopen_client import sdo_upload
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, SdoAbortError
 from fieldbus.scan.model import Device, Identity, PdoEntry, ScannedPdo, entry_name, entry_type, mapping_entry
 

@@ -16,7 +16,7 @@ torn down after the test, skipped with the machine's reason where it refuses
 """
 
 from fieldbus.core.firmware_image import firmware_image
-from fieldbus.runtime.clock import Clock, VirtualClock, WallClock
+from fieldbus.platform.clock import Clock, VirtualClock, WallClock
 from fieldbus.testing.checks import (
     EmulationAssertion,
     assert_all_enabled,

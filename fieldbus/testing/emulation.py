@@ -12,7 +12,7 @@ process (``ethercat="veth"``); CAN buses (CANopen, raw-CAN motors: each bus the
 emulator of its maps' family) on an in-process bus (``can="virtual"``) or on
 ``fieldbus_udp`` with every CAN bus's emulator in one child process (``can="udp"``). Interfaces and channels are substituted;
 the file is not touched. With every emulator in process the clock is a
-:class:`~fieldbus.runtime.clock.VirtualClock` unless told otherwise: the
+:class:`~fieldbus.platform.clock.VirtualClock` unless told otherwise: the
 master and the emulators run in lockstep, time passes only in the master's
 waits, and a run gives the same cycles bit for bit on any machine.
 """
@@ -30,9 +30,9 @@ from fieldbus.core.cia402 import State402
 from fieldbus.core.network import Bus, NetworkConfig, load_network, row_names
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Network, Operational, open_network
-from fieldbus.runtime.clock import WALL, Clock, VirtualClock, is_virtual
-from fieldbus.runtime.loop import run_cycles
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.platform.clock import WALL, Clock, VirtualClock, is_virtual
+from fieldbus.platform.loop import run_cycles
+from fieldbus.platform.timing import CycleTimer
 from fieldbus.testing.provider import (
     CAN_MODES,
     ETHERCAT_MODES,
@@ -262,7 +262,7 @@ class Emulation:
         family ``mit`` (no error code).
         """
         if isinstance(code, str):
-            from fieldbus.diagnosis import error_code
+            from fieldbus.core.diagnosis import error_code
 
             code = error_code(code)
         top = 0xFFFF_FFFF if self._bus(bus)[0].type == "rawcan" else 0xFFFF
@@ -408,7 +408,7 @@ def emulate(
     ``ethercat``: ``"sim"`` (in process, no root) or ``"veth"`` (pysoem over a veth pair,
     the emulator in a child process; needs root). ``can``: ``"virtual"`` (in process) or
     ``"udp"`` (``fieldbus_udp``, the emulator in a child process; no fault injection).
-    ``clock``: default a :class:`~fieldbus.runtime.clock.VirtualClock` when every emulator
+    ``clock``: default a :class:`~fieldbus.platform.clock.VirtualClock` when every emulator
     is in process, else the wall clock; a virtual clock with a child process is refused.
     ``receive_timeout_us`` replaces every bus's (a veth or UDP segment on a loaded machine
     needs a few ms). ``bus_options``: more backend options per bus name. Everything started

@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 RECV_STEP_NS = 100_000  # a waiting master looks at its queue every 0.1 ms of virtual time
 

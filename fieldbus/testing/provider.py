@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
-from fieldbus.runtime.clock import Clock
+from fieldbus.platform.clock import Clock
 
 if TYPE_CHECKING:
     from fieldbus.backends.base import Backend

@@ -9,7 +9,7 @@ produced from the same thread (checked every millisecond at most).
 
 ``dt_s``: the time step of the drive models per SYNC (default: measured
 between SYNCs, clamped to 0.1 ms..10 ms). ``clock``: the time the nodes read
-(a :class:`~fieldbus.runtime.clock.Clock`; default the machine's). Without a
+(a :class:`~fieldbus.platform.clock.Clock`; default the machine's). Without a
 thread (virtual time, :mod:`fieldbus.testing`): :meth:`boot` once, then
 :meth:`deliver` each frame and :meth:`idle` as time passes.
 """
@@ -26,7 +26,7 @@ import can
 import numpy as np
 
 from fieldbus.core.pdo.model import DriveMap
-from fieldbus.runtime.clock import Clock, monotonic_s
+from fieldbus.platform.clock import Clock, monotonic_s
 from fieldbus.wire.canlog import LoggedBus, open_log
 from sim_slaves.busthread import BusThread
 from sim_slaves.canopen.node import COB_NMT, COB_RSDO, COB_SYNC, App, CanopenNode, Frame, NmtState

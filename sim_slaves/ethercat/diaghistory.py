@@ -13,7 +13,7 @@ severity error, a local time stamp [ns], and two parameters: the error code
 from __future__ import annotations
 
 from fieldbus.core import datatypes
-from fieldbus.diagnosis import (
+from fieldbus.core.diagnosis import (
     DIAG_FIRST_MESSAGE,
     DIAG_FLAGS,
     DIAG_HISTORY,

@@ -107,8 +107,8 @@ from fieldbus.core.ecat import ETHERTYPE_ECAT, FrameError
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import FieldbusError
 from fieldbus.interop.device import load_device
-from fieldbus.runtime.rt import RtConfig, realtime
-from fieldbus.runtime.timing import LatencyHistogram
+from fieldbus.platform.rt import RtConfig, realtime
+from fieldbus.platform.timing import LatencyHistogram
 from fieldbus.wire.pcap import PcapWriter
 from fieldbus.wire.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from sim_slaves.ethercat.al import AlState

@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from fieldbus.errors import FieldbusError
-from fieldbus.runtime import capabilities
+from fieldbus.platform import capabilities
 
 REPO = Path(__file__).resolve().parents[2]
 READY_TIMEOUT_S = 30.0

@@ -22,7 +22,7 @@ from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Homing, HomingPhase, Mode, State402
 from fieldbus.core.profile import ProfileMove, ProfilePhase
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 RECEIVE_TIMEOUT_NS = 5_000_000
 

@@ -24,7 +24,7 @@ from fieldbus.commands.demo import DEMO_MAP  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
 from fieldbus.errors import FieldbusError  # noqa: E402
 from fieldbus.network import open_network  # noqa: E402
-from fieldbus.runtime.allocs import net_blocks  # noqa: E402
+from fieldbus.platform.allocs import net_blocks  # noqa: E402
 from fieldbus.wire.canlog import CanLogWriter, FrameRing  # noqa: E402
 from sim_slaves.canopen import CanopenSimulator  # noqa: E402
 from sim_slaves.ethercat.veth import VethUnavailable, delete_link, make_veth_pair  # noqa: E402

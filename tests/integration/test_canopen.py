@@ -30,7 +30,7 @@ from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402  # noqa:
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
 from fieldbus.errors import SdoAbortError, StateTransitionError  # noqa: E402
 from fieldbus.network import Network, open_network  # noqa: E402
-from fieldbus.runtime.clock import VirtualClock  # noqa: E402
+from fieldbus.platform.clock import VirtualClock  # noqa: E402
 from fieldbus.testing.lockstep import LockstepCanBus  # noqa: E402
 from sim_slaves.canopen import CanopenNode, CanopenSimulator, NmtState  # noqa: E402
 from sim_slaves.canopen.eds import to_canopen_od  # noqa: E402

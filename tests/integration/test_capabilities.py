@@ -1,7 +1,7 @@
 """Capabilities asked of the kernel, not guessed from the user id: root in a container without
 CAP_SYS_NICE and CAP_IPC_LOCK (``ulimit -r`` 0) is what ``capsh --drop`` makes here.
 
-The probes of :mod:`fieldbus.runtime.capabilities` must say no there and yes where the kernel
+The probes of :mod:`fieldbus.platform.capabilities` must say no there and yes where the kernel
 allows it, and the real-time tests must then skip with the kernel's reason or pass, never fail.
 """
 
@@ -16,14 +16,14 @@ from pathlib import Path
 
 import pytest
 
-from fieldbus.runtime import capabilities
-from fieldbus.runtime.rt import RtConfig, realtime
+from fieldbus.platform import capabilities
+from fieldbus.platform.rt import RtConfig, realtime
 
 REPO = Path(__file__).resolve().parents[2]
 DROP = "cap_sys_nice,cap_ipc_lock"
 PROBE = (
     "import json\n"
-    "from fieldbus.runtime import capabilities as c\n"
+    "from fieldbus.platform import capabilities as c\n"
     "print(json.dumps([c.missing(c.CAP_SYS_NICE, c.CAP_IPC_LOCK), c.fifo_refused(20), c.memory_lock_refused()]))\n"
 )
 

@@ -18,7 +18,7 @@ import numpy.typing as npt
 import fieldbus
 from fieldbus import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.pdo.image import ProcessImage
-from fieldbus.runtime.allocs import net_blocks
+from fieldbus.platform.allocs import net_blocks
 from fieldbus.testing import VirtualClock
 
 DEMO_MAP = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"  # CSP/CST, rad and N·m

@@ -41,7 +41,7 @@ from fieldbus.core.pdo import load_drive_map
 from fieldbus.core.wkc import Verdict
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError, StateTransitionError
 from fieldbus.network import CycleResult, Network, Operational, open_network
-from fieldbus.runtime.loop import run_cycles
+from fieldbus.platform.loop import run_cycles
 from fieldbus.testing import VirtualClock
 
 INTEROP = Path(__file__).resolve().parents[1] / "data" / "ethercat_driver_ros2"

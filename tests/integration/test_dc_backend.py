@@ -24,7 +24,7 @@ import pytest
 
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
 from fieldbus.network import open_network
-from fieldbus.runtime.loop import run_cycles
+from fieldbus.platform.loop import run_cycles
 
 pytestmark = [pytest.mark.veth, pytest.mark.timeout(300)]
 pysoem = pytest.importorskip("pysoem")

@@ -35,7 +35,7 @@ import fieldbus.remote
 from fieldbus.cli import main
 from fieldbus.dds.gate import ClaimError, GateState
 from fieldbus.dds.participant import interface_config
-from fieldbus.runtime.capabilities import fifo_refused
+from fieldbus.platform.capabilities import fifo_refused
 
 HERE = Path(__file__).resolve().parent / "dds"
 DEMO_JOINT = Path(fieldbus.__file__).resolve().parent / "data" / "demo_joint.yaml"

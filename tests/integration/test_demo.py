@@ -138,7 +138,7 @@ def test_demo_real_time_flags_latency_histograms_and_plot(
 ) -> None:
     import os
 
-    from fieldbus.runtime.capabilities import memory_lock_refused
+    from fieldbus.platform.capabilities import memory_lock_refused
 
     png = tmp_path / "latency.png"
     cpu = min(os.sched_getaffinity(0))  # one this process may run on (a container's cpuset may leave out 0)

@@ -17,7 +17,7 @@ import pytest
 
 import fieldbus
 from fieldbus.core.esc_errors import ERRORS_SIZE, Link
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 REPO = Path(__file__).resolve().parents[2]
 GENERIC = REPO / "fieldbus" / "pdo_maps" / "generic_cia402.yaml"
@@ -128,9 +128,9 @@ def test_without_the_option_nothing_is_read(tmp_path: Path) -> None:
 def test_monitor_recording_report_and_the_run_command_show_them(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    from fieldbus.operations.monitor import Monitor
     from fieldbus.recording.load import load
     from fieldbus.recording.summary import describe, summary
-    from fieldbus.runtime.monitor import Monitor
 
     net, clock = _open(tmp_path, error_counters=True)
     rec_path = tmp_path / "run.mcap"

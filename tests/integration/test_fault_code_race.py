@@ -18,7 +18,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.drivefault import DriveFault
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 
 class _Tick:

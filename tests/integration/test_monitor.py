@@ -21,8 +21,8 @@ from fieldbus.cli import main
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode
 from fieldbus.network import open_network
-from fieldbus.runtime.clock import VirtualClock
-from fieldbus.runtime.monitor import Monitor
+from fieldbus.operations.monitor import Monitor
+from fieldbus.platform.clock import VirtualClock
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -19,7 +19,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.network import Network
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 from sim_slaves.ethercat.runner import handle_control
 
 

@@ -29,7 +29,7 @@ from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.errors import RequestError
 from fieldbus.network import BusEvent
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 _channels = itertools.count()
@@ -382,10 +382,10 @@ def test_the_safe_stop_writes_and_the_drive_is_held_in_quick_stop_while_latched(
 def test_faults_reach_the_observers_the_recording_the_monitor_and_the_report(
     enabled: Any, tmp_path: Path
 ) -> None:
+    from fieldbus.operations.monitor import Monitor
+    from fieldbus.operations.report import run_report
+    from fieldbus.platform.timing import CycleTimer
     from fieldbus.recording import load
-    from fieldbus.runtime.monitor import Monitor
-    from fieldbus.runtime.report import run_report
-    from fieldbus.runtime.timing import CycleTimer
 
     net, op, ctrl = enabled
     img = op["arm"]

@@ -59,7 +59,7 @@ from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.safety import SafeStopClearError, Verdict
 from fieldbus.errors import PhaseError, RequestError
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 MIT_MAP = Path(__file__).resolve().parents[2] / "pdo_maps" / "cubemars_ak80_9_mit.yaml"
 SAFE_STOP_AFTER = 4

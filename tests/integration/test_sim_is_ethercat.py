@@ -15,7 +15,7 @@ import pytest
 
 from fieldbus.commands.demo import demo_network
 from fieldbus.network import Operational, open_network
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 
 @pytest.fixture

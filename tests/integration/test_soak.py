@@ -23,7 +23,7 @@ import os
 import pytest
 
 from fieldbus.commands.soak import soak
-from fieldbus.runtime.soak import FaultSpec
+from fieldbus.operations.soak import FaultSpec
 
 CYCLES = int(os.environ.get("FIELDBUS_SOAK_CYCLES", "10000"))
 NO_TIMING = {"margin_us": 1e12}  # exchange() may take the receive timeout plus 11 days: timing not asserted
@@ -121,7 +121,7 @@ def test_soak_on_canopen_accounts_for_every_fault() -> None:
 
 
 def test_faults_without_meaning_on_a_bus_are_refused() -> None:
-    from fieldbus.runtime.soak import FaultSpecError
+    from fieldbus.operations.soak import FaultSpecError
 
     with pytest.raises(FaultSpecError, match="emcys"):
         soak(_args("sim", cycles=300, faults="emcys=1"), FaultSpec.parse("emcys=1"))
@@ -130,7 +130,7 @@ def test_faults_without_meaning_on_a_bus_are_refused() -> None:
 def test_soak_phases_report_where_each_kind_of_cycle_went() -> None:
     """``--phases``: per kind of cycle (good, miss, after_miss, recovery) how many and the median of each
     phase of exchange(); counted against the report's own cycle counts (no time is asserted)."""
-    from fieldbus.runtime.phases import PHASES
+    from fieldbus.platform.phases import PHASES
 
     faults = "loss=0.02"
     plain = soak(_args("sim", cycles=600, faults=faults, **NO_TIMING), FaultSpec.parse(faults))

@@ -19,7 +19,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.acyclic_modes import AcyclicModes
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 STILL_RAD_S = 0.05  # the drive's own |velocity| at or under this is standing still
 

@@ -22,9 +22,9 @@ from fieldbus import PDO_MAPS
 from fieldbus.backends.udpcan import FRAME, UdpCanBus
 from fieldbus.errors import FieldbusError
 from fieldbus.network import open_network
-from fieldbus.runtime.loop import run_cycles
-from fieldbus.runtime.report import run_report
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.operations.report import run_report
+from fieldbus.platform.loop import run_cycles
+from fieldbus.platform.timing import CycleTimer
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
 
 pytestmark = pytest.mark.timeout(180)

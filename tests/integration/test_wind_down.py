@@ -18,7 +18,7 @@ import fieldbus
 from fieldbus.commands.demo import DEMO_MAP
 from fieldbus.core.al import AlState
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
-from fieldbus.runtime.clock import VirtualClock
+from fieldbus.platform.clock import VirtualClock
 
 SPEED = 24.0  # rad/s of the drives when close() begins
 STOPPED_RAD_S = 0.5  # the drive's own |velocity| when power goes off: it was stopped, not coasting

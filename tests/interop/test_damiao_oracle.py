@@ -27,7 +27,7 @@ dm = pytest.importorskip(
 
 from fieldbus import PDO_MAPS, open_network  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
-from fieldbus.runtime.clock import VirtualClock  # noqa: E402
+from fieldbus.platform.clock import VirtualClock  # noqa: E402
 from sim_slaves.damiao import DamiaoSimulator  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)

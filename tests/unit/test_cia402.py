@@ -30,7 +30,7 @@ from fieldbus.core.cia402 import (
     next_command,
     transition_table_markdown,
 )
-from fieldbus.runtime.allocs import net_blocks
+from fieldbus.platform.allocs import net_blocks
 from sim_slaves.drive402 import Cia402Drive, DictObjectStore, DriveParams, default_objects
 
 S = State402

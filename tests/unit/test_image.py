@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from fieldbus.core.pdo import drive_map_from_text
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import get_value, layout, set_value
-from fieldbus.runtime.allocs import net_blocks
+from fieldbus.platform.allocs import net_blocks
 
 ENGINES = ["numpy", "auto"]  # "auto" is the C codec where it is built (checked below)
 

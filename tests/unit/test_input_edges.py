@@ -14,12 +14,13 @@ from pathlib import Path
 import pytest
 
 from fieldbus.cli import main
-from fieldbus.core.network import BACKEND_OPTIONS, check_backend_options, load_network, network_from_text
+from fieldbus.core.network import check_backend_options, load_network, network_from_text
 from fieldbus.core.pdo import drive_map_from_text, load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
 from fieldbus.core.yamlsrc import MAX_FILE_BYTES, load_located
 from fieldbus.errors import ChannelNameError, FieldbusError, PdoMapError
+from fieldbus.registry import BACKEND_OPTIONS
 
 REPO = Path(__file__).resolve().parents[2]
 GENERIC = REPO / "pdo_maps" / "generic_cia402.yaml"

@@ -139,7 +139,7 @@ def test_limits_off_keeps_only_nan_and_inf() -> None:
 
 
 def test_the_clean_cycle_allocates_nothing() -> None:
-    from fieldbus.runtime.allocs import net_blocks
+    from fieldbus.platform.allocs import net_blocks
 
     img, rules = rules_for(MAP + "limits:\n  target_position: {max_rate: 2.0}\n")
     assert net_blocks(rules.apply, cycles=5000) <= 2

@@ -10,7 +10,7 @@ import pytest
 
 from fieldbus.commands.demo import demo_network
 from fieldbus.network import Operational, open_network
-from fieldbus.runtime.phases import PHASES, PhaseTimer
+from fieldbus.platform.phases import PHASES, PhaseTimer
 
 
 class CountingTimer(PhaseTimer):

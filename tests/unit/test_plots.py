@@ -23,7 +23,7 @@ from fieldbus.core.bandwidth import (
     network_bandwidth,
 )
 from fieldbus.core.network import load_network, network_from_text
-from fieldbus.runtime.timing import LatencyHistogram
+from fieldbus.platform.timing import LatencyHistogram
 
 REPO = Path(__file__).resolve().parents[2]
 MIT = REPO / "pdo_maps" / "cubemars_ak80_9_mit.yaml"

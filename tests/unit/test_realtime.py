@@ -10,10 +10,10 @@ import sys
 import numpy as np
 import pytest
 
-from fieldbus.runtime import capabilities
-from fieldbus.runtime.allocs import net_blocks
-from fieldbus.runtime.rt import RtConfig, RtError, realtime
-from fieldbus.runtime.timing import LatencyHistogram
+from fieldbus.platform import capabilities
+from fieldbus.platform.allocs import net_blocks
+from fieldbus.platform.rt import RtConfig, RtError, realtime
+from fieldbus.platform.timing import LatencyHistogram
 
 
 def test_histogram_percentiles_match_numpy_to_the_microsecond() -> None:
@@ -74,7 +74,7 @@ def test_without_the_capability_the_line_says_what_is_needed() -> None:
         pytest.skip(f"becoming uid nobody needs {' and '.join(lacking)}")
     code = (
         "import json, os, resource\n"
-        "from fieldbus.runtime.rt import RtConfig, realtime\n"  # imported first: nobody cannot read root's files
+        "from fieldbus.platform.rt import RtConfig, realtime\n"  # imported first: nobody cannot read root's files
         "resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))\n"
         "resource.setrlimit(resource.RLIMIT_MEMLOCK, (65536, 65536))\n"
         "os.setgid(65534); os.setuid(65534)\n"

@@ -19,8 +19,8 @@ import pytest
 from fieldbus.commands.demo import demo_network
 from fieldbus.errors import FieldbusError
 from fieldbus.network import Operational, open_network
+from fieldbus.platform.allocs import net_blocks
 from fieldbus.recording import RecordingWarning, load
-from fieldbus.runtime.allocs import net_blocks
 
 pytestmark = pytest.mark.timeout(300)
 AXES = 3

@@ -5,8 +5,8 @@ from __future__ import annotations
 import gc
 import time
 
-from fieldbus.runtime.loop import gc_held, run_cycles
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.platform.loop import gc_held, run_cycles
+from fieldbus.platform.timing import CycleTimer
 
 
 def test_timer_statistics() -> None:
@@ -111,7 +111,7 @@ def test_entering_the_loop_runs_no_collection() -> None:
 
 
 def test_progress_says_where_a_run_is_its_rate_and_the_time_left() -> None:
-    from fieldbus.runtime.loop import progress
+    from fieldbus.platform.loop import progress
 
     assert progress(1200, 10_000, 1_200_000_000) == "cycle 1200/10000 (12%) 1000/s 8.8 s left"
     assert progress(1000, 1_000_000, 1_000_000_000).endswith("1000/s 16.6 min left")

@@ -6,7 +6,7 @@ import random
 
 import pytest
 
-from fieldbus.runtime.soak import FaultSpec, FaultSpecError, schedule
+from fieldbus.operations.soak import FaultSpec, FaultSpecError, schedule
 
 
 def test_parse_full_spec() -> None:

@@ -7,7 +7,7 @@ import socket
 import pytest
 
 from fieldbus.backends import soem_socket
-from fieldbus.runtime import capabilities
+from fieldbus.platform import capabilities
 
 
 def test_the_new_packet_socket_is_found_among_others() -> None:

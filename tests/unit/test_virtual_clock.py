@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fieldbus import run_cycles
-from fieldbus.runtime.clock import VirtualClock, WallClock, sleep_until
+from fieldbus.platform.clock import VirtualClock, WallClock, sleep_until
 
 
 def test_run_cycles_on_a_virtual_clock_jumps_to_each_deadline() -> None:
@@ -60,7 +60,7 @@ def test_the_deadline_clock_sleeps_not_spins_and_never_wakes_before_the_deadline
     import signal
     import time
 
-    from fieldbus.runtime.clock import DeadlineClock, sleep_until
+    from fieldbus.platform.clock import DeadlineClock, sleep_until
 
     clock = DeadlineClock(spin_ns=30_000)
     previous = signal.signal(signal.SIGALRM, lambda *_: None)

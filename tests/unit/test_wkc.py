@@ -16,7 +16,7 @@ from fieldbus.core.wkc import (
     expected_wkc,
     recovery_action,
 )
-from fieldbus.runtime.allocs import net_blocks
+from fieldbus.platform.allocs import net_blocks
 
 BOTH = "vendor_id: 1\nproduct_id: 1\nrpdo: [{index: 0x1600, channels: [{index: 0x6040, sub_index: 0, type: uint16}]}]\ntpdo: [{index: 0x1a00, channels: [{index: 0x6041, sub_index: 0, type: uint16}]}]\n"
 IN_ONLY = "vendor_id: 1\nproduct_id: 1\ntpdo: [{index: 0x1a00, channels: [{index: 0x6000, sub_index: 1, type: bool}]}]\n"

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 from fieldbus.core.datatypes import DataType
 
 if TYPE_CHECKING:
-    from fieldbus.core.rawcan import RawCanConfig
+    from fieldbus.core.rawcan_config import RawCanConfig
 
 
 class Direction(enum.Enum):

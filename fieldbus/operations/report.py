@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fieldbus.network import Operational
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.platform.timing import CycleTimer
 
 
 def run_report(op: Operational, timer: CycleTimer, cycle_time_us: float) -> dict[str, Any]:

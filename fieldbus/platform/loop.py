@@ -17,8 +17,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-from fieldbus.runtime.clock import Clock, is_virtual, sleep_until
-from fieldbus.runtime.timing import CycleLatency, CycleTimer
+from fieldbus.platform.clock import Clock, is_virtual, sleep_until
+from fieldbus.platform.timing import CycleLatency, CycleTimer
 
 # Sleep until this close to the deadline, then spin: OS sleeps overshoot by ~50-100 µs.
 SPIN_NS = 150_000
@@ -78,8 +78,8 @@ def run_cycles(
     ``sys.stderr``) a one-line status is rewritten about once per
     ``status_every_s`` using ``describe()``. ``adjust()`` (ns) is added to each
     next deadline: the DC host sync (``Operational.dc_correction_ns``). ``clock``
-    is a :class:`~fieldbus.runtime.clock.Clock` (its ``now_ns`` and ``sleep``; a
-    :class:`~fieldbus.runtime.clock.VirtualClock` jumps to each deadline, so the
+    is a :class:`~fieldbus.platform.clock.Clock` (its ``now_ns`` and ``sleep``; a
+    :class:`~fieldbus.platform.clock.VirtualClock` jumps to each deadline, so the
     loop runs as fast as the CPU allows with the same cycles), or a ``() -> ns``
     function used with ``sleep`` (s). With ``latency`` each cycle's
     wake-up latency (start minus its deadline, ns) goes into ``latency.wakeup``;

@@ -47,10 +47,10 @@ from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
-from fieldbus.runtime.loop import gc_held, progress
-from fieldbus.runtime.monitor import monitor_context
-from fieldbus.runtime.phases import PHASES, PhaseTimer
-from fieldbus.runtime.timing import CycleTimer
+from fieldbus.operations.monitor import monitor_context
+from fieldbus.platform.loop import gc_held, progress
+from fieldbus.platform.phases import PHASES, PhaseTimer
+from fieldbus.platform.timing import CycleTimer
 
 Control = Callable[..., dict[str, Any]]
 Opener = Callable[[], tuple[Network, Control]]  # a fresh Network and the control of its emulator
@@ -123,7 +123,7 @@ class SoakReport:
         default_factory=lambda: {"good": [], "miss": [], "recovery": []}
     )
     # with phases on: per kind of cycle (as above, and "after_miss": the first fresh one after a miss),
-    # per phase of exchange() (fieldbus.runtime.phases.PHASES), ns
+    # per phase of exchange() (fieldbus.platform.phases.PHASES), ns
     phase_ns: dict[str, list[list[int]]] = field(default_factory=dict)
 
     def violate(self, cycle: int, what: str) -> None:

@@ -1,5 +1,8 @@
 """Clocks the cycle reads: the machine's own, or a virtual one that a test advances.
 
+The protocol, :class:`~fieldbus.core.clock.Clock`, is the core's; the clocks
+that implement it are here, below the backends that read them.
+
 Everything that paces or times out inside the library asks a :class:`Clock`
 instead of :mod:`time`, so a test can run a 10 s scenario at 1 kHz as fast as
 the CPU allows with the same result on a busy or a quiet machine.
@@ -17,20 +20,9 @@ import ctypes
 import sys
 import time
 from collections.abc import Callable
-from typing import Protocol, runtime_checkable
 
-
-@runtime_checkable
-class Clock(Protocol):
-    """A monotonic time source, ns, and a way to let time pass, s."""
-
-    def now_ns(self) -> int:
-        """Monotonic time, ns."""
-        ...
-
-    def sleep(self, seconds: float) -> None:
-        """Let ``seconds`` pass (a wall clock sleeps; a virtual clock advances)."""
-        ...
+from fieldbus.core.clock import Clock as Clock
+from fieldbus.core.clock import is_virtual as is_virtual
 
 
 class WallClock:
@@ -148,11 +140,6 @@ class VirtualClock:
         """Stop calling ``watcher`` (quiet when it is not watching)."""
         if watcher in self._watchers:
             self._watchers.remove(watcher)
-
-
-def is_virtual(clock: object) -> bool:
-    """True for a clock that only moves when told (its ``virtual`` attribute)."""
-    return bool(getattr(clock, "virtual", False))
 
 
 def sleep_until(clock: Clock, deadline_ns: int, spin_ns: int = 0) -> None:

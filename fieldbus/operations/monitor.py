@@ -20,7 +20,7 @@ from fieldbus.core.cia402 import decode_state
 from fieldbus.core.esc_errors import format_rise
 from fieldbus.errors import BackendUnavailableError
 from fieldbus.network import Operational
-from fieldbus.runtime.timing import CycleLatency
+from fieldbus.platform.timing import CycleLatency
 
 REFRESH_HZ = 10.0
 

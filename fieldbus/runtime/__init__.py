@@ -1,1 +1,0 @@
-"""Runtime: the cyclic loop, timing statistics, gc control, allocation checks."""
