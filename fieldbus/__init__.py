@@ -42,7 +42,7 @@ from fieldbus.errors import (
     StateTransitionError,
     WorkingCounterError,
 )
-from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
+from fieldbus.network import BusEvent, BusFault, BusStatus, CycleResult, FaultKind, Operational, open_network
 from fieldbus.runtime.loop import run_cycles
 from fieldbus.runtime.timing import CycleTimer
 from fieldbus.wheeled_base import WheeledBase
@@ -58,6 +58,7 @@ __all__ = [
     "AcyclicModes",
     "BackendUnavailableError",
     "BusEvent",
+    "BusFault",
     "BusStatus",
     "BusTimeoutError",
     "Cia402Controller",
@@ -65,6 +66,7 @@ __all__ = [
     "CycleTimer",
     "DriveFault",
     "DriveMap",
+    "FaultKind",
     "FieldbusError",
     "FileTransferResult",
     "FoeError",

@@ -19,6 +19,7 @@ disables it, and closes the buses.
 from __future__ import annotations
 
 import contextlib
+import enum
 import threading
 import time
 import warnings
@@ -96,20 +97,6 @@ class CycleObserver(Protocol):
     def close(self) -> None: ...
 
 
-COUNTERS = (
-    "late_replies",
-    "stale_frames",
-    "late_frames",
-    "extra_frames",
-    "tx_errors",
-    "rx_errors",
-    "error_frames",
-    "bus_off",
-    "emcy_count",
-    "motor_faults",
-)
-
-
 @dataclass(frozen=True)
 class BusView:
     """One bus as an observer sees it (:attr:`Operational.buses`): its status, statistics and counters.
@@ -140,7 +127,7 @@ class BusView:
         bus-off events, emergencies (0 where the bus has no such thing), the policy's misses and errors,
         and the command values the output path refused (``output_clamps``).
         """
-        out = {name: int(getattr(self.backend, name, 0) or 0) for name in COUNTERS}
+        out = self.backend.counters()
         st = self.policy.stats
         out.update(misses=st.misses, timeouts=st.timeouts, short=st.short, errors=st.errors)
         out.update(safe_stops=st.safe_stops, releases=st.releases, recoveries=self.backend.recoveries)
@@ -152,16 +139,74 @@ class BusView:
         working counter proves every slave processed the LRW in OP), else what the backend last read."""
         if self.backend.pdo_align == 1 and self.policy.fresh[i]:
             return "OP"
-        state_of = getattr(self.backend, "slave_state", None)
-        return str(state_of(i)) if state_of is not None else "-"
+        return self.backend.slave_state(i)
+
+
+def _type_name(exc: BaseException) -> str:
+    """An exception's type as kept in a reason: bare for builtins, else prefixed by its top package."""
+    t = type(exc)
+    return t.__name__ if t.__module__ == "builtins" else f"{t.__module__.split('.')[0]}.{t.__name__}"
 
 
 def _reason(exc: BaseException) -> str:
     """An exception as a reason kept in BusStatus: its type and text."""
-    t = type(exc)
-    name = t.__name__ if t.__module__ == "builtins" else f"{t.__module__.split('.')[0]}.{t.__name__}"
+    name = _type_name(exc)
     text = str(exc)
     return f"{name}: {text}" if text else name
+
+
+class FaultKind(enum.Enum):
+    """What went wrong on a bus in one cycle (the verdict it gave in brackets)."""
+
+    TIMEOUT = "timeout"  # no reply within the receive timeout (TIMEOUT)
+    WKC_MISMATCH = (
+        "wkc_mismatch"  # a reply, but its working counter (CAN: frames) or arrivals fell short (SHORT)
+    )
+    BUS_OFF = "bus_off"  # the CAN controller reported bus-off (ERROR)
+    SEND_ERROR = "send_error"  # encoding or sending the outputs raised (ERROR)
+    RECEIVE_ERROR = "receive_error"  # receiving the replies raised (ERROR)
+
+
+@dataclass(frozen=True)
+class BusFault:
+    """A bus's fault in one cycle, with its structure kept (:attr:`BusStatus.fault`).
+
+    ``expected``: the working counter a complete cycle returns (CAN: frames);
+    ``received``: what came (None: nothing, or the bus raised); ``text``: the
+    reason as :attr:`BusStatus.error` gives it for an error, a description
+    otherwise; ``exception``: the type of what the bus raised (None: nothing raised).
+    """
+
+    bus: str
+    kind: FaultKind
+    expected: int
+    received: int | None = None
+    text: str = ""
+    exception: str | None = None
+
+
+def _raised(st: BusStatus, kind: FaultKind, exc: BaseException) -> None:
+    """The bus raised in this cycle: its reason into ``st.error`` and its fault into ``st.fault``."""
+    st.error = _reason(exc)
+    st.fault = BusFault(st.name, kind, st.expected_wkc, None, st.error, _type_name(exc))
+
+
+def _missed(st: BusStatus, verdict: Verdict, received: int) -> BusFault:
+    """The fault of a miss without an error (a timeout, a short reply); the last one again if it is the
+    same (a long outage allocates nothing per cycle)."""
+    kind = FaultKind.TIMEOUT if verdict is Verdict.TIMEOUT else FaultKind.WKC_MISMATCH
+    got = None if kind is FaultKind.TIMEOUT else received
+    last = st.last_fault
+    if last is not None and last.kind is kind and last.received == got:
+        return last
+    text = (
+        "no reply within the receive timeout"
+        if got is None
+        else f"working counter {got}, expected {st.expected_wkc}"
+        if got != st.expected_wkc
+        else "not every slave answered"
+    )
+    return BusFault(st.name, kind, st.expected_wkc, got, text)
 
 
 @dataclass
@@ -182,6 +227,8 @@ class BusStatus:
     recoveries: int = 0  # slaves / passes brought back to OP since bring-up
     recovery_error: str | None = None  # the last failed recovery attempt, if any
     error: str | None = None  # this cycle: the exception the bus raised (type: text); None: none
+    fault: BusFault | None = None  # this cycle's fault, structured (every miss has one); None: fresh
+    last_fault: BusFault | None = None  # the newest fault, kept after the bus is back
     errors: int = 0  # cycles whose bus raised since bring-up (each one a miss that latches the safe stop)
     last_error: str | None = None  # the newest bus error, kept after the bus is back
     release_pending: bool = False  # clear_safe_stop() was asked; the latch opens after enough fresh cycles
@@ -410,7 +457,10 @@ class Network(_Phase):
         for verb in ("stop", "close"):
             for b in list(self._open_backends):
                 try:
-                    getattr(b, verb)()
+                    if verb == "stop":
+                        b.stop()
+                    else:
+                        b.close()
                     if verb == "close":
                         self._open_backends.remove(b)
                 except Exception as exc:
@@ -525,9 +575,7 @@ class Operational(_Phase):
             BusView(b, p, st, tuple(r for r, _ in enc))
             for (b, p, st, _), enc in zip(self._pairs, self._encoders, strict=True)
         )
-        self._bus_off: list[int | None] = [
-            int(getattr(b, "bus_off", 0)) if hasattr(b, "bus_off") else None for b in net.backends
-        ]
+        self._bus_off = [int(b.bus_off) for b in net.backends]  # CAN bus-off reports so far (0 elsewhere)
         # drive faults (CiA 402 statusword bit 3), watched on the rows each cycle accepted; per bus
         self._faults: list[list[tuple[DriveFaultWatch, npt.NDArray[np.bool_]]]] = []
         for b, p in zip(net.backends, net.policies, strict=True):
@@ -543,10 +591,6 @@ class Operational(_Phase):
         self._code_pending: dict[str, npt.NDArray[np.bool_]] = {
             name: np.zeros(g.image.n_axes, dtype=bool) for name, g in net.groups.items()
         }
-        # raw-CAN motor faults (Damiao error codes, ODrive axis errors): the backend's onsets, as events
-        self._motor_events: list[Any] = [  # Callable[[int], tuple[DriveFault, ...]] | None
-            getattr(b, "take_motor_events", None) for b in net.backends
-        ]
 
     @property
     def groups(self) -> dict[str, AxisGroup]:
@@ -600,7 +644,7 @@ class Operational(_Phase):
                 w.apply()
         for k, (b, _, st, every) in enumerate(self._pairs):
             st.ran = cycle % every == 0
-            st.error = None
+            st.error = st.fault = None
             if st.ran:
                 try:
                     self._encode(k, cycle)
@@ -608,7 +652,7 @@ class Operational(_Phase):
                         pt.mark(ph.ENCODE)
                     b.send()
                 except Exception as exc:
-                    st.error = _reason(exc)
+                    _raised(st, FaultKind.SEND_ERROR, exc)
                 if pt is not None:
                     pt.mark(ph.SEND)
         all_fresh = True
@@ -663,14 +707,14 @@ class Operational(_Phase):
                 wkc = b.receive()
                 arrived = b.arrived()
             except Exception as exc:
-                st.error = _reason(exc)
+                _raised(st, FaultKind.RECEIVE_ERROR, exc)
         if pt is not None:
             pt.mark(ph.WAIT)
-        off_before = self._bus_off[k]
-        if off_before is not None:  # a CAN controller that reported bus-off: a bus error (S1)
-            off = int(getattr(b, "bus_off", 0))
-            if off > off_before and st.error is None:
+        off = int(b.bus_off)
+        if off != self._bus_off[k]:  # a CAN controller that reported bus-off: a bus error (S1)
+            if off > self._bus_off[k] and st.error is None:
                 st.error = f"bus-off reported by the CAN controller ({off} since bring-up)"
+                st.fault = BusFault(st.name, FaultKind.BUS_OFF, st.expected_wkc, wkc, st.error)
             self._bus_off[k] = off
         verdict = policy.judge(wkc, arrived, st.error)
         st.verdict = verdict
@@ -680,6 +724,10 @@ class Operational(_Phase):
         st.release_pending = policy.clear_requested
         st.dc_time_ns = b.dc_time_ns
         st.dc_sync_error_ns = b.dc_sync_error_ns
+        if verdict is not Verdict.OK:
+            if st.fault is None:
+                st.fault = _missed(st, verdict, policy.last_wkc)
+            st.last_fault = st.fault
         events = self.result.events
         if st.error is not None:
             st.errors += 1
@@ -701,9 +749,9 @@ class Operational(_Phase):
                     drive = b.areas[b.slave_index(fault.slave)].slave.map
                     if fault.code is None or drive.ethercat.diagnosis_history:
                         self._read_code(b, fault)
-        take = self._motor_events[k]
-        if take is not None:
-            events.extend(take(cycle))
+        motor = b.take_motor_events(cycle)  # raw-CAN motor faults (Damiao error codes, ODrive axis errors)
+        if motor:
+            events.extend(motor)
         if pt is not None:
             pt.mark(ph.ACCEPT)
         if st.error is None and (verdict is not Verdict.OK or b.recovering):
@@ -1048,14 +1096,14 @@ class Operational(_Phase):
         res = self.result
         cycle = res.cycle
         for k, (b, _, st, every) in enumerate(self._pairs):
-            st.ran, st.error = cycle % every == 0, None
+            st.ran, st.error, st.fault = cycle % every == 0, None, None
             if not st.ran:
                 continue
             try:
                 self._encode(k, cycle)
                 b.send()
             except Exception as exc:
-                st.error = _reason(exc)
+                _raised(st, FaultKind.SEND_ERROR, exc)
         for k, (b, policy, st, _) in enumerate(self._pairs):
             if not st.ran:
                 continue
