@@ -42,7 +42,7 @@ from fieldbus.errors import (
     StateTransitionError,
     WorkingCounterError,
 )
-from fieldbus.network import BusEvent, BusStatus, CycleResult, Operational, open_network
+from fieldbus.network import BusEvent, BusFault, BusStatus, CycleResult, FaultKind, Operational, open_network
 from fieldbus.platform.loop import run_cycles
 from fieldbus.platform.timing import CycleTimer
 from fieldbus.version import __version__
@@ -57,6 +57,7 @@ __all__ = [
     "AcyclicModes",
     "BackendUnavailableError",
     "BusEvent",
+    "BusFault",
     "BusStatus",
     "BusTimeoutError",
     "Cia402Controller",
@@ -64,6 +65,7 @@ __all__ = [
     "CycleTimer",
     "DriveFault",
     "DriveMap",
+    "FaultKind",
     "FieldbusError",
     "FileTransferResult",
     "FoeError",

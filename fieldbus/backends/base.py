@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import abc
 from collections import deque
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.core.esc_errors import CounterRise, LinkChange
+from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.esc_errors import CounterRise, ErrorWatch, LinkChange
 from fieldbus.core.network import Bus, Slave
 from fieldbus.core.pdo.image import DirectionImage, ProcessImage
 from fieldbus.core.pdo.layout import MapLayout, layout
@@ -33,6 +34,19 @@ from fieldbus.errors import FieldbusError, StateTransitionError, WorkingCounterE
 
 RECOVERY_LOG = 100  # recovery errors kept per backend (oldest dropped)
 OP_CONFIRM_CYCLES = 20  # cycles after OP in which one must return the expected working counter
+# the fault counters every backend has (0 where its bus has no such thing), as Backend.counters() gives them
+COUNTERS = (
+    "late_replies",
+    "stale_frames",
+    "late_frames",
+    "extra_frames",
+    "tx_errors",
+    "rx_errors",
+    "error_frames",
+    "bus_off",
+    "emcy_count",
+    "motor_faults",
+)
 
 
 @dataclass(frozen=True)
@@ -105,8 +119,29 @@ class Backend(abc.ABC):
 
     kind = "abstract"
     pdo_align = 1  # 1: EtherCAT bit packing inside a slave; 8: one CAN frame per PDO
-    emcy_count = 0  # emergencies received since open, ever (the kept list is bounded; this never falls)
     late_wkc: int | None = None  # WKC of the last reply receive() judged late (a miss); None: none
+
+    # -- optional capabilities: every backend has them, with these defaults ("none of that on this
+    # bus"); a backend that has one overrides it (an attribute it updates, or a method). Callers read
+    # them directly, never probe for them by name (tests/unit/test_backend_contract.py).
+    # Fault counters (COUNTERS), since open, only growing:
+    late_replies = 0  # EtherCAT: replies that came back after the receive timeout
+    stale_frames = 0  # EtherCAT: frames of earlier cycles discarded
+    late_frames = 0  # CAN: awaited frames after their cycle's receive timeout
+    extra_frames = 0  # CAN: awaited frames that came more than once in a cycle
+    tx_errors = 0  # sends the driver refused
+    rx_errors = 0  # receives the driver failed
+    error_frames = 0  # CAN error frames received
+    bus_off = 0  # CAN: bus-off reports; the cycle makes a rise a bus error (S1)
+    emcy_count = 0  # emergencies received since open, ever (the kept list is bounded; this never falls)
+    motor_faults = 0  # raw CAN: faults the motors reported
+    # What the bus keeps (bounded, newest last): emergencies received, and faults the motors reported
+    emergencies: Sequence[object] = ()
+    faults: Sequence[object] = ()
+    # Per slave: NMT state byte of its last heartbeat (-1: none yet), int16; None: the bus has no NMT
+    nmt_state: npt.NDArray[np.int16] | None = None
+    # ESC error counters watched in OP (EtherCAT with error_counters); None: not watched
+    error_watch: ErrorWatch | None = None
 
     def __init__(self, bus: Bus, **options: object) -> None:
         """``options`` are backend specific (for example fault hooks of the sim backend)."""
@@ -199,6 +234,34 @@ class Backend(abc.ABC):
     @property
     def n_slaves(self) -> int:
         return len(self.areas)
+
+    def counters(self) -> dict[str, int]:
+        """The fault counters (:data:`COUNTERS`) since open: 0 for what the bus has no such thing of."""
+        return {
+            "late_replies": int(self.late_replies),
+            "stale_frames": int(self.stale_frames),
+            "late_frames": int(self.late_frames),
+            "extra_frames": int(self.extra_frames),
+            "tx_errors": int(self.tx_errors),
+            "rx_errors": int(self.rx_errors),
+            "error_frames": int(self.error_frames),
+            "bus_off": int(self.bus_off),
+            "emcy_count": int(self.emcy_count),
+            "motor_faults": int(self.motor_faults),
+        }
+
+    def slave_state(self, i: int) -> str:
+        """Slave ``i``'s state as the bus last read it (EtherCAT AL state, CANopen NMT state); "-": unknown."""
+        return "-"
+
+    def last_emergency_name(self, i: int) -> str | None:
+        """The name of the last emergency slave ``i`` sent (CANopen EMCY); None: none, or no such thing."""
+        return None
+
+    def take_motor_events(self, cycle: int) -> tuple[DriveFault, ...]:
+        """Faults the motors reported since the last call, as events of cycle ``cycle`` (raw CAN: their
+        own error codes); the cycle calls it once per bus cycle after accepting inputs. Default: none."""
+        return ()
 
     @property
     def expected_wkc(self) -> int:

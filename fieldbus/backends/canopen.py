@@ -150,7 +150,9 @@ class CanopenBackend(CanFaults, Backend):
         self._lock: InterfaceLock | None = None
         # heartbeat consumer
         self.heartbeat_lost = np.zeros(n, dtype=bool)
-        self.nmt_state = np.full(n, -1, dtype=np.int16)  # last heartbeat state byte per node
+        self.nmt_state: npt.NDArray[np.int16] = np.full(
+            n, -1, dtype=np.int16
+        )  # last heartbeat state byte per node
         self._last_hb = np.zeros(n)
         consumer = options.get("heartbeat_consumer_ms")
         self._hb_limit = np.array(
@@ -195,6 +197,11 @@ class CanopenBackend(CanFaults, Backend):
         if self.heartbeat_lost[i]:
             return "lost"
         return NMT_STATES.get(int(self.nmt_state[i]), "-")
+
+    def last_emergency_name(self, i: int) -> str | None:
+        """The name of node ``i``'s last EMCY (None: none received)."""
+        emcy = self.last_emergency.get(self.node_ids[i])
+        return None if emcy is None else str(emcy.name)
 
     # -- bring-up ---------------------------------------------------------------------
     def open(self) -> None:

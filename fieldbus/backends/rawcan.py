@@ -277,7 +277,7 @@ class RawCanBackend(CanFaults, Backend):
         return self.n_slaves
 
     @property
-    def late_replies(self) -> int:
+    def late_replies(self) -> int:  # type: ignore[override]  # read-only here; an attribute on the base
         """Older name of :attr:`late_frames`."""
         return self.late_frames
 

@@ -450,7 +450,7 @@ def run_demo(
         report.update(cycleopts.latency_report(latency, rt or RtState()))
         report["_latency"] = latency
         if backend == "rawcan":  # faults the motors reported, by name (e.g. a Damiao's own CAN timeout)
-            report["motor_faults"] = [str(f) for f in getattr(net.backends[0], "faults", ())]
+            report["motor_faults"] = [str(f) for f in net.backends[0].faults]
     report["backend"] = backend
     report["axes"] = axes
     if backend == "rawcan":

@@ -761,7 +761,7 @@ class BusServer:
             values = [m.KeyValue(k, str(v)) for k, v in bv.counters().items()]
             if st.last_error:
                 values.append(m.KeyValue("last_error", st.last_error))
-            watch = getattr(bv.backend, "error_watch", None)  # EtherCAT, error_counters: ESC counters in OP
+            watch = bv.backend.error_watch  # EtherCAT, error_counters: ESC counters in OP
             if watch is not None:
                 esc = watch.summary([a.slave.name for a in bv.backend.areas])
                 values += [m.KeyValue(k, v) for k, v in esc.items()]

@@ -61,17 +61,12 @@ class Monitor:
         for view in op.buses:
             b, policy, st = view.backend, view.policy, view.status
             slaves = []
-            emcy_of = getattr(b, "last_emergency", None)
-            watch = getattr(b, "error_watch", None)  # EtherCAT with error_counters: ESC counters in OP
+            watch = b.error_watch  # EtherCAT with error_counters: ESC counters in OP
             rises = watch.since_baseline() if watch is not None else None
             for i, area in enumerate(b.areas):
                 group = b.groups[area.group]
                 sw = _statusword(group.image, area.row)
-                emcy = (
-                    emcy_of.get(b.node_ids[i])
-                    if isinstance(emcy_of, dict) and hasattr(b, "node_ids")
-                    else None
-                )
+                emcy = b.last_emergency_name(i)
                 slaves.append(
                     {
                         "name": area.slave.name,
@@ -79,7 +74,7 @@ class Monitor:
                         "cia402": _name402(sw),
                         "fresh": bool(policy.fresh[i]),
                         "stale_cycles": int(policy.stale_cycles[i]),
-                        "last_emcy": str(emcy.name) if emcy is not None else None,
+                        "last_emcy": emcy,
                         "esc_errors": format_rise(rises[i]) if rises is not None and i < len(rises) else None,
                     }
                 )

@@ -45,6 +45,7 @@ import numpy as np
 
 from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
+from fieldbus.core.emcy import Emergency
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
 from fieldbus.operations.monitor import monitor_context
@@ -325,7 +326,7 @@ class Soak:
                         else:
                             self.control(cmd="drop", count=1, pd=True)
                     elif kind == "emcy":
-                        before = len(getattr(backend, "emergencies", []))
+                        before = len(backend.emergencies)
                         self.control(cmd="emergency", slave=slave, code=EMCY_CODE)
                         notices.append((kind, slave, k, before))
                     elif kind == "heartbeat":
@@ -395,7 +396,11 @@ class Soak:
                 for note in list(notices):
                     kind, slave, at, before = note
                     if kind == "emcy":
-                        seen = [e for e in backend.emergencies[before:] if e.code == EMCY_CODE]  # type: ignore[attr-defined]
+                        seen = [
+                            e
+                            for e in backend.emergencies[before:]
+                            if isinstance(e, Emergency) and e.code == EMCY_CODE
+                        ]
                         done = bool(seen) and "over-current" in seen[0].name
                     else:
                         done = bool(backend.heartbeat_lost[slave])  # type: ignore[attr-defined]

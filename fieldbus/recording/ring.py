@@ -104,7 +104,7 @@ class Ring:
         self._pack_bus = struct.Struct(f"<{len(BUS)}q").pack_into
         self.buses: list[BusSlot] = []
         for k, (b, st) in enumerate(zip(backends, op.result.buses, strict=True)):
-            nmt_src = getattr(b, "nmt_state", None)
+            nmt_src = b.nmt_state
             if not (isinstance(nmt_src, np.ndarray) and nmt_src.dtype == np.int16):
                 nmt_src = None
             self.buses.append(

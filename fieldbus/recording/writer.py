@@ -395,9 +395,11 @@ class Recorder:
         return not self.ring.stopped
 
     def note_events(self, events: list[Any]) -> None:
-        """The cycle's drive faults, refused outputs and bus errors as events in the recording (the cycle calls it)."""
+        """The cycle's drive faults, refused outputs, SDO aborts and bus errors as events in the recording
+        (the cycle calls it)."""
         from fieldbus.core.drivefault import DriveFault
         from fieldbus.core.output_rules import OutputClamp
+        from fieldbus.cycle.status import SdoAbortEvent
 
         for e in events:
             if isinstance(e, DriveFault):
@@ -412,6 +414,19 @@ class Recorder:
                     name=e.reason.name,
                     asked=e.asked,
                     sent=e.sent,
+                )
+            elif isinstance(e, SdoAbortEvent):
+                self.ring.note(
+                    e.cycle,
+                    "sdo_abort",
+                    bus=e.bus,
+                    slave=e.slave,
+                    access=e.access,
+                    index=e.index,
+                    sub_index=e.sub_index,
+                    code=e.code,
+                    name=e.name,
+                    detail=e.detail,
                 )
             elif e.kind in ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up"):
                 self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)

@@ -76,6 +76,12 @@ RULES: tuple[tuple[str, str, str], ...] = (
     ("fieldbus.operations", "fieldbus.commands", "the operations are below the commands"),
     ("fieldbus.network", "fieldbus.operations", "the operations run the network"),
     ("fieldbus.network", "fieldbus.commands", "the API is below the commands"),
+    ("fieldbus.core", "fieldbus.cycle", "the core is pure"),
+    ("fieldbus.backends", "fieldbus.cycle", "the cycle's parts drive the backends, not the reverse"),
+    ("fieldbus.cycle", "fieldbus.network", "the parts are below their facade, Operational"),
+    ("fieldbus.cycle", "fieldbus.recording", "a recording is an observer of the cycle's events"),
+    ("fieldbus.cycle", "fieldbus.commands", "the cycle is below the commands"),
+    ("fieldbus.cycle", "fieldbus.testing", "the testing kit sits on top"),
     ("fieldbus.network", "fieldbus.testing", "the testing kit sits on top"),
 )
 
