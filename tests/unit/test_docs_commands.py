@@ -28,4 +28,4 @@ def test_run_cycles_in_the_docs_takes_the_cycle_time_by_keyword() -> None:
     found = [f"{p.name}: {m.group(0)}" for p in PAGES for m in positional.finditer(p.read_text())]
     assert not found, found
     tutorial = (REPO / "docs" / "tutorial.md").read_text()
-    assert "run_cycles(cycle, cycle_time_us=1000.0, cycles=600)" in tutorial
+    assert "run_cycles(cycle, cycle_time_us=1000.0, cycles=5000)" in tutorial
