@@ -75,10 +75,6 @@ def simulator(
         from sim_slaves.damiao import DamiaoSimulator
 
         return DamiaoSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
-    if family == "odrive":
-        from sim_slaves.odrive import OdriveSimulator
-
-        return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
     if family == "cubemars-servo":
         from sim_slaves.cubemars import CubemarsServoSimulator
 

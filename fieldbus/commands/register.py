@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             fmt = TYPES[type_name]
             data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
-            got = float(struct.unpack(fmt, backend.sdo(i, reg_no, data))[0])
+            got = float(struct.unpack(fmt, backend.access(i, reg_no, data))[0])
     finally:
         backend.close()
     if value is not None:
