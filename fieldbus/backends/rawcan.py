@@ -232,6 +232,14 @@ class RawCanBackend(CanFaults, Backend):
         self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
         # the families' cycle frames by id(): a message built once around each (its data rewritten in place)
         self._fam_msgs: dict[int, Any] = {}
+        # a family's reply deadline per motor (s after the cycle's commands; None: the receive time-out)
+        self._reply_by: list[float | None] = [None] * self.n_slaves
+        for i, fam in self._fam_of.items():
+            self._reply_by[i] = fam.deadline_s(i)
+        self._sent_at: float | None = None  # when this cycle's commands went out (while a deadline counts)
+        by = [d for d in self._reply_by if d is not None]
+        self._deadlines = bool(by)
+        self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
         self._families = any(at is not None for at in self._error_at) or bool(self._fam_of)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -857,6 +865,8 @@ class RawCanBackend(CanFaults, Backend):
         # What is still queued came after the last receive(): a reply there answers an earlier
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
+        if self._deadlines:
+            self._sent_at = self._now()
         try:
             for fam in self._fams:
                 for c in fam.cycle():
@@ -891,6 +901,8 @@ class RawCanBackend(CanFaults, Backend):
         recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
         clock = self._now
         deadline = clock() + self._timeout_s
+        if self._wait_cap is not None and self._sent_at is not None:  # every reply has its own deadline
+            deadline = min(deadline, self._sent_at + self._wait_cap)
         count = 0
         try:
             while count < n:
@@ -900,8 +912,10 @@ class RawCanBackend(CanFaults, Backend):
                 count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
+            self._sent_at = None
             raise self._io_failed("receive", exc) from exc
         self._cycles += 1
+        self._sent_at = None
         if self._families:
             self._watch_errors()
         return count if count else None
@@ -958,11 +972,20 @@ class RawCanBackend(CanFaults, Backend):
         if any(self._arrived[i] for i in motors):
             self.extra_frames += 1
             return 0
+        if copy and self._sent_at is not None and self._past_deadline(motors):
+            self.late_frames += 1  # stale: its motors' inputs are held
+            return 0
         if copy:
             motors = fam.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
         for i in motors:
             self._arrived[i] = True
         return len(motors)
+
+    def _past_deadline(self, motors: Any) -> bool:
+        """A reply of ``motors`` now is past the reply deadline of one of them (a shared frame: any)."""
+        assert self._sent_at is not None
+        now = self._now()
+        return any((d := self._reply_by[i]) is not None and now > self._sent_at + d for i in motors)
 
     def _family_carries(self, msg: Any) -> Sequence[int]:
         """The motors a family's reply ``msg`` is for (empty: no family's)."""

@@ -166,6 +166,12 @@ class CanFamily(ABC):
         """Motor index ``motor``'s error code in its last reply (its input row) and the fault's name, None
         for a code that is no fault; None when the family reports no error code."""
 
+    def deadline_s(self, motor: int) -> float | None:
+        """The most time, s after the cycle's command frames are handed to the driver, motor index
+        ``motor``'s reply may take to count for its cycle (later: stale, counted late); None (the default):
+        the bus's receive time-out."""
+        return None
+
     def take(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
         """A frame that is no cycle reply but the family's (a heartbeat, a status, an answer to a request),
         taken whenever it comes: its values into the motors' input rows, its answers into the family's
