@@ -489,7 +489,7 @@ class RawCanBackend(CanFaults, Backend):
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
         if fam is not None:
-            self._steps(fam.set_mode(i, mode), "mode switch", i)
+            self._steps(fam.set_mode(i, mode), "mode switch", i, timeout=StateTransitionError)
             return
         cm = self._cm[i]
         if cm is not None:
@@ -683,10 +683,13 @@ class RawCanBackend(CanFaults, Backend):
                 self._unanswered = req
                 return [j for j in req.awaits if req.until is not None or not self._arrived[j]]
 
-    def _steps(self, steps: Any, what: str, i: int | None = None) -> Any:
+    def _steps(
+        self, steps: Any, what: str, i: int | None = None, *, timeout: type[FieldbusError] = BusTimeoutError
+    ) -> Any:
         """Run a family's steps (configure, a mode switch, an access) to their result; a step unanswered
-        raises :class:`~fieldbus.errors.BusTimeoutError`, a refused answer or an unknown name
-        :class:`~fieldbus.errors.StateTransitionError` / :class:`~fieldbus.errors.FieldbusError`."""
+        raises ``timeout`` (a transition's: :class:`~fieldbus.errors.StateTransitionError`), a refused
+        answer :class:`~fieldbus.errors.StateTransitionError`, an unknown name
+        :class:`~fieldbus.errors.FieldbusError`."""
         try:
             missing = self._requests(steps)
         except StepRefused as exc:
@@ -699,10 +702,11 @@ class RawCanBackend(CanFaults, Backend):
             req = self._unanswered
             slave = self.areas[missing[0]].slave
             wait = req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S
-            raise BusTimeoutError(
+            text = (
                 f"bus '{self.bus.name}': {slave.name} (node {slave.node_id}) did not answer "
                 f"{req.what or 'the ' + what} within {wait * 1000:.0f} ms"
             )
+            raise (timeout(text, slave=slave.name) if timeout is StateTransitionError else timeout(text))
         return self._result
 
     def access(self, slave: int | str, key: int, value: bytes | None = None) -> bytes:
@@ -783,7 +787,7 @@ class RawCanBackend(CanFaults, Backend):
             if self._mode[i] is not None:
                 self._configure_damiao(i)
         for fam in self._fams:
-            self._steps(fam.bring_up("configure"), "configure")
+            self._steps(fam.bring_up("configure"), "configure", timeout=StateTransitionError)
 
     def safe_op(self) -> None:
         """Nothing: motors stay out of motor mode until :meth:`op`."""
@@ -796,7 +800,11 @@ class RawCanBackend(CanFaults, Backend):
         if missing:
             raise StateTransitionError(
                 f"bus '{self.bus.name}': no answer to enter-motor-mode from "
-                + ", ".join(self.areas[i].slave.name for i in missing)
+                + ", ".join(
+                    self.areas[i].slave.name + (f" ({w})" if (w := self._unmet.get(i)) else "")
+                    for i in missing
+                ),
+                slave=self.areas[missing[0]].slave.name,
             )
 
     def _special(self, which: str) -> list[int]:
@@ -805,6 +813,7 @@ class RawCanBackend(CanFaults, Backend):
         Raises :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         self._drain()
+        self._unmet: dict[int, str] = {}  # motor -> the condition it did not meet (its request's ``what``)
         conditions: list[Request] = []  # requests whose condition is awaited (not a reply)
         try:
             awaited: set[int] = set()
@@ -857,8 +866,10 @@ class RawCanBackend(CanFaults, Backend):
                 self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
-        unmet = {j for r in conditions if r.until is not None and not r.until() for j in r.awaits}
-        return [i for i in range(self.n_slaves) if not self._arrived[i] or i in unmet]
+        self._unmet = {
+            j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits
+        }
+        return [i for i in range(self.n_slaves) if not self._arrived[i] or i in self._unmet]
 
     def send(self) -> None:
         """One command frame per motor. Raises :class:`~fieldbus.errors.BusIoError` when the driver refuses one."""

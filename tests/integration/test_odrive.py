@@ -236,3 +236,27 @@ def test_bring_up_asks_for_the_heartbeat_it_did_not_hear(tmp_path: Path) -> None
             op = network.bring_up()
             assert [sim.axes[n].state for n in NODES] == [8, 8, 8]
             assert _fresh_or_held(op.exchange())
+
+
+def test_an_axis_that_refuses_to_arm_stops_the_bring_up_naming_it_and_what_it_did_not_say(
+    tmp_path: Path,
+) -> None:
+    """On the kit's virtual clock: axis 2 has an error set, so it refuses CLOSED_LOOP_CONTROL and its
+    heartbeats keep saying IDLE; op() waits a bounded time for a heartbeat saying 8, then fails naming
+    a1 and the awaited state (the others' waits were met), and the failed bring-up lets every axis go."""
+    from fieldbus.errors import StateTransitionError
+
+    net, _channel = net_file(tmp_path, "odrive_s1.yaml")
+    with emulate(net, bring_up=False) as emu:
+        sim = emu.emulators["legs"].sim
+        sim.inject_error(2, 0x00002000)
+        start = emu.clock.now_ns()
+        with pytest.raises(StateTransitionError, match=r"a1 \(a heartbeat with axis state 8\)") as err:
+            emu.bring_up()
+        assert err.value.slave == "a1" and "a0" not in str(err.value) and "a2" not in str(err.value)
+        # the failed bring-up's stop sent every axis IDLE after its request for closed loop
+        for n in NODES:
+            states = [struct.unpack_from("<I", d)[0] for c, d, _ in sim.axes[n].frames if c == 0x07]
+            assert states[-2:] == [8, 1] and sim.axes[n].state == 1, (n, states)
+        waited_s = (emu.clock.now_ns() - start) / 1e9
+        assert 2.0 <= waited_s < 60.0, waited_s  # the bound (2 s of the clock), not forever
