@@ -653,16 +653,19 @@ class RawCanBackend(CanFaults, Backend):
         return bool(self._arrived[i])
 
     def _requests(self, requests: Any) -> list[int]:
+        """Send a family's requests in order (:meth:`_run`); the motors that did not answer."""
+        return self._run(requests)[0]
+
+    def _run(self, requests: Any) -> tuple[list[int], Request | None, Any]:
         """Send a family's requests in order, each awaited reply (or condition: ``until``) within
-        ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); the motors that did not answer (a step
-        unanswered ends the sequence). A generator's result goes to ``self._result``."""
-        self._result: Any = None
+        ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); a step unanswered ends the sequence.
+        ``(the motors that did not answer, that request, the generator's result)``."""
+        requests = iter(requests)
         while True:
             try:
                 req = next(requests)
             except StopIteration as done:
-                self._result = done.value
-                return []
+                return [], None, done.value
             self._drain()
             for j in req.awaits:
                 self._arrived[j] = False
@@ -680,8 +683,7 @@ class RawCanBackend(CanFaults, Backend):
             except (can.CanError, OSError) as exc:
                 raise self._io_failed("receive", exc) from exc
             if not answered():
-                self._unanswered = req
-                return [j for j in req.awaits if req.until is not None or not self._arrived[j]]
+                return [j for j in req.awaits if req.until is not None or not self._arrived[j]], req, None
 
     def _steps(
         self, steps: Any, what: str, i: int | None = None, *, timeout: type[FieldbusError] = BusTimeoutError
@@ -691,15 +693,14 @@ class RawCanBackend(CanFaults, Backend):
         answer :class:`~fieldbus.errors.StateTransitionError`, an unknown name
         :class:`~fieldbus.errors.FieldbusError`."""
         try:
-            missing = self._requests(steps)
+            missing, req, result = self._run(steps)
         except StepRefused as exc:
             name = self.areas[exc.motor].slave.name
             raise StateTransitionError(f"bus '{self.bus.name}': {name} {exc}", slave=name) from None
         except ValueError as exc:
             who = self.areas[i].slave.name if i is not None else what
             raise FieldbusError(f"bus '{self.bus.name}': {who}: {exc}") from None
-        if missing:
-            req = self._unanswered
+        if missing and req is not None:
             slave = self.areas[missing[0]].slave
             wait = req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S
             text = (
@@ -707,12 +708,13 @@ class RawCanBackend(CanFaults, Backend):
                 f"{req.what or 'the ' + what} within {wait * 1000:.0f} ms"
             )
             raise (timeout(text, slave=slave.name) if timeout is StateTransitionError else timeout(text))
-        return self._result
+        return result
 
     def access(self, slave: int | str, key: int, value: bytes | None = None) -> bytes:
         """Read (``value`` None) or write a register / endpoint of a motor of a family on the protocol
-        (its ``access`` steps: a write confirmed by reading it back); the value bytes the motor answers. Blocking, between cycles. :class:`~fieldbus.errors.BusTimeoutError`
-        without an answer; :class:`~fieldbus.errors.FieldbusError` for a motor that has no such access."""
+        (its ``access`` steps: a write confirmed by reading it back); the value bytes the motor answers.
+        Blocking, between cycles. :class:`~fieldbus.errors.BusTimeoutError` without an answer;
+        :class:`~fieldbus.errors.FieldbusError` for a motor that has no such access."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
         if fam is None:
