@@ -190,6 +190,16 @@ class CanFamily(ABC):
         """The mode motor index ``motor``'s commands go out in (None: the family has no modes)."""
         return None
 
+    @classmethod
+    def register_key(
+        cls, config: Any, reg: str, type_name: str | None, writing: bool
+    ) -> tuple[int, str, str, bool]:
+        """Register / endpoint ``reg`` as a user names it (a name of the map section ``config``, or a
+        number; ``type_name``: the value type given, if any) for :meth:`access`: ``(key, label, value type
+        - float32, uint32, int32 or bool -, read-only)``. ``ValueError`` saying what is wrong; the default:
+        the family has no registers over CAN."""
+        raise ValueError(f"family {cls.name} has no registers or endpoints over CAN")
+
     def access(self, motor: int, key: int, value: bytes | None = None) -> Steps:
         """Read (``value`` None) or write then read back a motor's register / endpoint ``key``: the
         requests; the generator returns the value bytes answered. ``ValueError`` when the family (the

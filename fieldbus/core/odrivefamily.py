@@ -321,6 +321,35 @@ class OdriveFamily(CanFamily):
     def mode(self, motor: int) -> str | None:
         return self._axes[motor].mode.name
 
+    @classmethod
+    def register_key(
+        cls, config: Any, reg: str, type_name: str | None, writing: bool
+    ) -> tuple[int, str, str, bool]:
+        """An endpoint by its name in the map's ``odrive.config`` (its type) or its id (0..65535; a write
+        needs ``type_name``); firmware 0.6 only."""
+        od: OdriveProtocol = config.odrive
+        if od.protocol != "0.6":
+            raise ValueError(
+                f"ODrive firmware {od.protocol} has no endpoint access over CAN (RxSdo is firmware 0.6): "
+                "configure it over USB (odrivetool)"
+            )
+        item = next((c for c in od.config if c.name == reg), None)
+        if item is not None:
+            return item.endpoint, item.name, type_name or item.type, False
+        try:
+            endpoint = int(reg, 0)
+        except ValueError:
+            named = ", ".join(c.name for c in od.config) or "none"
+            raise ValueError(
+                f"'{reg}' is neither an endpoint id (0..65535) nor an endpoint of the map's odrive.config "
+                f"(named there: {named})"
+            ) from None
+        if not 0 <= endpoint <= 0xFFFF:
+            raise ValueError(f"endpoint ids are 0..65535, not {endpoint}")
+        if type_name is None and writing:
+            raise ValueError(f"endpoint {endpoint}: give --type float32, uint32, int32 or bool")
+        return endpoint, f"endpoint {endpoint}", type_name or "uint32", False
+
     def access(self, motor: int, key: int, value: bytes | None = None) -> Steps:
         """Endpoint ``key`` through RxSdo (firmware 0.6): written when ``value`` is given, then read; the 4
         value bytes of the TxSdo answer."""

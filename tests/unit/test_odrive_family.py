@@ -169,3 +169,26 @@ def test_configure_refuses_an_endpoint_that_reads_back_otherwise() -> None:
     assert read.until is not None and read.until()
     with pytest.raises(StepRefused, match=f"endpoint {items[0].name}"):
         next(steps)
+
+
+def test_register_key_names_an_endpoint_by_the_map_or_its_id_firmware_0_6_only() -> None:
+    items = (ConfigItem("watchdog_timeout", 432, "float32", 0.25),)
+    cfg = _family(config=items).motors[0].config
+    assert OdriveFamily.register_key(cfg, "watchdog_timeout", None, True) == (
+        432,
+        "watchdog_timeout",
+        "float32",
+        False,
+    )
+    assert OdriveFamily.register_key(cfg, "0x1B1", None, False) == (0x1B1, "endpoint 433", "uint32", False)
+    assert OdriveFamily.register_key(cfg, "433", "bool", True)[2] == "bool"
+    for reg, typ, message in (
+        ("433", None, "give --type"),
+        ("70000", "uint32", "0..65535"),
+        ("watchdog", None, "neither an endpoint id"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            OdriveFamily.register_key(cfg, reg, typ, True)
+    old = _family("odrive_3_6.yaml").motors[0].config
+    with pytest.raises(ValueError, match=r"firmware 0\.5 has no endpoint access"):
+        OdriveFamily.register_key(old, "433", "uint32", False)
