@@ -789,7 +789,7 @@ class RawCanBackend(CanFaults, Backend):
             if self._mode[i] is not None:
                 self._configure_damiao(i)
         for fam in self._fams:
-            self._steps(fam.bring_up("configure"), "configure", timeout=StateTransitionError)
+            self._steps(fam.configure(), "configure", timeout=StateTransitionError)
 
     def safe_op(self) -> None:
         """Nothing: motors stay out of motor mode until :meth:`op`."""

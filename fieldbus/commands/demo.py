@@ -31,6 +31,7 @@ from fieldbus.commands import buslogs, cycleopts
 from fieldbus.commands.argtypes import UsageError, integer, non_negative, number
 from fieldbus.commands.outputs import check_plot
 from fieldbus.commands.usage import add_command
+from fieldbus.core.canfamily import families
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.network import load_network
 from fieldbus.emulators import emulator_part
@@ -215,17 +216,11 @@ def motor_family(motor: str) -> str:
 
 
 def max_motor_axes(motor: str) -> int | None:
-    """Most axes ``motor``'s ids allow: :data:`MAX_FAMILY_AXES`, its family's ``max_motors``, or the slots
-    of a shared frame."""
-    from fieldbus.core.canfamily import families
-
+    """Most axes ``motor``'s ids allow: :data:`MAX_FAMILY_AXES`, or the slots of a shared frame."""
     cfg = _rawcan_config(motor)
-    if cfg.frames is not None:
-        shared = [s.motors for s in (cfg.frames.command, cfg.frames.feedback) if s.shared]
-        return min(shared) if shared else None
     family = families().get(cfg.family)
-    if family is not None and family.max_motors is not None:
-        return family.max_motors
+    if family is not None:  # a family on the protocol knows its own
+        return family.max_motors(cfg.protocol)
     return MAX_FAMILY_AXES.get(cfg.family)
 
 

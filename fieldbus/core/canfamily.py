@@ -84,7 +84,9 @@ class Request:
     what: str = ""
 
 
-Steps = Generator[Request, None, Any]  # a family's request sequence and its result
+#: A transaction: a generator of requests (each sent, its answer or condition awaited), its return value
+#: the transaction's result.
+Steps = Generator[Request, "bytes | None", Any]
 
 
 class StepRefused(ValueError):
@@ -118,8 +120,6 @@ class CanFamily(ABC):
     #: motors of the bus, a :class:`~fieldbus.runtime.clock.Clock` or None), named, not imported: the
     #: emulators sit above fieldbus.
     emulator: ClassVar[str | None] = None
-    #: Most motors of this family one bus can address (its ids), None: no limit of its own.
-    max_motors: ClassVar[int | None] = None
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         self.motors = {m.index: m for m in motors}
@@ -166,6 +166,11 @@ class CanFamily(ABC):
         """Motor index ``motor``'s error code in its last reply (its input row) and the fault's name, None
         for a code that is no fault; None when the family reports no error code."""
 
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """Most motors of this map one bus can hold (their CAN ids), None: no limit of the family's own."""
+        return None
+
     def deadline_s(self, motor: int) -> float | None:
         """The most time, s after the cycle's command frames are handed to the driver, motor index
         ``motor``'s reply may take to count for its cycle (later: stale, counted late); None (the default):
@@ -207,13 +212,16 @@ class CanFamily(ABC):
         raise ValueError(f"family {self.name} has no registers or endpoints over CAN")
         yield  # pragma: no cover - a generator
 
+    def configure(self) -> Steps:
+        """The bring-up's transaction (registers checked and written, ...); default: nothing.
+        :class:`StepRefused` for a motor whose answers refuse the map."""
+        return
+        yield
+
     def bring_up(self, which: str) -> Iterator[Request]:
-        """The requests of a transition: ``configure`` (before enabling; ``ValueError`` for a motor
-        whose answers refuse the map), ``enter`` (enable), ``exit`` (safe command, then disable),
+        """The requests of a transition: ``enter`` (enable), ``exit`` (safe command, then disable),
         ``zero``, ``clear``. Default: the :meth:`commands` of ``which``, no answer awaited; ``exit`` sends
-        :meth:`stop_frames` first; nothing to configure."""
-        if which == "configure":
-            return
+        :meth:`stop_frames` first."""
         if which == "exit":
             yield from (Request(f) for f in self.stop_frames())
         kind = {"enter": "enable", "exit": "disable"}.get(which, which)

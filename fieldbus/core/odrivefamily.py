@@ -88,7 +88,6 @@ class OdriveFamily(CanFamily):
 
     name = "odrive"
     emulator = "sim_slaves.odrive:OdriveSimulator"
-    max_motors = 63  # node ids 1..63 (6 bits of the 11-bit id)
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         super().__init__(motors)
@@ -138,6 +137,11 @@ class OdriveFamily(CanFamily):
         from fieldbus.core.rawcan import parse_classic
 
         return parse_classic(r, raw)
+
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """Node ids 1..63 (6 bits of the 11-bit id)."""
+        return 63
 
     @classmethod
     def wire_frames(cls, name: str, config: Any, node: int) -> list[FrameTime]:
@@ -275,11 +279,13 @@ class OdriveFamily(CanFamily):
         yield Request(self._state(ax, ax.proto.closed_loop))
         yield wait
 
+    def configure(self) -> Steps:
+        """Each axis: a heartbeat seen; Set_Controller_Mode of the map's mode; its endpoints written, read back."""
+        for i in self._axes:
+            yield from self._configure(i)
+
     def bring_up(self, which: str) -> Iterator[Request]:
-        if which == "configure":
-            for i in self._axes:
-                yield from self._configure(i)
-        elif which == "enter":
+        if which == "enter":
             for i in self._axes:
                 yield from self._closed_loop(i)
         elif which in ("exit", "clear"):
@@ -287,7 +293,7 @@ class OdriveFamily(CanFamily):
                 Request(f) for f in (self.stop_frames() if which == "exit" else self.commands("clear"))
             )
 
-    def _configure(self, i: int) -> Iterator[Request]:
+    def _configure(self, i: int) -> Steps:
         """A heartbeat seen; Set_Controller_Mode of the map's mode; the map's endpoints written, read back."""
         ax = self._axes[i]
         yield self._heartbeat(i)

@@ -157,7 +157,7 @@ def test_two_axes_with_one_node_id_are_refused() -> None:
 def test_configure_refuses_an_endpoint_that_reads_back_otherwise() -> None:
     items = (ConfigItem("watchdog_timeout", 432, "float32", 0.25),)
     fam = _family(config=items)
-    steps = fam.bring_up("configure")
+    steps = fam.configure()
     hb = next(steps)
     fam.take(NODE << 5 | 0x01, False, struct.pack("<IBBBx", 0, 1, 0, 1))
     assert hb.until is not None and hb.until()
