@@ -661,15 +661,23 @@ class RawCanBackend(CanFaults, Backend):
         ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); a step unanswered ends the sequence.
         ``(the motors that did not answer, that request, the generator's result)``."""
         requests = iter(requests)
+        send = getattr(requests, "send", None)  # a generator takes each answer's data back
+        got: bytes | None = None
         while True:
             try:
-                req = next(requests)
+                req = send(got) if send is not None else next(requests)
             except StopIteration as done:
                 return [], None, done.value
             self._drain()
             for j in req.awaits:
                 self._arrived[j] = False
             self._send_raw(*req.frame)
+            got = None
+            if req.answer is not None:
+                got = self._answer(req)
+                if got is None:
+                    return list(req.awaits), req, None
+                continue
             if not req.awaits and req.until is None:
                 continue
 
@@ -684,6 +692,24 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("receive", exc) from exc
             if not answered():
                 return [j for j in req.awaits if req.until is not None or not self._arrived[j]], req, None
+
+    def _answer(self, req: Request) -> bytes | None:
+        """The data of the frame that answers ``req`` within its time-out (others taken in as ever), or None."""
+        assert req.answer is not None
+        deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
+        try:
+            while (left := deadline - self._now()) > 0:
+                msg = self._bus.recv(timeout=left)
+                if msg is None:
+                    continue
+                if not (msg.is_error_frame or msg.is_remote_frame):
+                    data = bytes(msg.data)
+                    if req.answer(msg.arbitration_id, msg.is_extended_id, data):
+                        return data
+                self._accept(msg, copy=True)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        return None
 
     def _steps(
         self, steps: Any, what: str, i: int | None = None, *, timeout: type[FieldbusError] = BusTimeoutError

@@ -71,14 +71,17 @@ class Request:
     """One step of a bring-up or recovery: send ``frame``, then await a reply from each motor index in
     ``awaits`` (empty: nothing to await, the next cycle's replies tell).
 
-    With ``until``: await, instead of a reply, the family's own condition (its state, as :meth:`CanFamily.take`
-    and :meth:`CanFamily.route` leave it: "a heartbeat says closed loop"), at most ``timeout_s`` seconds
-    (None: the backend's bring-up time-out); ``awaits`` then names the motors blamed when it is not met,
-    ``what`` what they did not answer. The backend runs a family's generator step by step: code after a
+    With ``answer``: await the frame ``(can id, extended, data)`` for which it is true; its data is sent
+    back into the generator (``data = yield request``). With ``until``: await, instead of a reply, the
+    family's own condition (its state, as :meth:`CanFamily.take` and :meth:`CanFamily.route` leave it: "a
+    heartbeat says closed loop"). Either at most ``timeout_s`` seconds (None: the backend's bring-up
+    time-out); ``awaits`` then names the motors blamed when none came, ``what`` what they did not answer
+    (the generator is not resumed). The backend runs a family's generator step by step: code after a
     ``yield`` sees the answer (a generator's ``return`` value is the result of an access)."""
 
     frame: Frame
     awaits: tuple[int, ...] = ()
+    answer: Callable[[int, bool, bytes], bool] | None = None
     until: Callable[[], bool] | None = None
     timeout_s: float | None = None
     what: str = ""

@@ -96,7 +96,6 @@ class OdriveFamily(CanFamily):
         self._side: dict[int, tuple[int, str]] = {}  # heartbeat / get_error / txsdo id -> (motor, kind)
         self._out: list[OdFrame] = []  # the cycle's frames (one list, refilled)
         self._pending: list[OdFrame] = []  # requests that go out with the next cycle
-        self._sdo: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
         #: Firmware 0.6 Get_Error answers by motor index: (active errors, disarm reason).
         self.active_errors: dict[int, tuple[int, int]] = {}
         for m in motors:
@@ -130,7 +129,6 @@ class OdriveFamily(CanFamily):
             self._side[proto.can_id(m.node, "heartbeat")] = (m.index, "heartbeat")
             if proto.protocol == "0.6":
                 self._side[proto.can_id(m.node, "get_error")] = (m.index, "get_error")
-                self._side[proto.can_id(m.node, "txsdo")] = (m.index, "txsdo")
 
     @classmethod
     def parse(cls, r: Any, raw: Any, path: PathT) -> tuple[Any, tuple[Any, ...], tuple[Any, ...]]:
@@ -195,7 +193,7 @@ class OdriveFamily(CanFamily):
         return motors
 
     def take(self, can_id: int, extended: bool, data: bytes) -> tuple[int, ...]:
-        """A heartbeat (axis error and state into the input row), a Get_Error or a TxSdo answer."""
+        """A heartbeat (axis error and state into the input row) or a Get_Error answer."""
         got = None if extended else self._side.get(can_id)
         if got is None:
             return ()
@@ -213,8 +211,6 @@ class OdriveFamily(CanFamily):
             return (i,)
         if kind == "get_error" and len(data) == 8:
             self.active_errors[i] = (int.from_bytes(data[:4], "little"), int.from_bytes(data[4:], "little"))
-        elif kind == "txsdo" and (answer := sdo_reply(data)) is not None:
-            self._sdo = (i, *answer)
         return ()
 
     def error(self, motor: int) -> tuple[int, str | None]:
@@ -364,17 +360,20 @@ class OdriveFamily(CanFamily):
             raise ValueError("no endpoint access over CAN (ODrive firmware 0.6 only)")
         if value is not None:
             yield Request(self._frame(ax, "rxsdo", sdo_request(SDO_WRITE, key, value)))
-        self._sdo = None
+        txsdo = ax.proto.can_id(ax.motor.node, "txsdo")
 
-        def answered() -> bool:
-            return self._sdo is not None and self._sdo[:2] == (motor, key)
+        def answers(can_id: int, extended: bool, data: bytes) -> bool:
+            got = sdo_reply(data) if can_id == txsdo and not extended else None
+            return got is not None and got[0] == key
 
-        yield Request(
+        data = yield Request(
             self._frame(ax, "rxsdo", sdo_request(SDO_READ, key)),
             (motor,),
-            until=answered,
+            answer=answers,
             timeout_s=SDO_WAIT_S,
             what=f"the read of endpoint {key}",
         )
-        assert self._sdo is not None
-        return self._sdo[2]
+        got = sdo_reply(data or b"")
+        if got is None:  # not resumed without an answer: the transport names the time-out
+            raise StepRefused(motor, f"endpoint {key}: no TxSdo answer")
+        return got[1]

@@ -122,15 +122,18 @@ def test_endpoint_access_is_0_6_only_returns_the_answer_and_configure_refuses_a_
     steps = fam.access(0, 432, struct.pack("<f", 0.25))
     write = next(steps)
     assert write.frame[2] == bytes([1]) + struct.pack("<H", 432) + b"\0" + struct.pack("<f", 0.25)
-    read = next(steps)
+    read = steps.send(None)
     assert read.frame[2][:3] == bytes([0]) + struct.pack("<H", 432) and read.timeout_s is not None
-    assert read.until is not None and not read.until()
-    fam.take(NODE << 5 | 0x05, False, bytes([0]) + struct.pack("<H", 999) + b"\0" + bytes(4))  # another one
-    assert not read.until()
-    fam.take(NODE << 5 | 0x05, False, bytes([0]) + struct.pack("<H", 432) + b"\0" + struct.pack("<f", 0.25))
-    assert read.until()
+    assert read.answer is not None
+    txsdo = NODE << 5 | 0x05
+    other = bytes([0]) + struct.pack("<H", 999) + b"\0" + bytes(4)
+    mine = bytes([0]) + struct.pack("<H", 432) + b"\0" + struct.pack("<f", 0.25)
+    assert not read.answer(txsdo, False, other)  # another endpoint's answer
+    assert not read.answer(txsdo, True, mine) and not read.answer(txsdo + 32, False, mine)  # not this axis
+    assert not read.answer(txsdo, False, mine[:6])  # short
+    assert read.answer(txsdo, False, mine)
     with pytest.raises(StopIteration) as done:
-        next(steps)
+        steps.send(mine)
     assert done.value.value == struct.pack("<f", 0.25)
 
 
@@ -165,10 +168,9 @@ def test_configure_refuses_an_endpoint_that_reads_back_otherwise() -> None:
     next(steps)  # the write
     read = next(steps)
     wrong = bytes([0]) + struct.pack("<H", items[0].endpoint) + b"\0" + struct.pack("<I", 0xDEAD)
-    fam.take(NODE << 5 | 0x05, False, wrong)
-    assert read.until is not None and read.until()
+    assert read.answer is not None and read.answer(NODE << 5 | 0x05, False, wrong)
     with pytest.raises(StepRefused, match=f"endpoint {items[0].name}"):
-        next(steps)
+        steps.send(wrong)
 
 
 def test_register_key_names_an_endpoint_by_the_map_or_its_id_firmware_0_6_only() -> None:
