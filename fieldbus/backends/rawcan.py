@@ -43,7 +43,8 @@ a third party's through the ``fieldbus.rawcan_families`` entry points) are reach
 cycle frames, reply routing, status frames taken whenever they come (:meth:`~fieldbus.core.canfamily.CanFamily.take`:
 a status whose error code changed is checked at once), bring-up steps (``configure``, ``enter``, ``exit``; a
 step's condition awaited, bounded), modes, register / endpoint access (:meth:`RawCanBackend.access`), special
-and stop frames, recovery requests and error codes. Family ``frames``
+and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
+``deadline_s`` after the cycle's commands is stale: counted late, its motors' inputs held). Family ``frames``
 (:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
 shared by several motors of the bus) are filled from the image's output rows and its feedback frames
 routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer

@@ -77,7 +77,9 @@ class Request:
     heartbeat says closed loop"). Either at most ``timeout_s`` seconds (None: the backend's bring-up
     time-out); ``awaits`` then names the motors blamed when none came, ``what`` what they did not answer
     (the generator is not resumed). The backend runs a family's generator step by step: code after a
-    ``yield`` sees the answer (a generator's ``return`` value is the result of an access)."""
+    ``yield`` sees the answer (a generator's ``return`` value is the result of an access). ``answer`` is
+    for transactions (configure, set_mode, access, recover); :meth:`CanFamily.bring_up`'s requests are
+    sent together and await replies (``awaits``) or conditions (``until``)."""
 
     frame: Frame
     awaits: tuple[int, ...] = ()
