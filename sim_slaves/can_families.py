@@ -1,9 +1,9 @@
 """Which emulator speaks a raw-CAN drive map's family, for the testing kit, the emulator process and the demo.
 
-A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``mit`` (the MIT frame
-alone), ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by its ``protocol``), or a family on the protocol
-(:func:`fieldbus.core.canfamily.families`: ``frames``, described in data, :mod:`sim_slaves.frames_motor`,
-or a third party's) whose class names its emulator. One emulator object
+A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``damiao``, ``cubemars``
+(servo or MIT by its ``protocol``), or a family on the protocol (:func:`fieldbus.core.canfamily.families`:
+``mit``, the MIT frame alone; ``odrive``, :mod:`sim_slaves.odrive`; ``frames``, described in data,
+:mod:`sim_slaves.frames_motor`; or a third party's) whose class names its emulator. One emulator object
 serves the motors of one bus, so the motors of a bus must be of one family (and, for CubeMars, of one
 protocol); :func:`bus_family` refuses a mix, naming the maps.
 """
@@ -24,8 +24,8 @@ __all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]
 
 
 def family_of(drive: DriveMap) -> str:
-    """The emulator family of a raw-CAN map: ``mit``, ``damiao``, ``odrive``, ``cubemars-servo`` or
-    ``cubemars-mit``. Raises ``ValueError`` for a map without a ``rawcan`` section."""
+    """The emulator family of a raw-CAN map: its ``rawcan.family`` (``cubemars-servo`` or ``cubemars-mit``
+    for CubeMars). Raises ``ValueError`` for a map without a ``rawcan`` section."""
     cfg = drive.rawcan
     if cfg is None:
         raise ValueError(f"drive map {drive.name} has no rawcan section")
@@ -75,10 +75,6 @@ def simulator(
         from sim_slaves.damiao import DamiaoSimulator
 
         return DamiaoSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
-    if family == "odrive":
-        from sim_slaves.odrive import OdriveSimulator
-
-        return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
     if family == "cubemars-servo":
         from sim_slaves.cubemars import CubemarsServoSimulator
 

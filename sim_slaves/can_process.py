@@ -4,8 +4,9 @@ In one process the emulated nodes and the master share one interpreter lock: the
 nodes' work lands inside the master's cycle. Here a child process runs
 :class:`~sim_slaves.canopen.CanopenSimulator` (``--kind canopen``) or the raw-CAN
 motors of a map's family (:mod:`sim_slaves.can_families`): ``--kind auto`` takes the
-family from the map; ``mit``, ``damiao``, ``odrive``, ``cubemars`` (servo or MIT by
-the map) say which it must be, and a map of another family is refused. On a python-can
+family from the map; a family's name (:func:`kinds`: ``damiao``, ``cubemars``, servo or MIT
+by the map, and every family of :func:`fieldbus.core.canfamily.families`, a third party's
+entry point too) says which it must be, and a map of another family is refused. On a python-can
 bus that crosses processes: ``fieldbus_udp`` (:mod:`fieldbus.backends.udpcan`,
 fixed-size datagrams on the loopback, the lean one), python-can's
 ``udp_multicast`` (msgpack per frame, needs msgpack), one group and port per
@@ -47,13 +48,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.rawcan import FAMILIES
 from sim_slaves.busthread import serve_together
 
 READY_TIMEOUT_S = 20.0
 UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
 UDP_INTERFACES = ("udp_multicast", "fieldbus_udp")  # python-can interfaces udp_bus() can describe
-KINDS = ("canopen", *FAMILIES, "auto")  # the raw-CAN families from their one table
+
+
+def kinds() -> tuple[str, ...]:
+    """The ``--kind`` choices: ``canopen``, the raw-CAN families (the map loader's own and every family
+    registered in :func:`fieldbus.core.canfamily.families`, entry points included), ``auto``."""
+    return ("canopen", *dict.fromkeys((*FAMILIES, *families())), "auto")
 
 
 @dataclass(frozen=True)
@@ -148,7 +155,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m sim_slaves.can_process", description=__doc__.splitlines()[0])
     p.add_argument(
         "--kind",
-        choices=KINDS,
+        choices=kinds(),
         action=_BusSpecAction,
         help="the nodes' emulator; auto: the raw-CAN family of the map (after a --channel: that bus's)",
     )

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 import struct
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ import can
 
 from fieldbus.core import odrive
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.platform.clock import Clock
 from sim_slaves.mit_motor import Law, MitMotorSimulator
 
 POSITION_GAIN = 20.0  # (turn/s) per turn of position error
@@ -77,7 +77,7 @@ class OdriveSimulator(MitMotorSimulator):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | Callable[[], float] | None = None,
         heartbeat_ms: float | None = None,
         watchdog_ms: float = 0.0,
         watchdog: tuple[int, int] | None = None,

@@ -30,15 +30,6 @@ A fault's onset (either family) is also queued for :meth:`RawCanBackend.take_mot
 network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
 with the family's name) in ``CycleResult.events`` and recordings, once per onset.
 
-Family ``odrive`` (:mod:`fieldbus.core.odrive`, CANSimple): each cycle a motor gets its mode's
-set-point frame (``node << 5 | 0x0C/0x0D/0x0E``) and a remote frame asking for Get_Encoder_Estimates,
-whose answer is the cycle's reply; heartbeats (and, firmware 0.6, Get_Error answers) update the
-image's ``axis_error`` / ``axis_state`` whenever they come, a new error is a counted fault named by
-its bits; the image's ``requested_state`` is sent as Set_Axis_State when it changes, and while it is
-IDLE no set-point goes out (the safe stop writes IDLE); ``op()`` requests CLOSED_LOOP_CONTROL and waits
-for the heartbeats to say so; ``stop()`` requests IDLE. ``configure()`` waits for a heartbeat, sends
-Set_Controller_Mode and writes the map's endpoints (RxSdo, 0.6) and reads them back (TxSdo).
-
 Family ``cubemars`` (:mod:`fieldbus.core.cubemars`): in servo mode each cycle a motor gets the packet the
 image's ``mode`` field names (29-bit id ``packet << 8 | id``, big-endian numbers at the map's scales) and
 its status frame (``0x29 << 8 | id``) is decoded into the image; :meth:`RawCanBackend.set_mode` picks the
@@ -49,7 +40,11 @@ outside 0 are counted, named faults as for Damiao.
 
 Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
 a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
-cycle frames, reply routing, special and stop frames, recovery requests and error codes. Family ``frames``
+cycle frames, reply routing, status frames taken whenever they come (:meth:`~fieldbus.core.canfamily.CanFamily.take`:
+a status whose error code changed is checked at once), bring-up steps (``configure``, ``enter``, ``exit``; a
+step's condition awaited, bounded), modes, register / endpoint access (:meth:`RawCanBackend.access`), special
+and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
+``deadline_s`` after the cycle's commands is stale: counted late, its motors' inputs held). Family ``frames``
 (:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
 shared by several motors of the bus) are filled from the image's output rows and its feedback frames
 routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
@@ -74,8 +69,8 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core import cubemars, damiao, odrive
-from fieldbus.core.canfamily import CanFamily, FamilyMotor, Request, families
+from fieldbus.core import cubemars, damiao
+from fieldbus.core.canfamily import CanFamily, FamilyMotor, Remote, Request, StepRefused, families
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -113,12 +108,12 @@ class MotorFault:
 @dataclass(frozen=True)
 class MotorFaultEvent(DriveFault):
     """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a Damiao
-    error code outside ``ok_codes`` or of a new ODrive axis error, with the family's name for it.
+    error code outside ``ok_codes`` or of a new error of a family on the protocol, with the family's name for it.
 
-    ``code`` is the family's own code (Damiao error nibble, ODrive axis error bits), not a CiA 402 0x603F.
+    ``code`` is the family's own code (Damiao error nibble, a family's error bits), not a CiA 402 0x603F.
     """
 
-    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP, ...")
+    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP", ...)
 
     @property
     def name(self) -> str:
@@ -162,7 +157,7 @@ class RawCanBackend(CanFaults, Backend):
             self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
         ]
         self._reply_len = [
-            8 if self._od_of(i) else (cm.reply_bytes if (cm := self._cm[i]) is not None else row.size)
+            cm.reply_bytes if (cm := self._cm[i]) is not None else row.size
             for i, row in enumerate(self._reply_rows)
         ]
         self._timeout_s = bus.receive_timeout_us / 1e6
@@ -184,23 +179,6 @@ class RawCanBackend(CanFaults, Backend):
             maxlen=FAULT_LOG
         )  # (motor, code, name) not yet taken
         self._cycles = 0
-        # family odrive: protocol, mode, set-point frames by command id, the RTR, heartbeat routing
-        self._od: list[odrive.OdriveProtocol | None] = [self._od_of(i) for i in range(self.n_slaves)]
-        self._od_mode: list[odrive.OdriveMode | None] = [None] * self.n_slaves
-        self._od_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_slaves)]
-        self._od_rtr: list[Any] = [None] * self.n_slaves
-        self._od_sent_state = [0] * self.n_slaves  # the last Set_Axis_State sent (0: none)
-        self._od_side: dict[
-            int, tuple[int, str]
-        ] = {}  # CAN id -> (motor, "heartbeat" | "get_error" | "txsdo")
-        self._od_at: list[tuple[int, int]] = [
-            (0, 0)
-        ] * self.n_slaves  # image offsets of axis error, axis state
-        self._od_hb: list[tuple[int, int] | None] = [None] * self.n_slaves  # last heartbeat (error, state)
-        self.active_errors: dict[
-            str, tuple[int, int]
-        ] = {}  # 0.6 Get_Error answers: (active errors, disarm reason)
-        self._sdo_answer: tuple[int, int, bytes] | None = None  # (motor, endpoint, value) of the last TxSdo
         declared: dict[str, list[FamilyMotor]] = {}  # families on the protocol: their motors
         self._fr = [False] * self.n_slaves  # motor i runs on a CanFamily
         for i, area in enumerate(self.areas):
@@ -224,8 +202,6 @@ class RawCanBackend(CanFaults, Backend):
             reply_id = cfg.reply_can_id(node)
             if cfg.damiao is not None:
                 self._family_init(i, cfg, node)
-            if cfg.odrive is not None:
-                reply_id = self._odrive_init(i, cfg, node)
             if cfg.cubemars is not None:
                 self._cubemars_init(i, cfg, node)
                 if cfg.cubemars.protocol == "servo":
@@ -255,19 +231,17 @@ class RawCanBackend(CanFaults, Backend):
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
         self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
-        # each family's cycle frames, a message built once around each (their data rewritten in place)
-        self._fam_msgs = [
-            (
-                f,
-                [
-                    self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
-                    for c in f.cycle()
-                ],
-            )
-            for f in self._fams
-        ]
+        # the families' cycle frames by id(): a message built once around each (its data rewritten in place)
+        self._fam_msgs: dict[int, Any] = {}
+        # a family's reply deadline per motor (s after the cycle's commands; None: the receive time-out)
+        self._reply_by: list[float | None] = [None] * self.n_slaves
+        for i, fam in self._fam_of.items():
+            self._reply_by[i] = fam.deadline_s(i)
+        self._sent_at: float | None = None  # when this cycle's commands went out (while a deadline counts)
+        by = [d for d in self._reply_by if d is not None]
+        self._deadlines = bool(by)
+        self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
         self._families = any(at is not None for at in self._error_at) or bool(self._fam_of)
-        self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -512,22 +486,11 @@ class RawCanBackend(CanFaults, Backend):
     def set_mode(self, slave: int | str, mode: str) -> None:
         """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
         then its commands go out as that mode's frames. Blocking: call it between cycles.
-        An ODrive gets Set_Controller_Mode (CANSimple has no read-back of it; firmware 0.6 could read the
-        endpoint) and its set-points go out as that mode's command from the next cycle."""
+        A family on the protocol: its ``set_mode`` steps, that mode's commands from the next cycle."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        od = self._od[i]
-        if od is not None:
-            try:
-                new_od = od.mode_named(mode)
-            except KeyError:
-                raise FieldbusError(
-                    f"{self.areas[i].slave.name}: no mode '{mode}' (have: {', '.join(m.name for m in od.modes)})"
-                ) from None
-            try:
-                self._od_frame(i, "set_controller_mode", odrive.controller_mode_frame(new_od))
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("send", exc) from exc
-            self._od_mode[i] = new_od
+        fam = self._fam_of.get(i)
+        if fam is not None:
+            self._steps(fam.set_mode(i, mode), "mode switch", i, timeout=StateTransitionError)
             return
         cm = self._cm[i]
         if cm is not None:
@@ -555,7 +518,10 @@ class RawCanBackend(CanFaults, Backend):
         if cm is not None and cm.protocol == "servo":
             found = cm.mode_of_packet(int(self._mode_values(i)[cm.mode_field]))
             return found.name if found is not None else None
-        m = self._mode[i] or self._od_mode[i]
+        fam = self._fam_of.get(i)
+        if fam is not None:
+            return fam.mode(i)
+        m = self._mode[i]
         return m.name if m is not None else None
 
     def error_code(self, slave: int | str) -> int:
@@ -574,9 +540,9 @@ class RawCanBackend(CanFaults, Backend):
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
         the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
-        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); ODrive: Clear_Errors, then
-        CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
-        declarative (``frames``): the map's clear and enable patterns, if any. A CubeMars servo has no clear command:
+        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); a family on the protocol: its
+        recovery steps, each awaited answer or condition bounded (MIT: enter motor mode, answered;
+        declarative ``frames``: the map's clear and enable patterns, if any). A CubeMars servo has no clear command:
         True only when its error code is 0 again (after a power cycle). Raises
         :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
@@ -584,21 +550,6 @@ class RawCanBackend(CanFaults, Backend):
         self._seed_from_actual(i)
         cfg = self.areas[i].slave.map.rawcan
         assert cfg is not None
-        proto = self._od[i]
-        if proto is not None:
-            a = self.areas[i]
-            self.groups[a.group].image.outputs.values[a.row][proto.request_field] = proto.closed_loop
-            try:
-                self._od_frame(i, "clear_errors", proto.clear)
-                self._od_hb[i] = None
-                self._od_request_state(i, proto.closed_loop)
-                self._od_wait_heartbeat(i, proto.closed_loop)
-            except StateTransitionError:
-                return False
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("send", exc) from exc
-            self._codes[i] = 0
-            return True
         fam = self._fam_of.get(i)
         if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
             if self._requests(fam.recover(i)):
@@ -623,17 +574,10 @@ class RawCanBackend(CanFaults, Backend):
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
         session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). Damiao:
         the clear-error frame, True when its status reply came (its code then in :meth:`error_code`);
-        ODrive: Clear_Errors (the heartbeat tells); declarative: the map's clear pattern. False for a
-        motor whose family has no clear command (MIT, CubeMars)."""
+        a family on the protocol: its clear frames (declarative: the map's clear pattern). False for a motor whose family has no clear command (MIT, CubeMars)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         cfg = self.areas[i].slave.map.rawcan
         assert cfg is not None
-        if self._od[i] is not None and cfg.odrive is not None:
-            try:
-                self._od_frame(i, "clear_errors", cfg.odrive.clear)
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("send", exc) from exc
-            return True
         fam = self._fam_of.get(i)
         if fam is not None:
             frames = fam.commands("clear", i)
@@ -662,9 +606,39 @@ class RawCanBackend(CanFaults, Backend):
 
     def _send_raw(self, can_id: int, extended: bool, data: bytes) -> None:
         try:
-            self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=extended))
+            self._bus.send(self._frame_message(can_id, extended, data))
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
+
+    def _frame_message(self, can_id: int, extended: bool, data: bytes) -> Any:
+        """A family's frame as a python-can message (data :class:`~fieldbus.core.canfamily.Remote`: an RTR)."""
+        if isinstance(data, Remote):
+            return self._message(
+                arbitration_id=can_id, is_remote_frame=True, dlc=len(data), is_extended_id=extended
+            )
+        return self._message(arbitration_id=can_id, data=data, is_extended_id=extended)
+
+    def _cycle_message(self, c: Any) -> Any:
+        """The message around a family's cycle frame ``c`` (its data bytearray shared; ``remote``: an RTR)."""
+        if getattr(c, "remote", False):
+            return self._message(
+                arbitration_id=c.can_id, is_remote_frame=True, dlc=len(c.data), is_extended_id=c.extended
+            )
+        return self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
+
+    def _take(self, msg: Any) -> bool:
+        """A family's status frame (not a cycle reply) taken in; a motor whose error code it changed is
+        checked at once. False when no family takes it."""
+        if msg.is_remote_frame or msg.is_error_frame:
+            return False
+        data = bytes(msg.data)
+        for fam in self._fams:
+            motors = fam.take(msg.arbitration_id, msg.is_extended_id, data)
+            if motors:
+                for i in motors:
+                    self._family_error(i, fam)
+                return True
+        return False
 
     def _answered(self, i: int, frame: bytes) -> bool:
         """Send ``frame`` on motor ``i``'s command id; True when its reply came (copied to its row)."""
@@ -680,25 +654,105 @@ class RawCanBackend(CanFaults, Backend):
         return bool(self._arrived[i])
 
     def _requests(self, requests: Any) -> list[int]:
-        """Send a family's requests in order, each awaited reply within ``ENTER_TIMEOUT_S``; the motors that
-        did not answer (a step unanswered ends the sequence)."""
-        for req in requests:
+        """Send a family's requests in order (:meth:`_run`); the motors that did not answer."""
+        return self._run(requests)[0]
+
+    def _run(self, requests: Any) -> tuple[list[int], Request | None, Any]:
+        """Send a family's requests in order, each awaited reply (or condition: ``until``) within
+        ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); a step unanswered ends the sequence.
+        ``(the motors that did not answer, that request, the generator's result)``."""
+        requests = iter(requests)
+        send = getattr(requests, "send", None)  # a generator takes each answer's data back
+        got: bytes | None = None
+        while True:
+            try:
+                req = send(got) if send is not None else next(requests)
+            except StopIteration as done:
+                return [], None, done.value
             self._drain()
             for j in req.awaits:
                 self._arrived[j] = False
             self._send_raw(*req.frame)
-            if not req.awaits:
+            got = None
+            if req.answer is not None:
+                got = self._answer(req)
+                if got is None:
+                    return list(req.awaits), req, None
                 continue
-            deadline = self._now() + ENTER_TIMEOUT_S
+            if not req.awaits and req.until is None:
+                continue
+
+            def answered(r: Request = req) -> bool:
+                return r.until() if r.until is not None else all(self._arrived[j] for j in r.awaits)
+
+            deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
             try:
-                while not all(self._arrived[j] for j in req.awaits) and self._now() < deadline:
+                while not answered() and self._now() < deadline:
                     self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
             except (can.CanError, OSError) as exc:
                 raise self._io_failed("receive", exc) from exc
-            missing = [j for j in req.awaits if not self._arrived[j]]
-            if missing:
-                return missing
-        return []
+            if not answered():
+                return [j for j in req.awaits if req.until is not None or not self._arrived[j]], req, None
+
+    def _answer(self, req: Request) -> bytes | None:
+        """The data of the frame that answers ``req`` within its time-out (others taken in as ever), or None."""
+        assert req.answer is not None
+        deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
+        try:
+            while (left := deadline - self._now()) > 0:
+                msg = self._bus.recv(timeout=left)
+                if msg is None:
+                    continue
+                if not (msg.is_error_frame or msg.is_remote_frame):
+                    data = bytes(msg.data)
+                    if req.answer(msg.arbitration_id, msg.is_extended_id, data):
+                        return data
+                self._accept(msg, copy=True)
+        except (can.CanError, OSError) as exc:
+            raise self._io_failed("receive", exc) from exc
+        return None
+
+    def _steps(
+        self, steps: Any, what: str, i: int | None = None, *, timeout: type[FieldbusError] = BusTimeoutError
+    ) -> Any:
+        """Run a family's steps (configure, a mode switch, an access) to their result; a step unanswered
+        raises ``timeout`` (a transition's: :class:`~fieldbus.errors.StateTransitionError`), a refused
+        answer :class:`~fieldbus.errors.StateTransitionError`, an unknown name
+        :class:`~fieldbus.errors.FieldbusError`."""
+        try:
+            missing, req, result = self._run(steps)
+        except StepRefused as exc:
+            name = self.areas[exc.motor].slave.name
+            raise StateTransitionError(f"bus '{self.bus.name}': {name} {exc}", slave=name) from None
+        except ValueError as exc:
+            who = self.areas[i].slave.name if i is not None else what
+            raise FieldbusError(f"bus '{self.bus.name}': {who}: {exc}") from None
+        if missing and req is not None:
+            slave = self.areas[missing[0]].slave
+            wait = req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S
+            text = (
+                f"bus '{self.bus.name}': {slave.name} (node {slave.node_id}) did not answer "
+                f"{req.what or 'the ' + what} within {wait * 1000:.0f} ms"
+            )
+            raise (timeout(text, slave=slave.name) if timeout is StateTransitionError else timeout(text))
+        return result
+
+    def access(self, slave: int | str, key: int, value: bytes | None = None) -> bytes:
+        """Read (``value`` None) or write a register / endpoint of a motor of a family on the protocol
+        (its ``access`` steps: a write confirmed by reading it back); the value bytes the motor answers.
+        Blocking, between cycles. :class:`~fieldbus.errors.BusTimeoutError` without an answer;
+        :class:`~fieldbus.errors.FieldbusError` for a motor that has no such access."""
+        i = slave if isinstance(slave, int) else self.slave_index(slave)
+        fam = self._fam_of.get(i)
+        if fam is None:
+            raise FieldbusError(f"{self.areas[i].slave.name}: no register access of its family here")
+        got: bytes = self._steps(fam.access(i, key, value), f"access to {key}", i)
+        return got
+
+    def family(self, slave: int | str) -> CanFamily | None:
+        """The family object (:mod:`fieldbus.core.canfamily`) motor ``slave`` runs on, None when it runs on
+        the backend's own paths (for its own state)."""
+        return self._fam_of.get(slave if isinstance(slave, int) else self.slave_index(slave))
 
     def _mode_values(self, i: int) -> dict[str, float]:
         a = self.areas[i]
@@ -709,10 +763,8 @@ class RawCanBackend(CanFaults, Backend):
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
         for i, fam in self._fam_of.items():
-            if self._arrived[i] and (err := fam.error(i)) is not None and err[0] != self._codes[i]:
-                if err[1] is not None:
-                    self._fault(i, err[0], err[1])
-                self._codes[i] = err[0]
+            if self._arrived[i]:
+                self._family_error(i, fam)
         for i, at in enumerate(self._error_at):
             if at is None or not self._arrived[i]:
                 continue
@@ -727,6 +779,13 @@ class RawCanBackend(CanFaults, Backend):
                 if code not in ok:
                     self._fault(i, code, proto.error_name(code))
                 self._codes[i] = code
+
+    def _family_error(self, i: int, fam: CanFamily) -> None:
+        """Motor ``i``'s error code as its family reads it: a new fault code is one counted, named fault."""
+        if (err := fam.error(i)) is not None and err[0] != self._codes[i]:
+            if err[1] is not None:
+                self._fault(i, err[0], err[1])
+            self._codes[i] = err[0]
 
     def _fault(self, i: int, code: int, name: str) -> None:
         """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
@@ -746,217 +805,18 @@ class RawCanBackend(CanFaults, Backend):
             out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
         return tuple(out)
 
-    # -- family odrive -------------------------------------------------------------------
     def _little(self, i: int) -> bool:
         cfg = self.areas[i].slave.map.rawcan
         return cfg is not None and cfg.byte_order == "little"
 
-    def _od_of(self, i: int) -> odrive.OdriveProtocol | None:
-        cfg = self.areas[i].slave.map.rawcan
-        return cfg.odrive if cfg is not None else None
-
-    def _odrive_init(self, i: int, cfg: Any, node: int) -> int:
-        """Frames and routing of ODrive motor ``i``; returns the CAN id of its cyclic reply."""
-        proto: odrive.OdriveProtocol = cfg.odrive
-        if not 0 <= node < 0x40:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: an ODrive node id is 0..63 (11-bit id = node << 5 | cmd)"
-            )
-        self._od_mode[i] = proto.mode_named(proto.mode)
-        for m in proto.modes:
-            self._od_msgs[i][m.command] = self._message(
-                arbitration_id=node << 5 | m.command, data=bytearray(8), is_extended_id=False
-            )
-        reply_id = proto.can_id(node, "get_encoder_estimates")
-        self._od_rtr[i] = self._message(
-            arbitration_id=reply_id, is_remote_frame=True, dlc=8, is_extended_id=False
-        )
-        self._od_side[proto.can_id(node, "heartbeat")] = (i, "heartbeat")
-        if proto.protocol == "0.6":
-            self._od_side[proto.can_id(node, "get_error")] = (i, "get_error")
-            self._od_side[proto.can_id(node, "txsdo")] = (i, "txsdo")
-        at, offsets = 0, {}
-        for f in cfg.reply:
-            offsets[f.name] = at
-            at += f.bits // 8
-        self._od_at[i] = (offsets[proto.error_field], offsets[proto.state_field])
-        return reply_id
-
-    def _od_frame(self, i: int, command: str, data: bytes = b"", remote: bool = False) -> None:
-        proto = self._od[i]
-        assert proto is not None
-        node = self.areas[i].slave.node_id or 0
-        msg = self._message(
-            arbitration_id=proto.can_id(node, command),
-            data=data,
-            is_remote_frame=remote,
-            dlc=8 if remote else len(data),
-            is_extended_id=False,
-        )
-        self._bus.send(msg)
-
-    def _side_frame(self, msg: Any) -> bool:
-        """A heartbeat, Get_Error or TxSdo frame of an ODrive: taken in (image, faults), True; else False."""
-        got = self._od_side.get(msg.arbitration_id)
-        if got is None or msg.is_remote_frame or msg.is_extended_id:
-            return False
-        i, kind = got
-        data = bytes(msg.data)
-        proto = self._od[i]
-        assert proto is not None
-        if kind == "heartbeat" and len(data) >= 5:
-            error, state = odrive.heartbeat(data)
-            row, (e_at, s_at) = self._reply_rows[i], self._od_at[i]
-            row[e_at : e_at + 4] = np.frombuffer(data[:4], dtype=np.uint8)
-            row[s_at] = state
-            last = self._od_hb[i]
-            self._od_hb[i] = (error, state)
-            if error and (last is None or last[0] != error):
-                self._fault(i, error, proto.error_names(error))
-                if proto.protocol == "0.6":  # the detail: active errors and the disarm reason
-                    self._od_frame(i, "get_error", remote=True)
-        elif kind == "get_error" and len(data) == 8:
-            self.active_errors[self.areas[i].slave.name] = (
-                int.from_bytes(data[:4], "little"),
-                int.from_bytes(data[4:], "little"),
-            )
-        elif kind == "txsdo":
-            answer = odrive.sdo_reply(data)
-            if answer is not None:
-                self._sdo_answer = (i, *answer)
-        return True
-
-    def _await(self, done: Any, timeout_s: float) -> bool:
-        """Receive (taking in side frames) until ``done()`` or the time-out; True when done."""
-        deadline = self._now() + timeout_s
-        try:
-            while not done() and (left := deadline - self._now()) > 0:
-                msg = self._bus.recv(timeout=left)
-                if msg is not None and not msg.is_error_frame:
-                    self._side_frame(msg)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("receive", exc) from exc
-        return bool(done())
-
-    def _od_wait_heartbeat(self, i: int, state: int | None = None) -> None:
-        proto = self._od[i]
-        assert proto is not None
-        timeout = max(ENTER_TIMEOUT_S, 3 * proto.heartbeat_ms / 1000)
-        hb = self._od_hb
-
-        def reached() -> bool:
-            seen = hb[i]
-            return seen is not None and (state is None or seen[1] == state)
-
-        # ask for one now (RTR) rather than only wait for the next cyclic one: a heartbeat sent before this
-        # bus listened, or drained at configure, is not repeated by a controller whose heartbeat timer is
-        # slow or stopped; a firmware that ignores the request still sends its cyclic heartbeats
-        try:
-            self._od_frame(i, "heartbeat", remote=True)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("send", exc) from exc
-        if not self._await(reached, timeout):
-            slave = self.areas[i].slave
-            seen = hb[i]
-            what = (
-                "no heartbeat"
-                if seen is None
-                else f"axis state {seen[1]}, error {proto.error_names(seen[0])}"
-            )
-            raise StateTransitionError(
-                f"bus '{self.bus.name}': {slave.name} (ODrive node {slave.node_id}) "
-                + (f"did not reach axis state {state}: " if state is not None else "")
-                + f"{what} within {timeout * 1000:.0f} ms",
-                slave=slave.name,
-            )
-
-    def sdo(self, slave: int | str, endpoint: int, value: bytes | None = None) -> bytes:
-        """Read (``value`` None) or write an ODrive endpoint through RxSdo (firmware 0.6); a write is
-        confirmed by reading it back. Returns the 4 value bytes the controller answers. Blocking."""
-        i = slave if isinstance(slave, int) else self.slave_index(slave)
-        proto = self._od[i]
-        if proto is None or proto.protocol != "0.6":
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: no endpoint access over CAN (ODrive firmware 0.6 only)"
-            )
-        self._drain()
-        try:
-            if value is not None:
-                self._od_frame(i, "rxsdo", odrive.sdo_request(odrive.SDO_WRITE, endpoint, value))
-            self._sdo_answer = None
-            self._od_frame(i, "rxsdo", odrive.sdo_request(odrive.SDO_READ, endpoint))
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("endpoint access", exc) from exc
-        if not self._await(
-            lambda: self._sdo_answer is not None and self._sdo_answer[:2] == (i, endpoint), REGISTER_TIMEOUT_S
-        ):
-            raise BusTimeoutError(
-                f"bus '{self.bus.name}': {self.areas[i].slave.name} did not answer the read of endpoint "
-                f"{endpoint} within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
-            )
-        assert self._sdo_answer is not None
-        return self._sdo_answer[2]
-
-    def _configure_odrive(self, i: int) -> None:
-        """A heartbeat seen; Set_Controller_Mode for the map's mode; the map's endpoints written and read back."""
-        proto, mode = self._od[i], self._od_mode[i]
-        assert proto is not None and mode is not None
-        self._drain()
-        self._od_wait_heartbeat(i)
-        try:
-            self._od_frame(i, "set_controller_mode", odrive.controller_mode_frame(mode))
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("send", exc) from exc
-        for item in proto.config:
-            back = odrive.unpack_config(item, self.sdo(i, item.endpoint, odrive.pack_config(item)))
-            if back != odrive.unpack_config(item, odrive.pack_config(item)):
-                raise StateTransitionError(
-                    f"bus '{self.bus.name}': {self.areas[i].slave.name} endpoint {item.name} ({item.endpoint}) "
-                    f"reads back {back:g} after writing {item.value:g}",
-                    slave=self.areas[i].slave.name,
-                )
-
-    def _od_request_state(self, i: int, state: int) -> None:
-        self._od_frame(i, "set_axis_state", odrive.axis_state_frame(state))
-        self._od_sent_state[i] = state
-
-    def _op_odrive(self) -> None:
-        """Every ODrive: CLOSED_LOOP_CONTROL requested (and written to the image's requested state), then
-        awaited in the heartbeats."""
-        for i, proto in enumerate(self._od):
-            if proto is None:
-                continue
-            a = self.areas[i]
-            self.groups[a.group].image.outputs.values[a.row][proto.request_field] = proto.closed_loop
-            self._od_hb[i] = None  # the state is read from a heartbeat that comes after the request
-            try:
-                self._od_request_state(i, proto.closed_loop)
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("send", exc) from exc
-            self._od_wait_heartbeat(i, proto.closed_loop)
-
-    def _send_odrive(self, i: int, proto: odrive.OdriveProtocol) -> None:
-        """One ODrive's cycle: Set_Axis_State when the image asks a new state; the set-point unless IDLE; the RTR."""
-        row = self.out_row(i)  # the wire bytes (byte_order little: in frame order)
-        want = odrive.requested_state(proto, row)
-        if want and want != self._od_sent_state[i]:
-            self._od_request_state(i, want)
-        mode = self._od_mode[i]
-        assert mode is not None
-        if want != proto.idle:
-            m = self._od_msgs[i][mode.command]
-            odrive.encode_setpoint(mode, row, m.data)
-            self._bus.send(m)
-        self._bus.send(self._od_rtr[i])
-
     def configure(self) -> None:
-        """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); MIT motors
-        of family ``mit`` have no registers: nothing to configure."""
+        """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); families on
+        the protocol: their ``configure`` steps; MIT motors have no registers: nothing to configure."""
         for i in range(self.n_slaves):
             if self._mode[i] is not None:
                 self._configure_damiao(i)
-            if self._od[i] is not None:
-                self._configure_odrive(i)
+        for fam in self._fams:
+            self._steps(fam.configure(), "configure", timeout=StateTransitionError)
 
     def safe_op(self) -> None:
         """Nothing: motors stay out of motor mode until :meth:`op`."""
@@ -965,13 +825,15 @@ class RawCanBackend(CanFaults, Backend):
         for i, cm in enumerate(self._cm):
             if cm is not None and cm.protocol == "servo":
                 self._set_servo_mode(i, cm, cm.mode)  # the map's packet, from the first cycle
-        if self._odrives:
-            self._op_odrive()
         missing = self._special("enter")
         if missing:
             raise StateTransitionError(
                 f"bus '{self.bus.name}': no answer to enter-motor-mode from "
-                + ", ".join(self.areas[i].slave.name for i in missing)
+                + ", ".join(
+                    self.areas[i].slave.name + (f" ({w})" if (w := self._unmet.get(i)) else "")
+                    for i in missing
+                ),
+                slave=self.areas[missing[0]].slave.name,
             )
 
     def _special(self, which: str) -> list[int]:
@@ -980,14 +842,18 @@ class RawCanBackend(CanFaults, Backend):
         Raises :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         self._drain()
+        self._unmet: dict[int, str] = {}  # motor -> the condition it did not meet (its request's ``what``)
+        conditions: list[Request] = []  # requests whose condition is awaited (not a reply)
         try:
             awaited: set[int] = set()
             for fam in self._fams:  # the families' requests (declarative: patterns, no answer awaited)
                 reqs: list[Request] = list(fam.bring_up(which))
                 for req in reqs:
-                    can_id, ext, data = req.frame
-                    self._bus.send(self._message(arbitration_id=can_id, data=data, is_extended_id=ext))
-                    awaited.update(req.awaits)
+                    self._bus.send(self._frame_message(*req.frame))
+                    if req.until is not None:
+                        conditions.append(req)
+                    else:
+                        awaited.update(req.awaits)
             for i, area in enumerate(self.areas):
                 cfg = area.slave.map.rawcan
                 assert cfg is not None
@@ -1001,12 +867,6 @@ class RawCanBackend(CanFaults, Backend):
                     elif which == "exit" and (off := cm.mode_of_packet(SERVO_CURRENT)) is not None:
                         self._servo_packet(i, off.packet, cubemars.encode_servo(off.fields, {}))  # no current
                     continue
-                if cfg.odrive is not None:
-                    if which == "clear":
-                        self._od_frame(i, "clear_errors", cfg.odrive.clear)
-                    elif which == "exit":
-                        self._od_request_state(i, cfg.odrive.idle)
-                    continue  # no answer to await: the heartbeat tells
                 if which == "clear":
                     if cfg.damiao is None:
                         continue  # nothing to clear on this motor
@@ -1019,37 +879,43 @@ class RawCanBackend(CanFaults, Backend):
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
-        for i, proto in enumerate(self._od):
-            cm = self._cm[i]
+        for i, cm in enumerate(self._cm):
             fam_done = self._fr[i] and i not in awaited
-            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or fam_done
+            self._arrived[i] = (cm is not None and cm.protocol == "servo") or fam_done
         if which == "clear":
             for i, area in enumerate(self.areas):
                 self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
-        deadline = self._now() + ENTER_TIMEOUT_S
+        deadline = self._now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
+
+        def met() -> bool:
+            return all(r.until() for r in conditions if r.until is not None)
+
         try:
-            while not self._arrived.all() and self._now() < deadline:
+            while not (self._arrived.all() and met()) and self._now() < deadline:
                 self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
-        return [i for i in range(self.n_slaves) if not self._arrived[i]]
+        self._unmet = {
+            j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits
+        }
+        return [i for i in range(self.n_slaves) if not self._arrived[i] or i in self._unmet]
 
     def send(self) -> None:
         """One command frame per motor. Raises :class:`~fieldbus.errors.BusIoError` when the driver refuses one."""
         # What is still queued came after the last receive(): a reply there answers an earlier
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
+        if self._deadlines:
+            self._sent_at = self._now()
         try:
-            for fam, msgs in self._fam_msgs:
-                fam.cycle()
-                for m in msgs:
+            for fam in self._fams:
+                for c in fam.cycle():
+                    m = self._fam_msgs.get(id(c))
+                    if m is None:  # once per frame object: its data bytearray is the message's
+                        m = self._fam_msgs[id(c)] = self._cycle_message(c)
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
                 if self._fr[i]:
-                    continue
-                proto = self._od[i]
-                if proto is not None:
-                    self._send_odrive(i, proto)
                     continue
                 cm = self._cm[i]
                 if cm is not None and cm.protocol == "servo":
@@ -1075,6 +941,8 @@ class RawCanBackend(CanFaults, Backend):
         recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
         clock = self._now
         deadline = clock() + self._timeout_s
+        if self._wait_cap is not None and self._sent_at is not None:  # every reply has its own deadline
+            deadline = min(deadline, self._sent_at + self._wait_cap)
         count = 0
         try:
             while count < n:
@@ -1084,8 +952,10 @@ class RawCanBackend(CanFaults, Backend):
                 count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
+            self._sent_at = None
             raise self._io_failed("receive", exc) from exc
         self._cycles += 1
+        self._sent_at = None
         if self._families:
             self._watch_errors()
         return count if count else None
@@ -1094,8 +964,6 @@ class RawCanBackend(CanFaults, Backend):
         """The motor whose reply ``msg`` is, or -1 (not a reply; error frames counted here)."""
         if msg.is_error_frame:
             self._error_frame(msg)
-            return -1
-        if self._odrives and self._side_frame(msg):
             return -1
         if msg.is_extended_id and not msg.is_remote_frame:
             return self._cm_status.get(msg.arbitration_id, -1)
@@ -1117,6 +985,8 @@ class RawCanBackend(CanFaults, Backend):
                 motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
                 if motors:
                     return self._accept_family(fam, motors, msg, copy=copy)
+            if self._take(msg):
+                return 0
         i = self._motor(msg)
         if i < 0:
             return False
@@ -1142,11 +1012,20 @@ class RawCanBackend(CanFaults, Backend):
         if any(self._arrived[i] for i in motors):
             self.extra_frames += 1
             return 0
+        if copy and self._sent_at is not None and self._past_deadline(motors):
+            self.late_frames += 1  # stale: its motors' inputs are held
+            return 0
         if copy:
             motors = fam.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
         for i in motors:
             self._arrived[i] = True
         return len(motors)
+
+    def _past_deadline(self, motors: Any) -> bool:
+        """A reply of ``motors`` now is past the reply deadline of one of them (a shared frame: any)."""
+        assert self._sent_at is not None
+        now = self._now()
+        return any((d := self._reply_by[i]) is not None and now > self._sent_at + d for i in motors)
 
     def _family_carries(self, msg: Any) -> Sequence[int]:
         """The motors a family's reply ``msg`` is for (empty: no family's)."""
@@ -1184,6 +1063,8 @@ class RawCanBackend(CanFaults, Backend):
                         self.extra_frames += 1
                     else:
                         self.late_frames += 1
+                    continue
+                if self._fams and self._take(msg):
                     continue
                 i = self._motor(msg)
                 if i >= 0:

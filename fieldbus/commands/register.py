@@ -32,6 +32,7 @@ from typing import Any
 from fieldbus.commands.argtypes import UsageError
 from fieldbus.commands.usage import FAILED, add_command
 from fieldbus.core import damiao_registers
+from fieldbus.core.canfamily import families
 from fieldbus.core.damiao_registers import Register
 from fieldbus.errors import FieldbusError
 
@@ -131,12 +132,8 @@ def run(args: argparse.Namespace) -> int:
         return _clear_fault(args, bus, slave)
     if args.reg is None:
         raise UsageError("give REG (a register or endpoint), or --clear-fault")
-    if cfg is not None and cfg.odrive is not None and cfg.odrive.protocol != "0.6":
-        raise FieldbusError(
-            f"{slave.name} (map {slave.map.name}): ODrive firmware {cfg.odrive.protocol} has no endpoint access "
-            "over CAN (RxSdo is firmware 0.6): configure it over USB (odrivetool)"
-        )
-    if cfg is None or (cfg.damiao is None and cfg.odrive is None):
+    registered = families().get(family) if cfg is not None and cfg.protocol is not None else None
+    if cfg is None or (cfg.damiao is None and registered is None):
         raise FieldbusError(
             f"{slave.name} (map {slave.map.name}, family {family}): no registers over CAN; "
             "Damiao (family damiao) and ODrive 0.6 (family odrive) motors have them"
@@ -144,8 +141,14 @@ def run(args: argparse.Namespace) -> int:
     where = f"{bus.name} {slave.name} (node {slave.node_id})"
     if cfg.damiao is not None:
         reg_no, reg_name, type_name, read_only = _damiao_register(args, where)
-    else:
-        reg_no, reg_name, type_name, read_only = _odrive_endpoint(args, cfg.odrive, where)
+    else:  # a family on the protocol names its own (ODrive: endpoints)
+        assert registered is not None
+        try:
+            reg_no, reg_name, type_name, read_only = registered.register_key(
+                cfg.protocol, args.reg, args.type_name, args.value is not None
+            )
+        except ValueError as exc:
+            raise FieldbusError(f"{where} (map {slave.map.name}): {exc}") from None
     value = None if args.value is None else parse_value(args.value, type_name, f"{where} {reg_name}")
     if value is not None and read_only:
         raise FieldbusError(f"{where}: register {reg_name} ({reg_no}) is read-only")
@@ -165,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             fmt = TYPES[type_name]
             data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
-            got = float(struct.unpack(fmt, backend.sdo(i, reg_no, data))[0])
+            got = float(struct.unpack(fmt, backend.access(i, reg_no, data))[0])
     finally:
         backend.close()
     if value is not None:
@@ -242,23 +245,3 @@ def _damiao_register(args: argparse.Namespace, where: str) -> tuple[int, str, st
     if args.type_name is None and args.value is not None:
         raise FieldbusError(f"{where}: register {found} is not in the table: give --type float32 or uint32")
     return found, f"register {found}", args.type_name or "uint32", False
-
-
-def _odrive_endpoint(args: argparse.Namespace, proto: Any, where: str) -> tuple[int, str, str, bool]:
-    item = next((c for c in proto.config if c.name == args.reg), None)
-    if item is not None:
-        type_name = "float32" if item.type == "float32" else item.type
-        return item.endpoint, item.name, args.type_name or type_name, False
-    try:
-        endpoint = int(args.reg, 0)
-    except ValueError:
-        named = ", ".join(c.name for c in proto.config) or "none"
-        raise FieldbusError(
-            f"{where}: '{args.reg}' is neither an endpoint id (0..65535) nor an endpoint of the map's "
-            f"odrive.config (named there: {named})"
-        ) from None
-    if not 0 <= endpoint <= 0xFFFF:
-        raise FieldbusError(f"{where}: endpoint ids are 0..65535, not {endpoint}")
-    if args.type_name is None and args.value is not None:
-        raise FieldbusError(f"{where}: endpoint {endpoint}: give --type float32, uint32, int32 or bool")
-    return endpoint, f"endpoint {endpoint}", args.type_name or "uint32", False

@@ -785,7 +785,7 @@ def _motor_frames(
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
     (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them;
     CAN FD frames on an FD bus (the backend sends every data frame as FD there)."""
-    if cfg.damiao is not None or cfg.odrive is not None:
+    if cfg.damiao is not None:
         return family_frames(name, cfg, node, frame_bits, fd=fd)
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
@@ -815,18 +815,25 @@ def protocol_frames(
     family = families()[cfg.family]
     return [
         (
-            CanFrame(t.can_id, t.data_bytes, t.label, t.extended, fd, frame_bits=frame_bits, after=t.after),
+            CanFrame(
+                t.can_id,
+                t.data_bytes,
+                t.label,
+                t.extended,
+                fd and not t.remote,  # a remote frame stays classic (CAN FD has none)
+                t.period_us,
+                frame_bits=frame_bits,
+                after=t.after,
+            ),
             t.shared,
         )
         for t in family.wire_frames(name, cfg.protocol, node)
     ]
 
 
-#: Data bytes the master puts in every Damiao mode frame and ODrive set-point: the rawcan backend
-#: zero-pads them to 8 (Damiao velocity mode and ODrive Set_Input_Torque carry 4 bytes of numbers).
+#: Data bytes the master puts in every Damiao mode frame: the rawcan backend zero-pads them to 8 (Damiao
+#: velocity mode carries 4 bytes of numbers).
 RAWCAN_COMMAND_BYTES = 8
-#: ODrive replies on classic CAN: Get_Encoder_Estimates (2 x float32) and the heartbeat (8-byte DBC length).
-ODRIVE_REPLY_BYTES = 8
 
 
 def family_frames(
@@ -837,59 +844,22 @@ def family_frames(
     mode: str | None = None,
     fd: bool = False,
 ) -> list[CanFrame]:
-    """One cycle of a Damiao or ODrive motor as the rawcan backend runs it, from its map's family section.
-
-    Damiao: the command of ``mode`` (default: the map's, written to CTRL_MODE at bring-up) on
-    ``node + id_offset`` (MIT +0x000, position-velocity +0x100, velocity +0x200, position-force +0x300),
-    8 bytes, and its 8-byte reply on MST_ID. ODrive (CANSimple, ``node << 5 | command``): the mode's
-    set-point (8 bytes), the Get_Encoder_Estimates remote frame (no data field: counted as 0 data bytes)
-    and its 8-byte answer; the heartbeat (8 bytes every ``heartbeat_ms``) as a background frame.
-    ``fd``: the data frames as CAN FD (an FD bus); a remote frame stays classic (CAN FD has none).
+    """One cycle of a Damiao motor as the rawcan backend runs it, from its map's family section: the
+    command of ``mode`` (default: the map's, written to CTRL_MODE at bring-up) on ``node + id_offset``
+    (MIT +0x000, position-velocity +0x100, velocity +0x200, position-force +0x300), 8 bytes, and its
+    8-byte reply on MST_ID. ``fd``: the data frames as CAN FD (an FD bus).
     """
-    if cfg.damiao is not None:
-        dm = cfg.damiao
-        m = dm.mode_named(mode or dm.mode)
-        command = CanFrame(
-            node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", fd=fd, frame_bits=frame_bits
-        )
-        reply = CanFrame(
-            cfg.reply_can_id(node), 8, f"{name} reply", fd=fd, frame_bits=frame_bits, after=command.label
-        )
-        return [command, reply]
-    od = cfg.odrive
-    if od is None:
-        raise ValueError(f"{name}: not a Damiao or ODrive map")
-    om = od.mode_named(mode or od.mode)
-    setpoint = CanFrame(
-        node << 5 | om.command,
-        RAWCAN_COMMAND_BYTES,
-        f"{name} {om.name} set-point",
-        fd=fd,
-        frame_bits=frame_bits,
+    dm = cfg.damiao
+    if dm is None:
+        raise ValueError(f"{name}: not a Damiao map")
+    m = dm.mode_named(mode or dm.mode)
+    command = CanFrame(
+        node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", fd=fd, frame_bits=frame_bits
     )
-    estimates_id = od.can_id(node, "get_encoder_estimates")
-    rtr = CanFrame(estimates_id, 0, f"{name} encoder RTR", frame_bits=frame_bits)
-    estimates = CanFrame(
-        estimates_id,
-        ODRIVE_REPLY_BYTES,
-        f"{name} encoder estimates",
-        fd=fd,
-        frame_bits=frame_bits,
-        after=rtr.label,
+    reply = CanFrame(
+        cfg.reply_can_id(node), 8, f"{name} reply", fd=fd, frame_bits=frame_bits, after=command.label
     )
-    out = [setpoint, rtr, estimates]
-    if od.heartbeat_ms > 0:
-        out.append(
-            CanFrame(
-                od.can_id(node, "heartbeat"),
-                ODRIVE_REPLY_BYTES,
-                f"{name} heartbeat",
-                fd=fd,
-                period_us=od.heartbeat_ms * 1000.0,
-                frame_bits=frame_bits,
-            )
-        )
-    return out
+    return [command, reply]
 
 
 def bus_bandwidth(

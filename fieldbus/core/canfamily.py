@@ -18,17 +18,25 @@ family there and nowhere else.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass
 from importlib import import_module
 from importlib.metadata import entry_points
 from typing import Any, ClassVar, NamedTuple, Protocol
 
 GROUP = "fieldbus.rawcan_families"
-#: Built-in families ported to the protocol (damiao, odrive, cubemars still run on the backend's own paths).
-BUILTIN = {"frames": "fieldbus.core.canframes:FramesFamily", "mit": "fieldbus.core.mitfamily:MitFamily"}
+#: Built-in families ported to the protocol (damiao, cubemars still run on the backend's own paths).
+BUILTIN = {
+    "frames": "fieldbus.core.canframes:FramesFamily",
+    "mit": "fieldbus.core.mitfamily:MitFamily",
+    "odrive": "fieldbus.core.odrivefamily:OdriveFamily",
+}
 
-Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data)
+Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data; a Remote: a remote frame)
+
+
+class Remote(bytes):
+    """The data of a remote (RTR) frame: its length is the DLC asked for, its bytes are not sent."""
 
 
 class FrameTime(NamedTuple):
@@ -41,6 +49,8 @@ class FrameTime(NamedTuple):
     extended: bool = False
     after: str | None = None
     shared: bool = False  # one frame for several motors of the bus: counted once (same id from each)
+    remote: bool = False  # a remote (RTR) frame: no data field, classic CAN even on an FD bus
+    period_us: float | None = None  # a background frame (a heartbeat) at most this often, not every cycle
 
 
 @dataclass(frozen=True)
@@ -59,15 +69,43 @@ class FamilyMotor:
 @dataclass(frozen=True)
 class Request:
     """One step of a bring-up or recovery: send ``frame``, then await a reply from each motor index in
-    ``awaits`` (empty: nothing to await, the next cycle's replies tell)."""
+    ``awaits`` (empty: nothing to await, the next cycle's replies tell).
+
+    With ``answer``: await the frame ``(can id, extended, data)`` for which it is true; its data is sent
+    back into the generator (``data = yield request``). With ``until``: await, instead of a reply, the
+    family's own condition (its state, as :meth:`CanFamily.take` and :meth:`CanFamily.route` leave it: "a
+    heartbeat says closed loop"). Either at most ``timeout_s`` seconds (None: the backend's bring-up
+    time-out); ``awaits`` then names the motors blamed when none came, ``what`` what they did not answer
+    (the generator is not resumed). The backend runs a family's generator step by step: code after a
+    ``yield`` sees the answer (a generator's ``return`` value is the result of an access). ``answer`` is
+    for transactions (configure, set_mode, access, recover); :meth:`CanFamily.bring_up`'s requests are
+    sent together and await replies (``awaits``) or conditions (``until``)."""
 
     frame: Frame
     awaits: tuple[int, ...] = ()
+    answer: Callable[[int, bool, bytes], bool] | None = None
+    until: Callable[[], bool] | None = None
+    timeout_s: float | None = None
+    what: str = ""
+
+
+#: A transaction: a generator of requests (each sent, its answer or condition awaited), its return value
+#: the transaction's result.
+Steps = Generator[Request, "bytes | None", Any]
+
+
+class StepRefused(ValueError):
+    """A step's answer refuses the map (a value that reads back otherwise): motor index ``motor``, the reason."""
+
+    def __init__(self, motor: int, reason: str) -> None:
+        super().__init__(reason)
+        self.motor = motor
 
 
 class CycleFrame(Protocol):
     """A command frame of the cycle; its ``data`` bytearray is rewritten in place by every
-    :meth:`CanFamily.cycle`, so the transport builds its message around it once."""
+    :meth:`CanFamily.cycle`, so the transport builds its message around it once. An object with a true
+    ``remote`` attribute goes out as a remote (RTR) frame asking for ``len(data)`` bytes."""
 
     can_id: int
     extended: bool
@@ -106,8 +144,9 @@ class CanFamily(ABC):
 
     @abstractmethod
     def cycle(self) -> Sequence[CycleFrame]:
-        """The command frames of one cycle, their data from the motors' output rows (same objects every
-        call, data rewritten in place: no allocation per cycle)."""
+        """The command frames of one cycle, their data from the motors' output rows (objects of a fixed
+        set, data rewritten in place: no allocation per cycle; which of them go out may change from one
+        cycle to the next, e.g. with a motor's mode)."""
 
     @abstractmethod
     def carries(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
@@ -131,6 +170,58 @@ class CanFamily(ABC):
     def error(self, motor: int) -> tuple[int, str | None] | None:
         """Motor index ``motor``'s error code in its last reply (its input row) and the fault's name, None
         for a code that is no fault; None when the family reports no error code."""
+
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """Most motors of this map one bus can hold (their CAN ids), None: no limit of the family's own."""
+        return None
+
+    def deadline_s(self, motor: int) -> float | None:
+        """The most time, s after the cycle's command frames are handed to the driver, motor index
+        ``motor``'s reply may take to count for its cycle (later: stale, counted late); None (the default):
+        the bus's receive time-out."""
+        return None
+
+    def take(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
+        """A frame that is no cycle reply but the family's (a heartbeat, a status, an answer to a request),
+        taken whenever it comes: its values into the motors' input rows, its answers into the family's
+        state; the motors whose error code it may have changed (the backend checks :meth:`error` of
+        each). Default: none."""
+        return ()
+
+    def set_mode(self, motor: int, mode: str) -> Steps:
+        """Switch motor index ``motor`` to the map's mode ``mode``, between cycles: the requests; its
+        commands go out in that mode from the next cycle. ``ValueError`` for an unknown mode or a
+        family without modes (the default)."""
+        raise ValueError(f"family {self.name} has no modes to switch")
+        yield  # pragma: no cover - a generator
+
+    def mode(self, motor: int) -> str | None:
+        """The mode motor index ``motor``'s commands go out in (None: the family has no modes)."""
+        return None
+
+    @classmethod
+    def register_key(
+        cls, config: Any, reg: str, type_name: str | None, writing: bool
+    ) -> tuple[int, str, str, bool]:
+        """Register / endpoint ``reg`` as a user names it (a name of the map section ``config``, or a
+        number; ``type_name``: the value type given, if any) for :meth:`access`: ``(key, label, value type
+        - float32, uint32, int32 or bool -, read-only)``. ``ValueError`` saying what is wrong; the default:
+        the family has no registers over CAN."""
+        raise ValueError(f"family {cls.name} has no registers or endpoints over CAN")
+
+    def access(self, motor: int, key: int, value: bytes | None = None) -> Steps:
+        """Read (``value`` None) or write then read back a motor's register / endpoint ``key``: the
+        requests; the generator returns the value bytes answered. ``ValueError`` when the family (the
+        default) or this motor's firmware has none."""
+        raise ValueError(f"family {self.name} has no registers or endpoints over CAN")
+        yield  # pragma: no cover - a generator
+
+    def configure(self) -> Steps:
+        """The bring-up's transaction (registers checked and written, ...); default: nothing.
+        :class:`StepRefused` for a motor whose answers refuse the map."""
+        return
+        yield
 
     def bring_up(self, which: str) -> Iterator[Request]:
         """The requests of a transition: ``enter`` (enable), ``exit`` (safe command, then disable),

@@ -8,8 +8,8 @@ A map of this family names a command frame and a feedback frame, each either per
       family: frames
       command:  {id: 0x200, motors: 2, fields: [{name: velocity, type: int, bits: 16, byte_order: little,
                                                  scale: 9.5493, unit: rad/s, safe_value: 0}]}
-      feedback: {id: 0x300, motors: 2, fields: [{name: position, type: int, bits: 16, byte_order: big,
-                                                 scale: 13037.97, unit: rad}]}
+      feedback: {id: 0x300, motors: 2, deadline_us: 4000,
+                 fields: [{name: position, type: int, bits: 16, byte_order: big, scale: 13037.97, unit: rad}]}
       enable: [0x01]       # optional byte patterns, sent on the command id (per motor: to each)
       disable: [0x00]
       zero: [0x02]
@@ -21,6 +21,9 @@ the frame's ``byte_order``, else little); ``scale`` (raw counts per engineering 
 at 0): ``raw = scale * value + offset``, so the image shows engineering units; ``safe_value`` (command
 fields): what the safe stop sends. ``fault`` names a feedback field and its code table
 (``codes: {0: ok, 3: over-current}``, ``ok: [0]``): a code outside ``ok`` is a motor fault.
+``deadline_us`` (feedback frame only, optional): the most time, µs after the cycle's command frames are
+handed to the driver, a feedback frame may take to count for its cycle; one that comes later is stale
+(counted late, its motors' inputs held), even within the bus's ``receive_timeout_us`` (default: that).
 
 The fields compile into the process image (command = outputs, feedback = inputs), so the image's
 ``to_wire``/``from_wire`` are the only encoders and decoders and its NaN and saturation rules hold: the
@@ -48,7 +51,7 @@ from fieldbus.core.rawcan import field_channel
 from fieldbus.core.yamlsrc import PathT
 
 SECTION_KEYS = ("family", "command", "feedback", "enable", "disable", "zero", "clear", "fault")
-FRAME_KEYS = ("id", "motors", "extended", "byte_order", "length", "fields")
+FRAME_KEYS = ("id", "motors", "extended", "byte_order", "length", "fields", "deadline_us")
 FIELD_KEYS = ("name", "type", "bits", "byte_order", "scale", "offset", "unit", "safe_value", "description")
 TYPES = ("uint", "int", "float32")
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)  # CAN FD data lengths past 8 bytes
@@ -115,6 +118,13 @@ def _pattern(r: Any, raw: Any, path: PathT) -> bytes:
 
 def _frame(r: Any, raw: Any, path: PathT, *, outputs: bool) -> FrameSpec:
     m = r.mapping(raw, path, FRAME_KEYS, required=("id", "fields"))
+    deadline: float | None = None
+    if "deadline_us" in m:
+        if outputs:
+            raise r.err((*path, "deadline_us"), "deadline_us belongs to the feedback frame", key=True)
+        deadline = r.number(m["deadline_us"], (*path, "deadline_us"))
+        if not (math.isfinite(deadline) and deadline > 0):
+            raise r.err((*path, "deadline_us"), f"deadline_us must be a finite time > 0 µs, not {deadline:g}")
     extended = r.boolean(m["extended"], (*path, "extended")) if "extended" in m else False
     can_id = r.integer(m["id"], (*path, "id"), 0, 0x1FFFFFFF if extended else 0x7FF)
     motors = r.integer(m.get("motors", 1), (*path, "motors"), 1, 64)
@@ -172,7 +182,7 @@ def _frame(r: Any, raw: Any, path: PathT, *, outputs: bool) -> FrameSpec:
         if f.byte_order == "big" and f.bits > 8:
             o, n = f.offset_bits // 8, f.bits // 8
             swap[o : o + n] = range(o + n - 1, o - 1, -1)
-    return FrameSpec(can_id, motors, extended, stride, length, tuple(fields), tuple(swap))
+    return FrameSpec(can_id, motors, extended, stride, length, tuple(fields), tuple(swap), deadline)
 
 
 def _channels(spec: FrameSpec, obj: int, *, outputs: bool) -> tuple[Channel, ...]:
@@ -277,6 +287,12 @@ class FramesFamily(CanFamily):
             out.append(FrameTime(cid, spec.length, label, spec.extended, after, spec.shared))
         return out
 
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """The slots of a shared frame (the fewer of command and feedback); None when none is shared."""
+        shared = [s.motors for s in (config.command, config.feedback) if s.shared]
+        return min(shared) if shared else None
+
     def cycle(self) -> list[WireFrame]:
         """The cycle's command frames, their data taken from the output rows (the image's ``to_wire``)."""
         np = self._np
@@ -297,6 +313,11 @@ class FramesFamily(CanFamily):
         for s in frame.slots:
             np.take(raw[s.offset : s.offset + len(s.swap)], s.swap, out=s.row[: len(s.swap)])
         return [s.motor for s in frame.slots]
+
+    def deadline_s(self, motor: int) -> float | None:
+        """The map's feedback ``deadline_us`` in seconds (None: the bus's receive time-out)."""
+        d = self.protocols[motor].feedback.deadline_us
+        return None if d is None else d / 1e6
 
     def carries(self, can_id: int, extended: bool, data: bytes) -> list[int]:
         frame = self.feedback.get((can_id, extended))

@@ -74,6 +74,7 @@ class FrameSpec:
     length: int  # data bytes of the frame
     fields: tuple[FrameField, ...]
     swap: tuple[int, ...]  # slot byte j travels as row byte swap[j] (big-endian fields reversed)
+    deadline_us: float | None = None  # feedback: later than this after the cycle's commands is stale
 
     @property
     def shared(self) -> bool:

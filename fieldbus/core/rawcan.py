@@ -38,10 +38,10 @@ RAWCAN_KEYS = (
 FAMILIES = (
     "mit",
     "damiao",
-    "odrive",
     "cubemars",
     "frames",
-)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple;
+)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive (CANSimple) is
+# found in the family table (fieldbus.core.canfamily.families) only;
 # cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars);
 # frames: any protocol described in data (fieldbus.core.canframes)
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")

@@ -236,3 +236,97 @@ def test_bring_up_asks_for_the_heartbeat_it_did_not_hear(tmp_path: Path) -> None
             op = network.bring_up()
             assert [sim.axes[n].state for n in NODES] == [8, 8, 8]
             assert _fresh_or_held(op.exchange())
+
+
+def test_an_axis_that_refuses_to_arm_stops_the_bring_up_naming_it_and_what_it_did_not_say(
+    tmp_path: Path,
+) -> None:
+    """On the kit's virtual clock: axis 2 has an error set, so it refuses CLOSED_LOOP_CONTROL and its
+    heartbeats keep saying IDLE; op() waits a bounded time for a heartbeat saying 8, then fails naming
+    a1 and the awaited state (the others' waits were met), and the failed bring-up lets every axis go."""
+    from fieldbus.errors import StateTransitionError
+
+    net, _channel = net_file(tmp_path, "odrive_s1.yaml")
+    with emulate(net, bring_up=False) as emu:
+        sim = emu.emulators["legs"].sim
+        sim.inject_error(2, 0x00002000)
+        start = emu.clock.now_ns()
+        with pytest.raises(StateTransitionError, match=r"a1 \(a heartbeat with axis state 8\)") as err:
+            emu.bring_up()
+        assert err.value.slave == "a1" and "a0" not in str(err.value) and "a2" not in str(err.value)
+        # the failed bring-up's stop sent every axis IDLE after its request for closed loop
+        for n in NODES:
+            states = [struct.unpack_from("<I", d)[0] for c, d, _ in sim.axes[n].frames if c == 0x07]
+            assert states[-2:] == [8, 1] and sim.axes[n].state == 1, (n, states)
+        waited_s = (emu.clock.now_ns() - start) / 1e9
+        assert 2.0 <= waited_s < 60.0, waited_s  # the bound (2 s of the clock), not forever
+
+
+def test_bring_up_writes_the_map_s_endpoints_and_reads_them_back(tmp_path: Path) -> None:
+    """A map for one firmware build lists the watchdog's endpoints under ``config:``: the bring-up writes
+    each through RxSdo and reads it back (TxSdo); the emulated controller then holds them, and its
+    watchdog (50 ms of the kit's virtual clock) idles an axis whose master stops sending."""
+    text = (Path(PDO_MAPS) / "odrive_s1.yaml").read_text()
+    config = (
+        "    config:\n"
+        "      - {name: watchdog_timeout, endpoint: 0x1B0, type: float32, value: 0.05}\n"
+        "      - {name: enable_watchdog, endpoint: 0x1B1, type: bool, value: 1}\n"
+    )
+    drive = tmp_path / "odrive_wd.yaml"
+    drive.write_text(
+        text.replace("name: odrive_s1", "name: odrive_wd").replace(
+            "    heartbeat_ms: 100", config + "    heartbeat_ms: 100"
+        )
+    )
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 1000\nreceive_timeout_us: 20000\nbuses:\n"
+        f"  - {{name: legs, type: rawcan, interface: can0, slaves: [{{name: 'a{{i}}', map: '{drive}', "
+        "node_id: 1, count: 2}]}\n"
+    )
+    with emulate(net, bring_up=False) as emu:
+        sim = emu.emulators["legs"].sim
+        for n in (1, 2):
+            sim.axes[n].endpoints.update({0x1B0: struct.pack("<f", 0.0), 0x1B1: struct.pack("<I", 0)})
+        sim._watchdog_ep = (0x1B0, 0x1B1)  # the emulated build's endpoint ids
+        op = emu.bring_up()
+        for n in (1, 2):
+            assert sim.endpoint(n, 0x1B0) == pytest.approx(0.05) and sim.endpoint(n, 0x1B1, "<I") == 1
+            rxsdo = [d for c, d, _ in sim.axes[n].frames if c == 0x04]
+            assert [(d[0], struct.unpack_from("<H", d, 1)[0]) for d in rxsdo] == [
+                (1, 0x1B0), (0, 0x1B0), (1, 0x1B1), (0, 0x1B1),
+            ]  # fmt: skip
+        clock = _Ticks(emu.clock)
+        for _ in range(5):
+            clock.t += 0.001
+            assert op.exchange().fresh
+        clock.t += 0.060  # no set-point for longer than the written 50 ms
+        sim.idle()
+        assert [sim.axes[n].state for n in (1, 2)] == [1, 1]
+
+
+def test_an_endpoint_that_reads_back_otherwise_stops_the_bring_up_naming_it(tmp_path: Path) -> None:
+    from fieldbus.errors import StateTransitionError
+
+    text = (Path(PDO_MAPS) / "odrive_s1.yaml").read_text()
+    config = "    config:\n      - {name: watchdog_timeout, endpoint: 0x1B0, type: float32, value: 0.05}\n"
+    drive = tmp_path / "odrive_wd.yaml"
+    drive.write_text(text.replace("    heartbeat_ms: 100", config + "    heartbeat_ms: 100"))
+    net = tmp_path / "net.yaml"
+    net.write_text(
+        "cycle_time_us: 1000\nreceive_timeout_us: 20000\nbuses:\n"
+        f"  - {{name: legs, type: rawcan, interface: can0, slaves: [{{name: a0, map: '{drive}', node_id: 1}}]}}\n"
+    )
+    with emulate(net, bring_up=False) as emu:
+        sim = emu.emulators["legs"].sim
+        sim.axes[1].endpoints[0x1B0] = struct.pack("<f", 0.0)
+        real = sim.handle
+
+        def stuck(msg: can.Message) -> can.Message | None:  # a read-only endpoint: writes are ignored
+            if msg.arbitration_id == 1 << 5 | 0x04 and msg.data[0] == 1:
+                return None
+            return real(msg)
+
+        sim.handle = stuck
+        with pytest.raises(StateTransitionError, match=r"a0 endpoint watchdog_timeout \(432\) reads back 0"):
+            emu.bring_up()

@@ -198,6 +198,9 @@ def test_odrive_endpoints_and_firmware_0_5(tmp_path: Path, capsys: pytest.Captur
         assert code == 1 and "neither an endpoint id" in err
         code, _, err = _run(capsys, "register", str(net), "legs", "a0", "0x1B0", "--save")
         assert code == 1 and "--save stores a Damiao motor's registers" in err
+        # an endpoint this firmware build does not have: no TxSdo, a bounded wait, a named time-out
+        code, _, err = _run(capsys, "register", str(net), "legs", "a1", "999", "--type", "uint32")
+        assert code == 1 and "a1 (node 2) did not answer the read of endpoint 999 within 200 ms" in err
     old, _ = _net(tmp_path, "legs", "a", Path(PDO_MAPS) / "odrive_3_6.yaml", 1)
     code, _, err = _run(capsys, "register", str(old), "legs", "a0", "0x1B0")
     assert code == 1 and "ODrive firmware 0.5 has no endpoint access over CAN" in err

@@ -10,6 +10,9 @@ from __future__ import annotations
 import asyncio
 import itertools
 import os
+import struct
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,20 +31,48 @@ pytestmark = pytest.mark.timeout(120)
 _channels = itertools.count()
 
 
+SET_POINTS = 400
+WAIT_S = 60.0  # the most a frame may take to be handled on a loaded machine (a bound, not a judgement)
+
+
+def _handled(sim: OdriveSimulator, node: int, seen: Callable[[list[tuple[int, bytes, bool]]], bool]) -> bool:
+    """Wait (bounded) until the frames axis ``node`` has handled satisfy ``seen``; its verdict."""
+    deadline = time.monotonic() + WAIT_S
+    while not seen(sim.axes[node].frames) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return seen(sim.axes[node].frames)
+
+
 def test_odrive_can_drives_the_emulator() -> None:
+    """odrive-can arms the emulator, sends 400 Set_Input_Pos and reads Get_Encoder_Estimates.
+
+    Judged in the emulator's own time, not the machine's: with ``dt_s`` the physics advance 1 ms per
+    set-point handled (no time passes between frames), so the estimate is the rotor after 400 ms of
+    following 0.75 turn however slowly a loaded machine delivers the frames. The driver's 0.5 s answer
+    time-out is wall-clock: a request it gave up on is asked again (no set-point in between: the same
+    answer); the driver's stop() is judged once the emulator has handled its Set_Axis_State."""
     channel = f"fb-odo-{os.getpid()}-{next(_channels)}"
     drive = load_drive_map(Path(PDO_MAPS) / "odrive_s1.yaml")
+    idle = drive.rawcan.odrive.idle if drive.rawcan and drive.rawcan.odrive else 1
+
+    async def estimates_of(driver: ODriveCAN) -> dict[str, float]:
+        for _ in range(20):  # bounded: 20 asks
+            try:
+                return dict(await driver.get_encoder_estimates())
+            except TimeoutError:
+                continue
+        raise AssertionError("no Get_Encoder_Estimates answer in 20 asks")
 
     async def run(driver: ODriveCAN) -> dict[str, float]:
         await driver.start()  # waits for a heartbeat
         driver.set_controller_mode("POSITION_CONTROL", "PASSTHROUGH")
         await driver.set_axis_state("CLOSED_LOOP_CONTROL")  # returns once the heartbeat says so
-        for _ in range(400):  # each set-point acts for 1 ms in the emulator
+        for _ in range(SET_POINTS):  # each set-point handled moves the emulator's physics 1 ms on
             driver.set_input_pos(0.75)
             await asyncio.sleep(0)
-        estimates = await driver.get_encoder_estimates()
+        estimates = await estimates_of(driver)
         driver.stop()  # sends Set_Axis_State IDLE
-        return dict(estimates)
+        return estimates
 
     with (
         can.Bus(interface="virtual", channel=channel) as sim_bus,
@@ -52,9 +83,16 @@ def test_odrive_can_drives_the_emulator() -> None:
             estimates = asyncio.run(run(ODriveCAN(axis_id=5, can_bus=driver_bus)))
         finally:
             driver_bus.shutdown()
+        state_cmd = 5 << 5 | 0x07
+        assert _handled(
+            sim, 5, lambda fs: any(c == 0x07 and d[:4] == struct.pack("<I", idle) for c, d, _ in fs)
+        ), f"the driver's IDLE (id 0x{state_cmd:X}) was not handled within {WAIT_S} s"
+        setpoints = [d for c, d, remote in sim.axes[5].frames if c == 0x0C and not remote]
+        assert len(setpoints) == SET_POINTS and sim.motor(5).commands >= SET_POINTS
+        assert {struct.unpack_from("<f", d)[0] for d in setpoints} == {0.75}
         assert estimates["Pos_Estimate"] == pytest.approx(0.75, abs=0.01)
-        assert sim.axes[5].control_mode == 3 and sim.axes[5].state == 1  # the driver's stop(): IDLE
-        assert sim.motor(5).commands >= 400
+        assert abs(estimates["Vel_Estimate"]) < 0.05  # settled, not passing through
+        assert sim.axes[5].control_mode == 3 and sim.axes[5].state == idle  # the driver's stop(): IDLE
         assert not sim.errors
 
 

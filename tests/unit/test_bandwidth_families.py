@@ -9,13 +9,14 @@ descriptions (Damiao: id + mode offset, replies on MST_ID = id + 0x10; ODrive CA
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from fieldbus import PDO_MAPS
 from fieldbus.cli import main
-from fieldbus.core.bandwidth import family_frames, network_bandwidth
+from fieldbus.core.bandwidth import family_frames, network_bandwidth, protocol_frames
 from fieldbus.core.network import load_network
 from fieldbus.core.pdo import load_drive_map
 
@@ -70,13 +71,16 @@ def test_odrive_set_point_rtr_estimates_and_heartbeat(tmp_path: Path, map_name: 
         assert bus.extra("background_load_percent") == pytest.approx(100 * heartbeat_share)
     cfg = load_drive_map(Path(PDO_MAPS) / map_name).rawcan
     assert cfg is not None
-    frames = family_frames("a", cfg, 3, mode="velocity")
-    ids = [(f.can_id, f.data_bytes, f.period_us) for f in frames]
+    assert cfg.odrive is not None
+    velocity = replace(cfg, odrive=replace(cfg.odrive, mode="velocity"))
+    # as the family reports them on a CAN FD bus: the remote frame stays classic (CAN FD has none)
+    frames = [f for f, _ in protocol_frames("a", replace(velocity, protocol=velocity), 3, None, fd=True)]
+    ids = [(f.can_id, f.data_bytes, f.period_us, f.fd) for f in frames]
     assert ids == [
-        (3 << 5 | 0x0D, 8, None),  # Set_Input_Vel
-        (3 << 5 | 0x09, 0, None),  # Get_Encoder_Estimates, remote
-        (3 << 5 | 0x09, 8, None),  # its answer
-        (3 << 5 | 0x01, 8, 100_000.0),  # heartbeat
+        (3 << 5 | 0x0D, 8, None, True),  # Set_Input_Vel
+        (3 << 5 | 0x09, 0, None, False),  # Get_Encoder_Estimates, remote
+        (3 << 5 | 0x09, 8, None, True),  # its answer
+        (3 << 5 | 0x01, 8, 100_000.0, True),  # heartbeat
     ]
 
 
