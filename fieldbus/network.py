@@ -23,7 +23,7 @@ import threading
 import time
 import warnings
 from collections import deque
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import CancelledError, Future, wait
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -39,6 +39,7 @@ from fieldbus.core import network as netfile
 from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
 from fieldbus.core.esc_errors import describe_change
+from fieldbus.core.hold import TransitionHold
 from fieldbus.core.output_rules import OutputClamp, OutputRules, channel_limits
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import STATUSWORD
@@ -502,6 +503,7 @@ class Operational(_Phase):
         self._writers = list(self.safe_stops.values())
         # the one output path: every group's command values pass the rules before any codec (output_rules)
         self.output_rules: dict[str, OutputRules] = {}
+        self.holds: dict[str, TransitionHold] = {}  # raw-CAN groups: their hold command (fieldbus.core.hold)
         self._encoders: list[list[tuple[OutputRules, ProcessImage]]] = []
         for b in net.backends:
             enc = []
@@ -517,7 +519,11 @@ class Operational(_Phase):
                 )
                 self.output_rules[g.name] = rules
                 enc.append((rules, g.image))
+                if g.slaves[0].map.rawcan is not None:  # raw-CAN motors hold after a transition (S12)
+                    self.holds[g.name] = TransitionHold(g.image, rules)
             self._encoders.append(enc)
+            if any(g.slaves[0].map.rawcan is not None for g in b.groups):
+                b.on_hold = self._hold_hook(b)
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
         # where exchange() spends its time, phase by phase (fieldbus.runtime.phases); None: not timed
         self.phases: ph.PhaseTimer | None = None
@@ -624,6 +630,7 @@ class Operational(_Phase):
                 pt.mark(ph.ACYCLIC)
         res.fresh = all_fresh
         latched = any_stop and not res.safe_stop
+        released = res.safe_stop and not any_stop
         res.safe_stop = any_stop
         res.cycle = cycle + 1
         res.exchange_ns = time.perf_counter_ns() - t0
@@ -635,6 +642,9 @@ class Operational(_Phase):
         if latched:
             for w in self._writers:  # effective from the next cycle's outputs
                 w.apply()
+        if released:  # raw-CAN motors hold where they are until the controller writes again (S12)
+            for hold in self.holds.values():
+                hold.seed()
         if pt is not None:
             pt.mark(ph.OBSERVERS)
         return res
@@ -979,8 +989,26 @@ class Operational(_Phase):
             policy.clear_safe_stop()
             st.safe_stop = policy.safe_stop
             st.release_pending = policy.clear_requested
+        was = self.result.safe_stop
         self.result.safe_stop = any(p.safe_stop for _, p, _, _ in self._pairs)
+        if was and not self.result.safe_stop:  # opened at once: the next cycle sends the hold (S12)
+            for hold in self.holds.values():
+                hold.seed()
         return not self.result.safe_stop
+
+    def _hold_hook(self, b: Backend) -> Callable[[int], None]:
+        """What a backend calls after it seeded motor ``i``'s outputs (recover, set_mode): its group's
+        output rules restart from the seed (:meth:`~fieldbus.core.output_rules.OutputRules.rebase`)."""
+
+        def held(i: int) -> None:
+            a = b.areas[i]
+            hold = self.holds.get(b.groups[a.group].name)
+            if hold is not None:
+                rows = np.zeros(hold.image.n_axes, dtype=bool)
+                rows[a.row : a.row + a.axes] = True
+                hold.rules.rebase(rows)
+
+        return held
 
     def close(self) -> None:
         self._net.close()

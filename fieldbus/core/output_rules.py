@@ -374,6 +374,16 @@ class OutputRules:
             np.copyto(b.was, b.any)
         return out
 
+    def rebase(self, rows: npt.NDArray[np.bool_]) -> None:
+        """The NaN and step rules of ``rows`` restart from the image's values now (a transition's seed,
+        :mod:`fieldbus.core.hold`): what counts as "sent last" is the seed, not what went out before. A
+        value that is not finite is not taken (the reference keeps what was sent). Allocates: transitions
+        only, never on a clean cycle."""
+        sel = np.asarray(rows, dtype=bool)[:, None]
+        for b in self.blocks:
+            now = np.array(b.src if b.src is not None else b.view, dtype=b.last.dtype).reshape(b.last.shape)
+            np.copyto(b.last, now, where=sel & np.isfinite(now))
+
     def settle(self) -> None:
         """No refusal this cycle: streaks end (call instead of :meth:`events` on a clean cycle)."""
         for b in self.blocks:
