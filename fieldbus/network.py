@@ -40,7 +40,7 @@ from fieldbus.core.cia402 import SafeStop
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch, FaultFollowUp
 from fieldbus.core.esc_errors import describe_change
 from fieldbus.core.hold import TransitionHold
-from fieldbus.core.output_rules import OutputClamp, OutputRules, channel_limits
+from fieldbus.core.output_rules import OutputClamp, OutputRules, channel_limits, slave_limits
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter, safe_stop_plan
@@ -516,6 +516,7 @@ class Operational(_Phase):
                     channel_limits(g.slaves[0].map, lay.outputs, b.bus.cycle_time_us / 1e6),
                     g.image.inputs.values[sw.name] if sw is not None and not sw.channel.scaled else None,
                     g.image.inputs.values[md.name] if md is not None and not md.channel.scaled else None,
+                    slave_limits(g.slaves, lay.outputs, b.bus.cycle_time_us / 1e6),  # the network's narrowing
                 )
                 self.output_rules[g.name] = rules
                 enc.append((rules, g.image))
