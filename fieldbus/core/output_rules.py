@@ -261,6 +261,11 @@ class _Block:
         self.any = np.zeros((n, m), dtype=bool)
         self.keep, self.side, self.new = (np.zeros((n, m), dtype=bool) for _ in range(3))
         self.per_axis = np.zeros(n, dtype=bool)
+        # the newest refusal per value (OutputRules.last_clamp): cycle (-1: none), reason, asked, sent
+        self.last_cycle = np.full((n, m), -1, dtype=np.int64)
+        self.last_reason = np.zeros((n, m), dtype=np.int64)
+        self.last_asked = np.zeros((n, m), dtype=dt)
+        self.last_sent = np.zeros((n, m), dtype=dt)
         self.hit = False
         self.started = False  # the first cycle sets the reference of the step rule
         self.col = self.x[:, 0]
@@ -443,8 +448,28 @@ class OutputRules:
                             float(b.x[axis, j]),
                         )
                     )
+            if b.hit:  # every refusal of this cycle, streak or not, for last_clamp (no allocation)
+                np.copyto(b.last_asked, b.asked, where=b.any)
+                np.copyto(b.last_sent, b.x, where=b.any)
+                np.copyto(b.last_cycle, cycle, where=b.any)
+                for r in reversed(Reason):  # the first reason wins, as in the events
+                    np.copyto(b.last_reason, int(r), where=b.flag[r])
             np.copyto(b.was, b.any)
         return out
+
+    def last_clamp(self, row: int) -> OutputClamp | None:
+        """The newest command value refused on ``row`` (any cycle of a streak, not only its first), as an
+        :class:`OutputClamp`; None when none was. For monitors: read from any thread, without a lock (a
+        value written by the cycle meanwhile may mix two cycles)."""
+        best: OutputClamp | None = None
+        for b in self.blocks:
+            for j, name in enumerate(b.names):
+                c = int(b.last_cycle[row, j])
+                if c >= 0 and (best is None or c > best.cycle):
+                    reason = Reason(int(b.last_reason[row, j]))
+                    asked, sent = float(b.last_asked[row, j]), float(b.last_sent[row, j])
+                    best = OutputClamp(c, self.group, row, name, reason, asked, sent)
+        return best
 
     def rebase(self, rows: npt.NDArray[np.bool_]) -> None:
         """The NaN and step rules of ``rows`` restart from the image's values now (a transition's seed,
