@@ -238,3 +238,25 @@ def test_a_damiao_mode_switch_starts_from_where_the_motor_is(tmp_path: Path) -> 
         out["velocity"][0] = 2.0
         emu.cycles(300)
         assert float(legs.inputs["velocity"][0]) == pytest.approx(2.0, abs=0.1)
+
+
+def test_a_clear_that_opens_at_once_also_seeds_the_hold(tmp_path: Path) -> None:
+    """The latch opens inside clear_safe_stop() when the bus already had release_after fresh cycles: the
+    next exchange's frames hold too (no exchange saw the release)."""
+    with emulate(_network(tmp_path, "cubemars_ak80_9_mit")) as emu:
+        op, sim = emu.op, emu.emulators["legs"].sim
+        out = op["legs"].outputs
+        wire = Wire(emu)
+        _latch_with_stale_targets(emu, out)
+        emu.cycles(20)  # healthy again, still latched: more than release_after fresh cycles
+        at = [sim.motor(n).position for n in (1, 2)]
+        assert op.result.safe_stop
+        assert op.clear_safe_stop()  # open now
+        wire.clear()
+        out["kp"][:], out["kd"][:] = 40.0, 1.5
+        emu.cycles(200)
+        for n in (1, 2):
+            first = wire.frames[n][0]
+            assert abs(first["position"] - at[n - 1]) <= 2 * lsb("position"), first  # before: 5.0 rad
+            assert abs(first["velocity"]) <= lsb("velocity"), first  # before: 3.0 rad/s
+            assert abs(sim.motor(n).position - at[n - 1]) < 0.01
