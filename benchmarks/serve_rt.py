@@ -11,7 +11,8 @@ that applied it: about 1 kHz), and ``--burners`` processes spinning
 step (cycle_time_us max), overruns, the longest gap between two cycles'
 starts and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
 safe stops; and serve's CPU use while it was commanded (all its threads, from
-/proc). A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
+/proc). ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
+(requests, commands, exchange, publish, diagnostics, DDS writes) and reports the longest steps' breakdown. A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
 sched_rt_period_us is throttled for the rest of that period: the point of a
 short spin is to stay well below it. Wall-clock figures: they depend on the
 machine and its load; the load average is printed with them.
@@ -43,9 +44,14 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _run(net: Path, domain: int, seconds: float, priority: int, spin_us: int) -> dict[str, Any]:
+def _run(
+    net: Path, domain: int, seconds: float, priority: int, spin_us: int, trace: Path | None = None
+) -> dict[str, Any]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
-    cmd = [sys.executable, "-m", "fieldbus", "serve", str(net), "--backend", "sim", "--domain", str(domain)]
+    serve = [sys.executable, "-m", "fieldbus", "serve"]
+    if trace is not None:  # the same serve, its step's phases timed from outside the cycle (serve_phases.py)
+        serve = [sys.executable, str(Path(__file__).with_name("serve_phases.py")), str(trace)]
+    cmd = [*serve, str(net), "--backend", "sim", "--domain", str(domain)]
     cmd += ["--interface", "lo", "--json", "--hold-after", "5000", "--stop-after", "10000"]
     cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us)]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -65,7 +71,9 @@ def _run(net: Path, domain: int, seconds: float, priority: int, spin_us: int) ->
         server.send_signal(signal.SIGTERM)
         out, _ = server.communicate(timeout=60)
     report = json.loads(out.strip().splitlines()[-1])
+    phases = json.loads(trace.read_text()) if trace is not None and trace.exists() else None
     return {
+        **({"phases": phases} if phases is not None else {}),
         "spin_us": spin_us,
         "realtime": ready["realtime"],
         "client_exchanges": n,
@@ -87,6 +95,9 @@ def main() -> int:
     ap.add_argument("--rt-priority", type=int, default=50)
     ap.add_argument("--burners", type=int, default=2)
     ap.add_argument("--spin-us", type=int, nargs="+", default=[30, 150])
+    ap.add_argument(
+        "--trace", action="store_true", help="time the served step's phases (benchmarks/serve_phases.py)"
+    )
     args = ap.parse_args()
     burners = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.burners)]
     try:
@@ -104,7 +115,8 @@ def main() -> int:
             )
             for i, spin in enumerate(args.spin_us):
                 domain = 1 + (os.getpid() * 3 + i) % 200
-                print(json.dumps(_run(net, domain, args.seconds, args.rt_priority, spin)), flush=True)
+                trace = Path(tmp) / f"phases-{i}.json" if args.trace else None
+                print(json.dumps(_run(net, domain, args.seconds, args.rt_priority, spin, trace)), flush=True)
             print(json.dumps({"loadavg_after": os.getloadavg()}), flush=True)
     finally:
         for b in burners:

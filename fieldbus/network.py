@@ -34,6 +34,7 @@ import numpy.typing as npt
 from fieldbus.backends import backend_class
 from fieldbus.backends.base import AxisGroup, Backend
 from fieldbus.core import network as netfile
+from fieldbus.core.hold import TransitionHold
 from fieldbus.core.output_rules import OutputRules
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter
@@ -392,6 +393,12 @@ class Operational(_Phase):
             for watch, _ in bc.watches:
                 self.result.drive_faults[watch.group] = watch.faults
             bc.on_drive_fault = lambda fault, k=k: self._acyclic.read_code(k, fault)
+        # raw-CAN groups: their hold command after a transition (S12, fieldbus.core.hold)
+        self.holds: dict[str, TransitionHold] = {}
+        for bc in self._cycles:
+            self.holds.update(bc.holds)
+            if bc.holds:
+                bc.backend.on_hold = bc.hold_hook
         self._observers: tuple[CycleObserver, ...] = ()  # recordings and probes, called every cycle
         # where exchange() spends its time, phase by phase (fieldbus.platform.phases); None: not timed
         self.phases: ph.PhaseTimer | None = None
@@ -472,6 +479,8 @@ class Operational(_Phase):
             obs.capture(res, t0)
         if latched:
             self._stop.apply()  # effective from the next cycle's outputs
+        elif self._stop.released:  # raw-CAN motors hold where they are until the controller writes (S12)
+            self._stop.seed_holds()
         if pt is not None:
             pt.mark(ph.OBSERVERS)
         return res

@@ -178,6 +178,9 @@ class Backend(abc.ABC):
         self.recovery_errors: deque[str] = deque(maxlen=RECOVERY_LOG)  # newest last
         self.last_recovery_error: str | None = None
         self._recovery: Generator[None, None, bool] | None = None
+        # set by the network in OP: called with a slave's index after the backend seeded its outputs
+        # (a transition: raw-CAN recover, set_mode), so the output rules restart from the seed (S12)
+        self.on_hold: Callable[[int], None] | None = None
         self._accept_plan: (
             list[tuple[DirectionImage, npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.bool_]]]
             | None

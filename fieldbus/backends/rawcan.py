@@ -72,6 +72,7 @@ from fieldbus.backends.canfaults import CanFaults
 from fieldbus.core import cubemars, damiao
 from fieldbus.core.canfamily import CanFamily, FamilyMotor, Remote, Request, StepRefused, families
 from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.hold import hold_row
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
@@ -486,11 +487,14 @@ class RawCanBackend(CanFaults, Backend):
     def set_mode(self, slave: int | str, mode: str) -> None:
         """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
         then its commands go out as that mode's frames. Blocking: call it between cycles.
-        A family on the protocol: its ``set_mode`` steps, that mode's commands from the next cycle."""
+        A family on the protocol: its ``set_mode`` steps, that mode's commands from the next cycle. The
+        motor's set-points are then seeded where it is (position as read, speeds and torque 0, gains kept):
+        the new mode starts no motion until the controller writes its targets (S12)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
         if fam is not None:
             self._steps(fam.set_mode(i, mode), "mode switch", i, timeout=StateTransitionError)
+            self._seed_from_actual(i)  # the new mode starts where the motor is (S12)
             return
         cm = self._cm[i]
         if cm is not None:
@@ -500,6 +504,7 @@ class RawCanBackend(CanFaults, Backend):
                     "(servo or MIT is chosen in CubeMars' tool)"
                 )
             self._set_servo_mode(i, cm, mode)
+            self._seed_from_actual(i)
             return
         proto = self._proto(i)
         try:
@@ -510,6 +515,7 @@ class RawCanBackend(CanFaults, Backend):
             ) from None
         self._write_checked(i, "CTRL_MODE", proto.registers.ctrl_mode, new.ctrl_mode)
         self._mode[i] = new
+        self._seed_from_actual(i)
 
     def mode(self, slave: int | str) -> str | None:
         """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
@@ -593,16 +599,13 @@ class RawCanBackend(CanFaults, Backend):
         return True
 
     def _seed_from_actual(self, i: int) -> None:
-        """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
+        """Motor ``i``'s set-points where it is (:func:`~fieldbus.core.hold.hold_row`: position as read,
+        speed, torque and currents 0, gains kept); the output rules restart from them (S12)."""
         a = self.areas[i]
         img = self.groups[a.group].image
-        out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
-        names, read = out.dtype.names or (), inp.dtype.names or ()
-        for n in ("velocity", "torque", "current", "duty", "brake_current"):
-            if n in names:
-                out[n] = 0
-        if "position" in names and "position" in read:
-            out["position"] = inp["position"]
+        hold_row(img.outputs.values[a.row], img.inputs.values[a.row])
+        if self.on_hold is not None:
+            self.on_hold(i)
 
     def _send_raw(self, can_id: int, extended: bool, data: bytes) -> None:
         try:

@@ -21,14 +21,17 @@ from fieldbus.core.base_config import parse_base
 from fieldbus.core.diffdrive import DiffDriveParams
 from fieldbus.core.emulator_opts import EmulatorSection, emulator_section
 from fieldbus.core.liveness import unwatched_reason
+from fieldbus.core.output_rules import widenings
+from fieldbus.core.pdo.layout import layout
 from fieldbus.core.pdo.load import (
     CLASSIC_CAN_PDO_BYTES,
     NOT_A_MAP,
     looks_like_drive_map,
     parse_drive_map,
+    parse_limits,
     shape,
 )
-from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.pdo.model import DriveMap, OutputLimit
 from fieldbus.core.yamlread import Reader
 from fieldbus.core.yamlsrc import Located, PathT, load_file, load_located, token
 from fieldbus.errors import FieldbusError, PdoMapError
@@ -45,7 +48,7 @@ _BUS_KEYS = (
     "name", "type", "interface", "redundant_interface", "can_interface", "can_options", "bitrate",
     "data_bitrate", "cycle_time_us", "receive_timeout_us", "safe_stop_after", "slaves",
 )  # fmt: skip
-_SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator")
+_SLAVE_KEYS = ("name", "map", "node_id", "count", "position", "emulator", "limits")
 _NETWORK_MARKS = ("buses", "cycle_time_us", "receive_timeout_us", "safe_stop_after")
 MAP_SUFFIXES = (".yaml", ".yml")
 PATH_CHARS = 160  # most characters of a map path (from the network file) an error shows
@@ -62,6 +65,7 @@ class Slave:
     position: int
     node_id: int | None = None
     emulator: EmulatorSection | None = None  # the emulated drive's options, opaque (the emulator reads them)
+    limits: tuple[OutputLimit, ...] = ()  # the network file's narrowing of the map's output limits
 
 
 def row_names(slaves: Iterable[Slave]) -> tuple[str, ...]:
@@ -270,6 +274,10 @@ def _bus(
             raise r.err((*spath, "node_id"), f"node_id is for CAN buses, this bus is {kind}", key=True)
         else:
             first = 0
+        narrow: tuple[OutputLimit, ...] = ()
+        if "limits" in s:
+            bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+            narrow = _slave_limits(r, s["limits"], (*spath, "limits"), drive, bus_cycle / 1e6, is_can)
         for k in range(count):
             sname = r.name(pattern.replace("{i}", str(k)), (*spath, "name"))
             if sname in names:
@@ -280,7 +288,9 @@ def _bus(
                 if node in node_ids:
                     raise r.err((*spath, "node_id"), f"node id {node} used twice on bus '{name}'")
                 node_ids[node] = spath
-            slaves.append(Slave(name=sname, map=drive, position=len(slaves), node_id=node, emulator=emu))
+            slaves.append(
+                Slave(name=sname, map=drive, position=len(slaves), node_id=node, emulator=emu, limits=narrow)
+            )
     bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
     bus_timeout = r.integer(
         m.get("receive_timeout_us", timeout), (*path, "receive_timeout_us"), 10, 1_000_000
@@ -329,6 +339,20 @@ def _check_emulator(section: EmulatorSection) -> None:
     check = emulator_options_check()
     if check is not None:
         check(section)
+
+
+def _slave_limits(
+    r: Reader, raw: Any, path: PathT, drive: DriveMap, cycle_s: float, is_can: bool
+) -> tuple[OutputLimit, ...]:
+    """A slave's ``limits:`` (the map's keys, per output channel): narrowing the map's only; a value that
+    would widen them is an error naming its line and key."""
+    narrow = parse_limits(r, raw, path, drive)
+    lay = layout(drive, pdo_align=8 if is_can else 1).outputs
+    for channel, key, why in widenings(drive, lay, cycle_s, narrow):
+        given = raw.get(channel) if isinstance(raw, Mapping) else None
+        where = key if not isinstance(given, Mapping) or key in given else "max"
+        raise r.err((*path, channel, where), why)
+    return narrow
 
 
 def _check_canopen_liveness(r: Reader, drive: DriveMap, path: PathT) -> None:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,7 +36,7 @@ from fieldbus.core.command_guard import UnsafeOutputError as UnsafeOutputError
 from fieldbus.core.command_guard import finite as finite
 from fieldbus.core.pdo.image import DirectionImage
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout
-from fieldbus.core.pdo.model import DriveMap
+from fieldbus.core.pdo.model import DriveMap, OutputLimit
 from fieldbus.errors import FieldbusError
 
 TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE = 0x607A, 0x60FF, 0x6071
@@ -101,15 +101,38 @@ def _sdo_value(drive: DriveMap, index: int, sub_index: int) -> float | None:
     return None
 
 
-def channel_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> tuple[ChannelLimit, ...]:
+def channel_limits(
+    drive: DriveMap, lay: DirectionLayout, cycle_s: float, narrow: Sequence[OutputLimit] = ()
+) -> tuple[ChannelLimit, ...]:
     """The limits of ``drive``'s output channels (``lay``: its outputs layout), ``cycle_s`` seconds a cycle.
 
     The map's ``limits:`` win; otherwise CiA 402 targets take the start-up SDOs' window 0x607D:01..02,
     +-0x607F (target velocity), +-0x6072 (target torque); scaled raw-CAN command fields their
-    ``min..max``. ``limits: off`` gives none.
+    ``min..max``. ``limits: off`` gives none. ``narrow`` (a network file's per-slave ``limits:``) then
+    only narrows: the window is the intersection, the step the smaller one.
     """
-    if drive.limits_off:
-        return ()
+    found: dict[str, ChannelLimit] = {}
+    if not drive.limits_off:
+        found = _map_limits(drive, lay, cycle_s)
+    for lim in narrow:
+        old = found.get(lim.channel, ChannelLimit(lim.channel))
+        lo = old.min if lim.min is None else max(old.min, lim.min)
+        hi = old.max if lim.max is None else min(old.max, lim.max)
+        found[lim.channel] = ChannelLimit(
+            lim.channel, lo, hi, min(old.max_step, _step(lim, cycle_s)), "network"
+        )
+    return tuple(found.values())
+
+
+def _step(lim: OutputLimit, cycle_s: float) -> float:
+    """The largest change per cycle a ``limits:`` entry allows (``max_step``, ``max_rate`` x the cycle)."""
+    step = lim.max_step if lim.max_step is not None else math.inf
+    if lim.max_rate is not None:
+        step = min(step, lim.max_rate * cycle_s)
+    return step
+
+
+def _map_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> dict[str, ChannelLimit]:
     found: dict[str, ChannelLimit] = {}
 
     def window(index: int, lo_raw: float | None, hi_raw: float | None, source: str) -> None:
@@ -135,17 +158,57 @@ def channel_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> tup
                 found[f.name] = ChannelLimit(f.name, f.min, f.max, source="rawcan min..max")
     for lim in drive.limits:
         old = found.get(lim.channel, ChannelLimit(lim.channel))
-        step = lim.max_step if lim.max_step is not None else math.inf
-        if lim.max_rate is not None:
-            step = min(step, lim.max_rate * cycle_s)
         found[lim.channel] = ChannelLimit(
             lim.channel,
             old.min if lim.min is None else lim.min,
             old.max if lim.max is None else lim.max,
-            step,
+            _step(lim, cycle_s),
             "map",
         )
-    return tuple(found.values())
+    return found
+
+
+def widenings(
+    drive: DriveMap, lay: DirectionLayout, cycle_s: float, narrow: Sequence[OutputLimit]
+) -> list[tuple[str, str, str]]:
+    """What in ``narrow`` (a network file's per-slave ``limits:``) would widen ``drive``'s own limits:
+    (channel, key, why) for each ``min`` below, ``max`` above the map's window or a step above its step."""
+    base = {lim.channel: lim for lim in channel_limits(drive, lay, cycle_s)}
+    out: list[tuple[str, str, str]] = []
+    for lim in narrow:
+        b = base.get(lim.channel, ChannelLimit(lim.channel, source="none"))
+        src = f"the map's window {b.min:g}..{b.max:g} ({b.source})"
+        if lim.min is not None and lim.min < b.min:
+            out.append((lim.channel, "min", f"min {lim.min:g} is below {src}: a network file only narrows"))
+        if lim.max is not None and lim.max > b.max:
+            out.append((lim.channel, "max", f"max {lim.max:g} is above {src}: a network file only narrows"))
+        step = _step(lim, cycle_s)
+        if step > b.max_step:
+            key = "max_step" if lim.max_step is not None else "max_rate"
+            out.append(
+                (
+                    lim.channel,
+                    key,
+                    f"a step of {step:g} per cycle is above the map's {b.max_step:g}: a network file only narrows",
+                )
+            )
+    return out
+
+
+def slave_limits(
+    slaves: Sequence[Any], lay: DirectionLayout, cycle_s: float
+) -> dict[int, tuple[ChannelLimit, ...]]:
+    """Per row of a group's image, the limits of the slaves whose network entry narrows them (``limits``)."""
+    rows: dict[int, tuple[ChannelLimit, ...]] = {}
+    row = 0
+    for s in slaves:
+        narrow = getattr(s, "limits", ())
+        if narrow:
+            lims = channel_limits(s.map, lay, cycle_s, narrow)
+            for k in range(s.map.axes):
+                rows[row + k] = lims
+        row += s.map.axes
+    return rows
 
 
 class _Block:
@@ -157,8 +220,9 @@ class _Block:
     """
 
     def __init__(
-        self, x: npt.NDArray[Any], names: list[str], limits: list[ChannelLimit], src: Any = None
+        self, x: npt.NDArray[Any], names: list[str], limits: list[list[ChannelLimit]], src: Any = None
     ) -> None:
+        """``limits[row][column]``: each row's limits (a network file may narrow one slave's)."""
         n, m = x.shape
         self.view = x  # the image's columns (strided): gathered into ``x`` once, written back when changed
         self.x = np.ascontiguousarray(x)
@@ -166,17 +230,16 @@ class _Block:
         dt = x.dtype
         big = float(np.finfo(dt).max)
 
-        def per_axis(values: list[float]) -> npt.NDArray[Any]:
-            return np.ascontiguousarray(np.broadcast_to(np.array(values, dtype=dt), (n, m)))
+        def per_axis(value: Callable[[ChannelLimit], float]) -> npt.NDArray[Any]:
+            return np.array([[value(lim) for lim in row] for row in limits], dtype=dt).reshape(n, m)
 
         self.last = np.array(x, dtype=dt, copy=True)  # what was sent last
-        self.lo = per_axis([max(lim.min, -big) for lim in limits])
-        self.hi = per_axis([min(lim.max, big) for lim in limits])
-        self.open_lo = per_axis([lim.min == -math.inf for lim in limits]).astype(bool)
-        self.open_hi = per_axis([lim.max == math.inf for lim in limits]).astype(bool)
-        steps = [lim.max_step for lim in limits]
-        self.stepped = any(math.isfinite(v) for v in steps)
-        self.step = per_axis([min(v, big) for v in steps])
+        self.lo = per_axis(lambda lim: max(lim.min, -big))
+        self.hi = per_axis(lambda lim: min(lim.max, big))
+        self.open_lo = per_axis(lambda lim: lim.min == -math.inf).astype(bool)
+        self.open_hi = per_axis(lambda lim: lim.max == math.inf).astype(bool)
+        self.stepped = any(math.isfinite(lim.max_step) for row in limits for lim in row)
+        self.step = per_axis(lambda lim: min(lim.max_step, big))
         self.nstep = np.negative(self.step)
         self.asked = np.zeros((n, m), dtype=dt)
         self.work = np.zeros((n, m), dtype=dt)
@@ -187,6 +250,11 @@ class _Block:
         self.any = np.zeros((n, m), dtype=bool)
         self.keep, self.side, self.new = (np.zeros((n, m), dtype=bool) for _ in range(3))
         self.per_axis = np.zeros(n, dtype=bool)
+        # the newest refusal per value (OutputRules.last_clamp): cycle (-1: none), reason, asked, sent
+        self.last_cycle = np.full((n, m), -1, dtype=np.int64)
+        self.last_reason = np.zeros((n, m), dtype=np.int64)
+        self.last_asked = np.zeros((n, m), dtype=dt)
+        self.last_sent = np.zeros((n, m), dtype=dt)
         self.hit = False
         self.started = False  # the first cycle sets the reference of the step rule
         self.col = self.x[:, 0]
@@ -269,36 +337,45 @@ class OutputRules:
         limits: Sequence[ChannelLimit] = (),
         statusword: npt.NDArray[np.uint16] | None = None,
         mode_display: npt.NDArray[np.int8] | None = None,
+        rows: Mapping[int, Sequence[ChannelLimit]] | None = None,
     ) -> None:
+        """``limits``: the group's (its map's); ``rows``: a row's own instead (:func:`slave_limits`)."""
         self.group = group
         self.image = image
         n = image.n_axes
         by_name = {lim.channel: lim for lim in limits}
-        for name in by_name:
+        by_row = {r: {lim.channel: lim for lim in lims} for r, lims in (rows or {}).items()}
+        for name in {*by_name, *(c for d in by_row.values() for c in d)}:
             if name not in image.names:
                 raise FieldbusError(
                     f"group '{group}': limits name no output channel '{name}' ({', '.join(image.names)})"
                 )
         self.limits = tuple(limits)
+        self.row_limits = {r: tuple(lims) for r, lims in (rows or {}).items()}
+
+        def per_row(names: list[str]) -> list[list[ChannelLimit]]:
+            return [
+                [by_row.get(r, by_name).get(c) or by_name.get(c) or ChannelLimit(c) for c in names]
+                for r in range(n)
+            ]
+
         self.blocks: list[_Block] = []
         il = image.image_layout
         scaled = [e.name for e in il.scaled]
         if scaled:  # the image's float64 block of engineering values, in place
-            self.blocks.append(
-                _Block(image._scaled, scaled, [by_name.get(s, ChannelLimit(s)) for s in scaled])
-            )
+            self.blocks.append(_Block(image._scaled, scaled, per_row(scaled)))
         values = image.values
+        limited = {*by_name, *(c for d in by_row.values() for c in d)}
         for e in image.layout.channels:
             if e.channel.scaled:
                 continue
-            lim = by_name.get(e.name)
             col = values[e.name]
             if col.dtype.kind == "f":  # an unscaled float on the wire (raw-CAN float32 fields)
                 view = col.reshape(n, 1)
-                self.blocks.append(_Block(view, [e.name], [lim or ChannelLimit(e.name)]))
-            elif lim is not None and col.dtype.kind in "iu":  # an integer channel with limits
+                self.blocks.append(_Block(view, [e.name], per_row([e.name])))
+            elif e.name in limited and col.dtype.kind in "iu":  # an integer channel with limits
                 work = np.array(col, dtype=np.float64).reshape(n, 1)
-                self.blocks.append(_Block(work, [e.name], [lim], src=col))
+                self.blocks.append(_Block(work, [e.name], per_row([e.name]), src=col))
         self.counts = np.zeros((n, len(Reason)), dtype=np.int64)
         self._statusword = statusword
         self._mode = mode_display  # 0x6061: the step rule holds in the cyclic synchronous modes only
@@ -360,8 +437,38 @@ class OutputRules:
                             float(b.x[axis, j]),
                         )
                     )
+            if b.hit:  # every refusal of this cycle, streak or not, for last_clamp (no allocation)
+                np.copyto(b.last_asked, b.asked, where=b.any)
+                np.copyto(b.last_sent, b.x, where=b.any)
+                np.copyto(b.last_cycle, cycle, where=b.any)
+                for r in reversed(Reason):  # the first reason wins, as in the events
+                    np.copyto(b.last_reason, int(r), where=b.flag[r])
             np.copyto(b.was, b.any)
         return out
+
+    def last_clamp(self, row: int) -> OutputClamp | None:
+        """The newest command value refused on ``row`` (any cycle of a streak, not only its first), as an
+        :class:`OutputClamp`; None when none was. For monitors: read from any thread, without a lock (a
+        value written by the cycle meanwhile may mix two cycles)."""
+        best: OutputClamp | None = None
+        for b in self.blocks:
+            for j, name in enumerate(b.names):
+                c = int(b.last_cycle[row, j])
+                if c >= 0 and (best is None or c > best.cycle):
+                    reason = Reason(int(b.last_reason[row, j]))
+                    asked, sent = float(b.last_asked[row, j]), float(b.last_sent[row, j])
+                    best = OutputClamp(c, self.group, row, name, reason, asked, sent)
+        return best
+
+    def rebase(self, rows: npt.NDArray[np.bool_]) -> None:
+        """The NaN and step rules of ``rows`` restart from the image's values now (a transition's seed,
+        :mod:`fieldbus.core.hold`): what counts as "sent last" is the seed, not what went out before. A
+        value that is not finite is not taken (the reference keeps what was sent). Allocates: transitions
+        only, never on a clean cycle."""
+        sel = np.asarray(rows, dtype=bool)[:, None]
+        for b in self.blocks:
+            now = np.array(b.src if b.src is not None else b.view, dtype=b.last.dtype).reshape(b.last.shape)
+            np.copyto(b.last, now, where=sel & np.isfinite(now))
 
     def settle(self) -> None:
         """No refusal this cycle: streaks end (call instead of :meth:`events` on a clean cycle)."""

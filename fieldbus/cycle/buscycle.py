@@ -20,7 +20,8 @@ import numpy.typing as npt
 
 from fieldbus.backends.base import Backend
 from fieldbus.core.drivefault import DriveFault, DriveFaultWatch
-from fieldbus.core.output_rules import OutputRules, channel_limits
+from fieldbus.core.hold import TransitionHold
+from fieldbus.core.output_rules import OutputRules, channel_limits, slave_limits
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import STATUSWORD
 from fieldbus.core.safety import SafetyPolicy, Verdict
@@ -43,6 +44,7 @@ class BusCycle:
         self.status = BusStatus(b.bus.name, b.expected_wkc, policy.fresh)
         # the one output path: every group's command values pass the rules before any codec (output_rules)
         self.encoders: list[tuple[OutputRules, ProcessImage]] = []
+        self.holds: dict[str, TransitionHold] = {}  # raw-CAN groups: their hold command (fieldbus.core.hold)
         for g in b.groups:
             lay = g.image.layout
             sw, md = lay.inputs.find(STATUSWORD), lay.inputs.find(MODES_DISPLAY)
@@ -52,8 +54,11 @@ class BusCycle:
                 channel_limits(g.slaves[0].map, lay.outputs, b.bus.cycle_time_us / 1e6),
                 g.image.inputs.values[sw.name] if sw is not None and not sw.channel.scaled else None,
                 g.image.inputs.values[md.name] if md is not None and not md.channel.scaled else None,
+                slave_limits(g.slaves, lay.outputs, b.bus.cycle_time_us / 1e6),  # the network's narrowing
             )
             self.encoders.append((rules, g.image))
+            if g.slaves[0].map.rawcan is not None:  # raw-CAN motors hold after a transition (S12)
+                self.holds[g.name] = TransitionHold(g.image, rules)
         self.rules = tuple(r for r, _ in self.encoders)
         # drive faults (CiA 402 statusword bit 3), watched on the rows each cycle accepted
         self.watches: list[tuple[DriveFaultWatch, npt.NDArray[np.bool_]]] = []
@@ -68,6 +73,17 @@ class BusCycle:
     @property
     def name(self) -> str:
         return self.status.name
+
+    def hold_hook(self, i: int) -> None:
+        """What the backend calls after it seeded motor ``i``'s outputs (recover, set_mode): its group's
+        output rules restart from the seed (:meth:`~fieldbus.core.output_rules.OutputRules.rebase`)."""
+        b = self.backend
+        a = b.areas[i]
+        hold = self.holds.get(b.groups[a.group].name)
+        if hold is not None:
+            rows = np.zeros(hold.image.n_axes, dtype=bool)
+            rows[a.row : a.row + a.axes] = True
+            hold.rules.rebase(rows)
 
     def due(self, cycle: int) -> bool:
         """Start call ``cycle``: whether the bus runs in it (``status.ran``); this cycle's error cleared."""

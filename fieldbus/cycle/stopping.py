@@ -40,6 +40,7 @@ class SafeStopController:
         self._writers = list(self.writers.values())
         self.cycles = list(cycles)
         self.result = result
+        self.released = False  # the latch opened in the last cycle
 
     def apply(self, word: SafeStop = SafeStop.QUICK_STOP) -> None:
         """Every group's safe outputs over the controller's; ``word``: the CiA 402 command (disable
@@ -57,8 +58,15 @@ class SafeStopController:
         after which the safe outputs are written at once (effective from the next cycle's outputs)."""
         res = self.result
         latched = any_stop and not res.safe_stop
+        self.released = res.safe_stop and not any_stop  # then seed_holds() after the observers (S12)
         res.safe_stop = any_stop
         return latched
+
+    def seed_holds(self) -> None:
+        """Every raw-CAN group's outputs hold where its motors are (S12, :mod:`fieldbus.core.hold`)."""
+        for bc in self.cycles:
+            for hold in bc.holds.values():
+                hold.seed()
 
     def clear(self) -> bool:
         """Ask every bus's latch to open (S4); True when all are open now. Raises
@@ -71,7 +79,10 @@ class SafeStopController:
             bc.policy.clear_safe_stop()
             bc.status.safe_stop = bc.policy.safe_stop
             bc.status.release_pending = bc.policy.clear_requested
+        was = self.result.safe_stop
         self.result.safe_stop = any(bc.policy.safe_stop for bc in self.cycles)
+        if was and not self.result.safe_stop:  # opened at once: the next cycle sends the hold (S12)
+            self.seed_holds()
         return not self.result.safe_stop
 
     def wind_down(

@@ -3,9 +3,10 @@
 :class:`Monitor` reads what the cycle already keeps - each bus's
 :class:`~fieldbus.network.BusStatus` and working-counter policy counters, each
 slave's freshness, its AL or NMT state where the backend knows it, its CiA 402
-state from the statusword in the process image, the last EMCY - and the
-cycle's latency histograms. It takes no lock and writes nothing the cycle
-reads: the cycle does not know it is watched. rich's own refresh thread calls
+state from the statusword in the process image, the last EMCY, the last clamp
+(the newest command value the output path refused: channel, reason, asked,
+sent) - and the cycle's latency histograms. It takes no lock and writes
+nothing the cycle reads: the cycle does not know it is watched. rich's own refresh thread calls
 :meth:`Monitor.render` at most ``refresh_hz`` times a second (default 10).
 """
 
@@ -76,6 +77,7 @@ class Monitor:
                         "stale_cycles": int(policy.stale_cycles[i]),
                         "last_emcy": emcy,
                         "esc_errors": format_rise(rises[i]) if rises is not None and i < len(rises) else None,
+                        "last_clamp": _last_clamp(view.rules, area),
                     }
                 )
             out["buses"].append(
@@ -128,14 +130,19 @@ class Monitor:
                 expand=False,
             )
             counted = any(s["esc_errors"] is not None for s in bus["slaves"])
-            for col in ("slave", "AL/NMT", "CiA 402", "inputs", "last EMCY") + (
-                ("ESC errors",) if counted else ()
+            clamped = any(s["last_clamp"] is not None for s in bus["slaves"])
+            for col in (
+                ("slave", "AL/NMT", "CiA 402", "inputs", "last EMCY")
+                + (("ESC errors",) if counted else ())
+                + (("last clamp",) if clamped else ())
             ):
                 t.add_column(col)
             for s in bus["slaves"]:
                 fresh = "[green]fresh[/]" if s["fresh"] else f"[red]stale {s['stale_cycles']}[/]"
                 row = [s["name"], s["state"], s["cia402"], fresh, s["last_emcy"] or ""]
-                t.add_row(*row, *([s["esc_errors"] or ""] if counted else []))
+                row += [s["esc_errors"] or ""] if counted else []
+                row += [_clamp_text(s["last_clamp"])] if clamped else []
+                t.add_row(*row)
             parts.append(t)
         return Group(*parts)
 
@@ -181,6 +188,32 @@ def _suspect(watch: Any, names: list[str]) -> str | None:
         return None
     found = watch.suspects()
     return str(found[0].link.describe(names)) + f" ({found[0].errors} errors)" if found else None
+
+
+def _last_clamp(rules: Any, area: Any) -> dict[str, Any] | None:
+    """The newest command value the output path refused on ``area``'s rows (S11), as plain data, or None."""
+    if area.group >= len(rules):
+        return None
+    group = rules[area.group]
+    found = [c for r in range(area.row, area.row + area.axes) if (c := group.last_clamp(r)) is not None]
+    if not found:
+        return None
+    c = max(found, key=lambda e: e.cycle)
+    return {
+        "cycle": c.cycle,
+        "axis": c.axis,
+        "channel": c.channel,
+        "reason": c.reason.name,
+        "asked": c.asked,
+        "sent": c.sent,
+    }
+
+
+def _clamp_text(c: dict[str, Any] | None) -> str:
+    """``target_position RANGE: asked 1e+06, sent 3 (cycle 12)``."""
+    if c is None:
+        return ""
+    return f"{c['channel']} {c['reason']}: asked {c['asked']:g}, sent {c['sent']:g} (cycle {c['cycle']})"
 
 
 def _statusword(image: Any, row: int) -> int | None:

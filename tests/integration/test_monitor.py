@@ -125,3 +125,36 @@ def test_demo_with_monitor_runs_and_prints_the_view(capsys: pytest.CaptureFixtur
     assert main(["demo", "--axes", "2", "--cycles", "300", "--monitor"]) in (0, 3)
     err = capsys.readouterr().err
     assert "joints (sim)" in err and "j1" in err
+
+
+def test_view_shows_each_slave_s_last_clamp_with_its_channel_asked_and_sent(tmp_path: Path) -> None:
+    """Before, a clamp showed only as a bus counter (output_clamps); now per slave: which channel, why,
+    the value asked and the one sent."""
+    joint = tmp_path / "joint.yaml"
+    joint.write_text(DEMO_MAP.read_text() + "limits:\n  target_position: {min: -2.0, max: 3.0}\n")
+    f = tmp_path / "net.yaml"
+    f.write_text(
+        "cycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n"
+        f"  - {{name: legs, type: ethercat, interface: sim, slaves: [{{name: 'j{{i}}', map: '{joint}', count: 3}}]}}\n"
+    )
+    with open_network(f, backend="sim", clock=VirtualClock()) as net:
+        op = net.bring_up()
+        out = op["legs"].outputs
+        mon = Monitor(op)
+        op.exchange()
+        assert [s["last_clamp"] for s in mon.snapshot()["buses"][0]["slaves"]] == [None] * 3
+        out["target_position"][1] = 1e12
+        op.exchange()
+        first = mon.snapshot()["buses"][0]["slaves"][1]["last_clamp"]
+        assert (first["reason"], first["asked"], first["sent"]) == ("RANGE", 1e12, pytest.approx(3.0))
+        out["target_position"][1] = float("nan")
+        op.exchange()
+        slaves = mon.snapshot()["buses"][0]["slaves"]
+        assert slaves[0]["last_clamp"] is None and slaves[2]["last_clamp"] is None
+        c = slaves[1]["last_clamp"]
+        assert (c["channel"], c["reason"], c["axis"], c["cycle"]) == ("target_position", "NAN", 1, 2)
+        assert c["sent"] == pytest.approx(3.0)  # NaN keeps the value sent last: the window's edge
+        text = io.StringIO()
+        Console(file=text, width=240, force_terminal=False).print(mon.render())
+        shown = text.getvalue()
+        assert "last clamp" in shown and "target_position NAN: asked nan, sent 3 (cycle 2)" in shown, shown

@@ -155,6 +155,7 @@ class ContractMachine(RuleBasedStateMachine):
         self.accepted: list[tuple[bytes, bytes]] = []  # per slave: values row, wire row last accepted
         self.rows: list[tuple[Any, int]] = []
         self.expect: dict[int, float] = {}  # axis -> the command value the output path must send (S11)
+        self.sent: dict[int, float] = {}  # axis -> the command value the last exchange sent
 
     # the command channel the rule bad_command writes and its window (engineering units)
     target = "target_position"
@@ -248,7 +249,9 @@ class ContractMachine(RuleBasedStateMachine):
             return
         out = self.op["bus"].outputs[self.target]
         axis %= len(out)
-        prev = float(out[axis])  # after an exchange the image holds what was sent
+        # what was sent last (after an exchange the image holds it; a second write before the next
+        # exchange replaces the first, whose value was never sent)
+        prev = self.sent[axis] if axis in self.sent else float(out[axis])
         lo, hi = self.window
         want = prev if math.isnan(value) else min(hi, max(lo, value))
         out[axis] = value
@@ -263,6 +266,7 @@ class ContractMachine(RuleBasedStateMachine):
             assert float(out[axis]) == pytest.approx(want, abs=1e-9), (axis, float(out[axis]), want)
         lo, hi = self.window
         assert all(lo - 1e-9 <= float(v) <= hi + 1e-9 for v in out), list(out)
+        self.sent = {axis: float(v) for axis, v in enumerate(out)}
         self.check_wire()
 
     @rule()
@@ -773,16 +777,78 @@ class RawCanMachine(ContractMachine):
     target = "position"
     window = (-12.5, 12.5)  # the MIT frame's position field, min..max
 
+    def __init__(self) -> None:
+        super().__init__()
+        self.held: dict[
+            int, float
+        ] = {}  # S12: axis -> the position read when the latch opened, until a write
+
     def check_wire(self) -> None:
-        """The MIT command frames on the bus (p16 big-endian over min..max) equal what the rules sent."""
+        """The MIT command frames on the bus (p16 big-endian over min..max) equal what the rules sent; after
+        the latch opened and until the next command, each holds the position read then with no speed,
+        gains nor torque (S12; v12 kp12 kd12 t12 decoded per the published MIT layout)."""
         lo, hi = self.window
         sent, self.flaky.sent = self.flaky.sent, {}  # the frames of this exchange only
-        for axis, want in self.expect.items():
+        for axis in set(self.expect) | set(self.held):
             data = sent.get(1 + axis)
             if data is None or len(data) != 8 or data[:7] == b"\xff" * 7:  # none, or enter / exit / zero
                 continue
-            got = int.from_bytes(data[:2], "big") / 0xFFFF * (hi - lo) + lo
-            assert got == pytest.approx(want, abs=(hi - lo) / 0xFFFF), (axis, got, want)
+            x = int.from_bytes(data, "big")
+            got = (x >> 48) / 0xFFFF * (hi - lo) + lo
+            if axis in self.expect:
+                assert got == pytest.approx(self.expect[axis], abs=(hi - lo) / 0xFFFF), (
+                    axis,
+                    got,
+                    self.expect,
+                )
+            if axis in self.held:
+                assert got == pytest.approx(self.held[axis], abs=(hi - lo) / 0xFFFF), (axis, got, self.held)
+                v, kp, kd, t = (x >> 36) & 0xFFF, (x >> 24) & 0xFFF, (x >> 12) & 0xFFF, x & 0xFFF
+                assert (kp, kd) == (0, 0) and v in (2047, 2048) and t in (2047, 2048), (axis, hex(x))
+
+    def _opened(self) -> None:
+        """The latch opened: from the next cycle every motor holds the position read now (S12)."""
+        assert self.op is not None
+        pos = self.op["bus"].inputs["position"]
+        self.held = {axis: float(pos[axis]) for axis in range(len(pos))}
+        self.expect = dict(self.held)  # the image's targets are the seed now: what the path sends
+
+    def _check_outputs(self) -> None:
+        assert self.op is not None
+        if self.latched and not self.op.result.safe_stop:  # the latch opened in this exchange
+            self.check_wire()  # its frames: still the safe stop's, sent before the seed
+            self._opened()
+        super()._check_outputs()
+
+    @rule()
+    def clear(self) -> None:
+        was = self.latched
+        super().clear()
+        if was and not self.latched and not self.closed:
+            self._opened()
+
+    @rule(axis=st.integers(0, 7), value=BAD)
+    def bad_command(self, axis: int, value: float) -> None:
+        super().bad_command(axis, value)
+        self.held.pop(axis % 2, None)  # a command after the transition: followed from now on
+
+    @rule(lost=st.integers(SAFE_STOP_AFTER, SAFE_STOP_AFTER + 3))
+    def stop_then_clear(self, lost: int) -> None:
+        """A safe stop (every reply lost), then its clear and release: the transition S12 judges."""
+        if self.closed:
+            return
+        for node in (1, 2):
+            self.sim.drop_replies(node, lost)
+        for _ in range(50):  # bounded: a loaded machine may miss on its own
+            self._exchange()
+            if self.latched and self.last_ok:
+                break
+        self.clear()
+        for _ in range(50):
+            if not self.latched:
+                break
+            self._exchange()
+        self._exchange()  # the first cycle after the release: the hold on the wire (check_wire)
 
     def open(self) -> fieldbus.Network:
         from sim_slaves.mit_motor import MitMotorSimulator

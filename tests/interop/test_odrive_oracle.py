@@ -121,6 +121,8 @@ def test_the_dbc_decodes_our_masters_frames(tmp_path: Path, name: str, dbc: str)
         out["position"][0], out["velocity"][0], out["torque"][0] = 0.25, 1.5, -0.2
         op.exchange()
         network.backends[0].set_mode("ax", "velocity")
+        assert (out["velocity"][0], out["torque"][0]) == (0.0, 0.0)  # a mode switch starts no motion (S12)
+        out["velocity"][0], out["torque"][0] = 1.5, -0.2  # the controller's command in the new mode
         op.exchange()
         network.close()
         decoded = []

@@ -195,3 +195,38 @@ def test_rules_vectorise_over_every_scaled_channel_of_a_rawcan_map() -> None:
     assert out["velocity"].tolist() == [30.0, 0.0]  # VMAX; NaN keeps the default (0)
     assert out["kp"].tolist() == [0.0, 500.0]
     assert np.isfinite(out["position"]).all()
+
+
+def test_a_transition_hold_seeds_the_row_and_the_rules_restart_from_it() -> None:
+    """S12 on raw CAN (fieldbus.core.hold): position <- the one read, speed and torque 0, gains kept; a
+    NaN afterwards keeps the seed and a step limit ramps from it, not from what was sent before."""
+    from fieldbus import PDO_MAPS
+    from fieldbus.core.hold import TransitionHold
+
+    text = (PDO_MAPS / "damiao_dm_j4310.yaml").read_text() + "limits:\n  position: {max_step: 0.01}\n"
+    drive = drive_map_from_text(text, "dm.yaml")
+    img = ProcessImage(layout(drive, pdo_align=8), 2)
+    rules = OutputRules("g", img.outputs, channel_limits(drive, img.layout.outputs, 0.001))
+    out, inp = img.outputs, img.inputs
+    out["position"][:], out["velocity"][:], out["torque"][:], out["kp"][:] = 0.0, 0.0, 0.0, 20.0
+    rules.apply()
+    for _ in range(500):  # the controller's set-point runs to 4 rad within the step
+        out["position"][:] = 4.0
+        rules.apply()
+    assert out["position"].tolist() == pytest.approx([4.0, 4.0])
+    out["velocity"][:], out["torque"][:] = 3.0, 2.0
+    inp["position"][:] = [0.5, -0.25]  # where the motors are
+    hold = TransitionHold(img, rules)
+    hold.seed(np.array([True, False]))
+    assert out["position"].tolist() == [0.5, 4.0] and out["velocity"].tolist() == [0.0, 3.0]
+    assert out["torque"].tolist() == [0.0, 2.0] and out["kp"].tolist() == [20.0, 20.0]
+    assert hold.held.tolist() == [True, False]
+    out["position"][0] = math.nan
+    rules.apply()
+    assert float(out["position"][0]) == 0.5  # before the rebase: 4.0, the target sent before
+    out["position"][0] = 0.7
+    rules.apply()
+    assert float(out["position"][0]) == pytest.approx(0.51)  # a step from the seed
+    out["position"][:] = math.inf  # a seed of every row replaces what the controller wrote
+    hold.seed()
+    assert out["position"].tolist() == [0.5, -0.25]

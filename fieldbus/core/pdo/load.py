@@ -219,9 +219,14 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
 def _limits(r: Reader, raw: Any, drive: DriveMap) -> tuple[tuple[OutputLimit, ...], bool]:
     """``limits:``: per output channel ``min``/``max`` (``max`` alone: -max..max), ``max_step`` per cycle,
     ``max_rate`` per second; or ``off`` (no window, no step: only the NaN and infinity rules)."""
-    path: PathT = ("limits",)
     if raw is False or raw == "off":
         return (), True
+    return parse_limits(r, raw, ("limits",), drive), False
+
+
+def parse_limits(r: Reader, raw: Any, path: PathT, drive: DriveMap) -> tuple[OutputLimit, ...]:
+    """A ``limits:`` mapping at ``path`` of ``r``'s file for ``drive``'s output channels (a map's own, or
+    a network file's per-slave narrowing); errors name the file, line and field."""
     outputs = {c.name: c for c in drive.channels(Direction.OUTPUTS)}
     m = r.mapping(raw, path, outputs)
     out: list[OutputLimit] = []
@@ -252,7 +257,7 @@ def _limits(r: Reader, raw: Any, drive: DriveMap) -> tuple[tuple[OutputLimit, ..
                         f"{v:g} is outside what {ch.type.name} '{name}' holds ({ch.type.min:g}..{ch.type.max:g})",
                     )
         out.append(OutputLimit(name, lo, hi, got.get("max_step"), got.get("max_rate")))
-    return tuple(out), False
+    return tuple(out)
 
 
 def _check_can_pdos(r: Reader, can_pdos: dict[int, tuple[int, PathT]], have: set[int]) -> None:
