@@ -17,10 +17,23 @@ As SOEM: ``config_init`` resets the slaves, gives them station addresses
 PRE-OP; ``config_map`` reads each slave's PDO assignment (0x1C12 / 0x1C13
 and the mapped PDOs, by CoE; the SII's SyncManager lengths without a
 mailbox), lays out one LRW image - all outputs from logical 0 in wire order,
-then all inputs - programs SyncManagers and FMMUs and requests SAFE-OP. The
-IO map is one buffer (:attr:`InProcessMaster.iomap`) and each slave's
-``output`` / ``input`` a part of it. Errors are pysoem's exception types,
-so the backend's error mapping treats them as it treats SOEM's.
+then all inputs, split into frames on slave boundaries as SOEM segments it -
+programs SyncManagers and FMMUs and requests SAFE-OP. The IO map is one
+buffer (:attr:`InProcessMaster.iomap`) and each slave's ``output`` /
+``input`` a part of it. Errors are pysoem's exception types, so the
+backend's error mapping treats them as it treats SOEM's.
+
+The cycle copies nothing it need not: the LRW frame is built once, in a
+buffer of its own, and with one frame (up to 1486 bytes of process data) the
+IO map *is* its LRW data, so the chain reads the outputs from and writes the
+inputs into the IO map itself; per send only the working counters are
+zeroed. ``send_processdata`` puts the frame on the "wire": the chain
+processes it, at the send's time, when something next reaches the chain -
+``receive_processdata``, another frame, or the next send - as a wire
+delivers it while the master waits. A reply lost or held back past the
+timeout is -1 as before; its inputs may then be in the IO map (SOEM would
+not have copied them), so a caller takes inputs only after a working
+counter in time, as the ethercat backend does.
 
 Distributed clocks as SOEM sets them up (``config_dc``: delays and offsets
 on a line, the first slave the reference; ``dc_sync``; the cycle's FRMW of
@@ -263,7 +276,10 @@ class InProcessMaster:
         ]
         mappings, out_bytes, in_bytes = layout_image(sizes)
         self._out_bytes, self._in_flight_ns = out_bytes, None
-        self._frames = _lrw_frames(out_bytes + in_bytes, out_bytes)
+        blocks = [(m.out_offset, m.out_size) for m in mappings if m.out_size]
+        self._frames = _lrw_frames(
+            blocks + [(m.in_offset, m.in_size) for m in mappings if m.in_size], out_bytes
+        )
         # one frame: the IO map is its LRW data, in place (what the chain reads and writes); more: a map
         # of its own, each frame's part copied in before the send and its inputs out after the reply
         single = len(self._frames) == 1
@@ -459,6 +475,19 @@ class _LrwFrame:
         return self.buf[self.wkc_at] | self.buf[self.wkc_at + 1] << 8
 
 
-def _lrw_frames(size: int, out_bytes: int) -> list[_LrwFrame]:
-    """The IO map of ``size`` bytes in LRW frames of at most :data:`MAX_LRW_DATA` bytes each."""
-    return [_LrwFrame(lo, min(lo + MAX_LRW_DATA, size), out_bytes) for lo in range(0, size, MAX_LRW_DATA)]
+def _lrw_frames(blocks: Sequence[tuple[int, int]], out_bytes: int) -> list[_LrwFrame]:
+    """The IO map in LRW frames, split as SOEM's ``ecx_config_map`` segments it: on the slaves' FMMU
+    blocks (``blocks``: logical offset and size, outputs then inputs), at most :data:`MAX_LRW_DATA`
+    bytes a frame and the first one room left for the DC datagram; a block never spans two frames
+    (its slave would answer in both: a working counter too high)."""
+    frames: list[_LrwFrame] = []
+    start = end = 0
+    for off, size in blocks:
+        room = MAX_LRW_DATA - (0 if frames else _FRMW_SIZE)
+        if off + size - start > room and end > start:
+            frames.append(_LrwFrame(start, end, out_bytes))
+            start = off
+        end = off + size
+    if end > start:
+        frames.append(_LrwFrame(start, end, out_bytes))
+    return frames

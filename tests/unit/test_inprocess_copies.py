@@ -144,3 +144,38 @@ def test_a_late_reply_in_the_frame_is_not_taken(net: Network) -> None:
     backend.send()
     assert backend.receive() == backend.expected_wkc  # the next one in time is taken again
     assert backend.rx[0].tobytes() == iomap[backend.out_bytes :].tobytes()
+
+
+def test_an_image_over_two_frames_goes_through_both(tmp_path: Path) -> None:
+    """70 axes, 1540 bytes: two LRW frames (at most 1486 data bytes each); the IO map is then a buffer
+    of its own, each frame's part copied in before the send and its inputs out after the reply."""
+    f = tmp_path / "big.yaml"
+    f.write_text(
+        f"cycle_time_us: 1000\nreceive_timeout_us: {RECEIVE_TIMEOUT_US}\nbuses:\n"
+        f"  - {{name: bus, type: ethercat, interface: none0, slaves: [{{name: 'j{{i}}', map: '{DEMO_MAP}', "
+        "count: 70}]}\n"
+    )
+    with open_network(f, backend="sim", clock=VirtualClock()) as big:
+        big.bring_up()
+        backend: Any = big.backends[0]
+        master = backend.master
+        assert len(master._frames) == 2 and master.iomap.size == 1540
+        seen: list[bytes] = []
+        process = master.chain.process_into
+
+        def counted(buf: Any, n: int, now_ns: int, **kw: Any) -> int:
+            got: int = process(buf, n, now_ns, **kw)
+            seen.append(bytes(buf[:n]))
+            return got
+
+        master.chain.process_into = counted
+        wire = backend.groups[0].image.outputs.wire
+        marker = (np.arange(wire.size) % 251).astype(np.uint8).reshape(wire.shape)
+        np.copyto(wire, marker)
+        backend.send()
+        assert backend.receive() == backend.expected_wkc == 3 * 70
+        assert len(seen) == 2
+        lrw = [frame[26 : 26 + fr.hi - fr.lo] for frame, fr in zip(seen, master._frames, strict=True)]
+        image = b"".join(lrw)
+        assert image[: wire.size] == marker.tobytes()  # every output byte went out, in order
+        assert backend.rx[0].tobytes() == image[backend.out_bytes :]  # every input byte came back
