@@ -17,10 +17,23 @@ As SOEM: ``config_init`` resets the slaves, gives them station addresses
 PRE-OP; ``config_map`` reads each slave's PDO assignment (0x1C12 / 0x1C13
 and the mapped PDOs, by CoE; the SII's SyncManager lengths without a
 mailbox), lays out one LRW image - all outputs from logical 0 in wire order,
-then all inputs - programs SyncManagers and FMMUs and requests SAFE-OP. The
-IO map is one buffer (:attr:`InProcessMaster.iomap`) and each slave's
-``output`` / ``input`` a part of it. Errors are pysoem's exception types,
-so the backend's error mapping treats them as it treats SOEM's.
+then all inputs, split into frames on slave boundaries as SOEM segments it -
+programs SyncManagers and FMMUs and requests SAFE-OP. The IO map is one
+buffer (:attr:`InProcessMaster.iomap`) and each slave's ``output`` /
+``input`` a part of it. Errors are pysoem's exception types, so the
+backend's error mapping treats them as it treats SOEM's.
+
+The cycle copies nothing it need not: the LRW frame is built once, in a
+buffer of its own, and with one frame (up to 1486 bytes of process data) the
+IO map *is* its LRW data, so the chain reads the outputs from and writes the
+inputs into the IO map itself; per send only the working counters are
+zeroed. ``send_processdata`` puts the frame on the "wire": the chain
+processes it, at the send's time, when something next reaches the chain -
+``receive_processdata``, another frame, or the next send - as a wire
+delivers it while the master waits. A reply lost or held back past the
+timeout is -1 as before; its inputs may then be in the IO map (SOEM would
+not have copied them), so a caller takes inputs only after a working
+counter in time, as the ethercat backend does.
 
 Distributed clocks as SOEM sets them up (``config_dc``: delays and offsets
 on a line, the first slave the reference; ``dc_sync``; the cycle's FRMW of
@@ -45,7 +58,15 @@ import pysoem
 from fieldbus.core.al import AL_PREOP, AL_SAFEOP
 from fieldbus.core.dc.master import line_propagation_delays, soem_offsets, sync0_start_time, sync1_period_ns
 from fieldbus.core.dc.model import DcRegister, SyncActivation
-from fieldbus.core.ecat import Command, Datagram, build_master_frame, decode_frame
+from fieldbus.core.ecat import (
+    DATAGRAM_HEADER_SIZE,
+    ECAT_HEADER_SIZE,
+    ETH_HEADER_SIZE,
+    Command,
+    Datagram,
+    build_master_frame,
+    decode_frame,
+)
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.errors import BusTimeoutError, FieldbusError, SdoAbortError
 from fieldbus.platform.clock import Clock, WallClock, is_virtual
@@ -62,7 +83,10 @@ NO_FRAME = -1  # SOEM's EC_NOFRAME
 RETURN_TIMEOUT_US = 2000  # SOEM's EC_TIMEOUTRET: a bring-up frame's wait
 STATE_POLL_S = 0.001  # SOEM's statecheck polls every 1 ms
 ASSIGN_RX, ASSIGN_TX = 0x1C12, 0x1C13  # PDO assignment objects (outputs, inputs)
-_HEADER = 14 + 2 + 10  # Ethernet, EtherCAT header, datagram header: where an LRW's data start
+_HEADER = ETH_HEADER_SIZE + ECAT_HEADER_SIZE + DATAGRAM_HEADER_SIZE  # where an LRW's data start
+_WKC = 2  # bytes of a working counter
+_FRMW_SIZE = DATAGRAM_HEADER_SIZE + 8 + _WKC  # the cycle's DC datagram (FRMW of 0x0910)
+_ETH_MIN = 60  # a short frame is padded to the Ethernet minimum
 
 
 class InProcessSlave:
@@ -195,8 +219,9 @@ class InProcessMaster:
         self._expected_wkc = 0
         self._out_bytes = 0
         self._dc_reference: int | None = None  # station of the reference clock once config_dc ran
-        # per LRW frame: (frame, logical start, size, WKC offset, its inputs' logical start and end)
-        self._frames: list[tuple[bytearray, int, int, int, int, int]] = []
+        # the cycle's LRW frames: preallocated, built at config_map / config_dc, sent in place
+        self._frames: list[_LrwFrame] = []
+        self._in_flight_ns: int | None = None  # a process-data send the chain has not processed yet: when
         self._wkc = NO_FRAME
         self._idx = 0
 
@@ -204,6 +229,7 @@ class InProcessMaster:
     def _transport(self, frame: bytes, timeout_us: int = RETURN_TIMEOUT_US) -> bytes | None:
         """One frame through the chain; a reply lost or held back longer than ``timeout_us`` is None.
         On a virtual clock the wait passes there (on the wall clock the reply is there at once)."""
+        self._deliver()  # a process-data frame still on its way is processed first (wire order)
         reply: bytes | None = self.chain.process(frame, self.clock())
         held = self.chain.take_delay()
         late = reply is None or held > timeout_us / 1e6
@@ -224,7 +250,7 @@ class InProcessMaster:
             raise FieldbusError("the in-process transport has no redundant port")
 
     def close(self) -> None:
-        self.iomap = None
+        self.iomap, self._frames, self._in_flight_ns = None, [], None
 
     def config_init(self, usetable: bool = False, *, release_gil: Any = None) -> int:
         """SOEM's ``config_init``: reset, station addresses, SII, mailbox SyncManagers, PRE-OP requested."""
@@ -249,33 +275,34 @@ class InProcessMaster:
             for s in self.slaves
         ]
         mappings, out_bytes, in_bytes = layout_image(sizes)
-        iomap = np.zeros(out_bytes + in_bytes, np.uint8)
+        self._out_bytes, self._in_flight_ns = out_bytes, None
+        blocks = [(m.out_offset, m.out_size) for m in mappings if m.out_size]
+        self._frames = _lrw_frames(
+            blocks + [(m.in_offset, m.in_size) for m in mappings if m.in_size], out_bytes
+        )
+        # one frame: the IO map is its LRW data, in place (what the chain reads and writes); more: a map
+        # of its own, each frame's part copied in before the send and its inputs out after the reply
+        single = len(self._frames) == 1
+        iomap = self._frames[0].data if single else np.zeros(out_bytes + in_bytes, np.uint8)
+        for f in self._frames:
+            f.iomap_part = None if single else iomap[f.lo : f.hi]
         for s, m in zip(self.slaves, mappings, strict=True):
             self.frames.map_process_data(s.info, m)
             s._out = iomap[m.out_offset : m.out_offset + m.out_size]
             s._in = iomap[m.in_offset : m.in_offset + m.in_size]
         self.iomap = iomap
         self._expected_wkc = 2 * sum(1 for o, _ in sizes if o) + sum(1 for _, i in sizes if i)
-        self._out_bytes = out_bytes
         self._build_frames()
         for s in self.slaves:
             self.frames.request_state(s.info.station, AL_SAFEOP)
 
     def _build_frames(self) -> None:
-        """The cycle's LRW frame(s) over the IO map; with DC, the first also carries SOEM's FRMW of the
-        reference clock's system time (0x0910), read back as :attr:`dc_time`."""
-        assert self.iomap is not None
-        size, self._frames = self.iomap.size, []
-        for lo in range(0, size, MAX_LRW_DATA):
-            n = min(MAX_LRW_DATA, size - lo)
-            dgs = [Datagram(Command.LRW, 0x80 | len(self._frames), lo, bytes(n))]
-            if lo == 0 and self._dc_reference is not None:
-                dgs.append(
-                    Datagram.physical(Command.FRMW, self._dc_reference, DcRegister.SYSTEM_TIME, bytes(8))
-                )
-            frame = bytearray(build_master_frame(dgs))
-            in_lo = min(max(lo, self._out_bytes), lo + n)
-            self._frames.append((frame, lo, n, _HEADER + n, in_lo, lo + n))
+        """The cycle's LRW frame(s) written into their buffers; with DC, the first also carries SOEM's
+        FRMW of the reference clock's system time (0x0910), read back as :attr:`dc_time`. The LRW
+        data stay where they are (the IO map is a view of them)."""
+        for k, f in enumerate(self._frames):
+            frmw = k == 0 and self._dc_reference is not None
+            f.write_headers(0x80 | k, self._dc_reference if frmw else None)
 
     def _pdo_bytes(self, info: SlaveInfo, assign: int, sm_type: int) -> int:
         """Process data bytes of one direction: the assigned PDOs' entries (CoE), else the SII SM length."""
@@ -356,31 +383,42 @@ class InProcessMaster:
 
     # -- cycle ----------------------------------------------------------------------------------------
     def send_processdata(self, *, release_gil: Any = None) -> int:
-        """The LRW frame(s) of the IO map through the chain; the reply is kept for :meth:`receive_processdata`."""
-        iomap = self.iomap
-        if iomap is None:
+        """The LRW frame(s) of the IO map onto the wire: the chain processes them before anything else
+        reaches it (:meth:`receive_processdata`, another frame or the next send), at this send's time."""
+        if self.iomap is None:
             return 0
-        wkc, now = 0, self.clock()
+        self._deliver()  # the last cycle's frames if never received: processed, their reply dropped
+        for f in self._frames:
+            if f.iomap_part is not None:
+                np.copyto(f.data, f.iomap_part)
+            f.clear_wkc()
         self._held_s = 0.0
         if self._hold_cycles:
             self._hold_cycles -= 1
             self._held_s = self._hold_s
-        for frame, lo, n, wkc_off, in_lo, in_hi in self._frames:
-            frame[_HEADER : _HEADER + n] = iomap[lo : lo + n].tobytes()
-            frame[wkc_off] = frame[wkc_off + 1] = 0
-            got = self.chain.process_into(frame, len(frame), now)
+        self._in_flight_ns = self.clock()
+        return len(self._frames)
+
+    def _deliver(self) -> None:
+        """The frames sent and not yet processed go through the chain now (as they would have on the wire
+        meanwhile): their working counter and the DC time kept for :meth:`receive_processdata`."""
+        now = self._in_flight_ns
+        if now is None:
+            return
+        self._in_flight_ns = None
+        wkc = 0
+        for f in self._frames:
+            got = self.chain.process_into(f.buf, f.size, now)
             self._held_s = max(self._held_s, self.chain.take_delay())
             if got == 0:
                 self._wkc = NO_FRAME
-                return len(self._frames)
-            if lo == 0 and self._dc_reference is not None:  # FRMW: its data after the LRW's WKC and header
-                at = wkc_off + 2 + 10
-                self.dc_time = int.from_bytes(frame[at : at + 8], "little")
-            if in_lo < in_hi:  # the inputs this frame carries, back into the IO map (outputs stay ours)
-                iomap[in_lo:in_hi] = np.frombuffer(frame, np.uint8, in_hi - in_lo, _HEADER + in_lo - lo)
-            wkc += frame[wkc_off] | frame[wkc_off + 1] << 8
+                return
+            if f.frmw_at:
+                self.dc_time = int.from_bytes(f.buf[f.frmw_at : f.frmw_at + 8], "little")
+            if f.iomap_part is not None and f.in_lo < f.hi:  # its inputs into the IO map (outputs stay)
+                np.copyto(f.iomap_part[f.in_lo - f.lo :], f.data[f.in_lo - f.lo :])
+            wkc += f.wkc()
         self._wkc = wkc
-        return len(self._frames)
 
     def hold_processdata(self, seconds: float, cycles: int) -> None:
         """The process-data replies of the next ``cycles`` sends come back ``seconds`` late (a fault hook:
@@ -390,9 +428,66 @@ class InProcessMaster:
     def receive_processdata(self, timeout: int = 2000, *, release_gil: Any = None) -> int:
         """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost or held back
         longer than ``timeout`` (µs); on a virtual clock the wait passes there."""
+        self._deliver()
         wkc, self._wkc = self._wkc, NO_FRAME
         held, self._held_s = self._held_s, 0.0
         late = wkc == NO_FRAME or held > timeout / 1e6
         if self._virtual:
             self._waits.sleep(timeout / 1e6 if late else held)
         return NO_FRAME if late else wkc
+
+
+class _LrwFrame:
+    """One LRW frame of the cycle in a buffer of its own, allocated once: the LRW's data at a fixed place
+    (:attr:`data`, a view), headers rewritten only at bring-up, the working counters zeroed per send."""
+
+    def __init__(self, lo: int, hi: int, out_bytes: int) -> None:
+        self.lo, self.hi = lo, hi  # the logical bytes it carries
+        self.in_lo = min(max(lo, out_bytes), hi)  # where its inputs start (logical)
+        n = hi - lo
+        self.buf = bytearray(_HEADER + n + _WKC + _FRMW_SIZE + _ETH_MIN)
+        self.data: npt.NDArray[np.uint8] = np.frombuffer(self.buf, np.uint8, n, _HEADER)
+        self.iomap_part: npt.NDArray[np.uint8] | None = None  # the IO map's part when it is not ``data``
+        self.wkc_at = _HEADER + n
+        self.frmw_at = 0  # where the FRMW's data are (0: none)
+        self.size = 0
+
+    def write_headers(self, idx: int, dc_station: int | None) -> None:
+        """Ethernet, EtherCAT and datagram headers (and the FRMW of 0x0910 at ``dc_station``) in place,
+        around the LRW data as they are."""
+        dgs = [Datagram(Command.LRW, idx, self.lo, bytes(self.data.size))]
+        if dc_station is not None:
+            dgs.append(Datagram.physical(Command.FRMW, dc_station, DcRegister.SYSTEM_TIME, bytes(8)))
+        frame = build_master_frame(dgs)
+        data = self.data.copy()
+        self.buf[: len(frame)] = frame
+        self.data[:] = data
+        self.size = len(frame)
+        self.frmw_at = self.wkc_at + _WKC + DATAGRAM_HEADER_SIZE if dc_station is not None else 0
+
+    def clear_wkc(self) -> None:
+        buf, at = self.buf, self.wkc_at
+        buf[at] = buf[at + 1] = 0
+        if self.frmw_at:
+            buf[self.frmw_at + 8] = buf[self.frmw_at + 9] = 0
+
+    def wkc(self) -> int:
+        return self.buf[self.wkc_at] | self.buf[self.wkc_at + 1] << 8
+
+
+def _lrw_frames(blocks: Sequence[tuple[int, int]], out_bytes: int) -> list[_LrwFrame]:
+    """The IO map in LRW frames, split as SOEM's ``ecx_config_map`` segments it: on the slaves' FMMU
+    blocks (``blocks``: logical offset and size, outputs then inputs), at most :data:`MAX_LRW_DATA`
+    bytes a frame and the first one room left for the DC datagram; a block never spans two frames
+    (its slave would answer in both: a working counter too high)."""
+    frames: list[_LrwFrame] = []
+    start = end = 0
+    for off, size in blocks:
+        room = MAX_LRW_DATA - (0 if frames else _FRMW_SIZE)
+        if off + size - start > room and end > start:
+            frames.append(_LrwFrame(start, end, out_bytes))
+            start = off
+        end = off + size
+    if end > start:
+        frames.append(_LrwFrame(start, end, out_bytes))
+    return frames
