@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from fieldbus.core.cia402 import UNKNOWN_STATE, State402, decode_states
 from fieldbus.core.network import row_names
-from fieldbus.recording.ring import BUS, COMMON, TEXTS, Ring, Snapshot
+from fieldbus.recording.ring import COMMON, EMERGENCIES, TEXTS, Ring, Snapshot
 
 TOGGLES = (
     ("safe_stop", "safe_stop", "safe_stop_cleared"),
@@ -75,7 +75,7 @@ class EventDeriver:
             slot = self.ring.buses[k]
 
             def col(name: str, slot_base: int = slot.base) -> npt.NDArray[np.int64]:
-                return a[:, slot_base + BUS.index(name)]
+                return a[:, slot_base + self.ring.columns.index(name)]
 
             for field, on, off in TOGGLES:
                 x = col(field)
@@ -84,12 +84,13 @@ class EventDeriver:
             x = col("recoveries")
             for i in np.flatnonzero(np.diff(x) > 0):
                 emit(int(i) + 1, "recovered", bus=bus, old=int(x[i]), new=int(x[i + 1]))
-            x = col("error_seq")
-            for i in np.flatnonzero(np.diff(x)):
-                text = self.ring.texts[k][int(x[i + 1]) % TEXTS]
-                if text is not None:
-                    emit(int(i) + 1, "recovery_error", bus=bus, detail=text)
-            x = col("emergencies")
+            for t, name in enumerate(self.ring.columns.texts):  # each TEXT field: an event of its name
+                x = col(f"{name}_seq")
+                for i in np.flatnonzero(np.diff(x)):
+                    text = self.ring.texts[k][t][int(x[i + 1]) % TEXTS]
+                    if text is not None:
+                        emit(int(i) + 1, name, bus=bus, detail=text)
+            x = col(EMERGENCIES)
             for i in np.flatnonzero(np.diff(x) > 0):
                 new = int(x[i + 1] - x[i])
                 emit(

@@ -36,7 +36,7 @@ import numpy.typing as npt
 from fieldbus.errors import BackendUnavailableError, FieldbusError
 from fieldbus.recording import schema
 from fieldbus.recording.events import EventDeriver
-from fieldbus.recording.ring import BUS, COMMON, Ring, Snapshot
+from fieldbus.recording.ring import COMMON, Ring, Snapshot
 
 if TYPE_CHECKING:
     from fieldbus.network import CycleResult, Operational
@@ -190,11 +190,11 @@ class Recorder:
         self._bus_ch: list[int] = []
         for slot in self.ring.buses:
             b = slot.backend
-            dt = schema.bus_dtype(b.n_slaves, nmt=slot.nmt is not None)
+            dt = schema.bus_dtype(b.n_slaves, nmt=slot.nmt is not None, numbers=self.ring.columns.numbers)
             self._bus_dtypes.append(dt)
             self._bus_ch.append(
                 self._channel(
-                    w, f"/bus/{b.bus.name}", dt, schema.BUS_FIELDS, bus=b.bus.name, type=b.kind,
+                    w, f"/bus/{b.bus.name}", dt, schema.bus_fields(dt), bus=b.bus.name, type=b.kind,
                     slaves=json.dumps([a.slave.name for a in b.areas]), expected_wkc=str(b.expected_wkc),
                     cycle_time_us=str(b.bus.cycle_time_us),
                 )
@@ -219,7 +219,9 @@ class Recorder:
                 )
             )  # fmt: skip
         sid = w.register_schema(
-            name="fieldbus.event", encoding="jsonschema", data=json.dumps(schema.EVENT_SCHEMA).encode()
+            name="fieldbus.event",
+            encoding="jsonschema",
+            data=json.dumps(schema.event_schema(self.ring.columns.texts)).encode(),
         )
         self._event_ch = int(w.register_channel(topic="/events", message_encoding="json", schema_id=sid))
         w.add_metadata(
@@ -290,7 +292,7 @@ class Recorder:
         for k, slot in enumerate(self.ring.buses):
             arr = bus_rows[k][:n]
             arr["cycle"] = cyc["cycle"]
-            for j, name in enumerate(BUS[:-1]):
+            for j, name in enumerate(self.ring.columns.recorded):
                 arr[name] = ints[:, slot.base + j]
             arr["fresh"] = snap.fresh[k]
             nmt = snap.nmt[k]
