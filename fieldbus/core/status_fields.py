@@ -109,8 +109,8 @@ def of(cls: type, *carries: Carry, exclude: Iterable[str] = ()) -> tuple[StatusF
 
 
 def plain(value: object) -> object:
-    """A status value as plain data (JSON): an enum by name, an array as a list, a number or text as
-    itself, ``None`` as ``None``, anything else (a nested dataclass) by its ``str()``."""
+    """A status value as plain data (JSON): an enum by name, an array or a tuple as a list, a number or
+    text as itself, ``None`` as ``None``, anything else (a nested dataclass) by its ``str()``."""
     if value is None or isinstance(value, bool | str | float):
         return value
     if isinstance(value, enum.Enum):
@@ -119,6 +119,8 @@ def plain(value: object) -> object:
         return int(value)
     if isinstance(value, np.ndarray):
         return value.tolist()
+    if isinstance(value, tuple | list):
+        return [plain(v) for v in value]
     return str(value)
 
 
@@ -133,6 +135,17 @@ def as_plain(status: object, exclude: Iterable[str] = ()) -> dict[str, object]:
     return {
         f.name: plain(getattr(status, f.name))
         for f in dataclasses.fields(status)  # type: ignore[arg-type]
+        if f.name not in skip
+    }
+
+
+def event_fields(event: object, renamed: Mapping[str, str], exclude: Iterable[str] = ()) -> dict[str, object]:
+    """Every field of the event dataclass ``event`` (``BusEvent``, ``DriveFault``, ``OutputClamp``, a
+    subclass) but ``exclude``, as :func:`plain` data, a field named in ``renamed`` under its new name."""
+    skip = set(exclude)
+    return {
+        renamed.get(f.name, f.name): plain(getattr(event, f.name))
+        for f in dataclasses.fields(event)  # type: ignore[arg-type]
         if f.name not in skip
     }
 

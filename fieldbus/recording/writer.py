@@ -33,6 +33,7 @@ from typing import IO, TYPE_CHECKING, Any, cast
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.status_fields import event_fields
 from fieldbus.errors import BackendUnavailableError, FieldbusError
 from fieldbus.recording import schema
 from fieldbus.recording.events import EventDeriver
@@ -43,6 +44,11 @@ if TYPE_CHECKING:
 
 BLOCK_CYCLES = 256
 RING_BLOCKS = 16
+# the cycle's events as recording events: every field of the event's dataclass (derived, as
+# fieldbus.core.status_fields.event_fields), renamed where the event schema names it otherwise
+EVENT_RENAMED = {"reason": "name"}  # OutputClamp.reason (NAN, INF, RANGE, STEP)
+EVENT_EXCLUDED = ("cycle", "kind")  # the recording event's own ``cycle`` and ``kind``
+NOTED_KINDS = ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up")  # BusEvents (others: rows)
 POLL_S = 0.05  # the writer looks for full blocks this often, s (a 16-block ring lasts 0.5 s at 8 kHz)
 
 
@@ -403,20 +409,13 @@ class Recorder:
 
         for e in events:
             if isinstance(e, DriveFault):
-                self.ring.note(e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name)
+                fields = event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED)
+                fields["name"] = e.name  # the error code's name
+                self.ring.note(e.cycle, "drive_fault", **fields)
             elif isinstance(e, OutputClamp):
-                self.ring.note(
-                    e.cycle,
-                    "output_clamp",
-                    group=e.group,
-                    axis=e.axis,
-                    channel=e.channel,
-                    name=e.reason.name,
-                    asked=e.asked,
-                    sent=e.sent,
-                )
-            elif e.kind in ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up"):
-                self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
+                self.ring.note(e.cycle, "output_clamp", **event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED))
+            elif e.kind in NOTED_KINDS:
+                self.ring.note(e.cycle, e.kind, **event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED))
 
     def close(self) -> None:
         """Stop recording, write what the ring holds, finish the file. Idempotent; never raises for the file

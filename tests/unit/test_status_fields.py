@@ -9,6 +9,7 @@ The run is the in-process EtherCAT emulator (our own), on a virtual clock.
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -158,3 +159,26 @@ def test_every_bus_status_field_is_carried_or_excluded_by_each_observer(tmp_path
     missing = check_covered(_WithExtras, old | {"dc_time_ns", "dc_sync_error_ns"}, ring.EXCLUDED, "recording")
     assert "_WithExtras.brake_hits is neither carried by recording nor named in its EXCLUDED" in missing
     assert any(m.startswith("_WithExtras.fault ") for m in missing)
+
+
+def test_the_cycles_events_are_recorded_with_every_field_of_their_dataclass() -> None:
+    from fieldbus.core.drivefault import DriveFault
+    from fieldbus.core.output_rules import OutputClamp, Reason
+    from fieldbus.recording.writer import EVENT_EXCLUDED, EVENT_RENAMED
+
+    @dataclasses.dataclass(frozen=True)
+    class _MotorFault(DriveFault):
+        temperature_c: float = 0.0  # a field a subclass adds
+
+    got = sf.event_fields(
+        _MotorFault(7, "legs", 1, "m1", 0x7300, 81.5, slave_axis=1), EVENT_RENAMED, EVENT_EXCLUDED
+    )
+    assert got == {
+        "group": "legs", "axis": 1, "slave": "m1", "code": 0x7300, "slave_axis": 1, "history": None,
+        "temperature_c": 81.5,
+    }  # fmt: skip
+    clamp = OutputClamp(5, "arm", 2, "target_position", Reason.NAN, float("nan"), 0.1)
+    got = sf.event_fields(clamp, EVENT_RENAMED, EVENT_EXCLUDED)
+    asked = got.pop("asked")
+    assert isinstance(asked, float) and math.isnan(asked)  # what the controller wrote, as it was
+    assert got == {"group": "arm", "axis": 2, "channel": "target_position", "name": "NAN", "sent": 0.1}
