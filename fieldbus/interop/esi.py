@@ -523,16 +523,10 @@ def import_esi(
             "--alternative: the device's PDO assignment is fixed (CoE@PdoAssign is not true)",
         )
     assigned = _assign(doc, dev, all_pdos, alternatives)
-    imported: dict[bool, list[ImportedPdo]] = {True: [], False: []}
-    for p in assigned:
-        entries = _entries(doc, p, warnings)
-        imported[p.rx].append(ImportedPdo(p.index, p.name, entries, fixed=p.fixed or fixed_config))
+    rx, tx = _imported(doc, assigned, fixed_config, warnings)
     others = tuple(f"0x{p.index:04X} {p.name}".strip() for p in all_pdos if p not in assigned)
-
     modes = _dc_modes(doc, dev)
     chosen_dc = _chosen_dc(doc, dev, modes, dc_mode)
-
-    rx, tx = imported[True], imported[False]
     name = stem(dev_info.type or dev_info.name, "device")
     lines = [
         *_header(file, dev_info, alternatives, others, warnings),
@@ -555,8 +549,7 @@ def import_esi(
     lines += pdo_lines("rpdo", rx)
     lines += pdo_lines("tpdo", tx)
     lines += _sm_lines(doc, dev, assigned)
-    eth = _ethercat_lines(dev, coe, fixed_assign, chosen_dc, modes)
-    lines += ["ethercat:", *eth]
+    lines += ["ethercat:", *_ethercat_lines(dev, coe, fixed_assign, chosen_dc, modes)]
     text = "\n".join(lines) + "\n"
     out_name = f"{name}.yaml"
     try:
@@ -568,6 +561,17 @@ def import_esi(
             line=dev_info.line,
         ) from exc
     return EsiImport(text, drive, dev_info, others, tuple(warnings))
+
+
+def _imported(
+    doc: _Doc, assigned: list[_Pdo], fixed_config: bool, warnings: list[str]
+) -> tuple[list[ImportedPdo], list[ImportedPdo]]:
+    """The assigned PDOs with their entries: RxPDOs (outputs), TxPDOs (inputs)."""
+    imported: dict[bool, list[ImportedPdo]] = {True: [], False: []}
+    for p in assigned:
+        entries = _entries(doc, p, warnings)
+        imported[p.rx].append(ImportedPdo(p.index, p.name, entries, fixed=p.fixed or fixed_config))
+    return imported[True], imported[False]
 
 
 def _header(
