@@ -657,22 +657,9 @@ def _serve(
 ) -> None:
     sock = open_port0(iface)
     after.sock = sock
-    ctl: socket.socket | None = None
-    if control:
-        if os.path.exists(control):
-            os.unlink(control)
-        ctl = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        ctl.bind(control)
-        ctl.setblocking(False)
+    ctl = _control_socket(control) if control else None
     writer = PcapWriter(pcap) if pcap else None
-    stop = False
-
-    def _stop(_sig: int, _frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
+    stop = _stop_on_signals()
     poller = select.poll()
     poller.register(sock.fileno(), select.POLLIN)
     if ctl is not None:
@@ -688,19 +675,11 @@ def _serve(
     print(f"ready {iface} {len(chain)} slaves", flush=True)
     try:
         while not stop:
-            spin_until = 0
-            due = anticipate.due_ns(wall())
-            if due:  # a paced master: sleep until shortly before its frame, then poll for it
-                ahead = due - anticipate.lead_ns - wall()
-                if ahead > 0:
-                    select.select([sock], [], [], ahead / 1e9)
-                spin_until = clock() + max(0, due + anticipate.late_ns - wall())
-            else:
-                events = poller.poll(20)
-                if not events:
-                    chain.tick(clock())
-                    collector.quiet()
-                    continue
+            spin_until = _wait_for_frame(sock, poller, anticipate)
+            if spin_until < 0:  # nothing came: the chain's time goes on, garbage may be collected
+                chain.tick(clock())
+                collector.quiet()
+                continue
             if ctl is not None:
                 _serve_control(chain, ctl, times)
             while True:
@@ -733,26 +712,7 @@ def _serve(
                     arrived = received_ns(anc)
                     picked = wall()
                     anticipate.arrived(arrived)
-                now = clock()
-                if writer is not None:
-                    writer.write(bytes(view[:n]), time.time())
-                try:
-                    m = chain.process_into(buf, n, now, cycles=False)
-                except FrameError as e:
-                    print(f"dropped malformed frame: {e}", file=sys.stderr, flush=True)
-                    continue
-                if not m:
-                    continue
-                delay = chain.take_delay()
-                if delay:
-                    time.sleep(delay)
-                send(view[:m])
-                if arrived and not delay:
-                    times.add(arrived, picked, wall())
-                after.replied(now)
-                if writer is not None:
-                    writer.write(bytes(view[:m]), time.time())
-                chain.run_cycles(now)
+                _reply(chain, buf, view, n, clock(), send, writer, after, times, arrived, picked)
     finally:
         sock.close()
         if writer is not None:
@@ -761,6 +721,87 @@ def _serve(
             ctl.close()
             if control and os.path.exists(control):
                 os.unlink(control)
+
+
+def _control_socket(path: str) -> socket.socket:
+    """The fault-injection commands' UNIX datagram socket at ``path`` (replacing a stale one), non-blocking."""
+    if os.path.exists(path):
+        os.unlink(path)
+    ctl = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    ctl.bind(path)
+    ctl.setblocking(False)
+    return ctl
+
+
+class _Stop:
+    """Set by SIGTERM / SIGINT: the serve loop ends after the frame in hand."""
+
+    def __init__(self) -> None:
+        self.asked = False
+
+    def __bool__(self) -> bool:
+        return self.asked
+
+    def __call__(self, _sig: int, _frame: object) -> None:
+        self.asked = True
+
+
+def _stop_on_signals() -> _Stop:
+    stop = _Stop()
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    return stop
+
+
+def _wait_for_frame(sock: socket.socket, poller: select.poll, anticipate: Anticipator) -> int:
+    """Wait for the master's next frame: a paced master's, sleeping until shortly before it is due;
+    otherwise up to 20 ms in poll(). Returns until when to poll for it (monotonic ns; 0: the default
+    spin), -1 when nothing came."""
+    wall = time.time_ns
+    due = anticipate.due_ns(wall())
+    if due:  # a paced master: sleep until shortly before its frame, then poll for it
+        ahead = due - anticipate.lead_ns - wall()
+        if ahead > 0:
+            select.select([sock], [], [], ahead / 1e9)
+        return time.monotonic_ns() + max(0, due + anticipate.late_ns - wall())
+    return 0 if poller.poll(20) else -1
+
+
+def _reply(
+    chain: EscChain,
+    buf: bytearray,
+    view: memoryview,
+    n: int,
+    now: int,
+    send: Any,
+    writer: PcapWriter | None,
+    after: AfterReply,
+    times: ReplyTimes,
+    arrived: int,
+    picked: int,
+) -> None:
+    """The chain processes the ``n``-byte frame in ``buf`` (``view``: a view of it) at ``now`` (monotonic ns) and sends its reply
+    (held back by a delay fault), written to the pcap too; the reply time goes to ``times`` (from the
+    kernel's receipt ``arrived``, runner pickup ``picked``; 0: not known), then the slaves' cycles run."""
+    if writer is not None:
+        writer.write(bytes(view[:n]), time.time())
+    try:
+        m = chain.process_into(buf, n, now, cycles=False)
+    except FrameError as e:
+        print(f"dropped malformed frame: {e}", file=sys.stderr, flush=True)
+        return
+    if not m:
+        return
+    delay = chain.take_delay()
+    if delay:
+        time.sleep(delay)
+    send(view[:m])
+    if arrived and not delay:
+        times.add(arrived, picked, time.time_ns())
+    after.replied(now)
+    if writer is not None:
+        writer.write(bytes(view[:m]), time.time())
+    chain.run_cycles(now)
 
 
 def _serve_control(chain: EscChain, ctl: socket.socket, times: ReplyTimes | None = None) -> None:
