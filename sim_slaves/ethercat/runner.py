@@ -407,20 +407,32 @@ def handle_control(
     """
     cmd = msg.get("cmd")
     if cmd == "timing":
-        if times is None:
-            return {"ok": False, "error": "no reply times here"}
-        answer = {
-            "ok": True,
-            "frames": chain.frames,
-            "reply_us": times.to_json(),
-            **times.settings,
-            "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
-        }
-        if msg.get("reset"):
-            times.reset()
-        return answer
+        return _timing(chain, msg, times)
     if cmd in ("dc", "dc_config"):
         return _dc_command(chain, msg, time.monotonic_ns() if now_ns is None else now_ns)
+    answer = _inject(chain, cmd, msg)
+    return _status(chain) if answer is None else answer
+
+
+def _timing(chain: EscChain, msg: dict[str, Any], times: ReplyTimes | None) -> dict[str, Any]:
+    """The ``timing`` command: the runner's reply times and settings (``reset``: start them again)."""
+    if times is None:
+        return {"ok": False, "error": "no reply times here"}
+    answer = {
+        "ok": True,
+        "frames": chain.frames,
+        "reply_us": times.to_json(),
+        **times.settings,
+        "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
+    }
+    if msg.get("reset"):
+        times.reset()
+    return answer
+
+
+def _inject(chain: EscChain, cmd: object, msg: dict[str, Any]) -> dict[str, Any] | None:
+    """A fault-injection (or read-out) command on the chain or one of its slaves; its own answer, or
+    None when the answer is the chain's :func:`_status`."""
     slave = int(msg.get("slave", 0))
     if cmd == "drop":
         chain.drop_frames(int(msg.get("count", 1)), process_data=bool(msg.get("pd")))
@@ -481,6 +493,11 @@ def handle_control(
         pass
     else:
         return {"ok": False, "error": f"unknown command {cmd!r}"}
+    return None
+
+
+def _status(chain: EscChain) -> dict[str, Any]:
+    """The chain's frames and each slave's AL state, AL status code and drive states."""
     return {
         "ok": True,
         "frames": chain.frames,
@@ -819,7 +836,8 @@ def _serve_control(chain: EscChain, ctl: socket.socket, times: ReplyTimes | None
                 ctl.sendto(json.dumps(answer).encode(), sender)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The runner's command line (``python -m sim_slaves.ethercat``)."""
     p = argparse.ArgumentParser(prog="python -m sim_slaves.ethercat", description=__doc__.split("\n\n")[0])
     p.add_argument("--iface", required=True, help="network interface, e.g. one end of a veth pair")
     p.add_argument(
@@ -878,7 +896,15 @@ def main(argv: list[str] | None = None) -> int:
         default=DC_MIN_SAMPLE_INTERVAL_NS / 1000,
         help="DC: least time between FRMW samples the clocks' loops take (0: every one)",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def _checked(
+    p: argparse.ArgumentParser, args: argparse.Namespace
+) -> tuple[list[DriveMap] | None, list[dict[str, Any] | None] | None]:
+    """The options checked together (``p.error`` on a bad mix); the slaves of ``--network`` if given."""
+    devices: list[DriveMap] | None = None
+    params: list[dict[str, Any] | None] | None = None
     if args.count < 1:
         p.error("--count must be >= 1")
     if bool(args.map) == bool(args.network):
@@ -887,7 +913,6 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--count repeats --map; a network file lists its slaves itself")
     if args.bus and not args.network:
         p.error("--bus needs --network")
-    devices, params = None, None
     if args.network:
         try:
             devices, params = network_slaves(args.network, args.bus)
@@ -899,6 +924,13 @@ def main(argv: list[str] | None = None) -> int:
         args.rt_priority.isdigit() and 1 <= int(args.rt_priority) <= 99
     ):
         p.error("--rt-priority takes 1-99, 'auto' or 'off'")
+    return devices, params
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = _parser()
+    args = p.parse_args(argv)
+    devices, params = _checked(p, args)
     timing = EscTiming(*args.esc_delays_ns) if args.esc_delays_ns else None
     chain = build_chain(
         args.map or [],
