@@ -23,7 +23,6 @@ ALLOWED = {
     "sim_slaves/drive402.py::Cia402Drive._physics": 117,
     "sim_slaves/drive_bank.py::DriveBank.__init__": 115,
     "fieldbus/backends/ethercat.py::EthercatBackend.__init__": 113,
-    "sim_slaves/od.py::ObjectDictionary.from_drive_map": 101,
     "sim_slaves/drive_bank.py::DriveBank._physics": 101,
     "fieldbus/core/pdo/load.py::_channel": 100,
     "sim_slaves/drive_bank.py::DriveBank._csp": 94,
