@@ -29,7 +29,6 @@ ALLOWED = {
     "fieldbus/core/pdo/image.py::DirectionImage.__init__": 94,
     "fieldbus/core/pdo/load.py::parse_drive_map": 90,
     "fieldbus/network.py::Operational._receive": 84,
-    "sim_slaves/ethercat/chain.py::EscChain.process_into": 83,
     "fieldbus/core/rawcan.py::parse_classic": 83,
     "fieldbus/network.py::Network.__init__": 82,
     "fieldbus/core/cia402.py::Cia402Controller.step": 82,
