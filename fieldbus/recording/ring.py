@@ -36,7 +36,25 @@ if TYPE_CHECKING:
     from fieldbus.backends.base import AxisGroup, Backend
     from fieldbus.network import BusStatus, CycleResult, Operational
 
-COMMON = ("cycle", "t_ns", "wakeup_ns", "exchange_ns", "fresh", "safe_stop")
+OWN = ("cycle", "t_ns", "wakeup_ns")  # the /cycle columns the ring sets itself (cycle: CycleResult.cycle - 1)
+# CycleResult fields not in the /cycle row (its numbers are: derived from the dataclass), and where they are
+CYCLE_EXCLUDED = {
+    "cycle": "column 'cycle': the index of the cycle run (CycleResult.cycle - 1)",
+    "buses": "the /bus/<bus> channels",
+    "events": "/events",
+    "drive_faults": "'drive_fault' events",
+    "_by_name": "an index of buses",
+}
+
+
+def _cycle_numbers() -> tuple[StatusField, ...]:
+    from fieldbus.network import CycleResult
+
+    return of(CycleResult, Carry.NUMBER, exclude=CYCLE_EXCLUDED)
+
+
+CYCLE_NUMBERS = _cycle_numbers()  # fresh, safe_stop, exchange_ns (CycleResult's order)
+COMMON = (*OWN, *(f.name for f in CYCLE_NUMBERS))
 EMERGENCIES = "emergencies"  # a bus column that is not a BusStatus field: the backend's EMCY count
 # BusStatus fields the ring does not carry per cycle, and where the recording keeps them instead
 EXCLUDED = {
@@ -105,8 +123,9 @@ class GroupSlot:
     in_src: npt.NDArray[np.uint8]
 
 
-def _numbers_of(fields: tuple[StatusField, ...]) -> Callable[[BusStatus], tuple[int, ...]]:
-    """A function of a bus status giving its NUMBER ``fields`` as ints (``None``: :data:`NO_VALUE`).
+def _numbers_of(fields: tuple[StatusField, ...]) -> Callable[[Any], tuple[int, ...]]:
+    """A function of a status (BusStatus, CycleResult) giving its NUMBER ``fields`` as ints (``None``:
+    :data:`NO_VALUE`).
 
     Compiled from the field names (identifiers of the dataclass) into one tuple expression, as
     :mod:`dataclasses` compiles ``__init__``: the cycle reads each field once, with no loop.
@@ -117,7 +136,7 @@ def _numbers_of(fields: tuple[StatusField, ...]) -> Callable[[BusStatus], tuple[
     )
     assert all(f.name.isidentifier() for f in fields)
     code = f"lambda st: ({items},)"
-    fn: Callable[[BusStatus], tuple[int, ...]] = eval(code, {"NO_VALUE": NO_VALUE})
+    fn: Callable[[Any], tuple[int, ...]] = eval(code, {"NO_VALUE": NO_VALUE})
     return fn
 
 
@@ -222,6 +241,7 @@ class Ring:
         new_text = self._new_text
         no_value = NO_VALUE
         numbers = _numbers_of(self.columns.numbers)
+        cycle_numbers = _numbers_of(CYCLE_NUMBERS)
         texts = tuple(enumerate(attrgetter(t) for t in self.columns.texts))
 
         def capture(res: CycleResult, t0_ns: int) -> None:
@@ -236,9 +256,7 @@ class Ring:
             n = ring.count
             row = n % rows
             c = row * row_bytes
-            pack_common(
-                buf, c, res.cycle - 1, t0_ns, ring.wakeup_ns, res.exchange_ns, res.fresh, res.safe_stop
-            )
+            pack_common(buf, c, res.cycle - 1, t0_ns, ring.wakeup_ns, *cycle_numbers(res))
             ring.wakeup_ns = no_value
             for slot, st, off, emcy in buses:
                 last = slot.last_texts

@@ -130,17 +130,16 @@ EVENT_SCHEMA: dict[str, Any] = {
 }
 
 
-def cycle_dtype() -> np.dtype[Any]:
-    return np.dtype(
-        [
-            ("cycle", "<u8"),
-            ("t_ns", "<i8"),
-            ("wakeup_ns", "<i8"),
-            ("exchange_ns", "<i8"),
-            ("fresh", "?"),
-            ("safe_stop", "?"),
-        ]
-    )
+def cycle_dtype(numbers: tuple[StatusField, ...] | None = None) -> np.dtype[Any]:
+    """The /cycle row: the cycle index, its start and wake-up latency, then each NUMBER field of
+    ``CycleResult`` (``numbers``; default: the ring's, derived from the dataclass)."""
+    if numbers is None:
+        from fieldbus.recording.ring import CYCLE_NUMBERS
+
+        numbers = CYCLE_NUMBERS
+    fields: list[tuple[Any, ...]] = [("cycle", "<u8"), ("t_ns", "<i8"), ("wakeup_ns", "<i8")]
+    fields += [(f.name, "?" if f.flag and not f.optional else "<i8") for f in numbers]
+    return np.dtype(fields)
 
 
 def bus_dtype(n_slaves: int, *, nmt: bool, numbers: tuple[StatusField, ...]) -> np.dtype[Any]:

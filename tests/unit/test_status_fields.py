@@ -154,6 +154,12 @@ def test_every_bus_status_field_is_carried_or_excluded_by_each_observer(tmp_path
             f"{observer}.EXCLUDED names no BusStatus field: {set(excluded) - names}"
         )
         assert not set(excluded) & have, f"{observer} both carries and excludes {set(excluded) & have}"
+    # and the /cycle row carries CycleResult's numbers, or names where the rest is
+    from fieldbus.network import CycleResult
+
+    cycle_cols = set(load(path).cycles.dtype.names)
+    assert {"fresh", "safe_stop", "exchange_ns"} <= cycle_cols
+    assert check_covered(CycleResult, cycle_cols, ring.CYCLE_EXCLUDED, "the /cycle row") == []
     # the check can fail: a hand-kept list (the recording's before) misses a field added to the class
     old = {"ran", "verdict", "wkc", "consecutive_misses", "safe_stop", "recovering", "recoveries", "fresh"}
     missing = check_covered(_WithExtras, old | {"dc_time_ns", "dc_sync_error_ns"}, ring.EXCLUDED, "recording")
