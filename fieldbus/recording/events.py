@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from fieldbus.core.cia402 import UNKNOWN_STATE, State402, decode_states
 from fieldbus.core.network import row_names
-from fieldbus.recording.ring import COMMON, EMERGENCIES, TEXTS, Ring, Snapshot
+from fieldbus.recording.ring import EMERGENCIES, OWN, TEXTS, Ring, Snapshot
 
 TOGGLES = (
     ("safe_stop", "safe_stop", "safe_stop_cleared"),
@@ -65,7 +65,7 @@ class EventDeriver:
         """Events of one block; ``inputs``: each group's decoded input values, (rows, axes)."""
         ints = snap.ints
         a = ints if self._prev is None else np.concatenate([self._prev[None, :], ints])
-        cycle, t_ns = a[:, COMMON.index("cycle")], a[:, COMMON.index("t_ns")]
+        cycle, t_ns = a[:, OWN.index("cycle")], a[:, OWN.index("t_ns")]
         events: list[dict[str, Any]] = []
 
         def emit(row: int, kind: str, **more: Any) -> None:

@@ -10,7 +10,7 @@ only). A writer that falls behind by a whole ring loses the oldest block; the
 cycle never waits.
 
 Per cycle and row: an int64 vector (cycle, times, per-bus status, see
-:data:`COMMON` and :class:`BusColumns`: derived from the BusStatus dataclass), per bus the per-slave fresh flags (and NMT
+:attr:`Ring.common` and :class:`BusColumns`: derived from the CycleResult and BusStatus dataclasses), per bus the per-slave fresh flags (and NMT
 states on CANopen), per axis group the bytes of its output and input images
 (engineering values and wire bytes as :class:`~fieldbus.core.pdo.image.DirectionImage`
 lays them out). Copies use ``struct.pack_into`` and memoryview slices over
@@ -45,16 +45,6 @@ CYCLE_EXCLUDED = {
     "drive_faults": "'drive_fault' events",
     "_by_name": "an index of buses",
 }
-
-
-def _cycle_numbers() -> tuple[StatusField, ...]:
-    from fieldbus.network import CycleResult
-
-    return of(CycleResult, Carry.NUMBER, exclude=CYCLE_EXCLUDED)
-
-
-CYCLE_NUMBERS = _cycle_numbers()  # fresh, safe_stop, exchange_ns (CycleResult's order)
-COMMON = (*OWN, *(f.name for f in CYCLE_NUMBERS))
 EMERGENCIES = "emergencies"  # a bus column that is not a BusStatus field: the backend's EMCY count
 # BusStatus fields the ring does not carry per cycle, and where the recording keeps them instead
 EXCLUDED = {
@@ -140,12 +130,6 @@ def _numbers_of(fields: tuple[StatusField, ...]) -> Callable[[Any], tuple[int, .
     return fn
 
 
-def _bus_status() -> type:
-    from fieldbus.network import BusStatus
-
-    return BusStatus
-
-
 def _flat_bytes(values: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
     assert values.flags.c_contiguous
     flat: npt.NDArray[np.uint8] = values.view(np.uint8).reshape(-1)
@@ -162,14 +146,17 @@ class Ring:
         self.ring_blocks = ring_blocks
         self.rows = rows = block_cycles * ring_blocks
         backends = [v.backend for v in op.buses]
+        # the columns, derived from the classes of the network's own CycleResult and BusStatus objects
+        self.cycle_numbers = of(type(op.result), Carry.NUMBER, exclude=CYCLE_EXCLUDED)
+        self.common = common = (*OWN, *(f.name for f in self.cycle_numbers))
         statuses = op.result.buses
-        self.columns = cols = BusColumns.of(type(statuses[0]) if statuses else _bus_status())
+        self.columns = cols = BusColumns.of(type(statuses[0])) if statuses else BusColumns((), ())
         n_bus = len(cols.names)
-        self.width = len(COMMON) + n_bus * len(backends)
+        self.width = len(common) + n_bus * len(backends)
         self.ints = np.zeros((rows, self.width), dtype=np.int64)
         self.row_bytes = self.width * 8
         self._buf = _flat_bytes(self.ints).data  # struct.pack_into targets: no numpy scalars
-        self._pack_common = struct.Struct(f"<{len(COMMON)}q").pack_into
+        self._pack_common = struct.Struct(f"<{len(common)}q").pack_into
         self._pack_bus = struct.Struct(f"<{n_bus}q").pack_into
         self.buses: list[BusSlot] = []
         for k, (b, st) in enumerate(zip(backends, op.result.buses, strict=True)):
@@ -179,8 +166,8 @@ class Ring:
             self.buses.append(
                 BusSlot(
                     index=k,
-                    base=len(COMMON) + n_bus * k,
-                    offset=8 * (len(COMMON) + n_bus * k),
+                    base=len(common) + n_bus * k,
+                    offset=8 * (len(common) + n_bus * k),
                     status=st,
                     backend=b,
                     fresh=np.zeros((rows, b.n_slaves), dtype=bool),
@@ -241,7 +228,7 @@ class Ring:
         new_text = self._new_text
         no_value = NO_VALUE
         numbers = _numbers_of(self.columns.numbers)
-        cycle_numbers = _numbers_of(CYCLE_NUMBERS)
+        cycle_numbers = _numbers_of(self.cycle_numbers)
         texts = tuple(enumerate(attrgetter(t) for t in self.columns.texts))
 
         def capture(res: CycleResult, t0_ns: int) -> None:

@@ -130,13 +130,9 @@ EVENT_SCHEMA: dict[str, Any] = {
 }
 
 
-def cycle_dtype(numbers: tuple[StatusField, ...] | None = None) -> np.dtype[Any]:
-    """The /cycle row: the cycle index, its start and wake-up latency, then each NUMBER field of
-    ``CycleResult`` (``numbers``; default: the ring's, derived from the dataclass)."""
-    if numbers is None:
-        from fieldbus.recording.ring import CYCLE_NUMBERS
-
-        numbers = CYCLE_NUMBERS
+def cycle_dtype(numbers: tuple[StatusField, ...] = ()) -> np.dtype[Any]:
+    """The /cycle row: the cycle index, its start and wake-up latency, then each NUMBER field of the
+    network's ``CycleResult`` (``numbers``: the ring's, derived from the dataclass)."""
     fields: list[tuple[Any, ...]] = [("cycle", "<u8"), ("t_ns", "<i8"), ("wakeup_ns", "<i8")]
     fields += [(f.name, "?" if f.flag and not f.optional else "<i8") for f in numbers]
     return np.dtype(fields)

@@ -37,7 +37,7 @@ from fieldbus.core.status_fields import event_fields
 from fieldbus.errors import BackendUnavailableError, FieldbusError
 from fieldbus.recording import schema
 from fieldbus.recording.events import EventDeriver
-from fieldbus.recording.ring import COMMON, Ring, Snapshot
+from fieldbus.recording.ring import Ring, Snapshot
 
 if TYPE_CHECKING:
     from fieldbus.network import CycleResult, Operational
@@ -190,7 +190,7 @@ class Recorder:
 
     def _setup(self, w: Any, op: Operational) -> None:
         net = op.network
-        self._cycle_dtype = schema.cycle_dtype()
+        self._cycle_dtype = schema.cycle_dtype(self.ring.cycle_numbers)
         self._cycle_ch = self._channel(w, "/cycle", self._cycle_dtype, schema.CYCLE_FIELDS)
         self._bus_dtypes: list[np.dtype[Any]] = []
         self._bus_ch: list[int] = []
@@ -292,7 +292,7 @@ class Recorder:
         ints = snap.ints
         cyc_rows, bus_rows, group_rows = self._rows
         cyc = cyc_rows[:n]  # every field of these rows is written below
-        for j, name in enumerate(COMMON):
+        for j, name in enumerate(self.ring.common):
             cyc[name] = ints[:, j]
         streams: list[tuple[int, npt.NDArray[Any]]] = [(self._cycle_ch, cyc)]
         for k, slot in enumerate(self.ring.buses):

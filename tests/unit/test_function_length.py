@@ -14,25 +14,26 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 LIMIT = 80  # lines, def to last line
 
-# "path::qualified.name": its length when listed (not yet split into pieces with names in the domain)
+# "file.py::qualified.name" (the file's name, not its folder: a module moved to another package keeps
+# its entry): its length when listed (not yet split into pieces with names in the domain)
 ALLOWED = {
-    "fieldbus/runtime/soak.py::Soak.run": 187,
-    "fieldbus/core/network.py::_bus": 138,
-    "fieldbus/backends/rawcan.py::RawCanBackend.__init__": 133,
-    "fieldbus/core/odrive.py::parse_odrive": 124,
-    "sim_slaves/drive402.py::Cia402Drive._physics": 117,
-    "sim_slaves/drive_bank.py::DriveBank.__init__": 115,
-    "fieldbus/backends/ethercat.py::EthercatBackend.__init__": 113,
-    "sim_slaves/drive_bank.py::DriveBank._physics": 101,
-    "fieldbus/core/pdo/load.py::_channel": 100,
-    "sim_slaves/drive_bank.py::DriveBank._csp": 94,
-    "fieldbus/core/pdo/image.py::DirectionImage.__init__": 94,
-    "fieldbus/core/pdo/load.py::parse_drive_map": 90,
-    "fieldbus/network.py::Operational._receive": 84,
-    "fieldbus/core/rawcan.py::parse_classic": 83,
-    "fieldbus/network.py::Network.__init__": 82,
-    "fieldbus/core/cia402.py::Cia402Controller.step": 82,
-    "fieldbus/core/cubemars.py::parse_cubemars": 81,
+    "soak.py::Soak.run": 187,
+    "network.py::_bus": 138,
+    "rawcan.py::RawCanBackend.__init__": 133,
+    "odrive.py::parse_odrive": 124,
+    "drive402.py::Cia402Drive._physics": 117,
+    "drive_bank.py::DriveBank.__init__": 115,
+    "ethercat.py::EthercatBackend.__init__": 113,
+    "drive_bank.py::DriveBank._physics": 101,
+    "load.py::_channel": 100,
+    "drive_bank.py::DriveBank._csp": 94,
+    "image.py::DirectionImage.__init__": 94,
+    "load.py::parse_drive_map": 90,
+    "network.py::Operational._receive": 84,
+    "rawcan.py::parse_classic": 83,
+    "network.py::Network.__init__": 82,
+    "cia402.py::Cia402Controller.step": 82,
+    "cubemars.py::parse_cubemars": 81,
 }
 
 
@@ -59,8 +60,9 @@ def long_functions() -> dict[str, int]:
     found: dict[str, int] = {}
     for package in ("fieldbus", "sim_slaves"):
         for p in sorted((ROOT / package).rglob("*.py")):
-            lengths = function_lengths(p.read_text(), p.relative_to(ROOT).as_posix())
-            found.update({k: n for k, n in lengths.items() if n > LIMIT})
+            for key, n in function_lengths(p.read_text(), p.name).items():
+                if n > LIMIT:  # two files of one name with one long function: the longer counts
+                    found[key] = max(n, found.get(key, 0))
     return found
 
 
