@@ -48,7 +48,14 @@ RING_BLOCKS = 16
 # fieldbus.core.status_fields.event_fields), renamed where the event schema names it otherwise
 EVENT_RENAMED = {"reason": "name"}  # OutputClamp.reason (NAN, INF, RANGE, STEP)
 EVENT_EXCLUDED = ("cycle", "kind")  # the recording event's own ``cycle`` and ``kind``
-NOTED_KINDS = ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up")  # BusEvents (others: rows)
+NOTED_KINDS = (
+    "bus_error",
+    "acyclic_error",
+    "esc_errors",
+    "link_down",
+    "link_up",
+    "sdo_abort",
+)  # BusEvents (others: rows)
 POLL_S = 0.05  # the writer looks for full blocks this often, s (a 16-block ring lasts 0.5 s at 8 kHz)
 
 
