@@ -268,8 +268,14 @@ class Ring:
             self.noted.append({"cycle": cycle, "t_ns": 0, "kind": kind, **fields})
 
     def _new_text(self, slot: BusSlot, j: int, value: object) -> None:
-        """TEXT field ``j`` of ``slot``'s status changed to ``value`` (rare: its ``str()`` allocates)."""
-        slot.last_texts[j] = value
+        """TEXT field ``j`` of ``slot``'s status is a new object ``value`` (rare: its ``str()`` allocates).
+
+        A new text counts (a recovery failing again with the same message is a new failure); a new
+        structured value (a nested dataclass) counts when it differs from the last one.
+        """
+        last, slot.last_texts[j] = slot.last_texts[j], value
+        if not (value is None or isinstance(value, str)) and value == last:
+            return
         slot.text_seq[j] += 1
         self.texts[slot.index][j][slot.text_seq[j] % TEXTS] = text(value)
 

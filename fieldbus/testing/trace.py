@@ -165,9 +165,11 @@ class Trace:
             last = self._last_texts[j]
             for i, name in enumerate(self.text_names):
                 v = getattr(st, name)
-                if v is not last[i]:  # a new value (compared by identity, as the recording does)
+                if v is not last[i]:  # a new object; a structured one counts when it differs (as recorded)
+                    same = not (v is None or isinstance(v, str)) and v == last[i]
                     last[i] = v
-                    self._texts[j][name].append((k, text(v)))
+                    if not same:
+                        self._texts[j][name].append((k, text(v)))
             if st.recoveries != self._recoveries[j]:  # a recovery brought a slave back in this cycle
                 self._recoveries[j] = st.recoveries
                 self._events.append(TraceEvent(k, "recovered", _Recovered(k, st.name, st.recoveries)))
