@@ -418,57 +418,72 @@ class ObjectDictionary:
         """
         od = cls()
         is402 = is_cia402_drive(drive)
-        od.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="Device type")
-        od.add(0x1001, 0, U8, 0, access=Access.RO, name="Error register")
-        od.add_string(0x1008, drive.name, "Manufacturer device name")
-        od.add(USER_LABEL, 0, None, b"", access=Access.RW, name="User label")
+        od._add_device(drive, is402)
+        if is402:
+            od._add_cia402(drive, params)
+        od._add_mapped(drive)
+        od._add_assignment(drive)
+        od.fix_subindex0()
+        return od
+
+    def _add_device(self, drive: DriveMap, is402: bool) -> None:
+        """0x1000 device type, 0x1001, 0x1008 name, the user label, 0x1018 identity, 0x1C00 SM types."""
+        self.add(0x1000, 0, U32, DEVICE_TYPE_402 if is402 else 0, access=Access.RO, name="Device type")
+        self.add(0x1001, 0, U8, 0, access=Access.RO, name="Error register")
+        self.add_string(0x1008, drive.name, "Manufacturer device name")
+        self.add(USER_LABEL, 0, None, b"", access=Access.RW, name="User label")
         ident = (
             drive.vendor_id,
             drive.product_id,
             drive.revision or drive.ethercat.revision,
             drive.ethercat.serial,
         )
-        od.describe(0x1018, "Identity object", ObjectCode.RECORD, DEFTYPE_IDENTITY)
+        self.describe(0x1018, "Identity object", ObjectCode.RECORD, DEFTYPE_IDENTITY)
         for sub, (v, n) in enumerate(zip(ident, IDENTITY_NAMES, strict=True), start=1):
-            od.add(0x1018, sub, U32, v, access=Access.RO, name=n)
-        od.add(0x1018, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
-        od.describe(SM_COMM_TYPE, "Sync manager communication type", ObjectCode.ARRAY, 0x0005)
-        od.add(SM_COMM_TYPE, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
+            self.add(0x1018, sub, U32, v, access=Access.RO, name=n)
+        self.add(0x1018, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
+        self.describe(SM_COMM_TYPE, "Sync manager communication type", ObjectCode.ARRAY, 0x0005)
+        self.add(SM_COMM_TYPE, 0, U8, 4, access=Access.RO, name="Highest sub-index supported")
         for sub, v in enumerate((1, 2, 3, 4), start=1):
-            od.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO, name=f"Communication type SM{sub - 1}")
-        if is402:
-            defaults = _cia402_defaults(drive, params)
-            for index, tname in CIA402_TYPES.items():
-                dt = datatypes.lookup(tname)
-                assert dt is not None
-                value = SUPPORTED_MODES_HM_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
-                mappable = index not in NOT_MAPPABLE_402
-                od.add(
-                    index,
-                    0,
-                    dt,
-                    value,
-                    name=CIA402_NAMES.get((index, 0)) or MODE_OBJECT_NAMES.get(index, f"0x{index:04X}"),
-                    mappable=mappable,
-                    pdo_dir=0 if not mappable else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
-                )
-            for index, (tname, name, subs) in CIA402_RECORDS.items():
-                dt = datatypes.lookup(tname)
-                assert dt is not None
-                od.describe(index, name, ObjectCode.ARRAY)
-                for sub, sub_name in enumerate(subs, start=1):
-                    od.add(index, sub, dt, defaults.get((index, sub), 0), name=sub_name)
+            self.add(SM_COMM_TYPE, sub, U8, v, access=Access.RO, name=f"Communication type SM{sub - 1}")
+
+    def _add_cia402(self, drive: DriveMap, params: DriveParams | None) -> None:
+        """Every CiA 402 object of every mode 0x6502 advertises, at the values ``params`` describe."""
+        defaults = _cia402_defaults(drive, params)
+        for index, tname in CIA402_TYPES.items():
+            dt = datatypes.lookup(tname)
+            assert dt is not None
+            value = SUPPORTED_MODES_HM_CSP_CSV_CST if index == 0x6502 else defaults.get((index, 0), 0)
+            mappable = index not in NOT_MAPPABLE_402
+            self.add(
+                index,
+                0,
+                dt,
+                value,
+                name=CIA402_NAMES.get((index, 0)) or MODE_OBJECT_NAMES.get(index, f"0x{index:04X}"),
+                mappable=mappable,
+                pdo_dir=0 if not mappable else (PDO_RX if index in CIA402_OUTPUTS else PDO_TX),
+            )
+        for index, (tname, name, subs) in CIA402_RECORDS.items():
+            dt = datatypes.lookup(tname)
+            assert dt is not None
+            self.describe(index, name, ObjectCode.ARRAY)
+            for sub, sub_name in enumerate(subs, start=1):
+                self.add(index, sub, dt, defaults.get((index, sub), 0), name=sub_name)
+
+    def _add_mapped(self, drive: DriveMap) -> None:
+        """The start-up SDO objects and every mapped object with its type and PDO direction(s)."""
         for sdo in drive.sdo:
-            if not od.has(sdo.index, sdo.sub_index):
-                od.add(sdo.index, sdo.sub_index, sdo.type, 0, name=sdo.description)
+            if not self.has(sdo.index, sdo.sub_index):
+                self.add(sdo.index, sdo.sub_index, sdo.type, 0, name=sdo.description)
         for direction, pdos in ((PDO_RX, drive.rpdo), (PDO_TX, drive.tpdo)):
             for pdo in pdos:
                 for ch in pdo.channels:
                     if ch.is_gap:
                         continue
-                    old = od._entries.get((ch.index, ch.sub_index))
+                    old = self._entries.get((ch.index, ch.sub_index))
                     keep = old is not None and old.dtype == ch.type
-                    od.add(
+                    self.add(
                         ch.index,
                         ch.sub_index,
                         ch.type,
@@ -477,16 +492,19 @@ class ObjectDictionary:
                         mappable=True,
                         pdo_dir=direction | (old.pdo_dir if old and keep else 0),
                     )
-                    if ch.sub_index and ch.index not in od._objects:
-                        od.describe(ch.index, ch.name)
+                    if ch.sub_index and ch.index not in self._objects:
+                        self.describe(ch.index, ch.name)
+
+    def _add_assignment(self, drive: DriveMap) -> None:
+        """0x1C12/0x1C13 assignment and the 0x16xx/0x1Axx mapping objects (read-only where fixed)."""
         # a fixed assignment (ethercat.pdo_assign: false) and a fixed PDO's mapping are read-only
         assign_access = Access.RW if drive.ethercat.pdo_assign else Access.RO
         for assign, pdos in ((RXPDO_ASSIGN, drive.rpdo), (TXPDO_ASSIGN, drive.tpdo)):
             kind = "RxPDO" if assign == RXPDO_ASSIGN else "TxPDO"
-            od.describe(assign, f"{kind} assign", ObjectCode.ARRAY, 0x0006)
-            od.add(assign, 0, U8, len(pdos), access=assign_access, name="Highest sub-index supported")
+            self.describe(assign, f"{kind} assign", ObjectCode.ARRAY, 0x0006)
+            self.add(assign, 0, U8, len(pdos), access=assign_access, name="Highest sub-index supported")
             for sub in range(1, max(ASSIGN_CAPACITY, len(pdos)) + 1):
-                od.add(
+                self.add(
                     assign,
                     sub,
                     U16,
@@ -496,13 +514,15 @@ class ObjectDictionary:
                 )
             for pdo in pdos:
                 access = Access.RO if pdo.fixed else Access.RW
-                od.describe(pdo.index, f"{kind} mapping {pdo.number}", ObjectCode.RECORD, DEFTYPE_PDO_MAPPING)
-                od.add(pdo.index, 0, U8, len(pdo.channels), access=access, name="Highest sub-index supported")
+                self.describe(
+                    pdo.index, f"{kind} mapping {pdo.number}", ObjectCode.RECORD, DEFTYPE_PDO_MAPPING
+                )
+                self.add(
+                    pdo.index, 0, U8, len(pdo.channels), access=access, name="Highest sub-index supported"
+                )
                 for sub in range(1, max(MAPPING_CAPACITY, len(pdo.channels)) + 1):
                     raw = pdo.channels[sub - 1].mapping_value if sub <= len(pdo.channels) else 0
-                    od.add(pdo.index, sub, U32, raw, access=access, name=f"SubIndex {sub:03d}")
-        od.fix_subindex0()
-        return od
+                    self.add(pdo.index, sub, U32, raw, access=access, name=f"SubIndex {sub:03d}")
 
 
 def is_cia402_drive(drive: DriveMap) -> bool:

@@ -110,20 +110,7 @@ def _show(value: float, type_name: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fieldbus.backends.rawcan import RawCanBackend
-    from fieldbus.core.network import load_network
-
-    net = load_network(args.network)
-    bus = next((b for b in net.buses if b.name == args.bus), None)
-    if bus is None:
-        names = ", ".join(b.name for b in net.buses)
-        raise FieldbusError(f"{args.network}: no bus '{args.bus}' (buses: {names})")
-    if bus.type != "rawcan":
-        raise FieldbusError(f"{args.network}: bus '{bus.name}' is {bus.type}; registers are on rawcan buses")
-    slave = next((s for s in bus.slaves if s.name == args.motor), None)
-    if slave is None:
-        names = ", ".join(s.name for s in bus.slaves)
-        raise FieldbusError(f"{args.network}: bus '{bus.name}' has no motor '{args.motor}' (motors: {names})")
+    bus, slave = _motor(args)
     cfg = slave.map.rawcan
     family = cfg.family if cfg is not None else "none"
     if args.clear_fault:
@@ -154,23 +141,9 @@ def run(args: argparse.Namespace) -> int:
         raise FieldbusError(f"{where}: register {reg_name} ({reg_no}) is read-only")
     if args.save and cfg.damiao is None:
         raise FieldbusError(f"{where}: --save stores a Damiao motor's registers; an ODrive saves over USB")
-    backend = RawCanBackend(bus)
-    backend.open()
-    try:
-        i = backend.slave_index(slave.name)
-        if cfg.damiao is not None:
-            is_float = type_name == "float32"
-            if value is not None:
-                backend.register(i, reg_no, value, is_float=is_float)
-            got = backend.register(i, reg_no, is_float=is_float)
-            if args.save and (value is None or got == _as_written(value, type_name)):
-                backend.save_registers(i)
-        else:
-            fmt = TYPES[type_name]
-            data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
-            got = float(struct.unpack(fmt, backend.access(i, reg_no, data))[0])
-    finally:
-        backend.close()
+    got = _transfer(
+        bus, slave, damiao=cfg.damiao is not None, reg=(reg_no, type_name), value=value, save=args.save
+    )
     if value is not None:
         value = _as_written(value, type_name)
     same = value is None or got == value
@@ -200,6 +173,54 @@ def run(args: argparse.Namespace) -> int:
         )
         return FAILED
     return 0
+
+
+def _motor(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The rawcan bus ``args.bus`` of the network file and its motor ``args.motor``; a clear error naming
+    what the file has instead."""
+    from fieldbus.core.network import load_network
+
+    net = load_network(args.network)
+    bus = next((b for b in net.buses if b.name == args.bus), None)
+    if bus is None:
+        names = ", ".join(b.name for b in net.buses)
+        raise FieldbusError(f"{args.network}: no bus '{args.bus}' (buses: {names})")
+    if bus.type != "rawcan":
+        raise FieldbusError(f"{args.network}: bus '{bus.name}' is {bus.type}; registers are on rawcan buses")
+    slave = next((s for s in bus.slaves if s.name == args.motor), None)
+    if slave is None:
+        names = ", ".join(s.name for s in bus.slaves)
+        raise FieldbusError(f"{args.network}: bus '{bus.name}' has no motor '{args.motor}' (motors: {names})")
+    return bus, slave
+
+
+def _transfer(
+    bus: Any, slave: Any, *, damiao: bool, reg: tuple[int, str], value: float | None, save: bool
+) -> float:
+    """Write ``value`` (None: only read) to register ``reg`` (number, type) of the motor and read it back:
+    a Damiao register (``save``: then stored to flash, when it reads back as written), else an ODrive
+    endpoint over RxSdo. The value read."""
+    from fieldbus.backends.rawcan import RawCanBackend
+
+    reg_no, type_name = reg
+    backend = RawCanBackend(bus)
+    backend.open()
+    try:
+        i = backend.slave_index(slave.name)
+        if damiao:
+            is_float = type_name == "float32"
+            if value is not None:
+                backend.register(i, reg_no, value, is_float=is_float)
+            got = backend.register(i, reg_no, is_float=is_float)
+            if save and (value is None or got == _as_written(value, type_name)):
+                backend.save_registers(i)
+        else:
+            fmt = TYPES[type_name]
+            data = None if value is None else struct.pack(fmt, value if fmt == "<f" else int(value))
+            got = float(struct.unpack(fmt, backend.access(i, reg_no, data))[0])
+    finally:
+        backend.close()
+    return got
 
 
 def _clear_fault(args: argparse.Namespace, bus: Any, slave: Any) -> int:

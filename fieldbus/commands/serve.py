@@ -20,10 +20,13 @@ import json
 import signal
 import sys
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fieldbus.commands import cycleopts
 from fieldbus.commands.usage import epilog
+
+if TYPE_CHECKING:
+    from fieldbus.dds.server import BusServer, ServeOptions
 
 HELP_EPILOG = """DDS domain and network interface:
   --domain N      the DDS domain id; default $ROS_DOMAIN_ID (as ROS 2 does), else 0
@@ -116,9 +119,8 @@ def run(args: argparse.Namespace) -> int:
 
     dds.require()
     from fieldbus.core.network import load_network
-    from fieldbus.dds.gate import Deadline
-    from fieldbus.dds.participant import Participant, check_namespace
-    from fieldbus.dds.server import BusServer, ServeOptions
+    from fieldbus.dds.participant import Participant
+    from fieldbus.dds.server import BusServer
     from fieldbus.errors import FieldbusError
     from fieldbus.network import open_network
     from fieldbus.operations.report import run_report
@@ -129,14 +131,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.spin_us <= 1000:
         raise FieldbusError(f"--spin-us must be 0..1000 µs, not {args.spin_us}")
     model = load_network(args.network)
-    options = ServeOptions(
-        namespace=check_namespace(args.namespace or model.name),
-        deadline=Deadline(args.hold_after, args.stop_after),
-        publish_every=args.publish_every,
-        diagnostics_every=args.diagnostics_every,
-        base_namespace=check_namespace(args.base_namespace) if args.base_namespace else "",
-        ros2_control=_topic_pair(args.ros2_control) if args.ros2_control else None,
-    )
+    options = _options(args, model.name)
     cycleopts.check_record(args)
     stopping = False
 
@@ -155,21 +150,8 @@ def run(args: argparse.Namespace) -> int:
                 op = net.bring_up()
                 server.attach(op)
                 cycleopts.start_recording(op, args)
-                ready = {
-                    "ready": True,
-                    "namespace": options.namespace,
-                    "domain": participant.domain_id,
-                    "groups": {n: g.topics for n, g in server.groups.items()},
-                    **({"base": server.base.topics} if server.base is not None else {}),
-                    **(
-                        {"ros2_control": server.topic_control.topics}
-                        if server.topic_control is not None
-                        else {}
-                    ),
-                    "realtime": rt.to_json(),
-                }
                 print(
-                    json.dumps(ready)
+                    json.dumps(_ready(server, options.namespace, participant.domain_id, rt.to_json()))
                     if args.json
                     else f"serving '{options.namespace}' on DDS domain "
                     f"{participant.domain_id}: {', '.join(server.groups)} (ready)",
@@ -194,25 +176,9 @@ def run(args: argparse.Namespace) -> int:
                 report = run_report(op, timer, period)
     finally:
         signal.signal(signal.SIGTERM, previous)
-    report["groups"] = {
-        n: {
-            "owner": g.gate.label if g.gate.owner is not None else None,
-            "gate": g.gate.state.name,
-            "dropped": g.gate.dropped,
-            "refused": g.gate.refused,
-        }
-        for n, g in server.groups.items()
-    }
-    report["requests"] = server.requests
-    w = server.stalls
-    report["stalls"] = {
-        "count": w.count,
-        "longest_us": w.longest_ns // 1000,
-        "longest_gap_us": w.longest_gap_ns // 1000,  # between two cycles' starts: period + lateness
-        "note": w.note,
-    }
-    if w.note:
-        print(f"fieldbus serve: {w.note}", file=sys.stderr)
+    report.update(_served(server))
+    if server.stalls.note:
+        print(f"fieldbus serve: {server.stalls.note}", file=sys.stderr)
     if args.json:
         print(json.dumps(report))
     else:
@@ -220,6 +186,58 @@ def run(args: argparse.Namespace) -> int:
             f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
         )
     return 0
+
+
+def _options(args: argparse.Namespace, network_name: str) -> ServeOptions:
+    """The server's options from the command line (namespace default: the network's name)."""
+    from fieldbus.dds.gate import Deadline
+    from fieldbus.dds.participant import check_namespace
+    from fieldbus.dds.server import ServeOptions
+
+    return ServeOptions(
+        namespace=check_namespace(args.namespace or network_name),
+        deadline=Deadline(args.hold_after, args.stop_after),
+        publish_every=args.publish_every,
+        diagnostics_every=args.diagnostics_every,
+        base_namespace=check_namespace(args.base_namespace) if args.base_namespace else "",
+        ros2_control=_topic_pair(args.ros2_control) if args.ros2_control else None,
+    )
+
+
+def _ready(server: BusServer, namespace: str, domain: int, realtime: dict[str, Any]) -> dict[str, Any]:
+    """The ``--json`` ready line: where every group, the base and the ros2_control topics are served."""
+    return {
+        "ready": True,
+        "namespace": namespace,
+        "domain": domain,
+        "groups": {n: g.topics for n, g in server.groups.items()},
+        **({"base": server.base.topics} if server.base is not None else {}),
+        **({"ros2_control": server.topic_control.topics} if server.topic_control is not None else {}),
+        "realtime": realtime,
+    }
+
+
+def _served(server: BusServer) -> dict[str, Any]:
+    """What the report adds for a served bus: each group's gate, the requests, the cycle's stalls."""
+    w = server.stalls
+    return {
+        "groups": {
+            n: {
+                "owner": g.gate.label if g.gate.owner is not None else None,
+                "gate": g.gate.state.name,
+                "dropped": g.gate.dropped,
+                "refused": g.gate.refused,
+            }
+            for n, g in server.groups.items()
+        },
+        "requests": server.requests,
+        "stalls": {
+            "count": w.count,
+            "longest_us": w.longest_ns // 1000,
+            "longest_gap_us": w.longest_gap_ns // 1000,  # between two cycles' starts: period + lateness
+            "note": w.note,
+        },
+    }
 
 
 def _topic_pair(text: str) -> tuple[str, str]:

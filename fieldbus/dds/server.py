@@ -39,6 +39,7 @@ from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD
 from fieldbus.core.safestop import SafeStopWriter
 from fieldbus.dds import messages as m
 from fieldbus.dds.base_service import BaseService
+from fieldbus.dds.bus_values import bus_values
 from fieldbus.dds.callers import Caller, Callers, publication_handle
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
@@ -758,9 +759,7 @@ class BusServer:
         for bv in self.op.buses:
             st = bv.status
             level = LEVEL_ERROR if st.safe_stop else LEVEL_OK if st.verdict.name == "OK" else LEVEL_WARN
-            values = [m.KeyValue(k, str(v)) for k, v in bv.counters().items()]
-            if st.last_error:
-                values.append(m.KeyValue("last_error", st.last_error))
+            values = bus_values(st, bv.counters())
             watch = bv.backend.error_watch  # EtherCAT, error_counters: ESC counters in OP
             if watch is not None:
                 esc = watch.summary([a.slave.name for a in bv.backend.areas])

@@ -120,6 +120,47 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     if not file.lower().endswith((".eds", ".dcf")):
         raise PdoMapError("expected an .eds or .dcf file", file=file)
     warnings: list[str] = []
+    od = _object_dictionary(canopen, file, text, node_id, warnings)
+    if node_id is None:
+        node_id = getattr(od, "node_id", None)
+    skipped: list[str] = []
+    rx = _pdos(od, Direction.OUTPUTS, node_id, file, skipped, warnings)
+    tx = _pdos(od, Direction.INPUTS, node_id, file, skipped, warnings)
+    vendor, product, revision = _identity(od, file, warnings)
+    info = od.device_information
+    title = info.product_name or Path(file).stem
+    lines = [
+        f"# Imported by `fieldbus import eds` from {Path(file).name}"
+        + (f" for node {node_id}" if node_id else "")
+        + ": the default PDO mapping of the EDS.",
+        "# Add scaling (factor, offset, unit) and start-up SDOs by hand; check with fieldbus validate.",
+        *(f"# not imported: {s}" for s in skipped),
+        *(f"# warning: {w}" for w in warnings),
+        f"name: {stem(title, 'device')}",
+        f"description: {yaml_str(' '.join(x for x in (info.vendor_name, info.product_name) if x))}",
+        f"vendor_id: 0x{vendor:08X}",
+        f"product_id: 0x{product:08X}",
+        f"revision: 0x{revision:08X}",
+    ]
+    has_cw = any(e.index == 0x6040 and e.sub_index == 0 for p in rx for e in p.entries)
+    has_sw = any(e.index == 0x6041 and e.sub_index == 0 for p in tx for e in p.entries)
+    if is_cia402(rx + tx) and has_cw and has_sw:
+        lines.append("profile: cia402")
+    lines += pdo_lines("rpdo", rx)
+    lines += pdo_lines("tpdo", tx)
+    lines += _canopen_lines(od, rx + tx)
+    text_out = "\n".join(lines) + "\n"
+    try:
+        drive = drive_map_from_text(text_out, f"{stem(title, 'device')}.yaml")
+    except PdoMapError as exc:
+        raise PdoMapError(f"the drive map imported from it does not validate: {exc}", file=file) from exc
+    return EdsImport(text_out, drive, tuple(skipped), tuple(warnings))
+
+
+def _object_dictionary(
+    canopen: Any, file: str, text: str | None, node_id: int | None, warnings: list[str]
+) -> Any:
+    """canopen's object dictionary of the EDS/DCF ``file`` (``text``: its contents, not read again)."""
     if text is None:
         try:
             data = Path(file).read_bytes()
@@ -131,81 +172,99 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     try:
         fp = io.StringIO(text)
         fp.name = file
-        od = canopen.objectdictionary.import_od(fp, node_id)
+        return canopen.objectdictionary.import_od(fp, node_id)
     except Exception as exc:  # configparser / canopen errors: name them, never quote the file (not a map yet)
         raise PdoMapError(
             f"canopen could not read this EDS/DCF ({type(exc).__name__}): not an EDS/DCF file, "
             "or one with a syntax error",
             file=file,
         ) from None
-    if node_id is None:
-        node_id = getattr(od, "node_id", None)
 
-    skipped: list[str] = []
-    dirs: dict[Direction, list[ImportedPdo]] = {Direction.OUTPUTS: [], Direction.INPUTS: []}
-    for direction, map_base, comm_base in (
-        (Direction.OUTPUTS, 0x1600, 0x1400),
-        (Direction.INPUTS, 0x1A00, 0x1800),
-    ):
-        kind = "RPDO" if direction is Direction.OUTPUTS else "TPDO"
-        for n in range(512):
-            if map_base + n not in od:
-                continue
-            label = f"{kind}{n + 1} (0x{map_base + n:04X})"
-            count_var = _sub(od, map_base + n, 0)
-            count = _value(count_var) if count_var is not None else 0
-            if not count:
-                skipped.append(f"{label}: maps nothing")
-                continue
-            entries: list[Entry] = []
-            for s in range(1, int(count) + 1):
-                v = _sub(od, map_base + n, s)
-                raw = _value(v) if v is not None else None
-                if raw is None:
-                    raise PdoMapError(
-                        f"{label} maps {count} entries but sub-index {s} has no value", file=file,
-                        path=f"[{map_base + n:X}sub{s:X}]",
-                    )  # fmt: skip
-                entries.append(_entry(od, int(raw), label, warnings))
-            bits = sum(int(e.type[3:]) if e.type.startswith("bit") else _bits(e.type) for e in entries)
-            if bits % 8:
-                pad = 8 - bits % 8
-                warnings.append(f"{label} maps {bits} bits; padded to whole bytes with a bit{pad} gap")
-                entries.append(Entry(0, 0, f"bit{pad}"))
-            cob_var = _sub(od, comm_base + n, 1)
-            can: dict[str, int | bool] = {}
-            if cob_var is not None:
-                cob_rel = _relative_cob(cob_var)
-                cob_val = _value(cob_var)
-                invalid = next(
-                    (int(v) for v in (cob_val, cob_rel) if v is not None and int(v) & 0x80000000), None
-                )
-                if invalid is not None:  # absolute, resolved, or $NODEID+0x80000380 without a node id
-                    shown = f"0x{invalid:08X}" if cob_val is not None else f"$NODEID+0x{invalid:08X}"
-                    skipped.append(f"{label}: COB-ID {shown} is invalid (bit 31) by default")
-                    continue
-                if cob_rel is not None:
-                    can["cob_id"] = cob_rel & 0x7FF
-                elif cob_val is not None:
-                    cob = int(cob_val) & 0x7FF
-                    defaults = DEFAULT_COB_IDS[direction]
-                    if node_id and n < 4 and cob - node_id == defaults[n]:
-                        can["cob_id"] = defaults[n]
-                    else:
-                        can["cob_id"], can["cob_id_absolute"] = cob, True
-            for key, sub in (("transmission_type", 2), ("inhibit_time", 3), ("event_timer", 5)):
-                var = _sub(od, comm_base + n, sub)
-                val = _value(var) if var is not None else None
-                if val is not None and (key == "transmission_type" or direction is Direction.INPUTS or val):
-                    can[key] = int(val)
-            if "cob_id" not in can and n >= 4:
-                skipped.append(f"{label}: no COB-ID in 0x{comm_base + n:04X}")
-                continue
-            name_obj = od.get(map_base + n) if hasattr(od, "get") else None
-            dirs[direction].append(
-                ImportedPdo(map_base + n, getattr(name_obj, "name", "") or "", entries, can=can)
-            )
 
+def _pdos(
+    od: Any, direction: Direction, node_id: int | None, file: str, skipped: list[str], warnings: list[str]
+) -> list[ImportedPdo]:
+    """The default PDOs of one direction (RPDOs: outputs, mapping 0x1600+; TPDOs: inputs, 0x1A00+)."""
+    map_base, comm_base = (0x1600, 0x1400) if direction is Direction.OUTPUTS else (0x1A00, 0x1800)
+    kind = "RPDO" if direction is Direction.OUTPUTS else "TPDO"
+    out: list[ImportedPdo] = []
+    for n in range(512):
+        if map_base + n not in od:
+            continue
+        label = f"{kind}{n + 1} (0x{map_base + n:04X})"
+        entries = _mapped_entries(od, map_base + n, label, file, warnings)
+        if not entries:
+            skipped.append(f"{label}: maps nothing")
+            continue
+        can = _communication(od, direction, n, comm_base + n, node_id, label, skipped)
+        if can is None:
+            continue
+        name_obj = od.get(map_base + n) if hasattr(od, "get") else None
+        out.append(ImportedPdo(map_base + n, getattr(name_obj, "name", "") or "", entries, can=can))
+    return out
+
+
+def _mapped_entries(od: Any, index: int, label: str, file: str, warnings: list[str]) -> list[Entry]:
+    """The entries the mapping object ``index`` maps, padded to whole bytes; ``[]``: it maps nothing."""
+    count_var = _sub(od, index, 0)
+    count = _value(count_var) if count_var is not None else 0
+    if not count:
+        return []
+    entries: list[Entry] = []
+    for s in range(1, int(count) + 1):
+        v = _sub(od, index, s)
+        raw = _value(v) if v is not None else None
+        if raw is None:
+            raise PdoMapError(
+                f"{label} maps {count} entries but sub-index {s} has no value", file=file,
+                path=f"[{index:X}sub{s:X}]",
+            )  # fmt: skip
+        entries.append(_entry(od, int(raw), label, warnings))
+    bits = sum(int(e.type[3:]) if e.type.startswith("bit") else _bits(e.type) for e in entries)
+    if bits % 8:
+        pad = 8 - bits % 8
+        warnings.append(f"{label} maps {bits} bits; padded to whole bytes with a bit{pad} gap")
+        entries.append(Entry(0, 0, f"bit{pad}"))
+    return entries
+
+
+def _communication(
+    od: Any, direction: Direction, n: int, comm: int, node_id: int | None, label: str, skipped: list[str]
+) -> dict[str, int | bool] | None:
+    """PDO ``n``'s communication parameters (object ``comm``) for the map's ``canopen.pdo`` entry;
+    None (and why, in ``skipped``): the PDO is invalid by default, or has no COB-ID to use."""
+    cob_var = _sub(od, comm, 1)
+    can: dict[str, int | bool] = {}
+    if cob_var is not None:
+        cob_rel = _relative_cob(cob_var)
+        cob_val = _value(cob_var)
+        invalid = next((int(v) for v in (cob_val, cob_rel) if v is not None and int(v) & 0x80000000), None)
+        if invalid is not None:  # absolute, resolved, or $NODEID+0x80000380 without a node id
+            shown = f"0x{invalid:08X}" if cob_val is not None else f"$NODEID+0x{invalid:08X}"
+            skipped.append(f"{label}: COB-ID {shown} is invalid (bit 31) by default")
+            return None
+        if cob_rel is not None:
+            can["cob_id"] = cob_rel & 0x7FF
+        elif cob_val is not None:
+            cob = int(cob_val) & 0x7FF
+            defaults = DEFAULT_COB_IDS[direction]
+            if node_id and n < 4 and cob - node_id == defaults[n]:
+                can["cob_id"] = defaults[n]
+            else:
+                can["cob_id"], can["cob_id_absolute"] = cob, True
+    for key, sub in (("transmission_type", 2), ("inhibit_time", 3), ("event_timer", 5)):
+        var = _sub(od, comm, sub)
+        val = _value(var) if var is not None else None
+        if val is not None and (key == "transmission_type" or direction is Direction.INPUTS or val):
+            can[key] = int(val)
+    if "cob_id" not in can and n >= 4:
+        skipped.append(f"{label}: no COB-ID in 0x{comm:04X}")
+        return None
+    return can
+
+
+def _identity(od: Any, file: str, warnings: list[str]) -> tuple[int, int, int]:
+    """Vendor id, product code and revision: 0x1018:01..03, else ``[DeviceInfo]``."""
     info = od.device_information
     ident = [_value(_sub(od, 0x1018, s)) if _sub(od, 0x1018, s) is not None else None for s in (1, 2, 3)]
     vendor = ident[0] if ident[0] is not None else info.vendor_number
@@ -216,33 +275,17 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
     if product is None:
         warnings.append("no product code (0x1018:02 or [DeviceInfo] ProductNumber): product_id 0")
         product = 0
-    title = info.product_name or Path(file).stem
-    rx, tx = dirs[Direction.OUTPUTS], dirs[Direction.INPUTS]
-    lines = [
-        f"# Imported by `fieldbus import eds` from {Path(file).name}"
-        + (f" for node {node_id}" if node_id else "")
-        + ": the default PDO mapping of the EDS.",
-        "# Add scaling (factor, offset, unit) and start-up SDOs by hand; check with fieldbus validate.",
-        *(f"# not imported: {s}" for s in skipped),
-        *(f"# warning: {w}" for w in warnings),
-        f"name: {stem(title, 'device')}",
-        f"description: {yaml_str(' '.join(x for x in (info.vendor_name, info.product_name) if x))}",
-        f"vendor_id: 0x{int(vendor):08X}",
-        f"product_id: 0x{int(product):08X}",
-        f"revision: 0x{int(revision or 0):08X}",
-    ]
-    has_cw = any(e.index == 0x6040 and e.sub_index == 0 for p in rx for e in p.entries)
-    has_sw = any(e.index == 0x6041 and e.sub_index == 0 for p in tx for e in p.entries)
-    if is_cia402(rx + tx) and has_cw and has_sw:
-        lines.append("profile: cia402")
-    lines += pdo_lines("rpdo", rx)
-    lines += pdo_lines("tpdo", tx)
-    lines.append("canopen:")
+    return int(vendor), int(product), int(revision or 0)
+
+
+def _canopen_lines(od: Any, pdos: list[ImportedPdo]) -> list[str]:
+    """The map's ``canopen:`` section: the heartbeat (0x1017) and each PDO's communication parameters."""
+    lines = ["canopen:"]
     hb = _sub(od, 0x1017, 0)
     hb_val = _value(hb) if hb is not None else None
     if hb_val is not None and 0 <= int(hb_val) <= 0xFFFF:
         lines.append(f"  heartbeat_ms: {int(hb_val)}")
-    comm = [p for p in rx + tx if p.can]
+    comm = [p for p in pdos if p.can]
     if comm:
         lines.append("  pdo:")
         for p in comm:
@@ -255,12 +298,7 @@ def import_eds(source: str | Path, *, text: str | None = None, node_id: int | No
                 else:
                     parts.append(f"{key}: {int(val)}")
             lines.append("    - {" + ", ".join(parts) + "}")
-    text_out = "\n".join(lines) + "\n"
-    try:
-        drive = drive_map_from_text(text_out, f"{stem(title, 'device')}.yaml")
-    except PdoMapError as exc:
-        raise PdoMapError(f"the drive map imported from it does not validate: {exc}", file=file) from exc
-    return EdsImport(text_out, drive, tuple(skipped), tuple(warnings))
+    return lines
 
 
 def _bits(type_name: str) -> int:

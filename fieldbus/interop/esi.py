@@ -516,59 +516,20 @@ def import_esi(
     fixed_assign = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoAssign")
     fixed_config = coe_elem is not None and not _bool_attr(doc, coe_elem, "PdoConfig")
     all_pdos = _pdos(doc, dev)
-    any_lo, any_hi = ANY_PDO_RANGE
-    for p in all_pdos:
-        lo, hi = COE_RANGES[Direction.OUTPUTS if p.rx else Direction.INPUTS]
-        if not lo <= p.index <= hi:
-            kind = "RxPdo" if p.rx else "TxPdo"
-            if not (fixed_assign and any_lo <= p.index <= any_hi):
-                raise doc.err(
-                    p.elem, f"{kind} index 0x{p.index:04X} is outside 0x{lo:04X}-0x{hi:04X}", "Index"
-                )
-            warnings.append(
-                f"line {doc.lines.get(id(p.elem))}: {kind} index 0x{p.index:04X} is outside ETG.1000.6's "
-                f"0x{lo:04X}-0x{hi:04X}; kept as the device names it (its PDO assignment is fixed)"
-            )
+    _check_pdo_indexes(doc, all_pdos, fixed_assign, warnings)
     if fixed_assign and alternatives:
         raise doc.err(
             dev if coe_elem is None else coe_elem,
             "--alternative: the device's PDO assignment is fixed (CoE@PdoAssign is not true)",
         )
     assigned = _assign(doc, dev, all_pdos, alternatives)
-    imported: dict[bool, list[ImportedPdo]] = {True: [], False: []}
-    for p in assigned:
-        entries = _entries(doc, p, warnings)
-        imported[p.rx].append(ImportedPdo(p.index, p.name, entries, fixed=p.fixed or fixed_config))
+    rx, tx = _imported(doc, assigned, fixed_config, warnings)
     others = tuple(f"0x{p.index:04X} {p.name}".strip() for p in all_pdos if p not in assigned)
-
     modes = _dc_modes(doc, dev)
-    chosen_dc: _Dc | None = None
-    if dc_mode is not None and dc_mode.lower() != "none":
-        chosen_dc = next((m for m in modes if m.name.lower() == dc_mode.lower()), None)
-        if chosen_dc is None:
-            offered = ", ".join(m.name for m in modes) or "none (the device has no <Dc>)"
-            raise doc.err(dev, f"--dc-mode {dc_mode}: no such DC mode; the device has {offered}")
-    elif dc_mode is None:
-        chosen_dc = next((m for m in modes if m.values["assign_activate"]), None)
-
-    mbx_size = None
-    for sm in _children(dev, "Sm"):
-        if _text(sm) == "MBoxOut":
-            mbx_size = parse_int(sm.get("DefaultSize"))
-
-    rx, tx = imported[True], imported[False]
+    chosen_dc = _chosen_dc(doc, dev, modes, dc_mode)
     name = stem(dev_info.type or dev_info.name, "device")
-    header = [
-        f"# Imported by `fieldbus import esi` from {_basename(file)}: {dev_info.type}, revision 0x{dev_info.revision:08X}.",
-        "# The PDOs are the device's default assignment"
-        + (f" with the alternatives {', '.join(alternatives)}" if alternatives else "")
-        + "; add scaling (factor, offset, unit) and start-up SDOs by hand.",
-    ]
-    if others:
-        header.append(f"# Not assigned (fieldbus import esi --alternative INDEX): {'; '.join(others)}")
-    header += [f"# warning: {w}" for w in warnings]
     lines = [
-        *header,
+        *_header(file, dev_info, alternatives, others, warnings),
         f"name: {name}",
         f"description: {yaml_str(' '.join(x for x in (vendor_name, dev_info.name) if x))}",
         f"vendor_id: 0x{vendor_id:08X}",
@@ -588,6 +549,87 @@ def import_esi(
     lines += pdo_lines("rpdo", rx)
     lines += pdo_lines("tpdo", tx)
     lines += _sm_lines(doc, dev, assigned)
+    lines += ["ethercat:", *_ethercat_lines(dev, coe, fixed_assign, chosen_dc, modes)]
+    text = "\n".join(lines) + "\n"
+    out_name = f"{name}.yaml"
+    try:
+        drive = drive_map_from_text(text, out_name)
+    except PdoMapError as exc:
+        raise PdoMapError(
+            f"the drive map imported for {dev_info.type} does not validate: {exc}",
+            file=file,
+            line=dev_info.line,
+        ) from exc
+    return EsiImport(text, drive, dev_info, others, tuple(warnings))
+
+
+def _imported(
+    doc: _Doc, assigned: list[_Pdo], fixed_config: bool, warnings: list[str]
+) -> tuple[list[ImportedPdo], list[ImportedPdo]]:
+    """The assigned PDOs with their entries: RxPDOs (outputs), TxPDOs (inputs)."""
+    imported: dict[bool, list[ImportedPdo]] = {True: [], False: []}
+    for p in assigned:
+        entries = _entries(doc, p, warnings)
+        imported[p.rx].append(ImportedPdo(p.index, p.name, entries, fixed=p.fixed or fixed_config))
+    return imported[True], imported[False]
+
+
+def _header(
+    file: str, dev_info: EsiDevice, alternatives: Sequence[str], others: tuple[str, ...], warnings: list[str]
+) -> list[str]:
+    """The imported map's comment lines: where it comes from, the PDOs not assigned, the warnings."""
+    header = [
+        f"# Imported by `fieldbus import esi` from {_basename(file)}: {dev_info.type}, revision 0x{dev_info.revision:08X}.",
+        "# The PDOs are the device's default assignment"
+        + (f" with the alternatives {', '.join(alternatives)}" if alternatives else "")
+        + "; add scaling (factor, offset, unit) and start-up SDOs by hand.",
+    ]
+    if others:
+        header.append(f"# Not assigned (fieldbus import esi --alternative INDEX): {'; '.join(others)}")
+    header += [f"# warning: {w}" for w in warnings]
+    return header
+
+
+def _check_pdo_indexes(doc: _Doc, pdos: list[_Pdo], fixed_assign: bool, warnings: list[str]) -> None:
+    """Every PDO index within ETG.1000.6's range of its direction; outside it only where the device's
+    assignment is fixed (kept, with a warning), else :class:`PdoMapError` naming the line."""
+    any_lo, any_hi = ANY_PDO_RANGE
+    for p in pdos:
+        lo, hi = COE_RANGES[Direction.OUTPUTS if p.rx else Direction.INPUTS]
+        if not lo <= p.index <= hi:
+            kind = "RxPdo" if p.rx else "TxPdo"
+            if not (fixed_assign and any_lo <= p.index <= any_hi):
+                raise doc.err(
+                    p.elem, f"{kind} index 0x{p.index:04X} is outside 0x{lo:04X}-0x{hi:04X}", "Index"
+                )
+            warnings.append(
+                f"line {doc.lines.get(id(p.elem))}: {kind} index 0x{p.index:04X} is outside ETG.1000.6's "
+                f"0x{lo:04X}-0x{hi:04X}; kept as the device names it (its PDO assignment is fixed)"
+            )
+
+
+def _chosen_dc(doc: _Doc, dev: ET.Element, modes: list[_Dc], dc_mode: str | None) -> _Dc | None:
+    """The DC mode named ``dc_mode`` (None: the first with a non-zero AssignActivate; ``"none"``: none)."""
+    if dc_mode is None:
+        return next((m for m in modes if m.values["assign_activate"]), None)
+    if dc_mode.lower() == "none":
+        return None
+    chosen = next((m for m in modes if m.name.lower() == dc_mode.lower()), None)
+    if chosen is None:
+        offered = ", ".join(m.name for m in modes) or "none (the device has no <Dc>)"
+        raise doc.err(dev, f"--dc-mode {dc_mode}: no such DC mode; the device has {offered}")
+    return chosen
+
+
+def _ethercat_lines(
+    dev: ET.Element, coe: bool, fixed_assign: bool, chosen_dc: _Dc | None, modes: list[_Dc]
+) -> list[str]:
+    """The lines of the map's ``ethercat:`` section: CoE, a fixed assignment, the mailbox size (the
+    MBoxOut sync manager's default size), the chosen DC mode's shifts, every DC mode of the device."""
+    mbx_size = None
+    for sm in _children(dev, "Sm"):
+        if _text(sm) == "MBoxOut":
+            mbx_size = parse_int(sm.get("DefaultSize"))
     eth = [f"  coe: {'true' if coe else 'false'}"]
     if fixed_assign:
         eth.append("  pdo_assign: false  # CoE@PdoAssign is not true: the device's own assignment is used")
@@ -613,18 +655,7 @@ def import_esi(
                 if m.values.get(key):
                     parts.append(f"{key}: {m.values[key]}")
             eth.append("    - {" + ", ".join(parts) + "}")
-    lines += ["ethercat:", *eth]
-    text = "\n".join(lines) + "\n"
-    out_name = f"{name}.yaml"
-    try:
-        drive = drive_map_from_text(text, out_name)
-    except PdoMapError as exc:
-        raise PdoMapError(
-            f"the drive map imported for {dev_info.type} does not validate: {exc}",
-            file=file,
-            line=dev_info.line,
-        ) from exc
-    return EsiImport(text, drive, dev_info, others, tuple(warnings))
+    return eth
 
 
 def import_esi_file(path: str, **kwargs: Any) -> EsiImport:

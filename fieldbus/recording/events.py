@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from fieldbus.core.cia402 import UNKNOWN_STATE, State402, decode_states
 from fieldbus.core.network import row_names
-from fieldbus.recording.ring import BUS, COMMON, TEXTS, Ring, Snapshot
+from fieldbus.recording.ring import EMERGENCIES, OWN, TEXTS, Ring, Snapshot
 
 TOGGLES = (
     ("safe_stop", "safe_stop", "safe_stop_cleared"),
@@ -65,7 +65,7 @@ class EventDeriver:
         """Events of one block; ``inputs``: each group's decoded input values, (rows, axes)."""
         ints = snap.ints
         a = ints if self._prev is None else np.concatenate([self._prev[None, :], ints])
-        cycle, t_ns = a[:, COMMON.index("cycle")], a[:, COMMON.index("t_ns")]
+        cycle, t_ns = a[:, OWN.index("cycle")], a[:, OWN.index("t_ns")]
         events: list[dict[str, Any]] = []
 
         def emit(row: int, kind: str, **more: Any) -> None:
@@ -75,7 +75,7 @@ class EventDeriver:
             slot = self.ring.buses[k]
 
             def col(name: str, slot_base: int = slot.base) -> npt.NDArray[np.int64]:
-                return a[:, slot_base + BUS.index(name)]
+                return a[:, slot_base + self.ring.columns.index(name)]
 
             for field, on, off in TOGGLES:
                 x = col(field)
@@ -84,12 +84,13 @@ class EventDeriver:
             x = col("recoveries")
             for i in np.flatnonzero(np.diff(x) > 0):
                 emit(int(i) + 1, "recovered", bus=bus, old=int(x[i]), new=int(x[i + 1]))
-            x = col("error_seq")
-            for i in np.flatnonzero(np.diff(x)):
-                text = self.ring.texts[k][int(x[i + 1]) % TEXTS]
-                if text is not None:
-                    emit(int(i) + 1, "recovery_error", bus=bus, detail=text)
-            x = col("emergencies")
+            for t, name in enumerate(self.ring.columns.texts):  # each TEXT field: an event of its name
+                x = col(f"{name}_seq")
+                for i in np.flatnonzero(np.diff(x)):
+                    text = self.ring.texts[k][t][int(x[i + 1]) % TEXTS]
+                    if text is not None:
+                        emit(int(i) + 1, name, bus=bus, detail=text)
+            x = col(EMERGENCIES)
             for i in np.flatnonzero(np.diff(x) > 0):
                 new = int(x[i + 1] - x[i])
                 emit(

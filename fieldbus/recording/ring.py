@@ -10,7 +10,7 @@ only). A writer that falls behind by a whole ring loses the oldest block; the
 cycle never waits.
 
 Per cycle and row: an int64 vector (cycle, times, per-bus status, see
-:data:`COMMON` and :data:`BUS`), per bus the per-slave fresh flags (and NMT
+:attr:`Ring.common` and :class:`BusColumns`: derived from the CycleResult and BusStatus dataclasses), per bus the per-slave fresh flags (and NMT
 states on CANopen), per axis group the bytes of its output and input images
 (engineering values and wire bytes as :class:`~fieldbus.core.pdo.image.DirectionImage`
 lays them out). Copies use ``struct.pack_into`` and memoryview slices over
@@ -24,32 +24,65 @@ import struct
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from operator import attrgetter
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.recording.schema import NO_VALUE
+from fieldbus.core.status_fields import NO_VALUE, Carry, StatusField, of, text
 
 if TYPE_CHECKING:
     from fieldbus.backends.base import AxisGroup, Backend
     from fieldbus.recording.source import BusStatus, CycleResult, Operational
 
-COMMON = ("cycle", "t_ns", "wakeup_ns", "exchange_ns", "fresh", "safe_stop")
-BUS = (
-    "ran",
-    "verdict",
-    "wkc",
-    "consecutive_misses",
-    "safe_stop",
-    "recovering",
-    "recoveries",
-    "dc_time_ns",
-    "dc_sync_error_ns",
-    "emergencies",
-    "error_seq",  # counts changes of BusStatus.recovery_error; the texts are kept in Ring.texts
-)
-TEXTS = 64  # recovery error texts kept per bus (by error_seq % TEXTS)
+OWN = ("cycle", "t_ns", "wakeup_ns")  # the /cycle columns the ring sets itself (cycle: CycleResult.cycle - 1)
+# CycleResult fields not in the /cycle row (its numbers are: derived from the dataclass), and where they are
+CYCLE_EXCLUDED = {
+    "cycle": "column 'cycle': the index of the cycle run (CycleResult.cycle - 1)",
+    "buses": "the /bus/<bus> channels",
+    "events": "/events",
+    "drive_faults": "'drive_fault' events",
+    "_by_name": "an index of buses",
+}
+EMERGENCIES = "emergencies"  # a bus column that is not a BusStatus field: the backend's EMCY count
+# BusStatus fields the ring does not carry per cycle, and where the recording keeps them instead
+EXCLUDED = {
+    "name": "channel metadata 'bus' (constant)",
+    "expected_wkc": "channel metadata 'expected_wkc' (constant)",
+    "error": "'bus_error' events (the cycle's BusEvent)",
+    "last_error": "'bus_error' events (the cycle's BusEvent)",
+}
+TEXTS = 64  # texts kept per bus and text field (by its change count % TEXTS)
+
+
+@dataclass(frozen=True)
+class BusColumns:
+    """The int64 columns of one bus in the ring, derived from its status class (see
+    :mod:`fieldbus.core.status_fields`): each NUMBER field, :data:`EMERGENCIES`, then per TEXT field
+    ``<name>_seq``, the count of its changes (the texts are kept in :attr:`Ring.texts`)."""
+
+    numbers: tuple[StatusField, ...]  # BusStatus fields, one column each, in the dataclass's order
+    texts: tuple[str, ...]  # BusStatus TEXT fields (their changes become events of that kind)
+
+    @classmethod
+    def of(cls, status_cls: type) -> BusColumns:
+        return cls(
+            of(status_cls, Carry.NUMBER, exclude=EXCLUDED),
+            tuple(f.name for f in of(status_cls, Carry.TEXT, exclude=EXCLUDED)),
+        )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (*(f.name for f in self.numbers), EMERGENCIES, *(f"{t}_seq" for t in self.texts))
+
+    @property
+    def recorded(self) -> tuple[str, ...]:
+        """The columns that go to the file's bus rows (the change counts stay in the ring)."""
+        return (*(f.name for f in self.numbers), EMERGENCIES)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
 
 
 @dataclass
@@ -65,8 +98,8 @@ class BusSlot:
     nmt: npt.NDArray[np.int16] | None  # (rows, slaves): CANopen heartbeat states
     nmt_src: npt.NDArray[np.int16] | None
     has_emcy: bool
-    last_error: str | None = None  # the bus's recovery error text last seen (compared by identity)
-    error_seq: int = 0  # changes of that text so far
+    last_texts: list[object]  # per TEXT field, its value last seen (compared by identity)
+    text_seq: list[int]  # per TEXT field, its changes so far
 
 
 @dataclass
@@ -78,6 +111,23 @@ class GroupSlot:
     inp: npt.NDArray[np.uint8]
     out_src: npt.NDArray[np.uint8]  # the output image's buffer (values and wire bytes), flat
     in_src: npt.NDArray[np.uint8]
+
+
+def _numbers_of(fields: tuple[StatusField, ...]) -> Callable[[Any], tuple[int, ...]]:
+    """A function of a status (BusStatus, CycleResult) giving its NUMBER ``fields`` as ints (``None``:
+    :data:`NO_VALUE`).
+
+    Compiled from the field names (identifiers of the dataclass) into one tuple expression, as
+    :mod:`dataclasses` compiles ``__init__``: the cycle reads each field once, with no loop.
+    """
+    items = ", ".join(
+        f"(NO_VALUE if st.{f.name} is None else st.{f.name})" if f.optional else f"st.{f.name}"
+        for f in fields
+    )
+    assert all(f.name.isidentifier() for f in fields)
+    code = f"lambda st: ({items},)"
+    fn: Callable[[Any], tuple[int, ...]] = eval(code, {"NO_VALUE": NO_VALUE})
+    return fn
 
 
 def _flat_bytes(values: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
@@ -96,12 +146,18 @@ class Ring:
         self.ring_blocks = ring_blocks
         self.rows = rows = block_cycles * ring_blocks
         backends = [v.backend for v in op.buses]
-        self.width = len(COMMON) + len(BUS) * len(backends)
+        # the columns, derived from the classes of the network's own CycleResult and BusStatus objects
+        self.cycle_numbers = of(type(op.result), Carry.NUMBER, exclude=CYCLE_EXCLUDED)
+        self.common = common = (*OWN, *(f.name for f in self.cycle_numbers))
+        statuses = op.result.buses
+        self.columns = cols = BusColumns.of(type(statuses[0])) if statuses else BusColumns((), ())
+        n_bus = len(cols.names)
+        self.width = len(common) + n_bus * len(backends)
         self.ints = np.zeros((rows, self.width), dtype=np.int64)
         self.row_bytes = self.width * 8
         self._buf = _flat_bytes(self.ints).data  # struct.pack_into targets: no numpy scalars
-        self._pack_common = struct.Struct(f"<{len(COMMON)}q").pack_into
-        self._pack_bus = struct.Struct(f"<{len(BUS)}q").pack_into
+        self._pack_common = struct.Struct(f"<{len(common)}q").pack_into
+        self._pack_bus = struct.Struct(f"<{n_bus}q").pack_into
         self.buses: list[BusSlot] = []
         for k, (b, st) in enumerate(zip(backends, op.result.buses, strict=True)):
             nmt_src = b.nmt_state
@@ -110,14 +166,16 @@ class Ring:
             self.buses.append(
                 BusSlot(
                     index=k,
-                    base=len(COMMON) + len(BUS) * k,
-                    offset=8 * (len(COMMON) + len(BUS) * k),
+                    base=len(common) + n_bus * k,
+                    offset=8 * (len(common) + n_bus * k),
                     status=st,
                     backend=b,
                     fresh=np.zeros((rows, b.n_slaves), dtype=bool),
                     nmt=None if nmt_src is None else np.zeros((rows, b.n_slaves), dtype=np.int16),
                     nmt_src=nmt_src,
                     has_emcy=True,  # every backend counts its emergencies (Backend.emcy_count)
+                    last_texts=[getattr(st, t) for t in cols.texts],
+                    text_seq=[0] * len(cols.texts),
                 )
             )
         self.groups: list[GroupSlot] = []
@@ -134,8 +192,6 @@ class Ring:
                         in_src,
                     )
                 )
-        for slot in self.buses:
-            slot.last_error = slot.status.recovery_error
         # what capture() copies per row: (the ring's flat bytes, the source's bytes, bytes per row)
         pairs: list[tuple[npt.NDArray[Any], npt.NDArray[Any]]] = []
         for slot in self.buses:
@@ -147,8 +203,8 @@ class Ring:
         self._copies = tuple(
             (_flat_bytes(dst).data, _flat_bytes(src).data, _flat_bytes(src).size) for dst, src in pairs
         )
-        # recovery error texts, a small ring per bus (by error_seq % TEXTS)
-        self.texts: list[list[str | None]] = [[None] * TEXTS for _ in backends]
+        # per bus and TEXT field, a small ring of its texts (by its change count % TEXTS)
+        self.texts: list[list[list[str | None]]] = [[[None] * TEXTS for _ in cols.texts] for _ in backends]
         self.wakeup_ns = NO_VALUE  # set before the cycle by whoever measures it (run_cycles' tap)
         self.noted: deque[dict[str, Any]] = deque()  # events the cycle saw (note()), in cycle order
         self.count = 0  # cycles captured: written by the cycle only
@@ -169,8 +225,11 @@ class Ring:
         pack_common, pack_bus = self._pack_common, self._pack_bus
         buses = tuple((s, s.status, s.offset, s.backend if s.has_emcy else None) for s in self.buses)
         copies = self._copies
-        new_error = self._new_error
+        new_text = self._new_text
         no_value = NO_VALUE
+        numbers = _numbers_of(self.columns.numbers)
+        cycle_numbers = _numbers_of(self.cycle_numbers)
+        texts = tuple(enumerate(attrgetter(t) for t in self.columns.texts))
 
         def capture(res: CycleResult, t0_ns: int) -> None:
             """Copy this cycle (``res``, started at ``t0_ns``) into the next row. Never blocks.
@@ -184,22 +243,15 @@ class Ring:
             n = ring.count
             row = n % rows
             c = row * row_bytes
-            pack_common(
-                buf, c, res.cycle - 1, t0_ns, ring.wakeup_ns, res.exchange_ns, res.fresh, res.safe_stop
-            )
+            pack_common(buf, c, res.cycle - 1, t0_ns, ring.wakeup_ns, *cycle_numbers(res))
             ring.wakeup_ns = no_value
             for slot, st, off, emcy in buses:
-                err = st.recovery_error
-                if err is not slot.last_error:
-                    new_error(slot, err)
-                dc = st.dc_time_ns
-                sync = st.dc_sync_error_ns
-                pack_bus(
-                    buf, c + off, st.ran, st.verdict, st.wkc, st.consecutive_misses, st.safe_stop,
-                    st.recovering, st.recoveries, no_value if dc is None else dc, no_value if sync is None else sync,
-                    -1 if emcy is None else emcy.emcy_count,
-                    slot.error_seq,
-                )  # fmt: skip
+                last = slot.last_texts
+                for j, get in texts:
+                    v = get(st)
+                    if v is not last[j]:
+                        new_text(slot, j, v)
+                pack_bus(buf, c + off, *numbers(st), -1 if emcy is None else emcy.emcy_count, *slot.text_seq)
             for dst, src, w in copies:  # one slice copy per image row
                 o = row * w
                 dst[o : o + w] = src
@@ -215,10 +267,17 @@ class Ring:
         if not self.stopped:
             self.noted.append({"cycle": cycle, "t_ns": 0, "kind": kind, **fields})
 
-    def _new_error(self, slot: BusSlot, err: str | None) -> None:
-        slot.last_error = err
-        slot.error_seq += 1
-        self.texts[slot.index][slot.error_seq % TEXTS] = err
+    def _new_text(self, slot: BusSlot, j: int, value: object) -> None:
+        """TEXT field ``j`` of ``slot``'s status is a new object ``value`` (rare: its ``str()`` allocates).
+
+        A new text counts (a recovery failing again with the same message is a new failure); a new
+        structured value (a nested dataclass) counts when it differs from the last one.
+        """
+        last, slot.last_texts[j] = slot.last_texts[j], value
+        if not (value is None or isinstance(value, str)) and value == last:
+            return
+        slot.text_seq[j] += 1
+        self.texts[slot.index][j][slot.text_seq[j] % TEXTS] = text(value)
 
     # -- the writer's side ---------------------------------------------------------------
     def intact_from(self) -> int:

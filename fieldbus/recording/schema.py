@@ -18,17 +18,20 @@ dtype (``dtype``) and names the bus or group, its slaves and its axes.
 
 from __future__ import annotations
 
+import copy
 import json
 from typing import Any
 
 import numpy as np
 
 from fieldbus.core.pdo.image import DirectionImage
+from fieldbus.core.status_fields import NO_VALUE as NO_VALUE  # re-exported: the recording's readers use it
+from fieldbus.core.status_fields import StatusField
 
-FORMAT = "fieldbus.recording/1"  # bump on an incompatible change of the layout below
+FORMAT = "fieldbus.recording/1"  # bump on an incompatible change of the layout below (a column added is not)
 SCHEMA_ENCODING = "numpy.dtype"  # schema data: JSON {"descr": ..., "fields": {name: description}}
 MESSAGE_ENCODING = "numpy.rows"  # message data: packed little-endian rows of that dtype
-NO_VALUE = -(2**63)  # int64 fields (DC time, wake-up latency) with no value in that cycle
+# NO_VALUE (-2**63): int64 fields (DC time, wake-up latency) with no value in that cycle
 
 CYCLE_FIELDS = {
     "cycle": "cycle index since bring-up (0 = the first exchange())",
@@ -39,6 +42,7 @@ CYCLE_FIELDS = {
     "safe_stop": "a safe stop is latched",
 }
 
+# what the bus columns mean; a BusStatus field not described here is described by its name
 BUS_FIELDS = {
     "cycle": "cycle index",
     "ran": "the bus exchanged this cycle (a slower bus skips cycles)",
@@ -48,6 +52,8 @@ BUS_FIELDS = {
     "safe_stop": "this bus latched a safe stop",
     "recovering": "a slave is being brought back to OP",
     "recoveries": "slaves / passes brought back to OP since bring-up (counter)",
+    "errors": "cycles whose bus raised since bring-up (counter)",
+    "release_pending": "clear_safe_stop() was asked; the latch opens after enough fresh cycles",
     "dc_time_ns": f"DC system time of this cycle's frame, ns; {NO_VALUE}: no DC",
     "dc_sync_error_ns": f"host phase error against the DC cycle, ns; {NO_VALUE}: no DC",
     "emergencies": "EMCY messages seen on this bus since bring-up (counter; -1: the bus has none)",
@@ -63,6 +69,9 @@ GROUP_FIELDS = {
     "outputs_wire": "per axis, the output bytes on the wire (raw recordings)",
     "inputs_wire": "per axis, the input bytes from the wire (raw recordings)",
 }
+
+# the file's column types where the type of the BusStatus field says too little (narrower than int64)
+BUS_DTYPES = {"verdict": "u1", "wkc": "<i4", "consecutive_misses": "<u4", "recoveries": "<u4"}
 
 EVENT_SCHEMA: dict[str, Any] = {
     "title": "fieldbus.recording event",
@@ -121,37 +130,37 @@ EVENT_SCHEMA: dict[str, Any] = {
 }
 
 
-def cycle_dtype() -> np.dtype[Any]:
-    return np.dtype(
-        [
-            ("cycle", "<u8"),
-            ("t_ns", "<i8"),
-            ("wakeup_ns", "<i8"),
-            ("exchange_ns", "<i8"),
-            ("fresh", "?"),
-            ("safe_stop", "?"),
-        ]
-    )
+def cycle_dtype(numbers: tuple[StatusField, ...] = ()) -> np.dtype[Any]:
+    """The /cycle row: the cycle index, its start and wake-up latency, then each NUMBER field of the
+    network's ``CycleResult`` (``numbers``: the ring's, derived from the dataclass)."""
+    fields: list[tuple[Any, ...]] = [("cycle", "<u8"), ("t_ns", "<i8"), ("wakeup_ns", "<i8")]
+    fields += [(f.name, "?" if f.flag and not f.optional else "<i8") for f in numbers]
+    return np.dtype(fields)
 
 
-def bus_dtype(n_slaves: int, *, nmt: bool) -> np.dtype[Any]:
-    fields: list[tuple[Any, ...]] = [
-        ("cycle", "<u8"),
-        ("ran", "?"),
-        ("verdict", "u1"),
-        ("wkc", "<i4"),
-        ("consecutive_misses", "<u4"),
-        ("safe_stop", "?"),
-        ("recovering", "?"),
-        ("recoveries", "<u4"),
-        ("dc_time_ns", "<i8"),
-        ("dc_sync_error_ns", "<i8"),
-        ("emergencies", "<i8"),
-        ("fresh", "?", (n_slaves,)),
-    ]
+def bus_dtype(n_slaves: int, *, nmt: bool, numbers: tuple[StatusField, ...]) -> np.dtype[Any]:
+    """A bus's row: the cycle, each NUMBER field of its status (``numbers``, see
+    :mod:`fieldbus.core.status_fields`), its EMCY count, the per-slave fresh flags (and NMT states)."""
+    fields: list[tuple[Any, ...]] = [("cycle", "<u8")]
+    for f in numbers:
+        fields.append((f.name, BUS_DTYPES.get(f.name, "?" if f.flag and not f.optional else "<i8")))
+    fields += [("emergencies", "<i8"), ("fresh", "?", (n_slaves,))]
     if nmt:
         fields.append(("nmt_state", "<i2", (n_slaves,)))
     return np.dtype(fields)
+
+
+def bus_fields(dt: np.dtype[Any]) -> dict[str, str]:
+    """What each field of the bus row ``dt`` means (:data:`BUS_FIELDS`; else ``BusStatus.<name>``)."""
+    return {name: BUS_FIELDS.get(name, f"BusStatus.{name} (fieldbus.network)") for name in dt.names or ()}
+
+
+def event_schema(texts: tuple[str, ...] = ()) -> dict[str, Any]:
+    """:data:`EVENT_SCHEMA` with an event kind for each TEXT field of the bus status (``texts``)."""
+    out: dict[str, Any] = copy.deepcopy(EVENT_SCHEMA)
+    kinds = out["properties"]["kind"]["enum"]
+    kinds += [t for t in texts if t not in kinds]
+    return out
 
 
 def packed(image: DirectionImage) -> np.dtype[Any]:

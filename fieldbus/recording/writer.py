@@ -33,16 +33,29 @@ from typing import IO, TYPE_CHECKING, Any, cast
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.status_fields import event_fields
 from fieldbus.errors import BackendUnavailableError, FieldbusError
 from fieldbus.recording import schema
 from fieldbus.recording.events import EventDeriver
-from fieldbus.recording.ring import BUS, COMMON, Ring, Snapshot
+from fieldbus.recording.ring import Ring, Snapshot
 
 if TYPE_CHECKING:
     from fieldbus.recording.source import CycleResult, Operational
 
 BLOCK_CYCLES = 256
 RING_BLOCKS = 16
+# the cycle's events as recording events: every field of the event's dataclass (derived, as
+# fieldbus.core.status_fields.event_fields), renamed where the event schema names it otherwise
+EVENT_RENAMED = {"reason": "name"}  # OutputClamp.reason (NAN, INF, RANGE, STEP)
+EVENT_EXCLUDED = ("cycle", "kind")  # the recording event's own ``cycle`` and ``kind``
+NOTED_KINDS = (
+    "bus_error",
+    "acyclic_error",
+    "esc_errors",
+    "link_down",
+    "link_up",
+    "sdo_abort",
+)  # BusEvents (others: rows)
 POLL_S = 0.05  # the writer looks for full blocks this often, s (a 16-block ring lasts 0.5 s at 8 kHz)
 
 
@@ -184,17 +197,17 @@ class Recorder:
 
     def _setup(self, w: Any, op: Operational) -> None:
         net = op.network
-        self._cycle_dtype = schema.cycle_dtype()
+        self._cycle_dtype = schema.cycle_dtype(self.ring.cycle_numbers)
         self._cycle_ch = self._channel(w, "/cycle", self._cycle_dtype, schema.CYCLE_FIELDS)
         self._bus_dtypes: list[np.dtype[Any]] = []
         self._bus_ch: list[int] = []
         for slot in self.ring.buses:
             b = slot.backend
-            dt = schema.bus_dtype(b.n_slaves, nmt=slot.nmt is not None)
+            dt = schema.bus_dtype(b.n_slaves, nmt=slot.nmt is not None, numbers=self.ring.columns.numbers)
             self._bus_dtypes.append(dt)
             self._bus_ch.append(
                 self._channel(
-                    w, f"/bus/{b.bus.name}", dt, schema.BUS_FIELDS, bus=b.bus.name, type=b.kind,
+                    w, f"/bus/{b.bus.name}", dt, schema.bus_fields(dt), bus=b.bus.name, type=b.kind,
                     slaves=json.dumps([a.slave.name for a in b.areas]), expected_wkc=str(b.expected_wkc),
                     cycle_time_us=str(b.bus.cycle_time_us),
                 )
@@ -219,7 +232,9 @@ class Recorder:
                 )
             )  # fmt: skip
         sid = w.register_schema(
-            name="fieldbus.event", encoding="jsonschema", data=json.dumps(schema.EVENT_SCHEMA).encode()
+            name="fieldbus.event",
+            encoding="jsonschema",
+            data=json.dumps(schema.event_schema(self.ring.columns.texts)).encode(),
         )
         self._event_ch = int(w.register_channel(topic="/events", message_encoding="json", schema_id=sid))
         w.add_metadata(
@@ -284,13 +299,13 @@ class Recorder:
         ints = snap.ints
         cyc_rows, bus_rows, group_rows = self._rows
         cyc = cyc_rows[:n]  # every field of these rows is written below
-        for j, name in enumerate(COMMON):
+        for j, name in enumerate(self.ring.common):
             cyc[name] = ints[:, j]
         streams: list[tuple[int, npt.NDArray[Any]]] = [(self._cycle_ch, cyc)]
         for k, slot in enumerate(self.ring.buses):
             arr = bus_rows[k][:n]
             arr["cycle"] = cyc["cycle"]
-            for j, name in enumerate(BUS[:-1]):
+            for j, name in enumerate(self.ring.columns.recorded):
                 arr[name] = ints[:, slot.base + j]
             arr["fresh"] = snap.fresh[k]
             nmt = snap.nmt[k]
@@ -399,37 +414,16 @@ class Recorder:
         (the cycle calls it)."""
         from fieldbus.core.drivefault import DriveFault
         from fieldbus.core.output_rules import OutputClamp
-        from fieldbus.cycle.status import SdoAbortEvent
 
         for e in events:
             if isinstance(e, DriveFault):
-                self.ring.note(e.cycle, "drive_fault", group=e.group, slave=e.slave, code=e.code, name=e.name)
+                fields = event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED)
+                fields["name"] = e.name  # the error code's name
+                self.ring.note(e.cycle, "drive_fault", **fields)
             elif isinstance(e, OutputClamp):
-                self.ring.note(
-                    e.cycle,
-                    "output_clamp",
-                    group=e.group,
-                    axis=e.axis,
-                    channel=e.channel,
-                    name=e.reason.name,
-                    asked=e.asked,
-                    sent=e.sent,
-                )
-            elif isinstance(e, SdoAbortEvent):
-                self.ring.note(
-                    e.cycle,
-                    "sdo_abort",
-                    bus=e.bus,
-                    slave=e.slave,
-                    access=e.access,
-                    index=e.index,
-                    sub_index=e.sub_index,
-                    code=e.code,
-                    name=e.name,
-                    detail=e.detail,
-                )
-            elif e.kind in ("bus_error", "acyclic_error", "esc_errors", "link_down", "link_up"):
-                self.ring.note(e.cycle, e.kind, bus=e.bus, detail=e.detail)
+                self.ring.note(e.cycle, "output_clamp", **event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED))
+            elif e.kind in NOTED_KINDS:
+                self.ring.note(e.cycle, e.kind, **event_fields(e, EVENT_RENAMED, EVENT_EXCLUDED))
 
     def close(self) -> None:
         """Stop recording, write what the ring holds, finish the file. Idempotent; never raises for the file

@@ -3,7 +3,9 @@
 A :class:`Trace` is filled by the emulation after each ``exchange()`` (the
 user's loop does not change): per cycle whether every bus was fresh, the
 safe-stop latch, per bus the verdict, working counter and per-slave
-freshness, per axis group the inputs (as decoded this cycle) and the
+freshness and every other number of its ``BusStatus`` (:meth:`Trace.status`,
+derived from the dataclass: a field added there is kept here too) and the
+changes of its text fields (:meth:`Trace.texts`), per axis group the inputs (as decoded this cycle) and the
 outputs (as this cycle's frame sent them), and every event of the cycle
 (:attr:`CycleResult.events <fieldbus.CycleResult>`: drive faults, safe stop,
 release, bus errors, whatever else a cycle reports) plus a ``recovered``
@@ -28,12 +30,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.status_fields import NO_VALUE, Carry, of, text
 from fieldbus.errors import FieldbusError
 
 if TYPE_CHECKING:
     from fieldbus.network import CycleResult, Network, Operational
 
 CHUNK = 4096  # cycles added to the arrays at a time
+# BusStatus fields the trace keeps elsewhere than :meth:`Trace.status` / :meth:`Trace.texts`
+EXCLUDED = {
+    "name": "Trace.bus_names",
+    "expected_wkc": "constant: the network's (Network.model)",
+    "fresh": "Trace.slave_fresh (per slave)",
+}
 
 
 def _zeros(shape: tuple[int, ...], dtype: Any) -> npt.NDArray[Any]:
@@ -93,6 +102,18 @@ class Trace:
         self._verdict = np.zeros((0, len(self.bus_names)), dtype=np.int8)
         self._wkc = np.zeros((0, len(self.bus_names)), dtype=np.int32)
         self._slave_fresh = [np.zeros((0, st.fresh.size), dtype=bool) for st in op.result.buses]
+        # every other NUMBER field of the bus status (derived from its dataclass), int64 per cycle and bus
+        status_cls = type(op.result.buses[0]) if op.result.buses else None
+        skip = (*EXCLUDED, "verdict", "wkc")
+        self.status_names = (
+            tuple(f.name for f in of(status_cls, Carry.NUMBER, exclude=skip)) if status_cls else ()
+        )
+        self.text_names = tuple(f.name for f in of(status_cls, Carry.TEXT)) if status_cls else ()
+        self._status = np.zeros((0, len(self.bus_names), len(self.status_names)), dtype=np.int64)
+        self._texts: list[dict[str, list[tuple[int, str | None]]]] = [
+            {t: [] for t in self.text_names} for _ in self.bus_names
+        ]
+        self._last_texts = [[getattr(st, t) for t in self.text_names] for st in op.result.buses]
         self._inputs = {
             k: np.zeros((0, g.image.n_axes), g.image.inputs.values.dtype) for k, g in op.groups.items()
         }
@@ -112,6 +133,7 @@ class Trace:
 
         self._fresh, self._stop = grown(self._fresh), grown(self._stop)
         self._verdict, self._wkc = grown(self._verdict), grown(self._wkc)
+        self._status = grown(self._status)
         self._slave_fresh = [grown(a) for a in self._slave_fresh]
         self._inputs = {k: grown(a) for k, a in self._inputs.items()}
         self._outputs = {k: grown(a) for k, a in self._outputs.items()}
@@ -136,6 +158,18 @@ class Trace:
             self._verdict[k, j] = int(st.verdict)
             self._wkc[k, j] = st.wkc
             self._slave_fresh[j][k] = st.fresh
+            row = self._status[k, j]
+            for i, name in enumerate(self.status_names):
+                v = getattr(st, name)
+                row[i] = NO_VALUE if v is None else v
+            last = self._last_texts[j]
+            for i, name in enumerate(self.text_names):
+                v = getattr(st, name)
+                if v is not last[i]:  # a new object; a structured one counts when it differs (as recorded)
+                    same = not (v is None or isinstance(v, str)) and v == last[i]
+                    last[i] = v
+                    if not same:
+                        self._texts[j][name].append((k, text(v)))
             if st.recoveries != self._recoveries[j]:  # a recovery brought a slave back in this cycle
                 self._recoveries[j] = st.recoveries
                 self._events.append(TraceEvent(k, "recovered", _Recovered(k, st.name, st.recoveries)))
@@ -179,6 +213,23 @@ class Trace:
     def wkc(self, bus: str) -> npt.NDArray[np.int32]:
         """Per cycle, bus ``bus``'s working counter (CAN: frames that came; -1 before the first)."""
         return self._wkc[: self.n, self._bus(bus)]
+
+    def status(self, bus: str, name: str) -> npt.NDArray[np.int64]:
+        """Per cycle, the NUMBER field ``name`` of bus ``bus``'s ``BusStatus`` (``ran``, ``recoveries``,
+        ``dc_time_ns``, ...: every one but ``verdict`` and ``wkc``, which have their own arrays; a bool as
+        0/1, an enum as its value, ``None`` as ``fieldbus.core.status_fields.NO_VALUE``)."""
+        if name not in self.status_names:
+            raise FieldbusError(
+                f"BusStatus has no number field '{name}' kept per cycle (have: {', '.join(self.status_names)})"
+            )
+        return self._status[: self.n, self._bus(bus), self.status_names.index(name)]
+
+    def texts(self, bus: str, name: str) -> list[tuple[int, str | None]]:
+        """The changes of the text field ``name`` of bus ``bus``'s ``BusStatus`` (``recovery_error``,
+        ``last_error``, ...: every field that is not a number), as ``(cycle, its str() or None)``."""
+        if name not in self.text_names:
+            raise FieldbusError(f"BusStatus has no text field '{name}' (have: {', '.join(self.text_names)})")
+        return list(self._texts[self._bus(bus)][name])
 
     def slave_fresh(self, bus: str) -> npt.NDArray[np.bool_]:
         """Per cycle and slave of bus ``bus`` (wire / node order): its inputs were fresh."""
@@ -239,6 +290,8 @@ class Trace:
             out[f"{b}.verdict"] = self.verdict(b)
             out[f"{b}.wkc"] = self.wkc(b)
             out[f"{b}.slave_fresh"] = self.slave_fresh(b)
+            for name in self.status_names:
+                out[f"{b}.{name}"] = self.status(b, name)
         for g in self.group_names:
             out[f"{g}.inputs"] = repack_fields(self.inputs(g))
             out[f"{g}.outputs"] = repack_fields(self.outputs(g))

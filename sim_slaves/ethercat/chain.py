@@ -459,13 +459,9 @@ class EscChain:
         if now_ns - self._watchdog_checked >= WATCHDOG_CHECK_NS:
             self._watchdog_checked = now_ns
             self._check_watchdogs(now_ns)
-        if faults.drop:
-            faults.drop -= 1
-            return 0
-        if faults.drop_pd and any(_LRD <= buf[off] <= _LRW for off in offsets):
-            faults.drop_pd -= 1
-            return 0
-        if faults.link_rng is not None and faults.link_frames and self._corrupt_on_link(faults):
+        if (faults.drop or faults.drop_pd or faults.link_rng is not None) and self._lost(
+            faults, buf, offsets
+        ):
             return 0
         count = len(slaves)
         logical = False
@@ -518,10 +514,25 @@ class EscChain:
             faults.delay_frames -= 1
             self.pending_delay = faults.delay_s
         if self.power_losses:
-            for i in self.power_losses:
-                self.power_cycle(i)
-            self.power_losses.clear()
+            self._lose_power()
         return n
+
+    def _lost(self, faults: Faults, buf: bytearray, offsets: list[int]) -> bool:
+        """The frame is lost to an injected fault: dropped, dropped for carrying process data, or
+        corrupted on a link (each counts its frames down)."""
+        if faults.drop:
+            faults.drop -= 1
+            return True
+        if faults.drop_pd and any(_LRD <= buf[off] <= _LRW for off in offsets):
+            faults.drop_pd -= 1
+            return True
+        return bool(faults.link_rng is not None and faults.link_frames and self._corrupt_on_link(faults))
+
+    def _lose_power(self) -> None:
+        """The slaves whose power was cut (during a FoE transfer) restart, after the frame's reply."""
+        for i in self.power_losses:
+            self.power_cycle(i)
+        self.power_losses.clear()
 
     def run_cycles(self, now_ns: int) -> None:
         """Application cycle of every slave whose process data the last frames exchanged.

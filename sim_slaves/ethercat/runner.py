@@ -407,20 +407,32 @@ def handle_control(
     """
     cmd = msg.get("cmd")
     if cmd == "timing":
-        if times is None:
-            return {"ok": False, "error": "no reply times here"}
-        answer = {
-            "ok": True,
-            "frames": chain.frames,
-            "reply_us": times.to_json(),
-            **times.settings,
-            "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
-        }
-        if msg.get("reset"):
-            times.reset()
-        return answer
+        return _timing(chain, msg, times)
     if cmd in ("dc", "dc_config"):
         return _dc_command(chain, msg, time.monotonic_ns() if now_ns is None else now_ns)
+    answer = _inject(chain, cmd, msg)
+    return _status(chain) if answer is None else answer
+
+
+def _timing(chain: EscChain, msg: dict[str, Any], times: ReplyTimes | None) -> dict[str, Any]:
+    """The ``timing`` command: the runner's reply times and settings (``reset``: start them again)."""
+    if times is None:
+        return {"ok": False, "error": "no reply times here"}
+    answer = {
+        "ok": True,
+        "frames": chain.frames,
+        "reply_us": times.to_json(),
+        **times.settings,
+        "gc": {"enabled": gc.isenabled(), "frozen": gc.get_freeze_count()},
+    }
+    if msg.get("reset"):
+        times.reset()
+    return answer
+
+
+def _inject(chain: EscChain, cmd: object, msg: dict[str, Any]) -> dict[str, Any] | None:
+    """A fault-injection (or read-out) command on the chain or one of its slaves; its own answer, or
+    None when the answer is the chain's :func:`_status`."""
     slave = int(msg.get("slave", 0))
     if cmd == "drop":
         chain.drop_frames(int(msg.get("count", 1)), process_data=bool(msg.get("pd")))
@@ -481,6 +493,11 @@ def handle_control(
         pass
     else:
         return {"ok": False, "error": f"unknown command {cmd!r}"}
+    return None
+
+
+def _status(chain: EscChain) -> dict[str, Any]:
+    """The chain's frames and each slave's AL state, AL status code and drive states."""
     return {
         "ok": True,
         "frames": chain.frames,
@@ -657,22 +674,9 @@ def _serve(
 ) -> None:
     sock = open_port0(iface)
     after.sock = sock
-    ctl: socket.socket | None = None
-    if control:
-        if os.path.exists(control):
-            os.unlink(control)
-        ctl = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        ctl.bind(control)
-        ctl.setblocking(False)
+    ctl = _control_socket(control) if control else None
     writer = PcapWriter(pcap) if pcap else None
-    stop = False
-
-    def _stop(_sig: int, _frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
+    stop = _stop_on_signals()
     poller = select.poll()
     poller.register(sock.fileno(), select.POLLIN)
     if ctl is not None:
@@ -688,19 +692,11 @@ def _serve(
     print(f"ready {iface} {len(chain)} slaves", flush=True)
     try:
         while not stop:
-            spin_until = 0
-            due = anticipate.due_ns(wall())
-            if due:  # a paced master: sleep until shortly before its frame, then poll for it
-                ahead = due - anticipate.lead_ns - wall()
-                if ahead > 0:
-                    select.select([sock], [], [], ahead / 1e9)
-                spin_until = clock() + max(0, due + anticipate.late_ns - wall())
-            else:
-                events = poller.poll(20)
-                if not events:
-                    chain.tick(clock())
-                    collector.quiet()
-                    continue
+            spin_until = _wait_for_frame(sock, poller, anticipate)
+            if spin_until < 0:  # nothing came: the chain's time goes on, garbage may be collected
+                chain.tick(clock())
+                collector.quiet()
+                continue
             if ctl is not None:
                 _serve_control(chain, ctl, times)
             while True:
@@ -733,26 +729,7 @@ def _serve(
                     arrived = received_ns(anc)
                     picked = wall()
                     anticipate.arrived(arrived)
-                now = clock()
-                if writer is not None:
-                    writer.write(bytes(view[:n]), time.time())
-                try:
-                    m = chain.process_into(buf, n, now, cycles=False)
-                except FrameError as e:
-                    print(f"dropped malformed frame: {e}", file=sys.stderr, flush=True)
-                    continue
-                if not m:
-                    continue
-                delay = chain.take_delay()
-                if delay:
-                    time.sleep(delay)
-                send(view[:m])
-                if arrived and not delay:
-                    times.add(arrived, picked, wall())
-                after.replied(now)
-                if writer is not None:
-                    writer.write(bytes(view[:m]), time.time())
-                chain.run_cycles(now)
+                _reply(chain, buf, view, n, clock(), send, writer, after, times, arrived, picked)
     finally:
         sock.close()
         if writer is not None:
@@ -761,6 +738,87 @@ def _serve(
             ctl.close()
             if control and os.path.exists(control):
                 os.unlink(control)
+
+
+def _control_socket(path: str) -> socket.socket:
+    """The fault-injection commands' UNIX datagram socket at ``path`` (replacing a stale one), non-blocking."""
+    if os.path.exists(path):
+        os.unlink(path)
+    ctl = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    ctl.bind(path)
+    ctl.setblocking(False)
+    return ctl
+
+
+class _Stop:
+    """Set by SIGTERM / SIGINT: the serve loop ends after the frame in hand."""
+
+    def __init__(self) -> None:
+        self.asked = False
+
+    def __bool__(self) -> bool:
+        return self.asked
+
+    def __call__(self, _sig: int, _frame: object) -> None:
+        self.asked = True
+
+
+def _stop_on_signals() -> _Stop:
+    stop = _Stop()
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    return stop
+
+
+def _wait_for_frame(sock: socket.socket, poller: select.poll, anticipate: Anticipator) -> int:
+    """Wait for the master's next frame: a paced master's, sleeping until shortly before it is due;
+    otherwise up to 20 ms in poll(). Returns until when to poll for it (monotonic ns; 0: the default
+    spin), -1 when nothing came."""
+    wall = time.time_ns
+    due = anticipate.due_ns(wall())
+    if due:  # a paced master: sleep until shortly before its frame, then poll for it
+        ahead = due - anticipate.lead_ns - wall()
+        if ahead > 0:
+            select.select([sock], [], [], ahead / 1e9)
+        return time.monotonic_ns() + max(0, due + anticipate.late_ns - wall())
+    return 0 if poller.poll(20) else -1
+
+
+def _reply(
+    chain: EscChain,
+    buf: bytearray,
+    view: memoryview,
+    n: int,
+    now: int,
+    send: Any,
+    writer: PcapWriter | None,
+    after: AfterReply,
+    times: ReplyTimes,
+    arrived: int,
+    picked: int,
+) -> None:
+    """The chain processes the ``n``-byte frame in ``buf`` (``view``: a view of it) at ``now`` (monotonic ns) and sends its reply
+    (held back by a delay fault), written to the pcap too; the reply time goes to ``times`` (from the
+    kernel's receipt ``arrived``, runner pickup ``picked``; 0: not known), then the slaves' cycles run."""
+    if writer is not None:
+        writer.write(bytes(view[:n]), time.time())
+    try:
+        m = chain.process_into(buf, n, now, cycles=False)
+    except FrameError as e:
+        print(f"dropped malformed frame: {e}", file=sys.stderr, flush=True)
+        return
+    if not m:
+        return
+    delay = chain.take_delay()
+    if delay:
+        time.sleep(delay)
+    send(view[:m])
+    if arrived and not delay:
+        times.add(arrived, picked, time.time_ns())
+    after.replied(now)
+    if writer is not None:
+        writer.write(bytes(view[:m]), time.time())
+    chain.run_cycles(now)
 
 
 def _serve_control(chain: EscChain, ctl: socket.socket, times: ReplyTimes | None = None) -> None:
@@ -778,7 +836,8 @@ def _serve_control(chain: EscChain, ctl: socket.socket, times: ReplyTimes | None
                 ctl.sendto(json.dumps(answer).encode(), sender)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The runner's command line (``python -m sim_slaves.ethercat``)."""
     p = argparse.ArgumentParser(prog="python -m sim_slaves.ethercat", description=__doc__.split("\n\n")[0])
     p.add_argument("--iface", required=True, help="network interface, e.g. one end of a veth pair")
     p.add_argument(
@@ -837,7 +896,15 @@ def main(argv: list[str] | None = None) -> int:
         default=DC_MIN_SAMPLE_INTERVAL_NS / 1000,
         help="DC: least time between FRMW samples the clocks' loops take (0: every one)",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def _checked(
+    p: argparse.ArgumentParser, args: argparse.Namespace
+) -> tuple[list[DriveMap] | None, list[dict[str, Any] | None] | None]:
+    """The options checked together (``p.error`` on a bad mix); the slaves of ``--network`` if given."""
+    devices: list[DriveMap] | None = None
+    params: list[dict[str, Any] | None] | None = None
     if args.count < 1:
         p.error("--count must be >= 1")
     if bool(args.map) == bool(args.network):
@@ -846,7 +913,6 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--count repeats --map; a network file lists its slaves itself")
     if args.bus and not args.network:
         p.error("--bus needs --network")
-    devices, params = None, None
     if args.network:
         try:
             devices, params = network_slaves(args.network, args.bus)
@@ -858,6 +924,13 @@ def main(argv: list[str] | None = None) -> int:
         args.rt_priority.isdigit() and 1 <= int(args.rt_priority) <= 99
     ):
         p.error("--rt-priority takes 1-99, 'auto' or 'off'")
+    return devices, params
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = _parser()
+    args = p.parse_args(argv)
+    devices, params = _checked(p, args)
     timing = EscTiming(*args.esc_delays_ns) if args.esc_delays_ns else None
     chain = build_chain(
         args.map or [],

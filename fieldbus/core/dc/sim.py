@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -145,12 +146,7 @@ def simulate(
     if seconds <= 0 or cycle_ns <= 0:
         raise ValueError("seconds and cycle_ns must be > 0")
     rng = np.random.default_rng(seed)
-    if drifts_ppm is not None:
-        drifts = np.asarray(drifts_ppm, dtype=np.float64)
-        if drifts.shape != (n_slaves,):
-            raise ValueError(f"drifts_ppm needs {n_slaves} values")
-    else:
-        drifts = spread_drifts(n_slaves, drift_ppm, seed)
+    drifts = _drifts(n_slaves, drift_ppm, drifts_ppm, seed)
     escs = [esc] * n_slaves if esc is None or isinstance(esc, EscTiming) else list(esc)
     escs = [e or EscTiming() for e in escs]
     if len(escs) != n_slaves:
@@ -158,69 +154,23 @@ def simulate(
     cables = [float(cable_m)] * n_slaves if isinstance(cable_m, int | float) else list(cable_m)
     cfg = loop or LoopConfig()
     speed = 1.0 + drifts * 1e-6
-
     # --- configuration (SOEM ecx_configdc): latch at true time 0, master time 0
     lt = line_timing(0.0, escs, cables, ns_per_m)
     local0 = rng.uniform(0.0, 2.0**40, n_slaves)  # arbitrary power-up local times
-
-    def latched(t: FloatArray) -> list[int]:
-        return [int(v) & 0xFFFF_FFFF for v in np.floor(local0 + t * speed)]
-
-    p0 = latched(lt.port0_ns)
-    p1_all = latched(np.nan_to_num(lt.port1_ns))
-    p1: list[int | None] = [None if math.isnan(lt.port1_ns[i]) else p1_all[i] for i in range(n_slaves)]
     t_diff = round(escs[0].t_diff_ns) if master_t_diff_ns is None else master_t_diff_ns
-    delays = np.array(line_propagation_delays(p0, p1, t_diff), dtype=np.int64)
+    delays = _measured_delays(lt, local0, speed, t_diff)
     true_delays = lt.epu_ns - lt.epu_ns[0]
-    # offset = master time (0) - local EPU time => system time is 0 when the frame passed
-    anchor_t = lt.epu_ns.copy()  # true time of each slave's anchor
-    anchor_s = np.zeros(n_slaves)  # system time at the anchor
-    state = LoopState.reset(n_slaves)
-    rate = speed.copy()
-    followers = np.arange(n_slaves) > 0
-
     # --- cycles
     n_cycles = max(1, round(seconds * 1e9 / cycle_ns))
     t0 = float(cycle_ns)  # first cyclic frame one cycle after configuration
-    times = t0 + np.arange(n_cycles) * float(cycle_ns)
-    spread = np.empty(n_cycles)
+    times: FloatArray = t0 + np.arange(n_cycles, dtype=np.float64) * float(cycle_ns)
     s0_cycle = int(sync0_cycle_ns or cycle_ns)
     sync0_start = sync0_start_time(0, s0_cycle, sync0_shift_ns)
-    edges = np.full((n_cycles, n_slaves), np.nan)
-    arrivals_rel = lt.epu_ns  # a frame sent at t reaches slave i's EPU at t + epu_ns[i]
     noise = rng.uniform(-jitter_ns, jitter_ns, (n_cycles, n_slaves)) if jitter_ns > 0 else None
-
-    for n in range(n_cycles):
-        t = times[n]
-        sys_now = anchor_s + (t - anchor_t) * rate
-        spread[n] = sys_now.max() - sys_now.min()
-        # SYNC0: next pulse at or after the reference's system time
-        ref_sys = sys_now[0]
-        if ref_sys >= sync0_start - s0_cycle:
-            k = max(0, math.ceil((ref_sys - sync0_start) / s0_cycle))
-            target = sync0_start + k * s0_cycle
-            true_edges = t + (target - sys_now) / rate
-            edges[n] = true_edges - true_edges[0]
-        if not compensation:
-            continue
-        arr = t + arrivals_rel
-        sys_arr = anchor_s + (arr - anchor_t) * rate
-        received = sys_arr[0]
-        delta = sys_arr - delays - received
-        if noise is not None:
-            delta = delta + noise[n]
-        interval = (arr - anchor_t) * rate
-        state = loop_step(state, delta, interval, cfg, mask=followers)
-        anchor_s = np.where(followers, sys_arr, anchor_s)
-        anchor_t = np.where(followers, arr, anchor_t)
-        rate = speed * (1.0 + state.correction_frac)
-
+    sync0 = (sync0_start, s0_cycle)
+    spread, edges = _cycles(times, lt.epu_ns, delays, speed, cfg, noise, compensation, sync0)
     times_ms: FloatArray = ((times - t0) / 1e6).astype(np.float64)
-    s0_spread = np.where(np.isnan(edges[:, 0]), np.nan, np.ptp(np.nan_to_num(edges), axis=1))
     conv = converged_after(spread, times_ms, threshold_ns)
-    after = None
-    if conv is not None:
-        after = float(spread[times_ms >= conv].max())
     return DcSimResult(
         n_slaves=n_slaves,
         seconds=float(seconds),
@@ -233,9 +183,90 @@ def simulate(
         times_ms=times_ms,
         spread_ns=spread,
         sync0_edges_ns=edges,
-        sync0_spread_ns=s0_spread,
+        sync0_spread_ns=np.where(np.isnan(edges[:, 0]), np.nan, np.ptp(np.nan_to_num(edges), axis=1)),
         sync0_start_ns=int(sync0_start),
         final_spread_ns=float(spread[-1]),
         converged_after_ms=conv,
-        max_spread_after_convergence_ns=after,
+        max_spread_after_convergence_ns=None if conv is None else float(spread[times_ms >= conv].max()),
     )
+
+
+def _cycles(
+    times: FloatArray,
+    epu_ns: FloatArray,
+    delays: npt.NDArray[np.int64],
+    speed: FloatArray,
+    cfg: LoopConfig,
+    noise: FloatArray | None,
+    compensation: bool,
+    sync0: tuple[float, int],
+) -> tuple[FloatArray, FloatArray]:
+    """The cyclic frames at true ``times`` (ns): per cycle the spread of the slaves' system times just
+    before the frame and each slave's SYNC0 edge (NaN before SYNC0 starts; ``sync0``: its start in
+    system time and cycle, ns); with ``compensation`` each follower's time-control loop steps on the
+    frame's FRMW (``epu_ns``: the frame's arrival at each slave's EPU after it is sent, ns)."""
+    n_cycles, n_slaves = len(times), len(epu_ns)
+    sync0_start, s0_cycle = sync0
+    # offset = master time (0) - local EPU time => system time is 0 when the frame passed
+    anchor_t = epu_ns.copy()  # true time of each slave's anchor
+    anchor_s = np.zeros(n_slaves)  # system time at the anchor
+    state = LoopState.reset(n_slaves)
+    rate = speed.copy()
+    followers = np.arange(n_slaves) > 0
+    spread = np.empty(n_cycles)
+    edges = np.full((n_cycles, n_slaves), np.nan)
+    for n in range(n_cycles):
+        t = times[n]
+        sys_now = anchor_s + (t - anchor_t) * rate
+        spread[n] = sys_now.max() - sys_now.min()
+        if sys_now[0] >= sync0_start - s0_cycle:  # SYNC0 has started on the reference
+            edges[n] = _sync0_edges(t, sys_now, rate, sync0_start, s0_cycle)
+        if not compensation:
+            continue
+        arr = t + epu_ns  # a frame sent at t reaches slave i's EPU at t + epu_ns[i]
+        sys_arr = anchor_s + (arr - anchor_t) * rate
+        received = sys_arr[0]
+        delta = sys_arr - delays - received
+        if noise is not None:
+            delta = delta + noise[n]
+        interval = (arr - anchor_t) * rate
+        state = loop_step(state, delta, interval, cfg, mask=followers)
+        anchor_s = np.where(followers, sys_arr, anchor_s)
+        anchor_t = np.where(followers, arr, anchor_t)
+        rate = speed * (1.0 + state.correction_frac)
+    return spread, edges
+
+
+def _drifts(n_slaves: int, drift_ppm: float, drifts_ppm: Sequence[float] | None, seed: int) -> FloatArray:
+    """Each slave's clock drift, ppm: ``drifts_ppm``, else spread evenly over ±``drift_ppm``."""
+    if drifts_ppm is None:
+        return spread_drifts(n_slaves, drift_ppm, seed)
+    drifts = np.asarray(drifts_ppm, dtype=np.float64)
+    if drifts.shape != (n_slaves,):
+        raise ValueError(f"drifts_ppm needs {n_slaves} values")
+    return drifts
+
+
+def _measured_delays(lt: Any, local0: FloatArray, speed: FloatArray, t_diff: int) -> npt.NDArray[np.int64]:
+    """The propagation delays the master computes from the latched receive times (ports 0 and 1, 32-bit
+    local times at the true times ``lt`` gives) as SOEM does, with its t_Diff correction ``t_diff``, ns."""
+
+    def latched(t: FloatArray) -> list[int]:
+        return [int(v) & 0xFFFF_FFFF for v in np.floor(local0 + t * speed)]
+
+    p0 = latched(lt.port0_ns)
+    p1_all = latched(np.nan_to_num(lt.port1_ns))
+    p1: list[int | None] = [None if math.isnan(lt.port1_ns[i]) else p1_all[i] for i in range(len(p0))]
+    return np.array(line_propagation_delays(p0, p1, t_diff), dtype=np.int64)
+
+
+def _sync0_edges(
+    t: float, sys_now: FloatArray, rate: FloatArray, sync0_start: float, s0_cycle: int
+) -> FloatArray:
+    """True time of each slave's next SYNC0 pulse at or after the reference's system time (at true time
+    ``t``), relative to the reference's pulse, ns."""
+    k = max(0, math.ceil((sys_now[0] - sync0_start) / s0_cycle))
+    target = sync0_start + k * s0_cycle
+    true_edges = t + (target - sys_now) / rate
+    out: FloatArray = true_edges - true_edges[0]
+    return out
