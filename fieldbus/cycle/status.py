@@ -156,6 +156,12 @@ class BusFault:
     text: str = ""
     exception: str | None = None
 
+    def __str__(self) -> str:
+        """One line, as recordings and /diagnostics show it: ``bus: kind (expected E, received R): text``."""
+        got = "nothing" if self.received is None else str(self.received)
+        text = f": {self.text}" if self.text else ""
+        return f"{self.bus}: {self.kind.value} (expected {self.expected}, received {got}){text}"
+
 
 def raised(st: BusStatus, kind: FaultKind, exc: BaseException) -> None:
     """The bus raised in this cycle: its reason into ``st.error`` and its fault into ``st.fault``."""

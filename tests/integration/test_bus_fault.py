@@ -139,3 +139,13 @@ def test_a_reported_bus_off_is_a_bus_off_fault(tmp_path: Path) -> None:
         assert st.fault is not None and st.fault.kind is FaultKind.BUS_OFF
         assert (st.fault.bus, st.fault.expected, st.fault.text) == ("bus", 2, st.error)
         assert st.fault.exception is None  # reported by the controller: nothing raised
+
+
+def test_a_bus_fault_reads_as_one_line_naming_bus_kind_and_counts() -> None:
+    """Recordings and /diagnostics show a fault by its str(): the bus, the kind, expected and received."""
+    from fieldbus import BusFault, FaultKind
+
+    lost = BusFault("arm", FaultKind.TIMEOUT, 6)
+    short = BusFault("arm", FaultKind.WKC_MISMATCH, 6, 4, "working counter 4, expected 6")
+    assert str(lost) == "arm: timeout (expected 6, received nothing)"
+    assert str(short) == "arm: wkc_mismatch (expected 6, received 4): working counter 4, expected 6"

@@ -20,14 +20,10 @@ import pytest
 from fieldbus.core import status_fields as sf
 from fieldbus.core.status_fields import Carry, check_covered, status_fields
 from fieldbus.network import BusStatus
+from fieldbus.operations import monitor
 from fieldbus.recording import Recorder, load, ring
 from fieldbus.testing import emulate
 from fieldbus.testing import trace as trace_mod
-
-try:
-    from fieldbus.operations import monitor  # where the --monitor view lives once the layers are merged
-except ImportError:
-    from fieldbus.platform import monitor  # type: ignore[no-redef]
 
 pytestmark = pytest.mark.timeout(300)
 IO16 = Path(__file__).resolve().parents[1] / "data" / "io16.yaml"
