@@ -30,21 +30,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.core.cia402 import State402
+from fieldbus.core.cia402 import STATUSWORD_STATE_BITS, State402, StatusBit
 from sim_slaves.drive402 import (
-    _SW_FOLLOWING_ERROR,
-    _SW_FOLLOWS,
-    _SW_LIMIT,
-    _SW_REMOTE,
-    _SW_STATE,
-    _SW_TARGET_REACHED,
-    _SW_VOLTAGE,
-    _SW_WARNING,
     ERROR_FOLLOWING,
     ERROR_OVERTEMPERATURE,
     FOLLOWING_ERROR_OFF,
@@ -52,9 +43,10 @@ from sim_slaves.drive402 import (
     STICTION_RAD_S,
     TWO_PI,
     Cia402Drive,
+    DictObjectStore,
     DriveParams,
+    Obj,
     ObjectStore,
-    integration_coefficients,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -64,116 +56,45 @@ B = npt.NDArray[np.bool_]
 _STATES = tuple(State402)
 _NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
 _PP, _PV, _HM, _CSP, _CSV, _CST = 1, 3, 6, 8, 9, 10
+# statusword bits (plain ints: the cycle's arithmetic)
+_SW_REMOTE = int(StatusBit.REMOTE)
+_SW_VOLTAGE = int(StatusBit.VOLTAGE_ENABLED)
+_SW_FOLLOWS = int(StatusBit.FOLLOWS_TARGET)
+_SW_FOLLOWING_ERROR = int(StatusBit.FOLLOWING_ERROR)
+_SW_TARGET_REACHED = int(StatusBit.TARGET_REACHED)
+_SW_LIMIT = int(StatusBit.INTERNAL_LIMIT_ACTIVE)
+_SW_WARNING = int(StatusBit.WARNING)
 _NOT_FOLLOWS_REACHED = ~(_SW_FOLLOWS | _SW_TARGET_REACHED)
-_SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
-#: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
+_SW_BY_STATE = np.array([int(STATUSWORD_STATE_BITS[s]) for s in _STATES], dtype=np.int64)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
 _SW_CSP_REACHED = _SW_CSP | _SW_TARGET_REACHED
-_STEADY = np.zeros(len(_STATES), dtype=np.bool_)
-_STEADY[[_SOD, _RTSO, _SO, _OE]] = True
-
-# drive attribute -> bank array (the drive's state is the array element)
-_FLOAT_SLOTS = {
-    "position_rad": "pos",
-    "velocity_rad_s": "vel",
-    "torque_demand_nm": "tau",
-    "shaft_torque_nm": "shaft",
-    "load_torque_nm": "load",
-    "temperature_c": "temp",
-    "_integral": "integ",
-    "_prev_target_rad": "prev_target",
-    "_prev_vff": "prev_vff",
-    "_ramp_v": "ramp_v",
-    "_fe_time_s": "fe_time",
-    "_tau_eff": "tau_eff",
-    "fe_timeout_s": "fe_timeout",
-    "max_torque_nm": "tmax",
-    "qs_decel": "qs_decel",
-    "rated_torque_nm": "rated",
-    "max_speed_rad_s": "vmax",
-    "position_limit_min": "pmin",
-    "position_limit_max": "pmax",
-    "_frame_rad": "frame",
-    "_home_v": "home_v",
-    "_prof_pos": "prof_pos",
-    "_prof_v": "prof_v",
-}
-_INT_SLOTS = {
-    "error_code": "error_code",
-    "mode_display": "mode_display",
-    "following_error_counts": "following_error",
-    "_fault_pending": "fault_pending",
-    "_prev_cw": "prev_cw",
-    "fe_window": "fe_window",
-    "position_window": "position_window",
-    "velocity_window": "velocity_window",
-    "qs_option": "qs_option",
-    "fr_option": "fr_option",
-    "_noise": "noise",
-    "home_bits": "home_bits",
-    "_home_phase": "home_phase",
-    "prof_bits": "prof_bits",
-}
-_BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
+# objects the bank reads and writes through a drive's OD (plain ints: enum attribute access costs ~100 ns)
+_X_ERROR_CODE = int(Obj.ERROR_CODE)
+_X_CONTROLWORD = int(Obj.CONTROLWORD)
+_X_STATUSWORD = int(Obj.STATUSWORD)
+_X_MODES = int(Obj.MODES_OF_OPERATION)
+_X_MODES_DISPLAY = int(Obj.MODES_DISPLAY)
+_X_POSITION_ACTUAL = int(Obj.POSITION_ACTUAL)
+_X_VELOCITY_ACTUAL = int(Obj.VELOCITY_ACTUAL)
+_X_TORQUE_ACTUAL = int(Obj.TORQUE_ACTUAL)
+_X_TARGET_POSITION = int(Obj.TARGET_POSITION)
+_X_TARGET_VELOCITY = int(Obj.TARGET_VELOCITY)
+_X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
+_X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
 
 
-def _slot(array: str, cast: Callable[[Any], Any]) -> property:
-    def get(self: BankDrive) -> Any:
-        return cast(getattr(self.bank, array)[self.slot])
+def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
+    """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
 
-    def put(self: BankDrive, value: Any) -> None:
-        getattr(self.bank, array)[self.slot] = value
-
-    return property(get, put)
-
-
-def _state_get(self: BankDrive) -> State402:
-    return _STATES[int(self.bank.state[self.slot])]
-
-
-def _state_put(self: BankDrive, value: State402) -> None:
-    self.bank.state[self.slot] = int(value)
-
-
-class BankDrive(Cia402Drive):
-    """One drive of a :class:`DriveBank`: a :class:`Cia402Drive` whose state is the bank's array elements."""
-
-    state = property(_state_get, _state_put)
-
-    def __init__(self, bank: DriveBank, slot: int, params: DriveParams | None = None) -> None:
-        self.bank = bank
-        self.slot = slot
-        super().__init__(params)
-
-    def power_cycle(self) -> None:
-        """As :meth:`Cia402Drive.power_cycle`; the slot's arrays restart too (position kept)."""
-        position_counts = round(self.position_rad * self.counts_per_rad)
-        self.bank.reset_slot(self.slot)
-        self.__init__(self.bank, self.slot, self.params)  # type: ignore[misc]
-        self.position_rad = self._prev_target_rad = position_counts * self.rad_per_count
-
-    def inject_fault(self, code: int, *, persistent: bool = False) -> None:
-        super().inject_fault(code, persistent=persistent)
-        self.bank.changed()
-
-    def step(self, od: ObjectStore, dt_s: float) -> None:
-        """One cycle through the OD (as :meth:`Cia402Drive.step`), computed by the bank for this drive alone."""
-        bank, i = self.bank, self.slot
-        bank.load_inputs(i, od)
-        bank.step(i, i + 1, dt_s)
-        bank.store_outputs(i, od)
-
-    def bind(self, od: ObjectStore) -> None:
-        super().bind(od)
-        self.bank.bound(self.slot, self._has)
-
-
-for _name, _arr in _FLOAT_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, float))
-for _name, _arr in _INT_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, int))
-for _name, _arr in _BOOL_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, bool))
+    Under a torque held over the substep: velocity' = e x velocity + f x
+    torque, position' = position + g x velocity + hh x torque. Returns
+    (e, f, g, hh).
+    """
+    if b > 0.0:
+        e = math.exp(-b * h / j)  # velocity decay over h
+        g = (1.0 - e) * j / b  # position per unit initial velocity
+        return e, (1.0 - e) / b, g, (h - g) / b  # f: velocity, hh: position per unit torque
+    return 1.0, h / j, h, h * h / (2.0 * j)
 
 
 def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], float]) -> F64:
@@ -181,7 +102,7 @@ def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], flo
 
 
 def _rotor_coefficients(j: F64, fb: F64, h: F64 | float) -> tuple[F64, F64, F64, F64]:
-    """:func:`~sim_slaves.drive402.integration_coefficients` element by element: e, f, g, hh."""
+    """:func:`integration_coefficients` element by element: e, f, g, hh."""
     viscous = fb > 0.0
     fb_safe = np.where(viscous, fb, 1.0)
     e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
@@ -192,21 +113,37 @@ def _rotor_coefficients(j: F64, fb: F64, h: F64 | float) -> tuple[F64, F64, F64,
 
 
 class DriveBank:
-    """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`BankDrive`).
+    """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`~sim_slaves.drive402.Cia402Drive`).
 
-    ``params``: one :class:`DriveParams` per drive. The arrays are public for
-    the emulator that feeds them (see the module docstring); ``step(a, b,
-    dt_s)`` advances drives ``a..b-1``.
+    ``params``: one :class:`DriveParams` per drive; ``seed``: the encoder
+    noise's. The arrays are public for the emulator that feeds them (see the
+    module docstring); ``step(a, b, dt_s)`` advances drives ``a..b-1``.
+    ``drives``: the drives themselves, when they are being built (a drive
+    built alone makes a bank of one for itself); by default the bank builds them.
     """
 
-    def __init__(self, params: Sequence[DriveParams], *, seed: int = 0) -> None:
+    def __init__(
+        self, params: Sequence[DriveParams], *, seed: int = 0, drives: Sequence[Cia402Drive] | None = None
+    ) -> None:
         n = len(params)
         self.n = n
         self.params = list(params)
+        self._state_arrays(n)
+        self._io_arrays(n)
+        self._controller_parameters(self.params)
+        self._thermal_parameters(self.params)
+        self._imperfections(self.params, seed)
+        self._path_caches()
+        self.drives: list[Cia402Drive] = (
+            list(drives)
+            if drives is not None
+            else [Cia402Drive(p, bank=self, slot=i) for i, p in enumerate(params)]
+        )
+
+    def _state_arrays(self, n: int) -> None:
+        """Each drive's state (SI); a drive's attributes are elements of these (drive402.FLOAT_SLOTS ...)."""
         z = np.zeros
-        # state
         self.state = np.full(n, _NR, dtype=np.int64)
-        # per-drive state (SI; the BankDrive attributes map onto these, see _FLOAT_SLOTS ...)
         self.pos: F64 = z(n)
         self.vel: F64 = z(n)
         self.tau: F64 = z(n)
@@ -247,23 +184,39 @@ class DriveBank:
         self.limit: B = z(n, dtype=np.bool_)
         self.standstill: B = z(n, dtype=np.bool_)
         self.quiet = z(n, dtype=np.bool_)  # the state machine has nothing to do while the controlword holds
-        # inputs (the master's outputs), raw OD units
+
+    def _io_arrays(self, n: int) -> None:
+        """The master's outputs (inputs here) and inputs (outputs here), raw OD units; which objects exist."""
+        z = np.zeros
         self.controlword = z(n, dtype=np.int64)
         self.mode_request = z(n, dtype=np.int64)
         self.target_position = z(n, dtype=np.int64)
         self.target_velocity = z(n, dtype=np.int64)
         self.target_torque = z(n, dtype=np.int64)
-        # outputs (the master's inputs), raw OD units
         self.statusword = z(n, dtype=np.int64)
         self.position_counts = z(n, dtype=np.int64)
         self.velocity_counts = z(n, dtype=np.int64)
         self.torque_permille = z(n, dtype=np.int64)
-        # which optional objects each drive's OD has (set by bind)
+        # which optional objects each drive's OD has (set by bound)
         self.has_tp = z(n, dtype=np.bool_)
         self.has_tv = z(n, dtype=np.bool_)
         self.has_tt = z(n, dtype=np.bool_)
         self.has_modes = z(n, dtype=np.bool_)
-        # parameters
+        self._outputs_present: list[list[tuple[int, I64]]] = [[] for _ in range(n)]
+
+    def _output_arrays(self) -> tuple[tuple[int, I64], ...]:
+        """The optional objects a drive writes (the master's inputs besides the statusword), with their arrays."""
+        return (
+            (_X_MODES_DISPLAY, self.mode_display),
+            (_X_POSITION_ACTUAL, self.position_counts),
+            (_X_VELOCITY_ACTUAL, self.velocity_counts),
+            (_X_TORQUE_ACTUAL, self.torque_permille),
+            (_X_FOLLOWING_ERROR, self.following_error),
+            (_X_ERROR_CODE, self.error_code),
+        )
+
+    def _controller_parameters(self, params: Sequence[DriveParams]) -> None:
+        """Units, the rotor and the cascade's gains, per drive."""
         pa = _param_array
         self.rpc = pa(params, lambda p: TWO_PI / p.counts_per_rev)
         self.cpr = pa(params, lambda p: p.counts_per_rev / TWO_PI)
@@ -279,6 +232,10 @@ class DriveBank:
         self.vff_gain = pa(params, lambda p: p.velocity_feedforward)
         self.tff_gain = pa(params, lambda p: p.torque_feedforward) * self.inertia
         self.standstill_speed = pa(params, lambda p: p.standstill_rad_s)
+
+    def _thermal_parameters(self, params: Sequence[DriveParams]) -> None:
+        """The winding's thermal network and the torque constant's drift, per drive."""
+        pa = _param_array
         self.thermal = np.array([p.thermal for p in params], dtype=np.bool_)
         self.any_thermal = bool(self.thermal.any())
         self.ambient = pa(params, lambda p: p.ambient_c)
@@ -290,7 +247,12 @@ class DriveBank:
         self.kt_tc = pa(params, lambda p: p.kt_temp_coeff_per_k)
         self.warn_c = pa(params, lambda p: p.warning_temperature_c)
         self.fault_c = pa(params, lambda p: p.fault_temperature_c)
-        # imperfections
+
+    def _imperfections(self, params: Sequence[DriveParams], seed: int) -> None:
+        """Command delay line, current-loop lag, encoder resolution and noise, dry friction."""
+        pa = _param_array
+        z = np.zeros
+        n = len(params)
         self.delay = np.array([p.command_delay_cycles for p in params], dtype=np.int64)
         depth = int(self.delay.max(initial=0)) + 1
         self.history = z((3, depth, n), dtype=np.int64)  # raw targets, ring per drive
@@ -306,14 +268,18 @@ class DriveBank:
         self.coulomb = pa(params, lambda p: p.coulomb_friction_nm)
         self.any_coulomb = bool((self.coulomb > 0.0).any())
         self.rng = np.random.default_rng(seed)
+
+    def _path_caches(self) -> None:
+        """What each run of drives was found to be, kept until something changes (see :meth:`changed`)."""
         self._uniform: dict[tuple[int, int], str] = {}  # run -> "csp", "idle" or "general" (see _kind)
         self._calm: set[tuple[int, int]] = set()  # runs whose state machines have nothing pending
         rate = self.control_rate
-        self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
+        self._rate = (
+            float(rate[0]) if self.n and (rate == rate[0]).all() else None
+        )  # one control rate for all
         self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
         self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
         self._limited: dict[tuple[int, int], tuple[bool, bool]] = {}  # run -> (speed limit, position limits)
-        self.drives = [BankDrive(self, i, p) for i, p in enumerate(params)]
 
     # -- per-drive bookkeeping --
 
@@ -324,7 +290,7 @@ class DriveBank:
         self._limited.clear()
 
     def reset_slot(self, i: int) -> None:
-        """Power-on values for drive ``i`` (its :class:`BankDrive` then sets its own)."""
+        """Power-on values for drive ``i`` (the drive then sets its own)."""
         self.quiet[i] = False
         self.changed()
         self.history[:, :, i] = 0
@@ -332,43 +298,37 @@ class DriveBank:
 
     def bound(self, i: int, has: dict[int, bool]) -> None:
         """Drive ``i`` bound to an OD that has the objects in ``has``."""
-        self.has_tp[i] = has[0x607A]
-        self.has_tv[i] = has[0x60FF]
-        self.has_tt[i] = has[0x6071]
-        self.has_modes[i] = has[0x6060]
+        self.has_tp[i] = has[_X_TARGET_POSITION]
+        self.has_tv[i] = has[_X_TARGET_VELOCITY]
+        self.has_tt[i] = has[_X_TARGET_TORQUE]
+        self.has_modes[i] = has[_X_MODES]
+        self._outputs_present[i] = [
+            (index, array) for index, array in self._output_arrays() if has.get(index)
+        ]
         self.quiet[i] = False
         self.changed()
 
     def load_inputs(self, i: int, od: ObjectStore) -> None:
         """Drive ``i``'s inputs from its OD (objects the process data does not carry)."""
         d = self.drives[i]
-        if d._od is not od:
+        if d.od is not od:
             d.bind(od)
         get = od.get_value
-        self.controlword[i] = int(get(0x6040, 0))
-        self.mode_request[i] = int(get(0x6060, 0)) if self.has_modes[i] else self.mode_display[i]
+        self.controlword[i] = int(get(_X_CONTROLWORD, 0))
+        self.mode_request[i] = int(get(_X_MODES, 0)) if self.has_modes[i] else self.mode_display[i]
         if self.has_tp[i]:
-            self.target_position[i] = int(get(0x607A, 0))
+            self.target_position[i] = int(get(_X_TARGET_POSITION, 0))
         if self.has_tv[i]:
-            self.target_velocity[i] = int(get(0x60FF, 0))
+            self.target_velocity[i] = int(get(_X_TARGET_VELOCITY, 0))
         if self.has_tt[i]:
-            self.target_torque[i] = int(get(0x6071, 0))
+            self.target_torque[i] = int(get(_X_TARGET_TORQUE, 0))
 
     def store_outputs(self, i: int, od: ObjectStore) -> None:
         """Drive ``i``'s outputs into its OD (for objects the process data does not carry, SDO reads)."""
-        has = self.drives[i]._has
         put = od.set_value
-        put(0x6041, 0, int(self.statusword[i]))
-        for index, array in (
-            (0x6061, self.mode_display),
-            (0x6064, self.position_counts),
-            (0x606C, self.velocity_counts),
-            (0x6077, self.torque_permille),
-            (0x60F4, self.following_error),
-            (0x603F, self.error_code),
-        ):
-            if has.get(index):
-                put(index, 0, int(array[i]))
+        put(_X_STATUSWORD, 0, int(self.statusword[i]))
+        for index, array in self._outputs_present[i]:
+            put(index, 0, int(array[i]))
 
     # -- the cycle --
 
@@ -415,7 +375,7 @@ class DriveBank:
             if j:
                 for i in range(a, b):
                     if self.home_phase[i] == 1:
-                        self.drives[i]._home_search()
+                        self.drives[i].look_for_home()
             self._substeps(a, b, part, push=j == 0)
 
     def _substeps(self, a: int, b: int, dt: F64, *, push: bool = True) -> None:
@@ -437,32 +397,17 @@ class DriveBank:
         new_cw = cw != self.prev_cw[sl]
         new_mode = mode_req != self.mode_display[sl]
         homing = (self.mode_display[sl] == _HM) | (self.home_phase[sl] != 0)
-        if homing.any():  # the homing procedure runs per drive, through the scalar drive's code
+        if homing.any():  # the homing procedure runs per drive, through the drive's own code
             self.changed()
             for i in (np.flatnonzero(homing) + a).tolist():
-                d = self.drives[i]
-                d._state_machine(int(cw[i - a]))
-                d._modes(int(mode_req[i - a]))
-                d._homing(int(cw[i - a]))
-                self.quiet[i] = False
+                self.quiet[i] = self.drives[i].command(int(cw[i - a]), int(mode_req[i - a]))
         elif (a, b) in self._calm and not new_cw.any() and not new_mode.any():
             return
         need = (new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)) & ~homing
-        if need.any():
+        if need.any():  # the state machines that have something to do, each through the drive's code
             self.changed()
             for i in (np.flatnonzero(need) + a).tolist():
-                d = self.drives[i]
-                taken = d.transitions_taken
-                d._state_machine(int(cw[i - a]))
-                d._modes(int(mode_req[i - a]))
-                if d.mode_display == _HM or d._home_phase:  # switched into homing mode this cycle
-                    d._homing(int(cw[i - a]))
-                self.quiet[i] = (
-                    bool(_STEADY[self.state[i]])
-                    and d._pending is None
-                    and d.transitions_taken == taken
-                    and d.mode_display != _HM
-                )
+                self.quiet[i] = self.drives[i].command(int(cw[i - a]), int(mode_req[i - a]))
         self.prev_cw[sl] = cw
         if self.quiet[sl].all() and not self.fault_pending[sl].any():
             self._calm.add((a, b))
@@ -504,9 +449,9 @@ class DriveBank:
         pv = oe & (mode == _PV)
         prof = pp | pv
         profiled = (np.flatnonzero(prof) + a).tolist() if prof.any() else []
-        if profiled:  # the PP/PV trajectory generator runs per drive, through the scalar drive's code
+        if profiled:  # the PP/PV trajectory generator runs per drive, through the drive's own code
             for i in profiled:
-                self.drives[i]._profile(
+                self.drives[i].run_profile(
                     int(self.controlword[i]),
                     float(dt[i - a]),
                     int(self.target_position[i]) if self.has_tp[i] else None,
@@ -523,7 +468,7 @@ class DriveBank:
         if hm.any():
             self.statusword[sl] |= np.where(hm, self.home_bits[sl], 0)
         for i in profiled:
-            self.prof_bits[i] = self.drives[i]._profile_status()
+            self.prof_bits[i] = self.drives[i].profile_status()
             self.statusword[i] = (int(self.statusword[i]) & _NOT_FOLLOWS_REACHED) | int(self.prof_bits[i])
 
     def _limits(self, a: int, b: int) -> tuple[bool, bool]:
@@ -914,8 +859,6 @@ def warm_up() -> None:
     if _warmed:
         return
     _warmed = True
-    from sim_slaves.drive402 import DictObjectStore
-
     bank = DriveBank(
         [DriveParams(), DriveParams(thermal=True, command_delay_cycles=1, coulomb_friction_nm=0.01)]
     )
