@@ -39,7 +39,14 @@ torque (0x6076, mN·m). Limits: 0x6072 max torque, 0x6080 max motor speed [rpm]
 limits [counts] (the CSP target is held within them). :mod:`sim_slaves.drive_config`
 derives all of it from a drive map's scaling and a network file's ``emulator:`` options.
 
-Deterministic and pure: no randomness, no clock (``dt_s`` is a parameter).
+The physics is computed by :class:`sim_slaves.drive_bank.DriveBank`: a drive's
+numeric state lives in one slot of a bank's arrays (:data:`FLOAT_SLOTS` ...),
+and a drive built alone is the one drive of a bank of its own, so a drive
+alone and a drive of an emulator's bank run the same code. This module holds
+the drive's event logic: the state machine, mode switches, homing, the PP/PV
+trajectory generator, configuration from the OD, fault injection.
+
+Deterministic: no clock (``dt_s`` is a parameter); encoder noise from a seeded generator.
 """
 
 from __future__ import annotations
@@ -453,6 +460,10 @@ class Cia402Drive:
     def output_position_rad(self) -> float:
         """Angle of the driven shaft [rad]: the motor's divided by the gear ratio (0x6091)."""
         return self.position_rad / self.params.gear_ratio
+
+    def place(self, position_rad: float) -> None:
+        """Put the rotor at ``position_rad`` [rad] (an emulator adopting a drive); the loops start there."""
+        self.position_rad = self._prev_target_rad = position_rad
 
     # -- fault injection (tests) --
 

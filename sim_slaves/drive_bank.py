@@ -7,16 +7,23 @@ following-error and over-temperature faults, thermal model, command delay,
 current-loop lag, encoder resolution and noise, dry friction. The cost per
 call is a fixed number of numpy operations, nearly flat in N.
 
-Each drive is also a :class:`BankDrive`, a :class:`~sim_slaves.drive402.Cia402Drive`
-whose state lives in the bank's arrays (properties), so everything the
-scalar drive offers (fault injection, ``state``, ``position_rad``, ``step``
-through an object dictionary) works on it unchanged. The state machine is
-event driven: it runs, per drive, through the scalar drive's own table code
-only for drives that need it this cycle (a new controlword, a pending
-transition, a pending fault, a mode change, or a state left on its own:
-NOT READY, QUICK STOP, FAULT REACTION, FAULT); in steady operation no drive
-does. Semantics match :class:`~sim_slaves.drive402.Cia402Drive` step for step
-(``tests/unit/test_drive_bank.py`` compares both).
+This is the one CiA 402 drive model: each drive, a
+:class:`~sim_slaves.drive402.Cia402Drive`, keeps its numeric state in the
+bank's arrays (its attributes are elements of them: ``drive402.FLOAT_SLOTS``
+...), and a drive built alone is the one drive of a bank of its own. The drive
+holds the event logic (state machine table, mode switch, homing, the PP/PV
+trajectory generator, fault injection, configuration from the OD); the bank
+calls it, through the drive's public methods, only for drives that need it
+this cycle (a new controlword, a pending transition, a pending fault, a mode
+change, or a state left on its own: NOT READY, QUICK STOP, FAULT REACTION,
+FAULT; homing and profile drives every cycle); in steady operation no drive
+does. The physics is the bank's alone.
+
+Physics: as :mod:`sim_slaves.drive402` describes it. Three
+paths compute it: :meth:`DriveBank._csp` (every drive of the run enabled in
+plain CSP), :meth:`DriveBank._idle` (none powered), and the general
+:meth:`DriveBank._physics` (power stage, feed-forward, then the substep
+cascade); the first two are the general one with the terms that are zero left out.
 
 Inputs (the master's outputs) go into :attr:`DriveBank.controlword`,
 ``mode_request``, ``target_position``, ``target_velocity``, ``target_torque``
@@ -677,32 +684,84 @@ class DriveBank:
         target_tau: F64,
         speed_limited: bool = False,
     ) -> None:
+        """The general path: each drive of the run in its own state and mode, over ``n`` control substeps.
+
+        ``csv`` also marks homing drives (their search speed is in ``target_v``); PP and PV arrive as CSP
+        and CSV on their generator's position and velocity.
+        """
         steps = int(n[0])
-        h = dt / n
-        e_, f_, g_, hh_ = _rotor_coefficients(self.inertia[sl], self.friction[sl], h)
-        kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
-        tmax = self.tmax[sl]
-        thermal = self.thermal[sl]
-        temp = self.temp[sl]
-        kt_ratio = (
-            np.where(thermal, np.maximum(0.0, 1.0 + self.kt_tc[sl] * (temp - self.ambient[sl])), 1.0)
-            if self.any_thermal
-            else 1.0
+        powered, ramp = self._power_stage(sl, state, oe)
+        vff, aff = self._csp_feedforward(sl, dt, powered & ~ramp & csp, target)
+        kt_ratio = self._kt_ratio(sl)
+        te, limit, tau_sq = self._cascade(
+            sl,
+            dt / n,
+            steps,
+            (powered, ramp, csp, csv, cst),
+            (target, target_v, target_tau, vff, aff),
+            kt_ratio,
+            speed_limited,
         )
-        load = self.load[sl]
-        pos, vel, integ = self.pos[sl].copy(), self.vel[sl].copy(), self.integ[sl].copy()
+        self.prev_target[sl] = np.where(oe & csp, target, self.pos[sl])
+        self.tau_eff[sl] = te
+        self.tau[sl] = te
+        self.shaft[sl] = te * kt_ratio
+        self.limit[sl] = limit
+        if self.any_thermal:
+            self._thermal(sl, dt, tau_sq / steps)
+
+    def _power_stage(self, sl: slice, state: I64, oe: B) -> tuple[B, B]:
+        """Which drives the power stage drives, and which of them ramp to a stop (quick stop, fault reaction).
+
+        Option code 0 of 0x605A / 0x605E disables the drive function: the motor coasts.
+        """
         qsa, fra = state == _QSA, state == _FRA
         powered = oe | qsa | fra
         coast = (qsa & (self.qs_option[sl] == 0)) | (fra & (self.fr_option[sl] == 0))
         powered &= ~coast
-        ramp = powered & ~oe
+        return powered, powered & ~oe
+
+    def _csp_feedforward(self, sl: slice, dt: F64, m: B, target: F64) -> tuple[F64, F64]:
+        """Velocity [rad/s] and torque [N·m] feed-forward of the drives ``m`` (enabled, CSP): the target's
+        differences over the cycle, times their gains; the velocity kept for the next cycle's acceleration."""
         prev_t = self.prev_target[sl]
-        m = powered & ~ramp & csp
         vff = np.where(m, (target - prev_t) / dt, 0.0)
         aff = np.where(m, (vff - self.prev_vff[sl]) / dt, 0.0)
         self.prev_vff[sl] = np.where(m, vff, self.prev_vff[sl])
-        vff = vff * self.vff_gain[sl]
-        aff = aff * self.tff_gain[sl]
+        return vff * self.vff_gain[sl], aff * self.tff_gain[sl]
+
+    def _kt_ratio(self, sl: slice) -> F64 | float:
+        """kt(T) / kt0 of the run: the thermal model's torque-constant drift (1 without it)."""
+        if not self.any_thermal:
+            return 1.0
+        drift = np.maximum(0.0, 1.0 + self.kt_tc[sl] * (self.temp[sl] - self.ambient[sl]))
+        return np.where(self.thermal[sl], drift, 1.0)
+
+    def _cascade(
+        self,
+        sl: slice,
+        h: F64,
+        steps: int,
+        masks: tuple[B, B, B, B, B],
+        demands: tuple[F64, F64, F64, F64, F64],
+        kt_ratio: F64 | float,
+        speed_limited: bool,
+    ) -> tuple[F64, B, F64]:
+        """The control substeps of ``h`` s: velocity reference by mode, velocity PI, torque limit, current
+        loop, rotor. Leaves position, velocity, integrator and ramp in the arrays; returns the current
+        loop's torque [N·m], which drives hit the torque limit, and the sum of torque² over the substeps.
+
+        ``masks``: powered, ramping, CSP, CSV (and homing), CST; ``demands``: target position [rad],
+        velocity [rad/s], torque [N·m], velocity and torque feed-forward.
+        """
+        powered, ramp, csp, csv, cst = masks
+        target, target_v, target_tau, vff, aff = demands
+        e_, f_, g_, hh_ = _rotor_coefficients(self.inertia[sl], self.friction[sl], h)
+        kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
+        tmax = self.tmax[sl]
+        load = self.load[sl]
+        pos, vel, integ = self.pos[sl].copy(), self.vel[sl].copy(), self.integ[sl].copy()
+        prev_t = self.prev_target[sl]
         ramp_v = self.ramp_v[sl].copy()
         dv = self.qs_decel[sl] * h
         pi = powered & (ramp | csp | csv)
@@ -713,7 +772,6 @@ class DriveBank:
         epr, rpe = self.epr[sl], self.rpe[sl]
         noise = self.noise[sl]
         limit = np.zeros(len(pos), dtype=np.bool_)
-        tau = np.zeros(len(pos))
         tau_sq = np.zeros(len(pos))
         te = self.tau_eff[sl].copy()
         lag = self.any_current_lag
@@ -726,9 +784,7 @@ class DriveBank:
         vmax = self.vmax[sl]
         for k in range(1, steps + 1):
             if any_ramp:
-                ramp_v = np.where(
-                    ramp, np.where(ramp_v > dv, ramp_v - dv, np.where(ramp_v < -dv, ramp_v + dv, 0.0)), ramp_v
-                )
+                ramp_v = np.where(ramp, _ramp_to_zero(ramp_v, dv), ramp_v)
             ref = prev_t + (target - prev_t) * (k / steps)
             measured = (np.floor(pos * epr + 0.5) + noise) * rpe
             v_pos = vff + kp * (ref - measured)
@@ -742,27 +798,13 @@ class DriveBank:
             tau = np.where(powered, np.clip(tau, -tmax, tmax), 0.0)
             te = te + (tau - te) * alpha if lag else tau
             applied = te * kt_ratio - load
-            if dry:
-                net, vel = _dry_friction(applied, vel, fc)
-            else:
-                net = applied
-            pos = pos + vel * g_ + net * hh_
-            v_new = vel * e_ + net * f_
-            if dry:
-                v_new = np.where((fc > 0.0) & (v_new * vel < 0.0) & (np.abs(applied) <= fc), 0.0, v_new)
-            vel = v_new
+            pos, vel = _rotor_substep(pos, vel, applied, (e_, f_, g_, hh_), fc if dry else None)
             tau_sq += te * te
         if any_ramp:
             self.standstill[sl] |= ramp & (ramp_v == 0.0) & (np.abs(vel) < self.standstill_speed[sl])
         self.pos[sl], self.vel[sl], self.integ[sl] = pos, vel, integ
         self.ramp_v[sl] = ramp_v
-        self.prev_target[sl] = np.where(oe & csp, target, pos)
-        self.tau_eff[sl] = te
-        self.tau[sl] = te
-        self.shaft[sl] = te * kt_ratio
-        self.limit[sl] = limit
-        if self.any_thermal:
-            self._thermal(sl, dt, tau_sq / steps)
+        return te, limit, tau_sq
 
     def _thermal(self, sl: slice, dt: F64, tau_sq_mean: F64) -> None:
         on = self.thermal[sl]
@@ -825,6 +867,29 @@ class DriveBank:
         self.position_counts[sl] = pos_counts
         self.velocity_counts[sl] = np.floor(vel * vpr + 0.5)
         self.torque_permille[sl] = np.floor(self.tau[sl] * 1000.0 / self.rated[sl] + 0.5)
+
+
+def _ramp_to_zero(v: F64, dv: F64) -> F64:
+    """One substep of the quick-stop / fault-reaction ramp: speed ``v`` [rad/s] ``dv`` closer to 0."""
+    return np.where(v > dv, v - dv, np.where(v < -dv, v + dv, 0.0))
+
+
+def _rotor_substep(
+    pos: F64, vel: F64, applied: F64, coefficients: tuple[F64, F64, F64, F64], fc: F64 | None
+) -> tuple[F64, F64]:
+    """The rotor through one substep under the shaft torque ``applied`` [N·m]: position [rad], velocity
+    [rad/s]. ``coefficients``: :func:`integration_coefficients`' e, f, g, hh; ``fc``: dry friction [N·m]
+    (None: none), which holds a rotor that the torque cannot move and stops one it would reverse."""
+    e_, f_, g_, hh_ = coefficients
+    if fc is None:
+        net = applied
+    else:
+        net, vel = _dry_friction(applied, vel, fc)
+    pos = pos + vel * g_ + net * hh_
+    v_new = vel * e_ + net * f_
+    if fc is not None:
+        v_new = np.where((fc > 0.0) & (v_new * vel < 0.0) & (np.abs(applied) <= fc), 0.0, v_new)
+    return pos, v_new
 
 
 def _dry_friction(applied: F64, vel: F64, fc: F64) -> tuple[F64, F64]:
