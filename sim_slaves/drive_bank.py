@@ -420,6 +420,8 @@ class DriveBank:
             self._calm.add((a, b))
 
     def _advance(self, a: int, b: int, dt: F64, n: I64, *, push: bool = True) -> None:
+        """Drives ``a..b-1`` (one substep count ``n``) through ``dt``: the lean path the run allows, or the
+        general one (targets by mode, the PP/PV generators, physics, statusword and actual values)."""
         sl = slice(a, b)
         kind = self._uniform.get((a, b))
         if kind is None:
@@ -433,37 +435,14 @@ class DriveBank:
         csp = mode == _CSP
         csv = mode == _CSV
         cst = mode == _CST
-        rpc = self.rpc[sl]
-        if self.any_delay:
-            tp, tv, tt = self._delayed(a, b, push=push)
-        else:
-            tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
-        prev_t = self.prev_target[sl]
-        use_p = oe & csp & self.has_tp[sl]
-        speed_limited, position_limited = self._limits(a, b)
-        if position_limited:
-            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
-        target = np.where(use_p, tp * rpc, prev_t)
-        target_v = np.where(oe & csv & self.has_tv[sl], tv * self.rpv[sl], 0.0)
-        if speed_limited:
-            vmax = self.vmax[sl]
-            target_v = np.clip(target_v, -vmax, vmax)
-        target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
         hm = oe & (mode == _HM)
-        if hm.any():
-            target_v = np.where(hm, self.home_v[sl], target_v)
+        (target, target_v, target_tau), speed_limited = self._targets(a, b, oe, csp, csv, cst, hm, push=push)
         pp = oe & (mode == _PP)
         pv = oe & (mode == _PV)
         prof = pp | pv
         profiled = (np.flatnonzero(prof) + a).tolist() if prof.any() else []
-        if profiled:  # the PP/PV trajectory generator runs per drive, through the drive's own code
-            for i in profiled:
-                self.drives[i].run_profile(
-                    int(self.controlword[i]),
-                    float(dt[i - a]),
-                    int(self.target_position[i]) if self.has_tp[i] else None,
-                    int(self.target_velocity[i]) if self.has_tv[i] else None,
-                )
+        if profiled:  # PP rides the position cascade on its generator's position, PV the velocity loop
+            self._run_profiles(profiled, a, dt)
             target = np.where(pp, self.prof_pos[sl], target)
             target_v = np.where(pv, self.prof_v[sl], target_v)
             csp, csv = csp | pp, csv | pv
@@ -477,6 +456,41 @@ class DriveBank:
         for i in profiled:
             self.prof_bits[i] = self.drives[i].profile_status()
             self.statusword[i] = (int(self.statusword[i]) & _NOT_FOLLOWS_REACHED) | int(self.prof_bits[i])
+
+    def _targets(
+        self, a: int, b: int, oe: B, csp: B, csv: B, cst: B, hm: B, *, push: bool
+    ) -> tuple[tuple[F64, F64, F64], bool]:
+        """This cycle's demands by mode, SI: position [rad] (CSP; else the previous target), velocity
+        [rad/s] (CSV; homing: the search speed), torque [N·m] (CST); from the targets ``delay`` cycles
+        old, held within the position limits and max speed. Also: whether any drive has a max speed."""
+        sl = slice(a, b)
+        if self.any_delay:
+            tp, tv, tt = self._delayed(a, b, push=push)
+        else:
+            tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
+        use_p = oe & csp & self.has_tp[sl]
+        speed_limited, position_limited = self._limits(a, b)
+        if position_limited:
+            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
+        target = np.where(use_p, tp * self.rpc[sl], self.prev_target[sl])
+        target_v = np.where(oe & csv & self.has_tv[sl], tv * self.rpv[sl], 0.0)
+        if speed_limited:
+            vmax = self.vmax[sl]
+            target_v = np.clip(target_v, -vmax, vmax)
+        target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
+        if hm.any():
+            target_v = np.where(hm, self.home_v[sl], target_v)
+        return (target, target_v, target_tau), speed_limited
+
+    def _run_profiles(self, profiled: list[int], a: int, dt: F64) -> None:
+        """One cycle of the PP/PV trajectory generator of each drive in ``profiled``, through the drive's code."""
+        for i in profiled:
+            self.drives[i].run_profile(
+                int(self.controlword[i]),
+                float(dt[i - a]),
+                int(self.target_position[i]) if self.has_tp[i] else None,
+                int(self.target_velocity[i]) if self.has_tv[i] else None,
+            )
 
     def _limits(self, a: int, b: int) -> tuple[bool, bool]:
         """Whether any drive of the run has a max motor speed, and software position limits (cached)."""
@@ -559,8 +573,14 @@ class DriveBank:
 
     def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
         """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
+        target, limited = self._csp_motion(a, b, dt, steps)
+        self._csp_outputs(slice(a, b), dt, target, limited)
+
+    def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
+        """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and
+        whether any drive hit its torque limit."""
         sl = slice(a, b)
-        rpc, cpr = self.rpc[sl], self.cpr[sl]
+        rpc = self.rpc[sl]
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
         speed_limited, position_limited = self._limits(a, b)
         if position_limited:
@@ -621,9 +641,14 @@ class DriveBank:
         self.tau[sl] = tau
         self.shaft[sl] = tau
         self.limit[sl] = limited and limit is not None and limit
-        # outputs
-        if noisy:
-            enc = np.floor(pos * epr + 0.5) + self.noise[sl]
+        return target, limited
+
+    def _csp_outputs(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
+        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives."""
+        cpr = self.cpr[sl]
+        pos, vel, tau = self.pos[sl], self.vel[sl], self.tau[sl]
+        if not self.ideal_encoder:
+            enc = np.floor(pos * self.epr[sl] + 0.5) + self.noise[sl]
             pos_counts = np.floor(enc * self.enc_to_counts[sl] + 0.5)
         else:
             pos_counts = np.floor(pos * cpr + 0.5)
