@@ -422,7 +422,18 @@ class Cia402Drive:
         self._fault_persistent = False
         self._fe_time_s = 0.0
         self._standstill = False
-        # homing: frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
+        self._power_on_homing()
+        self._power_on_profile()
+        self._tau_eff = 0.0  # the current loop's torque [N·m]
+        self._noise = 0  # this cycle's encoder noise [encoder counts]
+        # object dictionary binding
+        self._od: ObjectStore | None = None
+        self._has: dict[int, bool] = {}
+        self._load_config_defaults()
+
+    def _power_on_homing(self) -> None:
+        """Homing at power-on: idle, no frame shift, no search."""
+        # frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
         self._frame_rad = 0.0
         self._home_v = 0.0
         self.home_bits = 0
@@ -430,8 +441,12 @@ class Cia402Drive:
         self._home_method = 0
         self._home_prev_cw = 0
         self._home_found_from = 0.0  # physical position where the search began [rad]
-        # profile modes: the generator's position [rad] and velocity [rad/s] (the cascade's reference),
-        # its target [rad], a queued set-point, and the statusword bits 10/12 it reports
+        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
+
+    def _power_on_profile(self) -> None:
+        """The PP/PV trajectory generator at power-on: at the rotor, at rest, nothing queued."""
+        # the generator's position [rad] and velocity [rad/s] (the cascade's reference), its target
+        # [rad], a queued set-point, and the statusword bits 10/12 it reports
         self._prof_pos = self.position_rad
         self._prof_v = 0.0
         self.prof_bits = 0
@@ -443,13 +458,6 @@ class Cia402Drive:
         self._prof_halt = False
         self._prof_target_v = 0.0  # PV: the velocity the ramp goes to [rad/s]
         self._prof_prev_cw = 0
-        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
-        self._tau_eff = 0.0  # the current loop's torque [N·m]
-        self._noise = 0  # this cycle's encoder noise [encoder counts]
-        # object dictionary binding
-        self._od: ObjectStore | None = None
-        self._has: dict[int, bool] = {}
-        self._load_config_defaults()
 
     @property
     def od(self) -> ObjectStore | None:
