@@ -150,7 +150,7 @@ loop. (A step of 0.1 s, a stalled master, at a 4.8 rad/s search speed would othe
 the home point before it saw it.)"""
 
 # profile modes (CiA 402-2 "Profile position mode", modes of operation 1; "Profile velocity mode", 3)
-_PP, _PV = 1, 3
+_PV = 3  # profile velocity; the profile code takes any other mode it runs in for profile position (1)
 PROFILE_VELOCITY, PROFILE_ACCELERATION, PROFILE_DECELERATION = 0x6081, 0x6083, 0x6084
 VELOCITY_THRESHOLD = 0x606F  # PV: statusword bit 12 "speed = 0" while |velocity actual| <= it
 MOTION_PROFILE_TYPE = 0x6086  # PP/PV: 0 linear ramp (the one emulated)
@@ -309,7 +309,6 @@ _QSA = State402.QUICK_STOP_ACTIVE
 _FRA = State402.FAULT_REACTION_ACTIVE
 _FAULT = State402.FAULT
 _NOT_READY = State402.NOT_READY_TO_SWITCH_ON
-_CSP, _CSV, _CST = int(Mode.CSP), int(Mode.CSV), int(Mode.CST)
 _SW_TARGET_REACHED = int(StatusBit.TARGET_REACHED)
 _STEADY = frozenset({State402.SWITCH_ON_DISABLED, State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON, _OE})
 """States a constant controlword cannot leave by itself (no automatic transition)."""
