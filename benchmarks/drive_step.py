@@ -3,9 +3,10 @@
     python benchmarks/drive_step.py [--axes 64] [--small 4] [--large 128] [--rounds 10] [--batch-s 0.2]
 
 Contenders, each ``--axes`` enabled drives following a sine in CSP at 1 kHz:
-``scalar`` (one :class:`sim_slaves.drive402.Cia402Drive` per axis, each
-stepped through its object dictionary, as a chain without a bank does) and
-``bank`` (one :class:`sim_slaves.drive_bank.DriveBank` stepped as a whole).
+``scalar`` (one :class:`sim_slaves.drive402.Cia402Drive` built alone per
+axis, each stepped through its object dictionary: a drive alone is a bank of
+one, so this is the bank's code paid once per drive) and ``bank`` (one
+:class:`sim_slaves.drive_bank.DriveBank` stepped as a whole).
 Interleaved rounds (benchmarks/_common.py); reported: µs per 1 kHz cycle for
 all axes, per axis, and the share of the 1 ms cycle, with the ratio
 scalar/bank within each round. Then the bank's cost against its size: a bank

@@ -39,23 +39,28 @@ torque (0x6076, mN·m). Limits: 0x6072 max torque, 0x6080 max motor speed [rpm]
 limits [counts] (the CSP target is held within them). :mod:`sim_slaves.drive_config`
 derives all of it from a drive map's scaling and a network file's ``emulator:`` options.
 
-Deterministic and pure: no randomness, no clock (``dt_s`` is a parameter).
+The physics is computed by :class:`sim_slaves.drive_bank.DriveBank`: a drive's
+numeric state lives in one slot of a bank's arrays (:data:`FLOAT_SLOTS` ...),
+and a drive built alone is the one drive of a bank of its own, so a drive
+alone and a drive of an emulator's bank run the same code. This module holds
+the drive's event logic: the state machine, mode switches, homing, the PP/PV
+trajectory generator, configuration from the OD, fault injection.
+
+Deterministic: no clock (``dt_s`` is a parameter); encoder noise from a seeded generator.
 """
 
 from __future__ import annotations
 
 import math
-import random
-from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 from fractions import Fraction
-from typing import Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from fieldbus.core.cia402 import (
     COMMAND_BY_NIBBLE,
     FAULT_RESET_BIT,
-    STATUSWORD_STATE_BITS,
     TRANSITION_INDEX,
     Mode,
     State402,
@@ -65,6 +70,9 @@ from fieldbus.core.cia402 import (
 )
 from fieldbus.errors import FieldbusError
 from sim_slaves.profile402 import position_step, stopping_distance, velocity_step
+
+if TYPE_CHECKING:
+    from sim_slaves.drive_bank import DriveBank
 
 TWO_PI = 2.0 * math.pi
 
@@ -142,7 +150,7 @@ loop. (A step of 0.1 s, a stalled master, at a 4.8 rad/s search speed would othe
 the home point before it saw it.)"""
 
 # profile modes (CiA 402-2 "Profile position mode", modes of operation 1; "Profile velocity mode", 3)
-_PP, _PV = 1, 3
+_PV = 3  # profile velocity; the profile code takes any other mode it runs in for profile position (1)
 PROFILE_VELOCITY, PROFILE_ACCELERATION, PROFILE_DECELERATION = 0x6081, 0x6083, 0x6084
 VELOCITY_THRESHOLD = 0x606F  # PV: statusword bit 12 "speed = 0" while |velocity actual| <= it
 MOTION_PROFILE_TYPE = 0x6086  # PP/PV: 0 linear ramp (the one emulated)
@@ -301,52 +309,54 @@ _QSA = State402.QUICK_STOP_ACTIVE
 _FRA = State402.FAULT_REACTION_ACTIVE
 _FAULT = State402.FAULT
 _NOT_READY = State402.NOT_READY_TO_SWITCH_ON
-_CSP, _CSV, _CST = int(Mode.CSP), int(Mode.CSV), int(Mode.CST)
-# plain ints for the per-cycle path (enum attribute access costs ~100 ns each)
-_X_ERROR_CODE = int(Obj.ERROR_CODE)
-_X_CONTROLWORD = int(Obj.CONTROLWORD)
-_X_STATUSWORD = int(Obj.STATUSWORD)
-_X_MODES = int(Obj.MODES_OF_OPERATION)
-_X_MODES_DISPLAY = int(Obj.MODES_DISPLAY)
-_X_POSITION_ACTUAL = int(Obj.POSITION_ACTUAL)
-_X_VELOCITY_ACTUAL = int(Obj.VELOCITY_ACTUAL)
-_X_TORQUE_ACTUAL = int(Obj.TORQUE_ACTUAL)
-_X_TARGET_POSITION = int(Obj.TARGET_POSITION)
-_X_TARGET_VELOCITY = int(Obj.TARGET_VELOCITY)
-_X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
-_X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
-_SW_STATE = {s: int(v) for s, v in STATUSWORD_STATE_BITS.items()}
-_SW_REMOTE = int(StatusBit.REMOTE)
-_SW_VOLTAGE = int(StatusBit.VOLTAGE_ENABLED)
-_SW_FOLLOWS = int(StatusBit.FOLLOWS_TARGET)
-_SW_FOLLOWING_ERROR = int(StatusBit.FOLLOWING_ERROR)
 _SW_TARGET_REACHED = int(StatusBit.TARGET_REACHED)
-_SW_LIMIT = int(StatusBit.INTERNAL_LIMIT_ACTIVE)
-_SW_WARNING = int(StatusBit.WARNING)
+_STEADY = frozenset({State402.SWITCH_ON_DISABLED, State402.READY_TO_SWITCH_ON, State402.SWITCHED_ON, _OE})
+"""States a constant controlword cannot leave by itself (no automatic transition)."""
 
-_OPTIONAL_INPUTS = (Obj.MODES_OF_OPERATION, Obj.TARGET_POSITION, Obj.TARGET_VELOCITY, Obj.TARGET_TORQUE)
-_OPTIONAL_OUTPUTS = (
-    Obj.MODES_DISPLAY,
-    Obj.POSITION_ACTUAL,
-    Obj.VELOCITY_ACTUAL,
-    Obj.TORQUE_ACTUAL,
-    Obj.FOLLOWING_ERROR_ACTUAL,
-    Obj.ERROR_CODE,
-)
-
-
-def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
-    """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
-
-    Under a torque held over the substep: velocity' = e x velocity + f x
-    torque, position' = position + g x velocity + hh x torque. Returns
-    (e, f, g, hh).
-    """
-    if b > 0.0:
-        e = math.exp(-b * h / j)  # velocity decay over h
-        g = (1.0 - e) * j / b  # position per unit initial velocity
-        return e, (1.0 - e) / b, g, (h - g) / b  # f: velocity, hh: position per unit torque
-    return 1.0, h / j, h, h * h / (2.0 * j)
+# Where a drive's numeric state lives: attribute -> array of its bank (the drive's value is the element at
+# its slot). The bank's physics reads and writes these arrays; the drive's event logic the attributes.
+FLOAT_SLOTS = {
+    "position_rad": "pos",
+    "velocity_rad_s": "vel",
+    "torque_demand_nm": "tau",
+    "shaft_torque_nm": "shaft",
+    "load_torque_nm": "load",
+    "temperature_c": "temp",
+    "_integral": "integ",
+    "_prev_target_rad": "prev_target",
+    "_prev_vff": "prev_vff",
+    "_ramp_v": "ramp_v",
+    "_fe_time_s": "fe_time",
+    "_tau_eff": "tau_eff",
+    "fe_timeout_s": "fe_timeout",
+    "max_torque_nm": "tmax",
+    "qs_decel": "qs_decel",
+    "rated_torque_nm": "rated",
+    "max_speed_rad_s": "vmax",
+    "position_limit_min": "pmin",
+    "position_limit_max": "pmax",
+    "_frame_rad": "frame",
+    "_home_v": "home_v",
+    "_prof_pos": "prof_pos",
+    "_prof_v": "prof_v",
+}
+INT_SLOTS = {
+    "error_code": "error_code",
+    "mode_display": "mode_display",
+    "following_error_counts": "following_error",
+    "_fault_pending": "fault_pending",
+    "_prev_cw": "prev_cw",
+    "fe_window": "fe_window",
+    "position_window": "position_window",
+    "velocity_window": "velocity_window",
+    "qs_option": "qs_option",
+    "fr_option": "fr_option",
+    "_noise": "noise",
+    "home_bits": "home_bits",
+    "_home_phase": "home_phase",
+    "prof_bits": "prof_bits",
+}
+BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
 
 
 class Cia402Drive:
@@ -360,8 +370,21 @@ class Cia402Drive:
     :attr:`output_position_rad` is the driven shaft's angle (after the gear).
     """
 
-    def __init__(self, params: DriveParams | None = None, *, position_counts: int = 0) -> None:
+    def __init__(
+        self,
+        params: DriveParams | None = None,
+        *,
+        position_counts: int = 0,
+        bank: DriveBank | None = None,
+        slot: int = 0,
+    ) -> None:
         p = params or DriveParams()
+        if bank is None:
+            from sim_slaves.drive_bank import DriveBank  # (a cycle of imports: the bank builds drives)
+
+            bank = DriveBank([p], seed=p.noise_seed, drives=[self])
+        self.bank = bank
+        self.slot = slot
         self.params = p
         self.state = _NOT_READY
         self.last_transition: int = 0  # transition 0: power on
@@ -398,7 +421,18 @@ class Cia402Drive:
         self._fault_persistent = False
         self._fe_time_s = 0.0
         self._standstill = False
-        # homing: frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
+        self._power_on_homing()
+        self._power_on_profile()
+        self._tau_eff = 0.0  # the current loop's torque [N·m]
+        self._noise = 0  # this cycle's encoder noise [encoder counts]
+        # object dictionary binding
+        self._od: ObjectStore | None = None
+        self._has: dict[int, bool] = {}
+        self._load_config_defaults()
+
+    def _power_on_homing(self) -> None:
+        """Homing at power-on: idle, no frame shift, no search."""
+        # frame shift (reported - physical position) [rad], speed demand [rad/s], statusword bits
         self._frame_rad = 0.0
         self._home_v = 0.0
         self.home_bits = 0
@@ -406,8 +440,12 @@ class Cia402Drive:
         self._home_method = 0
         self._home_prev_cw = 0
         self._home_found_from = 0.0  # physical position where the search began [rad]
-        # profile modes: the generator's position [rad] and velocity [rad/s] (the cascade's reference),
-        # its target [rad], a queued set-point, and the statusword bits 10/12 it reports
+        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
+
+    def _power_on_profile(self) -> None:
+        """The PP/PV trajectory generator at power-on: at the rotor, at rest, nothing queued."""
+        # the generator's position [rad] and velocity [rad/s] (the cascade's reference), its target
+        # [rad], a queued set-point, and the statusword bits 10/12 it reports
         self._prof_pos = self.position_rad
         self._prof_v = 0.0
         self.prof_bits = 0
@@ -419,28 +457,20 @@ class Cia402Drive:
         self._prof_halt = False
         self._prof_target_v = 0.0  # PV: the velocity the ramp goes to [rad/s]
         self._prof_prev_cw = 0
-        self._home_on_switch = False  # 17/18: the search began on the limit switch (it moves off it)
-        # integration coefficients, cached per substep length
-        self._h = -1.0
-        self._e = self._f = self._g = self._hh = 0.0
-        # imperfections: delay line of raw targets (position, velocity, torque), lagging torque, encoder
-        d = p.command_delay_cycles
-        self._history: deque[tuple[int, int, int]] | None = deque([(0, 0, 0)] * (d + 1), d + 1) if d else None
-        self._tau_eff = 0.0
-        self.enc_per_rad = p.encoder_cpr / TWO_PI
-        self.rad_per_enc = TWO_PI / p.encoder_cpr
-        self._ideal_encoder = p.encoder_cpr == p.counts_per_rev and p.encoder_noise_counts == 0.0
-        self._rng = random.Random(p.noise_seed)
-        self._noise = 0
-        # object dictionary binding
-        self._od: ObjectStore | None = None
-        self._has: dict[int, bool] = {}
-        self._load_config_defaults()
+
+    @property
+    def od(self) -> ObjectStore | None:
+        """The object dictionary the drive is bound to (None: not yet; the first step binds it)."""
+        return self._od
 
     @property
     def output_position_rad(self) -> float:
         """Angle of the driven shaft [rad]: the motor's divided by the gear ratio (0x6091)."""
         return self.position_rad / self.params.gear_ratio
+
+    def place(self, position_rad: float) -> None:
+        """Put the rotor at ``position_rad`` [rad] (an emulator adopting a drive); the loops start there."""
+        self.position_rad = self._prev_target_rad = position_rad
 
     # -- fault injection (tests) --
 
@@ -451,7 +481,10 @@ class Cia402Drive:
         OD is read again on the next step.
         """
         position_counts = round(self.position_rad * self.counts_per_rad)
-        self.__init__(self.params, position_counts=position_counts)  # type: ignore[misc]
+        self.bank.reset_slot(self.slot)
+        self.__init__(  # type: ignore[misc]
+            self.params, position_counts=position_counts, bank=self.bank, slot=self.slot
+        )
 
     def connection_lost(self) -> None:
         """The fieldbus left its operational state (EtherCAT OP, CANopen OPERATIONAL) while powered.
@@ -469,6 +502,7 @@ class Cia402Drive:
             raise ValueError(f"error code must be 1..0xFFFF, got {code:#x}")
         self._fault_pending = code
         self._fault_persistent = persistent
+        self.bank.changed()
 
     def clear_fault_cause(self) -> None:
         """Remove the cause of a persistent fault: a fault reset will now succeed."""
@@ -491,6 +525,7 @@ class Cia402Drive:
         self._has = {int(o): self._probe(od, o) for o in Obj}
         self._od = od
         self._read_config(od)
+        self.bank.bound(self.slot, self._has)
 
     def _load_config_defaults(self) -> None:
         p = self.params
@@ -547,79 +582,30 @@ class Cia402Drive:
     # -- the cycle --
 
     def step(self, od: ObjectStore, dt_s: float) -> None:
-        """Advance one cycle of ``dt_s`` seconds: read the master's outputs from ``od``, write its inputs."""
-        if od is not self._od:
-            self.bind(od)
-        if dt_s <= 0.0:
-            raise ValueError(f"dt_s must be > 0, got {dt_s}")
-        has = self._has
-        get = od.get_value
-        cw = int(get(_X_CONTROLWORD, 0))
-        mode_req = int(get(_X_MODES, 0)) if has[_X_MODES] else self.mode_display
+        """Advance one cycle of ``dt_s`` seconds: read the master's outputs from ``od``, write its inputs.
 
-        self._state_machine(cw)
-        self._modes(mode_req)
-        if self.mode_display == _HM or self._home_phase:
-            self._homing(cw)
+        The drive's bank computes the cycle, for this drive alone.
+        """
+        bank, i = self.bank, self.slot
+        bank.load_inputs(i, od)
+        bank.step(i, i + 1, dt_s)
+        bank.store_outputs(i, od)
 
-        mode = self.mode_display
-        state = self.state
-        profile = state is _OE and mode in (_PP, _PV)
-        if profile:
-            self._profile(
-                cw,
-                dt_s,
-                int(get(_X_TARGET_POSITION, 0)) if has[_X_TARGET_POSITION] else None,
-                int(get(_X_TARGET_VELOCITY, 0)) if has[_X_TARGET_VELOCITY] else None,
-            )
-        target_rad = self._prev_target_rad
-        target_v = 0.0
-        target_tau = 0.0
-        history = self._history
-        if history is not None:
-            history.append(
-                (
-                    int(get(_X_TARGET_POSITION, 0)) if has[_X_TARGET_POSITION] else 0,
-                    int(get(_X_TARGET_VELOCITY, 0)) if has[_X_TARGET_VELOCITY] else 0,
-                    int(get(_X_TARGET_TORQUE, 0)) if has[_X_TARGET_TORQUE] else 0,
-                )
-            )
-            tp, tv, tt = history[0]  # what the master sent command_delay_cycles steps ago
-            if state is _OE:
-                if mode == _CSP and has[_X_TARGET_POSITION]:
-                    target_rad = self._limit_position(tp) * self.rad_per_count
-                elif mode == _CSV and has[_X_TARGET_VELOCITY]:
-                    target_v = self._limit_speed(tv * self.rad_s_per_velocity)
-                elif mode == _CST and has[_X_TARGET_TORQUE]:
-                    target_tau = tt * self.rated_torque_nm / 1000.0
-        elif state is _OE:
-            if mode == _CSP and has[_X_TARGET_POSITION]:
-                target_rad = self._limit_position(float(get(_X_TARGET_POSITION, 0))) * self.rad_per_count
-            elif mode == _CSV and has[_X_TARGET_VELOCITY]:
-                target_v = self._limit_speed(float(get(_X_TARGET_VELOCITY, 0)) * self.rad_s_per_velocity)
-            elif mode == _CST and has[_X_TARGET_TORQUE]:
-                target_tau = float(get(_X_TARGET_TORQUE, 0)) * self.rated_torque_nm / 1000.0
-        if state is _OE and mode == _HM:
-            target_v = self._home_v
-        if profile:  # PP runs the position cascade on the generator's position, PV the velocity loop
-            if mode == _PP:
-                mode, target_rad = _CSP, self._prof_pos
-            else:
-                mode, target_v = _CSV, self._prof_v
-        if not self._ideal_encoder and self.params.encoder_noise_counts:
-            self._noise = round(self._rng.gauss(0.0, self.params.encoder_noise_counts))
-        if state is _OE and mode == _HM and self._home_phase == 1 and dt_s > HOMING_CHECK_S:
-            # searching through a long step: in slices, the home point looked for between them
-            k = math.ceil(dt_s / HOMING_CHECK_S)
-            for j in range(k):
-                if j and self._home_phase == 1:
-                    self._home_search()
-                self._physics(dt_s / k, state, mode, target_rad, self._home_v, target_tau)
-            target_v = self._home_v
-        else:
-            self._physics(dt_s, state, mode, target_rad, target_v, target_tau)
-        self._outputs(od, dt_s, state, mode, target_rad, target_v)
-        self._prev_cw = cw
+    def command(self, controlword: int, mode_request: int) -> bool:
+        """This cycle's event logic: a pending fault, the state machine table, a mode switch, homing.
+
+        ``controlword`` (0x6040) and ``mode_request`` (0x6060) are the master's outputs. Returns whether
+        the drive is settled: in a state a constant controlword cannot leave, no transition pending or
+        taken this cycle, not homing (its bank then skips it while the controlword and mode hold).
+        """
+        homing = self.mode_display == _HM or self._home_phase != 0
+        taken = self.transitions_taken
+        self._state_machine(controlword)
+        self._modes(mode_request)
+        if homing or self.mode_display == _HM or self._home_phase:
+            self._homing(controlword)
+            return False
+        return self.state in _STEADY and self._pending is None and self.transitions_taken == taken
 
     def _limit_position(self, counts: float) -> float:
         """A target position held within the software position limits (0x607D) [counts]."""
@@ -774,7 +760,7 @@ class Cia402Drive:
             self.home_bits = _SW_TARGET_REACHED
             return
         if self._home_phase == 1:
-            self._home_search()
+            self.look_for_home()
         elif (
             self._home_phase == 2
             and abs(self.velocity_rad_s) * self.velocity_per_rad_s <= self.velocity_window
@@ -793,7 +779,9 @@ class Cia402Drive:
         d = self._home_param(PROFILE_DECELERATION, 0, p.profile_deceleration) or p.profile_deceleration
         return min(v * k, self.max_speed_rad_s), a * k, d * k
 
-    def _profile(self, cw: int, dt_s: float, target_counts: int | None, target_velocity: int | None) -> None:
+    def run_profile(
+        self, cw: int, dt_s: float, target_counts: int | None, target_velocity: int | None
+    ) -> None:
         """One cycle of the PP/PV trajectory generator (the drive OPERATION ENABLED in mode 1 or 3).
 
         PP: a rising edge of controlword bit 4 takes the target 0x607A (bit 6: relative to the previous
@@ -878,7 +866,7 @@ class Cia402Drive:
             return  # queue full: not acknowledged
         self._prof_ack = True
 
-    def _profile_status(self) -> int:
+    def profile_status(self) -> int:
         """Statusword bits 10 and 12 of PP/PV after this cycle's motion.
 
         PP: 10 target reached (the generator at the target and |target - actual| within 0x6067, or
@@ -907,7 +895,7 @@ class Cia402Drive:
             bits |= _SW_TARGET_REACHED
         return bits
 
-    def _home_search(self) -> None:
+    def look_for_home(self) -> None:
         """Searching: the home switch or index pulse passed since the last look? Then it is the home point."""
         phys = self.position_rad - self._frame_rad
         m = self._home_method
@@ -939,210 +927,6 @@ class Cia402Drive:
         self._home_v = 0.0
         self.home_bits = _SW_HOMING_ATTAINED
         self._home_phase = 2
-
-    # -- physics --
-
-    def _coefficients(self, h: float) -> None:
-        p = self.params
-        self._h = h
-        self._e, self._f, self._g, self._hh = integration_coefficients(
-            p.inertia_kg_m2, p.friction_nm_s_per_rad, h
-        )
-
-    def _physics(
-        self, dt_s: float, state: State402, mode: int, target_rad: float, target_v: float, target_tau: float
-    ) -> None:
-        p = self.params
-        n = max(1, round(dt_s * p.control_rate_hz))
-        h = dt_s / n
-        if h != self._h:
-            self._coefficients(h)
-        e_, f_, g_, hh_ = self._e, self._f, self._g, self._hh
-        j = p.inertia_kg_m2
-        wv = TWO_PI * p.velocity_bandwidth_hz
-        kv = j * wv
-        ki = kv * wv * 0.25
-        kp = p.position_gain_per_s
-        tmax = self.max_torque_nm
-        epr, rpe, noise = self.enc_per_rad, self.rad_per_enc, self._noise
-        fc = p.coulomb_friction_nm
-        alpha = 1.0
-        if p.current_loop_bandwidth_hz > 0.0:
-            alpha = 1.0 - math.exp(-TWO_PI * p.current_loop_bandwidth_hz * h)
-        te = self._tau_eff
-        kt_ratio = 1.0
-        if p.thermal:
-            kt_ratio = max(0.0, 1.0 + p.kt_temp_coeff_per_k * (self.temperature_c - p.ambient_c))
-        load = self.load_torque_nm
-        pos, vel, integ = self.position_rad, self.velocity_rad_s, self._integral
-        limit = False
-        tau = 0.0
-        tau_sq = 0.0
-        powered = state in _POWERED
-        ramp = powered and state is not _OE
-        if (state is _QSA and self.qs_option == 0) or (state is _FRA and self.fr_option == 0):
-            powered = ramp = False  # option 0: disable the drive function, the motor coasts
-        prev_t = self._prev_target_rad
-        vff = 0.0
-        aff = 0.0
-        if powered and not ramp and mode == _CSP:
-            vff = (target_rad - prev_t) / dt_s
-            aff = (vff - self._prev_vff) / dt_s
-            self._prev_vff = vff
-            vff *= p.velocity_feedforward
-            aff *= p.torque_feedforward * j
-        ramp_v = self._ramp_v
-        dv = self.qs_decel * h
-        vmax = self.max_speed_rad_s
-        for k in range(1, n + 1):
-            if not powered:
-                tau = 0.0
-            else:
-                if ramp:  # quick stop / fault reaction: ramp the speed to zero, then hold
-                    if ramp_v > dv:
-                        ramp_v -= dv
-                    elif ramp_v < -dv:
-                        ramp_v += dv
-                    else:
-                        ramp_v = 0.0
-                    v_ref = ramp_v
-                    ff = 0.0
-                elif mode == _CSP:
-                    ref = prev_t + (target_rad - prev_t) * (k / n)
-                    v_ref = vff + kp * (ref - (math.floor(pos * epr + 0.5) + noise) * rpe)
-                    if v_ref > vmax:
-                        v_ref = vmax
-                    elif v_ref < -vmax:
-                        v_ref = -vmax
-                    ff = aff
-                elif mode in (_CSV, _HM):
-                    v_ref = target_v
-                    ff = 0.0
-                else:
-                    v_ref = 0.0
-                    ff = 0.0
-                if mode == _CST and not ramp:
-                    tau = target_tau
-                elif mode in (_CSP, _CSV, _HM) or ramp:
-                    ev = v_ref - vel
-                    integ += ki * ev * h
-                    if integ > tmax:
-                        integ = tmax
-                    elif integ < -tmax:
-                        integ = -tmax
-                    tau = kv * ev + integ + ff
-                else:
-                    tau = 0.0
-                if tau > tmax:
-                    tau, limit = tmax, True
-                elif tau < -tmax:
-                    tau, limit = -tmax, True
-            te = tau if alpha == 1.0 else te + (tau - te) * alpha  # current loop
-            applied = te * kt_ratio - load
-            net = applied
-            if fc > 0.0:
-                if vel > STICTION_RAD_S:
-                    net = applied - fc
-                elif vel < -STICTION_RAD_S:
-                    net = applied + fc
-                elif abs(applied) > fc:
-                    net = applied - math.copysign(fc, applied)
-                else:
-                    net = vel = 0.0  # stuck
-            pos += vel * g_ + net * hh_
-            v_new = vel * e_ + net * f_
-            if fc > 0.0 and v_new * vel < 0.0 and abs(applied) <= fc:
-                v_new = 0.0  # friction stops the rotor; it does not reverse it
-            vel = v_new
-            tau_sq += te * te
-        if ramp and ramp_v == 0.0 and abs(vel) < p.standstill_rad_s:
-            self._standstill = True
-        self.position_rad, self.velocity_rad_s, self._integral = pos, vel, integ
-        self._ramp_v = ramp_v
-        self._prev_target_rad = target_rad if state is _OE and mode == _CSP else pos
-        self._tau_eff = te
-        self.torque_demand_nm = te
-        self.shaft_torque_nm = te * kt_ratio
-        self.limit_active = limit
-        if p.thermal:
-            self._thermal(dt_s, tau_sq / n)
-
-    def _thermal(self, dt_s: float, tau_sq_mean: float) -> None:
-        p = self.params
-        t = self.temperature_c
-        r = p.resistance_ohm * (1.0 + p.resistance_temp_coeff_per_k * (t - p.ambient_c))
-        i_sq = tau_sq_mean / (p.torque_constant_nm_per_a * p.torque_constant_nm_per_a)
-        t_ss = p.ambient_c + i_sq * r * p.thermal_resistance_k_per_w
-        tau_th = p.thermal_resistance_k_per_w * p.thermal_capacitance_j_per_k
-        self.temperature_c = t_ss + (t - t_ss) * math.exp(-dt_s / tau_th)
-        hot = self.temperature_c > p.fault_temperature_c
-        if hot and not self._fault_pending and self.state is not _FRA and self.state is not _FAULT:
-            self._fault_pending = ERROR_OVERTEMPERATURE
-
-    # -- outputs (master inputs) --
-
-    def _outputs(
-        self, od: ObjectStore, dt_s: float, state: State402, mode: int, target_rad: float, target_v: float
-    ) -> None:
-        p = self.params
-        has = self._has
-        put = od.set_value
-        cpr = self.counts_per_rad
-        if self._ideal_encoder:
-            pos_counts = math.floor(self.position_rad * cpr + 0.5)
-        else:
-            enc = math.floor(self.position_rad * self.enc_per_rad + 0.5) + self._noise
-            pos_counts = math.floor(enc * p.counts_per_rev / p.encoder_cpr + 0.5)
-        vpr = self.velocity_per_rad_s
-        sw = _SW_STATE[state] | _SW_REMOTE
-        if state is not _NOT_READY:
-            sw |= _SW_VOLTAGE
-        fe = 0
-        if state is _OE:
-            if mode in (_CSP, _CSV, _CST):
-                sw |= _SW_FOLLOWS
-            if mode == _CSP:
-                fe = math.floor(target_rad * cpr + 0.5) - pos_counts
-                window = self.fe_window
-                if window != FOLLOWING_ERROR_OFF and abs(fe) > window:
-                    sw |= _SW_FOLLOWING_ERROR
-                    self._fe_time_s += dt_s
-                    if self._fe_time_s > self.fe_timeout_s + 1e-12 and not self._fault_pending:
-                        self._fault_pending = ERROR_FOLLOWING  # fault reaction starts next step
-                else:
-                    self._fe_time_s = 0.0
-                if abs(fe) <= self.position_window:
-                    sw |= _SW_TARGET_REACHED
-            elif mode == _CSV:
-                if abs(self.velocity_rad_s - target_v) * vpr <= self.velocity_window:
-                    sw |= _SW_TARGET_REACHED
-            elif mode == _CST:
-                sw |= _SW_TARGET_REACHED
-            elif mode == _HM:
-                sw |= self.home_bits
-        elif state is _QSA and self._standstill:
-            sw |= _SW_TARGET_REACHED
-        if self.limit_active:
-            sw |= _SW_LIMIT
-        if p.thermal and self.temperature_c > p.warning_temperature_c:
-            sw |= _SW_WARNING
-        if state is _OE and (self.mode_display == _PP or self.mode_display == _PV):
-            self.prof_bits = self._profile_status()
-            sw = (sw & ~(_SW_FOLLOWS | _SW_TARGET_REACHED)) | self.prof_bits
-        self.following_error_counts = fe
-        put(_X_STATUSWORD, 0, sw)
-        if has[_X_MODES_DISPLAY]:
-            put(_X_MODES_DISPLAY, 0, self.mode_display)
-        if has[_X_POSITION_ACTUAL]:
-            put(_X_POSITION_ACTUAL, 0, pos_counts)
-        if has[_X_VELOCITY_ACTUAL]:
-            put(_X_VELOCITY_ACTUAL, 0, math.floor(self.velocity_rad_s * vpr + 0.5))
-        if has[_X_TORQUE_ACTUAL]:
-            put(_X_TORQUE_ACTUAL, 0, math.floor(self.torque_demand_nm * 1000.0 / self.rated_torque_nm + 0.5))
-        if has[_X_FOLLOWING_ERROR]:
-            put(_X_FOLLOWING_ERROR, 0, fe)
-        if has[_X_ERROR_CODE]:
-            put(_X_ERROR_CODE, 0, self.error_code)
 
 
 def default_objects(params: DriveParams | None = None) -> dict[tuple[int, int], int | float]:
@@ -1208,3 +992,30 @@ class DictObjectStore:
 
     def set_value(self, index: int, sub: int, value: int | float) -> None:
         self.values[(index, sub)] = value
+
+
+def _slot(array: str, cast: Callable[[Any], Any]) -> property:
+    """A drive attribute that is element ``slot`` of its bank's ``array``."""
+
+    def get(self: Cia402Drive) -> Any:
+        return cast(getattr(self.bank, array)[self.slot])
+
+    def put(self: Cia402Drive, value: Any) -> None:
+        getattr(self.bank, array)[self.slot] = value
+
+    return property(get, put)
+
+
+def _state_get(self: Cia402Drive) -> State402:
+    return _STATES[int(self.bank.state[self.slot])]
+
+
+def _state_put(self: Cia402Drive, value: State402) -> None:
+    self.bank.state[self.slot] = int(value)
+
+
+_STATES = tuple(State402)
+Cia402Drive.state = property(_state_get, _state_put)  # type: ignore[assignment]
+for _slots, _cast in ((FLOAT_SLOTS, float), (INT_SLOTS, int), (BOOL_SLOTS, bool)):
+    for _name, _array in _slots.items():
+        setattr(Cia402Drive, _name, _slot(_array, _cast))

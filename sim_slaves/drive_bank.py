@@ -7,16 +7,23 @@ following-error and over-temperature faults, thermal model, command delay,
 current-loop lag, encoder resolution and noise, dry friction. The cost per
 call is a fixed number of numpy operations, nearly flat in N.
 
-Each drive is also a :class:`BankDrive`, a :class:`~sim_slaves.drive402.Cia402Drive`
-whose state lives in the bank's arrays (properties), so everything the
-scalar drive offers (fault injection, ``state``, ``position_rad``, ``step``
-through an object dictionary) works on it unchanged. The state machine is
-event driven: it runs, per drive, through the scalar drive's own table code
-only for drives that need it this cycle (a new controlword, a pending
-transition, a pending fault, a mode change, or a state left on its own:
-NOT READY, QUICK STOP, FAULT REACTION, FAULT); in steady operation no drive
-does. Semantics match :class:`~sim_slaves.drive402.Cia402Drive` step for step
-(``tests/unit/test_drive_bank.py`` compares both).
+This is the one CiA 402 drive model: each drive, a
+:class:`~sim_slaves.drive402.Cia402Drive`, keeps its numeric state in the
+bank's arrays (its attributes are elements of them: ``drive402.FLOAT_SLOTS``
+...), and a drive built alone is the one drive of a bank of its own. The drive
+holds the event logic (state machine table, mode switch, homing, the PP/PV
+trajectory generator, fault injection, configuration from the OD); the bank
+calls it, through the drive's public methods, only for drives that need it
+this cycle (a new controlword, a pending transition, a pending fault, a mode
+change, or a state left on its own: NOT READY, QUICK STOP, FAULT REACTION,
+FAULT; homing and profile drives every cycle); in steady operation no drive
+does. The physics is the bank's alone.
+
+Physics: as :mod:`sim_slaves.drive402` describes it. Three
+paths compute it: :meth:`DriveBank._csp` (every drive of the run enabled in
+plain CSP), :meth:`DriveBank._idle` (none powered), and the general
+:meth:`DriveBank._physics` (power stage, feed-forward, then the substep
+cascade); the first two are the general one with the terms that are zero left out.
 
 Inputs (the master's outputs) go into :attr:`DriveBank.controlword`,
 ``mode_request``, ``target_position``, ``target_velocity``, ``target_torque``
@@ -30,21 +37,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.core.cia402 import State402
+from fieldbus.core.cia402 import STATUSWORD_STATE_BITS, State402, StatusBit
 from sim_slaves.drive402 import (
-    _SW_FOLLOWING_ERROR,
-    _SW_FOLLOWS,
-    _SW_LIMIT,
-    _SW_REMOTE,
-    _SW_STATE,
-    _SW_TARGET_REACHED,
-    _SW_VOLTAGE,
-    _SW_WARNING,
     ERROR_FOLLOWING,
     ERROR_OVERTEMPERATURE,
     FOLLOWING_ERROR_OFF,
@@ -52,9 +50,10 @@ from sim_slaves.drive402 import (
     STICTION_RAD_S,
     TWO_PI,
     Cia402Drive,
+    DictObjectStore,
     DriveParams,
+    Obj,
     ObjectStore,
-    integration_coefficients,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -64,116 +63,45 @@ B = npt.NDArray[np.bool_]
 _STATES = tuple(State402)
 _NR, _SOD, _RTSO, _SO, _OE, _QSA, _FRA, _FAULT = (int(s) for s in _STATES)
 _PP, _PV, _HM, _CSP, _CSV, _CST = 1, 3, 6, 8, 9, 10
+# statusword bits (plain ints: the cycle's arithmetic)
+_SW_REMOTE = int(StatusBit.REMOTE)
+_SW_VOLTAGE = int(StatusBit.VOLTAGE_ENABLED)
+_SW_FOLLOWS = int(StatusBit.FOLLOWS_TARGET)
+_SW_FOLLOWING_ERROR = int(StatusBit.FOLLOWING_ERROR)
+_SW_TARGET_REACHED = int(StatusBit.TARGET_REACHED)
+_SW_LIMIT = int(StatusBit.INTERNAL_LIMIT_ACTIVE)
+_SW_WARNING = int(StatusBit.WARNING)
 _NOT_FOLLOWS_REACHED = ~(_SW_FOLLOWS | _SW_TARGET_REACHED)
-_SW_BY_STATE = np.array([_SW_STATE[s] for s in _STATES], dtype=np.int64)
-#: states a constant controlword cannot leave once the table said "stay" (no automatic transition)
+_SW_BY_STATE = np.array([int(STATUSWORD_STATE_BITS[s]) for s in _STATES], dtype=np.int64)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
 _SW_CSP_REACHED = _SW_CSP | _SW_TARGET_REACHED
-_STEADY = np.zeros(len(_STATES), dtype=np.bool_)
-_STEADY[[_SOD, _RTSO, _SO, _OE]] = True
-
-# drive attribute -> bank array (the drive's state is the array element)
-_FLOAT_SLOTS = {
-    "position_rad": "pos",
-    "velocity_rad_s": "vel",
-    "torque_demand_nm": "tau",
-    "shaft_torque_nm": "shaft",
-    "load_torque_nm": "load",
-    "temperature_c": "temp",
-    "_integral": "integ",
-    "_prev_target_rad": "prev_target",
-    "_prev_vff": "prev_vff",
-    "_ramp_v": "ramp_v",
-    "_fe_time_s": "fe_time",
-    "_tau_eff": "tau_eff",
-    "fe_timeout_s": "fe_timeout",
-    "max_torque_nm": "tmax",
-    "qs_decel": "qs_decel",
-    "rated_torque_nm": "rated",
-    "max_speed_rad_s": "vmax",
-    "position_limit_min": "pmin",
-    "position_limit_max": "pmax",
-    "_frame_rad": "frame",
-    "_home_v": "home_v",
-    "_prof_pos": "prof_pos",
-    "_prof_v": "prof_v",
-}
-_INT_SLOTS = {
-    "error_code": "error_code",
-    "mode_display": "mode_display",
-    "following_error_counts": "following_error",
-    "_fault_pending": "fault_pending",
-    "_prev_cw": "prev_cw",
-    "fe_window": "fe_window",
-    "position_window": "position_window",
-    "velocity_window": "velocity_window",
-    "qs_option": "qs_option",
-    "fr_option": "fr_option",
-    "_noise": "noise",
-    "home_bits": "home_bits",
-    "_home_phase": "home_phase",
-    "prof_bits": "prof_bits",
-}
-_BOOL_SLOTS = {"limit_active": "limit", "_standstill": "standstill"}
+# objects the bank reads and writes through a drive's OD (plain ints: enum attribute access costs ~100 ns)
+_X_ERROR_CODE = int(Obj.ERROR_CODE)
+_X_CONTROLWORD = int(Obj.CONTROLWORD)
+_X_STATUSWORD = int(Obj.STATUSWORD)
+_X_MODES = int(Obj.MODES_OF_OPERATION)
+_X_MODES_DISPLAY = int(Obj.MODES_DISPLAY)
+_X_POSITION_ACTUAL = int(Obj.POSITION_ACTUAL)
+_X_VELOCITY_ACTUAL = int(Obj.VELOCITY_ACTUAL)
+_X_TORQUE_ACTUAL = int(Obj.TORQUE_ACTUAL)
+_X_TARGET_POSITION = int(Obj.TARGET_POSITION)
+_X_TARGET_VELOCITY = int(Obj.TARGET_VELOCITY)
+_X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
+_X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
 
 
-def _slot(array: str, cast: Callable[[Any], Any]) -> property:
-    def get(self: BankDrive) -> Any:
-        return cast(getattr(self.bank, array)[self.slot])
+def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
+    """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
 
-    def put(self: BankDrive, value: Any) -> None:
-        getattr(self.bank, array)[self.slot] = value
-
-    return property(get, put)
-
-
-def _state_get(self: BankDrive) -> State402:
-    return _STATES[int(self.bank.state[self.slot])]
-
-
-def _state_put(self: BankDrive, value: State402) -> None:
-    self.bank.state[self.slot] = int(value)
-
-
-class BankDrive(Cia402Drive):
-    """One drive of a :class:`DriveBank`: a :class:`Cia402Drive` whose state is the bank's array elements."""
-
-    state = property(_state_get, _state_put)
-
-    def __init__(self, bank: DriveBank, slot: int, params: DriveParams | None = None) -> None:
-        self.bank = bank
-        self.slot = slot
-        super().__init__(params)
-
-    def power_cycle(self) -> None:
-        """As :meth:`Cia402Drive.power_cycle`; the slot's arrays restart too (position kept)."""
-        position_counts = round(self.position_rad * self.counts_per_rad)
-        self.bank.reset_slot(self.slot)
-        self.__init__(self.bank, self.slot, self.params)  # type: ignore[misc]
-        self.position_rad = self._prev_target_rad = position_counts * self.rad_per_count
-
-    def inject_fault(self, code: int, *, persistent: bool = False) -> None:
-        super().inject_fault(code, persistent=persistent)
-        self.bank.changed()
-
-    def step(self, od: ObjectStore, dt_s: float) -> None:
-        """One cycle through the OD (as :meth:`Cia402Drive.step`), computed by the bank for this drive alone."""
-        bank, i = self.bank, self.slot
-        bank.load_inputs(i, od)
-        bank.step(i, i + 1, dt_s)
-        bank.store_outputs(i, od)
-
-    def bind(self, od: ObjectStore) -> None:
-        super().bind(od)
-        self.bank.bound(self.slot, self._has)
-
-
-for _name, _arr in _FLOAT_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, float))
-for _name, _arr in _INT_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, int))
-for _name, _arr in _BOOL_SLOTS.items():
-    setattr(BankDrive, _name, _slot(_arr, bool))
+    Under a torque held over the substep: velocity' = e x velocity + f x
+    torque, position' = position + g x velocity + hh x torque. Returns
+    (e, f, g, hh).
+    """
+    if b > 0.0:
+        e = math.exp(-b * h / j)  # velocity decay over h
+        g = (1.0 - e) * j / b  # position per unit initial velocity
+        return e, (1.0 - e) / b, g, (h - g) / b  # f: velocity, hh: position per unit torque
+    return 1.0, h / j, h, h * h / (2.0 * j)
 
 
 def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], float]) -> F64:
@@ -181,7 +109,7 @@ def _param_array(params: Sequence[DriveParams], get: Callable[[DriveParams], flo
 
 
 def _rotor_coefficients(j: F64, fb: F64, h: F64 | float) -> tuple[F64, F64, F64, F64]:
-    """:func:`~sim_slaves.drive402.integration_coefficients` element by element: e, f, g, hh."""
+    """:func:`integration_coefficients` element by element: e, f, g, hh."""
     viscous = fb > 0.0
     fb_safe = np.where(viscous, fb, 1.0)
     e_ = np.where(viscous, np.exp(-fb * h / j), 1.0)
@@ -192,21 +120,37 @@ def _rotor_coefficients(j: F64, fb: F64, h: F64 | float) -> tuple[F64, F64, F64,
 
 
 class DriveBank:
-    """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`BankDrive`).
+    """N CiA 402 drives as arrays; :attr:`drives` are their per-drive views (:class:`~sim_slaves.drive402.Cia402Drive`).
 
-    ``params``: one :class:`DriveParams` per drive. The arrays are public for
-    the emulator that feeds them (see the module docstring); ``step(a, b,
-    dt_s)`` advances drives ``a..b-1``.
+    ``params``: one :class:`DriveParams` per drive; ``seed``: the encoder
+    noise's. The arrays are public for the emulator that feeds them (see the
+    module docstring); ``step(a, b, dt_s)`` advances drives ``a..b-1``.
+    ``drives``: the drives themselves, when they are being built (a drive
+    built alone makes a bank of one for itself); by default the bank builds them.
     """
 
-    def __init__(self, params: Sequence[DriveParams], *, seed: int = 0) -> None:
+    def __init__(
+        self, params: Sequence[DriveParams], *, seed: int = 0, drives: Sequence[Cia402Drive] | None = None
+    ) -> None:
         n = len(params)
         self.n = n
         self.params = list(params)
+        self._state_arrays(n)
+        self._io_arrays(n)
+        self._controller_parameters(self.params)
+        self._thermal_parameters(self.params)
+        self._imperfections(self.params, seed)
+        self._path_caches()
+        self.drives: list[Cia402Drive] = (
+            list(drives)
+            if drives is not None
+            else [Cia402Drive(p, bank=self, slot=i) for i, p in enumerate(params)]
+        )
+
+    def _state_arrays(self, n: int) -> None:
+        """Each drive's state (SI); a drive's attributes are elements of these (drive402.FLOAT_SLOTS ...)."""
         z = np.zeros
-        # state
         self.state = np.full(n, _NR, dtype=np.int64)
-        # per-drive state (SI; the BankDrive attributes map onto these, see _FLOAT_SLOTS ...)
         self.pos: F64 = z(n)
         self.vel: F64 = z(n)
         self.tau: F64 = z(n)
@@ -247,23 +191,39 @@ class DriveBank:
         self.limit: B = z(n, dtype=np.bool_)
         self.standstill: B = z(n, dtype=np.bool_)
         self.quiet = z(n, dtype=np.bool_)  # the state machine has nothing to do while the controlword holds
-        # inputs (the master's outputs), raw OD units
+
+    def _io_arrays(self, n: int) -> None:
+        """The master's outputs (inputs here) and inputs (outputs here), raw OD units; which objects exist."""
+        z = np.zeros
         self.controlword = z(n, dtype=np.int64)
         self.mode_request = z(n, dtype=np.int64)
         self.target_position = z(n, dtype=np.int64)
         self.target_velocity = z(n, dtype=np.int64)
         self.target_torque = z(n, dtype=np.int64)
-        # outputs (the master's inputs), raw OD units
         self.statusword = z(n, dtype=np.int64)
         self.position_counts = z(n, dtype=np.int64)
         self.velocity_counts = z(n, dtype=np.int64)
         self.torque_permille = z(n, dtype=np.int64)
-        # which optional objects each drive's OD has (set by bind)
+        # which optional objects each drive's OD has (set by bound)
         self.has_tp = z(n, dtype=np.bool_)
         self.has_tv = z(n, dtype=np.bool_)
         self.has_tt = z(n, dtype=np.bool_)
         self.has_modes = z(n, dtype=np.bool_)
-        # parameters
+        self._outputs_present: list[list[tuple[int, I64]]] = [[] for _ in range(n)]
+
+    def _output_arrays(self) -> tuple[tuple[int, I64], ...]:
+        """The optional objects a drive writes (the master's inputs besides the statusword), with their arrays."""
+        return (
+            (_X_MODES_DISPLAY, self.mode_display),
+            (_X_POSITION_ACTUAL, self.position_counts),
+            (_X_VELOCITY_ACTUAL, self.velocity_counts),
+            (_X_TORQUE_ACTUAL, self.torque_permille),
+            (_X_FOLLOWING_ERROR, self.following_error),
+            (_X_ERROR_CODE, self.error_code),
+        )
+
+    def _controller_parameters(self, params: Sequence[DriveParams]) -> None:
+        """Units, the rotor and the cascade's gains, per drive."""
         pa = _param_array
         self.rpc = pa(params, lambda p: TWO_PI / p.counts_per_rev)
         self.cpr = pa(params, lambda p: p.counts_per_rev / TWO_PI)
@@ -279,6 +239,10 @@ class DriveBank:
         self.vff_gain = pa(params, lambda p: p.velocity_feedforward)
         self.tff_gain = pa(params, lambda p: p.torque_feedforward) * self.inertia
         self.standstill_speed = pa(params, lambda p: p.standstill_rad_s)
+
+    def _thermal_parameters(self, params: Sequence[DriveParams]) -> None:
+        """The winding's thermal network and the torque constant's drift, per drive."""
+        pa = _param_array
         self.thermal = np.array([p.thermal for p in params], dtype=np.bool_)
         self.any_thermal = bool(self.thermal.any())
         self.ambient = pa(params, lambda p: p.ambient_c)
@@ -290,7 +254,12 @@ class DriveBank:
         self.kt_tc = pa(params, lambda p: p.kt_temp_coeff_per_k)
         self.warn_c = pa(params, lambda p: p.warning_temperature_c)
         self.fault_c = pa(params, lambda p: p.fault_temperature_c)
-        # imperfections
+
+    def _imperfections(self, params: Sequence[DriveParams], seed: int) -> None:
+        """Command delay line, current-loop lag, encoder resolution and noise, dry friction."""
+        pa = _param_array
+        z = np.zeros
+        n = len(params)
         self.delay = np.array([p.command_delay_cycles for p in params], dtype=np.int64)
         depth = int(self.delay.max(initial=0)) + 1
         self.history = z((3, depth, n), dtype=np.int64)  # raw targets, ring per drive
@@ -306,14 +275,18 @@ class DriveBank:
         self.coulomb = pa(params, lambda p: p.coulomb_friction_nm)
         self.any_coulomb = bool((self.coulomb > 0.0).any())
         self.rng = np.random.default_rng(seed)
+
+    def _path_caches(self) -> None:
+        """What each run of drives was found to be, kept until something changes (see :meth:`changed`)."""
         self._uniform: dict[tuple[int, int], str] = {}  # run -> "csp", "idle" or "general" (see _kind)
         self._calm: set[tuple[int, int]] = set()  # runs whose state machines have nothing pending
         rate = self.control_rate
-        self._rate = float(rate[0]) if n and (rate == rate[0]).all() else None  # one control rate for all
+        self._rate = (
+            float(rate[0]) if self.n and (rate == rate[0]).all() else None
+        )  # one control rate for all
         self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
         self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
         self._limited: dict[tuple[int, int], tuple[bool, bool]] = {}  # run -> (speed limit, position limits)
-        self.drives = [BankDrive(self, i, p) for i, p in enumerate(params)]
 
     # -- per-drive bookkeeping --
 
@@ -324,7 +297,7 @@ class DriveBank:
         self._limited.clear()
 
     def reset_slot(self, i: int) -> None:
-        """Power-on values for drive ``i`` (its :class:`BankDrive` then sets its own)."""
+        """Power-on values for drive ``i`` (the drive then sets its own)."""
         self.quiet[i] = False
         self.changed()
         self.history[:, :, i] = 0
@@ -332,43 +305,37 @@ class DriveBank:
 
     def bound(self, i: int, has: dict[int, bool]) -> None:
         """Drive ``i`` bound to an OD that has the objects in ``has``."""
-        self.has_tp[i] = has[0x607A]
-        self.has_tv[i] = has[0x60FF]
-        self.has_tt[i] = has[0x6071]
-        self.has_modes[i] = has[0x6060]
+        self.has_tp[i] = has[_X_TARGET_POSITION]
+        self.has_tv[i] = has[_X_TARGET_VELOCITY]
+        self.has_tt[i] = has[_X_TARGET_TORQUE]
+        self.has_modes[i] = has[_X_MODES]
+        self._outputs_present[i] = [
+            (index, array) for index, array in self._output_arrays() if has.get(index)
+        ]
         self.quiet[i] = False
         self.changed()
 
     def load_inputs(self, i: int, od: ObjectStore) -> None:
         """Drive ``i``'s inputs from its OD (objects the process data does not carry)."""
         d = self.drives[i]
-        if d._od is not od:
+        if d.od is not od:
             d.bind(od)
         get = od.get_value
-        self.controlword[i] = int(get(0x6040, 0))
-        self.mode_request[i] = int(get(0x6060, 0)) if self.has_modes[i] else self.mode_display[i]
+        self.controlword[i] = int(get(_X_CONTROLWORD, 0))
+        self.mode_request[i] = int(get(_X_MODES, 0)) if self.has_modes[i] else self.mode_display[i]
         if self.has_tp[i]:
-            self.target_position[i] = int(get(0x607A, 0))
+            self.target_position[i] = int(get(_X_TARGET_POSITION, 0))
         if self.has_tv[i]:
-            self.target_velocity[i] = int(get(0x60FF, 0))
+            self.target_velocity[i] = int(get(_X_TARGET_VELOCITY, 0))
         if self.has_tt[i]:
-            self.target_torque[i] = int(get(0x6071, 0))
+            self.target_torque[i] = int(get(_X_TARGET_TORQUE, 0))
 
     def store_outputs(self, i: int, od: ObjectStore) -> None:
         """Drive ``i``'s outputs into its OD (for objects the process data does not carry, SDO reads)."""
-        has = self.drives[i]._has
         put = od.set_value
-        put(0x6041, 0, int(self.statusword[i]))
-        for index, array in (
-            (0x6061, self.mode_display),
-            (0x6064, self.position_counts),
-            (0x606C, self.velocity_counts),
-            (0x6077, self.torque_permille),
-            (0x60F4, self.following_error),
-            (0x603F, self.error_code),
-        ):
-            if has.get(index):
-                put(index, 0, int(array[i]))
+        put(_X_STATUSWORD, 0, int(self.statusword[i]))
+        for index, array in self._outputs_present[i]:
+            put(index, 0, int(array[i]))
 
     # -- the cycle --
 
@@ -415,7 +382,7 @@ class DriveBank:
             if j:
                 for i in range(a, b):
                     if self.home_phase[i] == 1:
-                        self.drives[i]._home_search()
+                        self.drives[i].look_for_home()
             self._substeps(a, b, part, push=j == 0)
 
     def _substeps(self, a: int, b: int, dt: F64, *, push: bool = True) -> None:
@@ -437,37 +404,24 @@ class DriveBank:
         new_cw = cw != self.prev_cw[sl]
         new_mode = mode_req != self.mode_display[sl]
         homing = (self.mode_display[sl] == _HM) | (self.home_phase[sl] != 0)
-        if homing.any():  # the homing procedure runs per drive, through the scalar drive's code
+        if homing.any():  # the homing procedure runs per drive, through the drive's own code
             self.changed()
             for i in (np.flatnonzero(homing) + a).tolist():
-                d = self.drives[i]
-                d._state_machine(int(cw[i - a]))
-                d._modes(int(mode_req[i - a]))
-                d._homing(int(cw[i - a]))
-                self.quiet[i] = False
+                self.quiet[i] = self.drives[i].command(int(cw[i - a]), int(mode_req[i - a]))
         elif (a, b) in self._calm and not new_cw.any() and not new_mode.any():
             return
         need = (new_cw | new_mode | ~self.quiet[sl] | (self.fault_pending[sl] != 0)) & ~homing
-        if need.any():
+        if need.any():  # the state machines that have something to do, each through the drive's code
             self.changed()
             for i in (np.flatnonzero(need) + a).tolist():
-                d = self.drives[i]
-                taken = d.transitions_taken
-                d._state_machine(int(cw[i - a]))
-                d._modes(int(mode_req[i - a]))
-                if d.mode_display == _HM or d._home_phase:  # switched into homing mode this cycle
-                    d._homing(int(cw[i - a]))
-                self.quiet[i] = (
-                    bool(_STEADY[self.state[i]])
-                    and d._pending is None
-                    and d.transitions_taken == taken
-                    and d.mode_display != _HM
-                )
+                self.quiet[i] = self.drives[i].command(int(cw[i - a]), int(mode_req[i - a]))
         self.prev_cw[sl] = cw
         if self.quiet[sl].all() and not self.fault_pending[sl].any():
             self._calm.add((a, b))
 
     def _advance(self, a: int, b: int, dt: F64, n: I64, *, push: bool = True) -> None:
+        """Drives ``a..b-1`` (one substep count ``n``) through ``dt``: the lean path the run allows, or the
+        general one (targets by mode, the PP/PV generators, physics, statusword and actual values)."""
         sl = slice(a, b)
         kind = self._uniform.get((a, b))
         if kind is None:
@@ -481,37 +435,14 @@ class DriveBank:
         csp = mode == _CSP
         csv = mode == _CSV
         cst = mode == _CST
-        rpc = self.rpc[sl]
-        if self.any_delay:
-            tp, tv, tt = self._delayed(a, b, push=push)
-        else:
-            tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
-        prev_t = self.prev_target[sl]
-        use_p = oe & csp & self.has_tp[sl]
-        speed_limited, position_limited = self._limits(a, b)
-        if position_limited:
-            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
-        target = np.where(use_p, tp * rpc, prev_t)
-        target_v = np.where(oe & csv & self.has_tv[sl], tv * self.rpv[sl], 0.0)
-        if speed_limited:
-            vmax = self.vmax[sl]
-            target_v = np.clip(target_v, -vmax, vmax)
-        target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
         hm = oe & (mode == _HM)
-        if hm.any():
-            target_v = np.where(hm, self.home_v[sl], target_v)
+        (target, target_v, target_tau), speed_limited = self._targets(a, b, oe, csp, csv, cst, hm, push=push)
         pp = oe & (mode == _PP)
         pv = oe & (mode == _PV)
         prof = pp | pv
         profiled = (np.flatnonzero(prof) + a).tolist() if prof.any() else []
-        if profiled:  # the PP/PV trajectory generator runs per drive, through the scalar drive's code
-            for i in profiled:
-                self.drives[i]._profile(
-                    int(self.controlword[i]),
-                    float(dt[i - a]),
-                    int(self.target_position[i]) if self.has_tp[i] else None,
-                    int(self.target_velocity[i]) if self.has_tv[i] else None,
-                )
+        if profiled:  # PP rides the position cascade on its generator's position, PV the velocity loop
+            self._run_profiles(profiled, a, dt)
             target = np.where(pp, self.prof_pos[sl], target)
             target_v = np.where(pv, self.prof_v[sl], target_v)
             csp, csv = csp | pp, csv | pv
@@ -523,8 +454,43 @@ class DriveBank:
         if hm.any():
             self.statusword[sl] |= np.where(hm, self.home_bits[sl], 0)
         for i in profiled:
-            self.prof_bits[i] = self.drives[i]._profile_status()
+            self.prof_bits[i] = self.drives[i].profile_status()
             self.statusword[i] = (int(self.statusword[i]) & _NOT_FOLLOWS_REACHED) | int(self.prof_bits[i])
+
+    def _targets(
+        self, a: int, b: int, oe: B, csp: B, csv: B, cst: B, hm: B, *, push: bool
+    ) -> tuple[tuple[F64, F64, F64], bool]:
+        """This cycle's demands by mode, SI: position [rad] (CSP; else the previous target), velocity
+        [rad/s] (CSV; homing: the search speed), torque [N·m] (CST); from the targets ``delay`` cycles
+        old, held within the position limits and max speed. Also: whether any drive has a max speed."""
+        sl = slice(a, b)
+        if self.any_delay:
+            tp, tv, tt = self._delayed(a, b, push=push)
+        else:
+            tp, tv, tt = self.target_position[sl], self.target_velocity[sl], self.target_torque[sl]
+        use_p = oe & csp & self.has_tp[sl]
+        speed_limited, position_limited = self._limits(a, b)
+        if position_limited:
+            tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
+        target = np.where(use_p, tp * self.rpc[sl], self.prev_target[sl])
+        target_v = np.where(oe & csv & self.has_tv[sl], tv * self.rpv[sl], 0.0)
+        if speed_limited:
+            vmax = self.vmax[sl]
+            target_v = np.clip(target_v, -vmax, vmax)
+        target_tau = np.where(oe & cst & self.has_tt[sl], tt * self.rated[sl] / 1000.0, 0.0)
+        if hm.any():
+            target_v = np.where(hm, self.home_v[sl], target_v)
+        return (target, target_v, target_tau), speed_limited
+
+    def _run_profiles(self, profiled: list[int], a: int, dt: F64) -> None:
+        """One cycle of the PP/PV trajectory generator of each drive in ``profiled``, through the drive's code."""
+        for i in profiled:
+            self.drives[i].run_profile(
+                int(self.controlword[i]),
+                float(dt[i - a]),
+                int(self.target_position[i]) if self.has_tp[i] else None,
+                int(self.target_velocity[i]) if self.has_tv[i] else None,
+            )
 
     def _limits(self, a: int, b: int) -> tuple[bool, bool]:
         """Whether any drive of the run has a max motor speed, and software position limits (cached)."""
@@ -607,8 +573,14 @@ class DriveBank:
 
     def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
         """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
+        target, limited = self._csp_motion(a, b, dt, steps)
+        self._csp_outputs(slice(a, b), dt, target, limited)
+
+    def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
+        """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and
+        whether any drive hit its torque limit."""
         sl = slice(a, b)
-        rpc, cpr = self.rpc[sl], self.cpr[sl]
+        rpc = self.rpc[sl]
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
         speed_limited, position_limited = self._limits(a, b)
         if position_limited:
@@ -669,9 +641,14 @@ class DriveBank:
         self.tau[sl] = tau
         self.shaft[sl] = tau
         self.limit[sl] = limited and limit is not None and limit
-        # outputs
-        if noisy:
-            enc = np.floor(pos * epr + 0.5) + self.noise[sl]
+        return target, limited
+
+    def _csp_outputs(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
+        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives."""
+        cpr = self.cpr[sl]
+        pos, vel, tau = self.pos[sl], self.vel[sl], self.tau[sl]
+        if not self.ideal_encoder:
+            enc = np.floor(pos * self.epr[sl] + 0.5) + self.noise[sl]
             pos_counts = np.floor(enc * self.enc_to_counts[sl] + 0.5)
         else:
             pos_counts = np.floor(pos * cpr + 0.5)
@@ -732,32 +709,84 @@ class DriveBank:
         target_tau: F64,
         speed_limited: bool = False,
     ) -> None:
+        """The general path: each drive of the run in its own state and mode, over ``n`` control substeps.
+
+        ``csv`` also marks homing drives (their search speed is in ``target_v``); PP and PV arrive as CSP
+        and CSV on their generator's position and velocity.
+        """
         steps = int(n[0])
-        h = dt / n
-        e_, f_, g_, hh_ = _rotor_coefficients(self.inertia[sl], self.friction[sl], h)
-        kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
-        tmax = self.tmax[sl]
-        thermal = self.thermal[sl]
-        temp = self.temp[sl]
-        kt_ratio = (
-            np.where(thermal, np.maximum(0.0, 1.0 + self.kt_tc[sl] * (temp - self.ambient[sl])), 1.0)
-            if self.any_thermal
-            else 1.0
+        powered, ramp = self._power_stage(sl, state, oe)
+        vff, aff = self._csp_feedforward(sl, dt, powered & ~ramp & csp, target)
+        kt_ratio = self._kt_ratio(sl)
+        te, limit, tau_sq = self._cascade(
+            sl,
+            dt / n,
+            steps,
+            (powered, ramp, csp, csv, cst),
+            (target, target_v, target_tau, vff, aff),
+            kt_ratio,
+            speed_limited,
         )
-        load = self.load[sl]
-        pos, vel, integ = self.pos[sl].copy(), self.vel[sl].copy(), self.integ[sl].copy()
+        self.prev_target[sl] = np.where(oe & csp, target, self.pos[sl])
+        self.tau_eff[sl] = te
+        self.tau[sl] = te
+        self.shaft[sl] = te * kt_ratio
+        self.limit[sl] = limit
+        if self.any_thermal:
+            self._thermal(sl, dt, tau_sq / steps)
+
+    def _power_stage(self, sl: slice, state: I64, oe: B) -> tuple[B, B]:
+        """Which drives the power stage drives, and which of them ramp to a stop (quick stop, fault reaction).
+
+        Option code 0 of 0x605A / 0x605E disables the drive function: the motor coasts.
+        """
         qsa, fra = state == _QSA, state == _FRA
         powered = oe | qsa | fra
         coast = (qsa & (self.qs_option[sl] == 0)) | (fra & (self.fr_option[sl] == 0))
         powered &= ~coast
-        ramp = powered & ~oe
+        return powered, powered & ~oe
+
+    def _csp_feedforward(self, sl: slice, dt: F64, m: B, target: F64) -> tuple[F64, F64]:
+        """Velocity [rad/s] and torque [N·m] feed-forward of the drives ``m`` (enabled, CSP): the target's
+        differences over the cycle, times their gains; the velocity kept for the next cycle's acceleration."""
         prev_t = self.prev_target[sl]
-        m = powered & ~ramp & csp
         vff = np.where(m, (target - prev_t) / dt, 0.0)
         aff = np.where(m, (vff - self.prev_vff[sl]) / dt, 0.0)
         self.prev_vff[sl] = np.where(m, vff, self.prev_vff[sl])
-        vff = vff * self.vff_gain[sl]
-        aff = aff * self.tff_gain[sl]
+        return vff * self.vff_gain[sl], aff * self.tff_gain[sl]
+
+    def _kt_ratio(self, sl: slice) -> F64 | float:
+        """kt(T) / kt0 of the run: the thermal model's torque-constant drift (1 without it)."""
+        if not self.any_thermal:
+            return 1.0
+        drift = np.maximum(0.0, 1.0 + self.kt_tc[sl] * (self.temp[sl] - self.ambient[sl]))
+        return np.where(self.thermal[sl], drift, 1.0)
+
+    def _cascade(
+        self,
+        sl: slice,
+        h: F64,
+        steps: int,
+        masks: tuple[B, B, B, B, B],
+        demands: tuple[F64, F64, F64, F64, F64],
+        kt_ratio: F64 | float,
+        speed_limited: bool,
+    ) -> tuple[F64, B, F64]:
+        """The control substeps of ``h`` s: velocity reference by mode, velocity PI, torque limit, current
+        loop, rotor. Leaves position, velocity, integrator and ramp in the arrays; returns the current
+        loop's torque [N·m], which drives hit the torque limit, and the sum of torque² over the substeps.
+
+        ``masks``: powered, ramping, CSP, CSV (and homing), CST; ``demands``: target position [rad],
+        velocity [rad/s], torque [N·m], velocity and torque feed-forward.
+        """
+        powered, ramp, csp, csv, cst = masks
+        target, target_v, target_tau, vff, aff = demands
+        e_, f_, g_, hh_ = _rotor_coefficients(self.inertia[sl], self.friction[sl], h)
+        kv, ki, kp = self.kv[sl], self.ki[sl], self.kp[sl]
+        tmax = self.tmax[sl]
+        load = self.load[sl]
+        pos, vel, integ = self.pos[sl].copy(), self.vel[sl].copy(), self.integ[sl].copy()
+        prev_t = self.prev_target[sl]
         ramp_v = self.ramp_v[sl].copy()
         dv = self.qs_decel[sl] * h
         pi = powered & (ramp | csp | csv)
@@ -768,7 +797,6 @@ class DriveBank:
         epr, rpe = self.epr[sl], self.rpe[sl]
         noise = self.noise[sl]
         limit = np.zeros(len(pos), dtype=np.bool_)
-        tau = np.zeros(len(pos))
         tau_sq = np.zeros(len(pos))
         te = self.tau_eff[sl].copy()
         lag = self.any_current_lag
@@ -781,9 +809,7 @@ class DriveBank:
         vmax = self.vmax[sl]
         for k in range(1, steps + 1):
             if any_ramp:
-                ramp_v = np.where(
-                    ramp, np.where(ramp_v > dv, ramp_v - dv, np.where(ramp_v < -dv, ramp_v + dv, 0.0)), ramp_v
-                )
+                ramp_v = np.where(ramp, _ramp_to_zero(ramp_v, dv), ramp_v)
             ref = prev_t + (target - prev_t) * (k / steps)
             measured = (np.floor(pos * epr + 0.5) + noise) * rpe
             v_pos = vff + kp * (ref - measured)
@@ -797,27 +823,13 @@ class DriveBank:
             tau = np.where(powered, np.clip(tau, -tmax, tmax), 0.0)
             te = te + (tau - te) * alpha if lag else tau
             applied = te * kt_ratio - load
-            if dry:
-                net, vel = _dry_friction(applied, vel, fc)
-            else:
-                net = applied
-            pos = pos + vel * g_ + net * hh_
-            v_new = vel * e_ + net * f_
-            if dry:
-                v_new = np.where((fc > 0.0) & (v_new * vel < 0.0) & (np.abs(applied) <= fc), 0.0, v_new)
-            vel = v_new
+            pos, vel = _rotor_substep(pos, vel, applied, (e_, f_, g_, hh_), fc if dry else None)
             tau_sq += te * te
         if any_ramp:
             self.standstill[sl] |= ramp & (ramp_v == 0.0) & (np.abs(vel) < self.standstill_speed[sl])
         self.pos[sl], self.vel[sl], self.integ[sl] = pos, vel, integ
         self.ramp_v[sl] = ramp_v
-        self.prev_target[sl] = np.where(oe & csp, target, pos)
-        self.tau_eff[sl] = te
-        self.tau[sl] = te
-        self.shaft[sl] = te * kt_ratio
-        self.limit[sl] = limit
-        if self.any_thermal:
-            self._thermal(sl, dt, tau_sq / steps)
+        return te, limit, tau_sq
 
     def _thermal(self, sl: slice, dt: F64, tau_sq_mean: F64) -> None:
         on = self.thermal[sl]
@@ -882,6 +894,29 @@ class DriveBank:
         self.torque_permille[sl] = np.floor(self.tau[sl] * 1000.0 / self.rated[sl] + 0.5)
 
 
+def _ramp_to_zero(v: F64, dv: F64) -> F64:
+    """One substep of the quick-stop / fault-reaction ramp: speed ``v`` [rad/s] ``dv`` closer to 0."""
+    return np.where(v > dv, v - dv, np.where(v < -dv, v + dv, 0.0))
+
+
+def _rotor_substep(
+    pos: F64, vel: F64, applied: F64, coefficients: tuple[F64, F64, F64, F64], fc: F64 | None
+) -> tuple[F64, F64]:
+    """The rotor through one substep under the shaft torque ``applied`` [N·m]: position [rad], velocity
+    [rad/s]. ``coefficients``: :func:`integration_coefficients`' e, f, g, hh; ``fc``: dry friction [N·m]
+    (None: none), which holds a rotor that the torque cannot move and stops one it would reverse."""
+    e_, f_, g_, hh_ = coefficients
+    if fc is None:
+        net = applied
+    else:
+        net, vel = _dry_friction(applied, vel, fc)
+    pos = pos + vel * g_ + net * hh_
+    v_new = vel * e_ + net * f_
+    if fc is not None:
+        v_new = np.where((fc > 0.0) & (v_new * vel < 0.0) & (np.abs(applied) <= fc), 0.0, v_new)
+    return pos, v_new
+
+
 def _dry_friction(applied: F64, vel: F64, fc: F64) -> tuple[F64, F64]:
     """Net torque with Coulomb friction ``fc`` [N·m] and the velocity (0 where the rotor sticks)."""
     sliding = np.abs(vel) > STICTION_RAD_S
@@ -914,8 +949,6 @@ def warm_up() -> None:
     if _warmed:
         return
     _warmed = True
-    from sim_slaves.drive402 import DictObjectStore
-
     bank = DriveBank(
         [DriveParams(), DriveParams(thermal=True, command_delay_cycles=1, coulomb_friction_nm=0.01)]
     )

@@ -6,13 +6,15 @@ and says how many axes there are (``axes:``, see :attr:`DriveMap.bus_map`); here
 the device's object dictionary holds every axis's objects, and
 :class:`MultiAxisDrive` runs one :class:`~sim_slaves.drive402.Cia402Drive` per
 axis, each seeing its own objects through an :class:`AxisObjects` view that
-shifts 0x6000-0x67FF by the axis's offset.
+shifts 0x6000-0x67FF by the axis's offset. The axes are the drives of one
+:class:`~sim_slaves.drive_bank.DriveBank`, stepped together in one bank step.
 """
 
 from __future__ import annotations
 
 from fieldbus.core.pdo.model import DriveMap, is_axis_object
 from sim_slaves.drive402 import Cia402Drive, DriveParams
+from sim_slaves.drive_bank import DriveBank
 from sim_slaves.ethercat.diaghistory import add_diag_history, record_fault
 from sim_slaves.od import ObjectDictionary, is_cia402_drive
 
@@ -69,7 +71,7 @@ class MultiAxisDrive:
     def __init__(self, drives: list[Cia402Drive], offsets: tuple[int, ...]) -> None:
         if len(drives) != len(offsets):
             raise ValueError(f"{len(drives)} drives for {len(offsets)} axes")
-        self.drives = drives
+        self.drives = drives if _one_run(drives) else _in_one_bank(drives)  # stepped together
         self.offsets = offsets
         self._od: ObjectDictionary | None = None
         self._views: list[AxisObjects] = []
@@ -92,10 +94,14 @@ class MultiAxisDrive:
             self._od = od
             self._views = [AxisObjects(od, off) for off in self.offsets]
         self._time_ns += round(dt_s * 1e9)
+        bank, first = self.drives[0].bank, self.drives[0].slot
+        before = [d.error_code for d in self.drives]
+        for axis, view in enumerate(self._views):
+            bank.load_inputs(first + axis, view)
+        bank.step(first, first + len(self.drives), dt_s)
         for axis, (drive, view) in enumerate(zip(self.drives, self._views, strict=True)):
-            before = drive.error_code
-            drive.step(view, dt_s)
-            if drive.error_code and drive.error_code != before:  # a fault began: the history gets it
+            bank.store_outputs(first + axis, view)
+            if drive.error_code and drive.error_code != before[axis]:  # a fault began: the history gets it
                 record_fault(od, drive.error_code, self._time_ns, axis)
 
     def inject_fault(self, code: int, *, persistent: bool = False, axis: int = 0) -> None:
@@ -109,6 +115,20 @@ class MultiAxisDrive:
     def connection_lost(self) -> None:
         for d in self.drives:
             d.connection_lost()
+
+
+def _one_run(drives: list[Cia402Drive]) -> bool:
+    """Are ``drives`` consecutive drives of one bank (one bank step steps them all)?"""
+    first = drives[0]
+    return all(d.bank is first.bank and d.slot == first.slot + k for k, d in enumerate(drives))
+
+
+def _in_one_bank(drives: list[Cia402Drive]) -> list[Cia402Drive]:
+    """New drives of one bank of their own, with the parameters of ``drives`` and where each stands."""
+    bank = DriveBank([d.params for d in drives])
+    for new, old in zip(bank.drives, drives, strict=True):
+        new.place(old.position_rad)
+    return bank.drives
 
 
 def app_states(app: object) -> list[int]:

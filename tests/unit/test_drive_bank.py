@@ -195,3 +195,72 @@ def test_one_drive_faults_while_the_others_keep_running() -> None:
     assert (bank.statusword[others] & 0x6F == 0x27).all()  # statusword: OPERATION ENABLED
     assert bank.statusword[5] & 0x4F == 0x08  # statusword: FAULT
     assert (bank.error_code[others] == 0).all()
+
+
+def test_a_drive_alone_is_a_bank_of_one_and_moves_exactly_as_in_a_bank() -> None:
+    """One model: a drive built alone steps through its own bank of one, bit for bit as a drive of a bank.
+
+    Each drive of the mixed scenario alone, against a bank of three copies of it commanded alike (so
+    the bank takes the same path: the lean CSP one, or the general one). Before, the drive alone had
+    physics of its own, equal to the bank's to ~1e-11 rad only.
+    """
+    for i, (p, mode) in enumerate(MIXED):
+        alone = Cia402Drive(p)
+        assert alone.bank.drives == [alone] and alone.slot == 0
+        bank = DriveBank([p] * 3)
+        a_od = DictObjectStore(default_objects(p))
+        b_ods = [DictObjectStore(default_objects(p)) for _ in range(3)]
+        for od in (a_od, *b_ods):
+            od.values[(Obj.MODES_OF_OPERATION, 0)] = mode
+        alone.load_torque_nm = 0.8 if i == 4 else 0.0
+        bank.load[:] = alone.load_torque_nm
+        states = set()
+        for k in range(450):
+            if k == 420:  # (the quick-stopper is in QUICK STOP ACTIVE since step 400)
+                alone.inject_fault(0x5000)
+                for d in bank.drives:
+                    d.inject_fault(0x5000)
+            cw, tp, tv, tt = _commands(k, i)
+            for j, od in enumerate((a_od, *b_ods)):
+                od.values.update({(0x6040, 0): cw, (0x607A, 0): tp, (0x60FF, 0): tv, (0x6071, 0): tt})
+                if j:
+                    bank.load_inputs(j - 1, od)
+            alone.step(a_od, DT)
+            bank.step(0, 3, DT)
+            bank.store_outputs(1, b_ods[1])
+            b = bank.drives[1]
+            assert (alone.state, alone.position_rad, alone.velocity_rad_s, alone.temperature_c) == (
+                b.state,
+                b.position_rad,
+                b.velocity_rad_s,
+                b.temperature_c,
+            ), (k, i)
+            assert a_od.values == b_ods[1].values, (k, i)
+            states.add(alone.state)
+        assert S.FAULT in states, i  # each went through the injected fault (and the quick-stopper: QSA)
+
+
+def test_the_bank_reaches_no_private_attribute_of_a_drive() -> None:
+    """drive_bank uses the drive's public interface: no ``x._name`` but on ``self``, no private imports."""
+    import ast
+    import inspect
+
+    from sim_slaves import drive_bank
+
+    tree = ast.parse(inspect.getsource(drive_bank))
+    reached = [
+        f"line {node.lineno}: {ast.unparse(node)}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute)
+        and node.attr.startswith("_")
+        and not node.attr.startswith("__")
+        and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+    ]
+    imported = [
+        f"line {node.lineno}: {alias.name}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom)
+        for alias in node.names
+        if alias.name.startswith("_")
+    ]
+    assert reached == [] and imported == []
