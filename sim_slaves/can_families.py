@@ -71,10 +71,6 @@ def simulator(
             bus, items, dt_s=dt_s, log=log, clock=clock
         )
         return emulator
-    if family == "damiao":
-        from sim_slaves.damiao import DamiaoSimulator
-
-        return DamiaoSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
     if family == "odrive":
         from sim_slaves.odrive import OdriveSimulator
 

@@ -25,7 +25,6 @@ so a speed is reached without steady-state error.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ import can
 
 from fieldbus.core import damiao
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.runtime.clock import Clock
 from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator
 
 POSITION_GAIN = 20.0  # 1/s: speed command per rad of position error (position modes)
@@ -76,7 +76,7 @@ class DamiaoSimulator(MitMotorSimulator):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | Callable[[], float] | None = None,
         registers: dict[int, dict[int, float]] | None = None,
     ) -> None:
         super().__init__(bus, motors, dt_s=dt_s, log=log, clock=clock)

@@ -17,16 +17,8 @@ and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
 ``close()`` never raise. ``open()`` takes the CAN channel's lock
 (:mod:`fieldbus.backends.buslock`): one master per channel.
 
-Family ``damiao`` (:mod:`fieldbus.core.damiao`): ``configure()`` checks MST_ID,
-writes CTRL_MODE and TIMEOUT and reads them back, and refuses PMAX/VMAX/TMAX
-that differ from the map, naming both values; :meth:`RawCanBackend.set_mode`
-switches a motor's mode between cycles; the reply's error code is watched
-(a rising code outside ``ok_codes`` is one counted, named fault in
-:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`); ``stop()``
-sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
-the disable frame.
-
-A fault's onset (either family) is also queued for :meth:`RawCanBackend.take_motor_events`, which the
+A family's error code is watched (a rising code outside its ``ok_codes`` is one counted, named fault in
+:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`). A fault's onset is also queued for :meth:`RawCanBackend.take_motor_events`, which the
 network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
 with the family's name) in ``CycleResult.events`` and recordings, once per onset.
 
@@ -49,7 +41,10 @@ outside 0 are counted, named faults as for Damiao.
 
 Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
 a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
-cycle frames, reply routing, special and stop frames, recovery requests and error codes. Family ``frames``
+cycle frames, reply routing, special and stop frames, recovery requests and error codes, and its
+transactions (:data:`~fieldbus.core.canfamily.Steps`: ``configure()``, :meth:`RawCanBackend.set_mode`,
+:meth:`RawCanBackend.register`), each request's answer awaited here. Family ``damiao``
+(:mod:`fieldbus.core.damiaofamily`) is one. Family ``frames``
 (:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
 shared by several motors of the bus) are filled from the image's output rows and its feedback frames
 routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
@@ -74,8 +69,8 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core import cubemars, damiao, odrive
-from fieldbus.core.canfamily import CanFamily, FamilyMotor, Request, families
+from fieldbus.core import cubemars, odrive
+from fieldbus.core.canfamily import CanFamily, FamilyMotor, Request, Steps, families
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
 from fieldbus.core.rawcan import encode_frame
@@ -92,7 +87,6 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
-SAVE_REGISTER = 1  # the register byte of a Damiao save request (the damiao-motor package's store_parameters)
 SERVO_CURRENT = 1  # CubeMars servo packet: current loop (the stop sends 0 A)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
@@ -170,13 +164,7 @@ class RawCanBackend(CanFaults, Backend):
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
-        # family damiao: the mode of each motor, its mode frames, the error nibble's place in the reply
-        self._mode: list[damiao.Mode | None] = [None] * self.n_slaves
-        self._mode_msgs: list[dict[str, Any]] = [{} for _ in range(self.n_slaves)]
         self._error_at: list[tuple[int, int, int] | None] = [None] * self.n_slaves  # (byte, shift, mask)
-        self._max: list[dict[str, float]] = [
-            {} for _ in range(self.n_slaves)
-        ]  # per-unit bases of mode fields
         self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
@@ -218,12 +206,10 @@ class RawCanBackend(CanFaults, Backend):
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
             if cfg.protocol is not None:
                 self._fr[i] = True
-                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i])
+                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i], area.slave.name)
                 declared.setdefault(cfg.family, []).append(motor)
                 continue
             reply_id = cfg.reply_can_id(node)
-            if cfg.damiao is not None:
-                self._family_init(i, cfg, node)
             if cfg.odrive is not None:
                 reply_id = self._odrive_init(i, cfg, node)
             if cfg.cubemars is not None:
@@ -286,25 +272,6 @@ class RawCanBackend(CanFaults, Backend):
         if self._lock is None:
             self._lock = lock_can_bus(self.bus)
         self._bus = attach_can_bus(self.bus, self._bus, self._log)
-
-    # -- family damiao ------------------------------------------------------------------
-    def _family_init(self, i: int, cfg: Any, node: int) -> None:
-        proto: damiao.DamiaoProtocol = cfg.damiao
-        self._mode[i] = proto.mode_named(proto.mode)
-        for m in proto.modes:
-            self._mode_msgs[i][m.name] = self._message(
-                arbitration_id=node + m.id_offset, data=bytearray(8), is_extended_id=False
-            )
-        self._max[i] = {f.name: f.max for f in cfg.command if f.max is not None}
-        bit = 0
-        for f in cfg.reply:
-            if f.name == proto.error_field:
-                break
-            bit += f.bits
-        width = next(f.bits for f in cfg.reply if f.name == proto.error_field)
-        if bit // 8 != (bit + width - 1) // 8:
-            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
-        self._error_at[i] = (bit // 8, 8 - (bit % 8) - width, (1 << width) - 1)
 
     # -- family cubemars -------------------------------------------------------------------
     def _message(self, **kw: Any) -> Any:
@@ -407,107 +374,67 @@ class RawCanBackend(CanFaults, Backend):
         a = self.areas[i]
         self.groups[a.group].image.outputs.values[a.row][proto.mode_field] = mode.packet
 
-    def _proto(self, i: int) -> damiao.DamiaoProtocol:
-        cfg = self.areas[i].slave.map.rawcan
-        if cfg is None or cfg.damiao is None:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: its map has no register protocol (family damiao)"
-            )
-        return cfg.damiao
-
     def register(
         self, slave: int | str, register: int, value: float | None = None, *, is_float: bool = False
     ) -> float:
-        """Read (``value`` None) or write-and-confirm a register of a Damiao motor; the value the motor answers.
+        """Read (``value`` None) or write-and-confirm a register of a motor whose family has registers
+        (Damiao); the value the motor answers.
 
         Blocking (outside the cycle, or between cycles). Raises :class:`~fieldbus.errors.BusTimeoutError`
         when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        regs = self._proto(i).registers
-        if value is None:
-            op, data = regs.read, bytes(4)
-        else:
-            op, data = regs.write, damiao.pack_register(value, is_float)
-        what = f"{'read' if value is None else 'write'} of register {register}"
-        return damiao.unpack_register(self._register_request(i, op, register, data, what), is_float)
+        got: float = self._transact(self._registers_of(i).register(i, register, value, is_float))
+        return got
 
     def save_registers(self, slave: int | str) -> None:
-        """Store a Damiao motor's registers to its flash (op save); the motor answers only while disabled.
+        """Store a motor's registers to its flash (Damiao: the motor answers only while disabled).
 
         Blocking, outside the cycle. Raises :class:`~fieldbus.errors.BusTimeoutError` without an answer.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        what = "save to flash (a motor saves only while disabled)"
-        self._register_request(i, self._proto(i).registers.save, SAVE_REGISTER, bytes(4), what)
+        self._transact(self._registers_of(i).save(i))
 
-    def _register_request(self, i: int, op: int, register: int, data: bytes, what: str) -> bytes:
-        """One register request to motor ``i`` on the register id; the 4 value bytes of its answer."""
-        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
-        regs = proto.registers
-        self._drain()
+    def _registers_of(self, i: int) -> CanFamily:
+        fam = self._fam_of.get(i)
+        if fam is None or not fam.has_registers():
+            raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no registers over CAN")
+        return fam
+
+    def _transact(self, steps: Steps) -> Any:
+        """Run a family's transaction: each request sent, its answer (or None after its time-out) sent back
+        in; its result. A refusal or time-out of the family names this bus."""
+        answer: bytes | None = None
         try:
-            self._bus.send(
-                self._message(
-                    arbitration_id=regs.can_id,
-                    data=damiao.register_frame(node, op, register, data),
-                    is_extended_id=False,
-                )
-            )
-            cfg = self.areas[i].slave.map.rawcan
-            assert cfg is not None
-            reply_id = cfg.reply_can_id(node)
-            deadline = self._now() + REGISTER_TIMEOUT_S
+            while True:
+                try:
+                    req = steps.send(answer)
+                except StopIteration as done:
+                    return done.value
+                answer = self._ask(req)
+        except StateTransitionError as exc:
+            raise StateTransitionError(f"bus '{self.bus.name}': {exc}", slave=exc.slave) from None
+        except BusTimeoutError as exc:
+            raise BusTimeoutError(f"bus '{self.bus.name}': {exc}") from None
+
+    def _ask(self, req: Request) -> bytes | None:
+        """Send a transaction's request; the data of the frame that answers it, or None (none in time)."""
+        self._drain()
+        self._send_raw(*req.frame)
+        if req.answer is None:
+            return None
+        deadline = self._now() + req.timeout_s
+        try:
             while (left := deadline - self._now()) > 0:
                 msg = self._bus.recv(timeout=left)
-                if msg is None or msg.is_error_frame or msg.arbitration_id != reply_id:
+                if msg is None or msg.is_error_frame or msg.is_remote_frame:
                     continue
-                got = damiao.register_reply(node, bytes(msg.data), (op,))
-                if got is not None and got[1] == register:
-                    return got[2]
+                data = bytes(msg.data)
+                if req.answer(msg.arbitration_id, msg.is_extended_id, data):
+                    return data
         except (can.CanError, OSError) as exc:
             raise self._io_failed("register access", exc) from exc
-        raise BusTimeoutError(
-            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} "
-            f"within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
-        )
-
-    def _write_checked(self, i: int, name: str, register: int, value: float, is_float: bool = False) -> None:
-        self.register(i, register, value, is_float=is_float)
-        back = self.register(i, register, is_float=is_float)
-        if back != value:
-            raise StateTransitionError(
-                f"bus '{self.bus.name}': {self.areas[i].slave.name} register {name} ({register}) reads back "
-                f"{back:g} after writing {value:g}",
-                slave=self.areas[i].slave.name,
-            )
-
-    def _configure_damiao(self, i: int) -> None:
-        """MST_ID checked; PMAX/VMAX/TMAX compared with the map; CTRL_MODE and TIMEOUT written, read back."""
-        proto, slave = self._proto(i), self.areas[i].slave
-        cfg = slave.map.rawcan
-        assert cfg is not None
-        node, regs = slave.node_id or 0, proto.registers
-        mst = self.register(i, regs.master_id)
-        if int(mst) != cfg.reply_can_id(node):
-            raise StateTransitionError(
-                f"bus '{self.bus.name}': {slave.name} (node {node}) answers with MST_ID (register "
-                f"{regs.master_id}) = 0x{int(mst):X}; the map {slave.map.name} expects 0x{cfg.reply_can_id(node):X}",
-                slave=slave.name,
-            )
-        for reg_name, reg, want in proto.limits:
-            have = self.register(i, reg, is_float=True)
-            if have != damiao.float32(want):
-                raise StateTransitionError(
-                    f"bus '{self.bus.name}': {slave.name} (node {node}) has {reg_name} (register {reg}) = "
-                    f"{have:g}, the map {slave.map.name} says {want:g}: the MIT frame would be scaled wrongly; "
-                    "set the motor's register (Damiao tool) or use the map of this motor",
-                    slave=slave.name,
-                )
-        mode = self._mode[i]
-        assert mode is not None
-        self._write_checked(i, "CTRL_MODE", regs.ctrl_mode, mode.ctrl_mode)
-        self._write_checked(i, "TIMEOUT", regs.timeout, proto.timeout_units)
+        return None
 
     def set_mode(self, slave: int | str, mode: str) -> None:
         """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
@@ -515,6 +442,10 @@ class RawCanBackend(CanFaults, Backend):
         An ODrive gets Set_Controller_Mode (CANSimple has no read-back of it; firmware 0.6 could read the
         endpoint) and its set-points go out as that mode's command from the next cycle."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
+        fam = self._fam_of.get(i)
+        if fam is not None:  # its family's transaction (Damiao: CTRL_MODE written, read back)
+            self._transact(fam.set_mode(i, mode))
+            return
         od = self._od[i]
         if od is not None:
             try:
@@ -538,32 +469,26 @@ class RawCanBackend(CanFaults, Backend):
                 )
             self._set_servo_mode(i, cm, mode)
             return
-        proto = self._proto(i)
-        try:
-            new = proto.mode_named(mode)
-        except KeyError:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: no mode '{mode}' (have: {', '.join(m.name for m in proto.modes)})"
-            ) from None
-        self._write_checked(i, "CTRL_MODE", proto.registers.ctrl_mode, new.ctrl_mode)
-        self._mode[i] = new
+        raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no modes")
 
     def mode(self, slave: int | str) -> str | None:
-        """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
+        """The mode a motor's commands are sent in (None: its family has no modes)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
+        if (fam := self._fam_of.get(i)) is not None:
+            return fam.mode(i)
         cm = self._cm[i]
         if cm is not None and cm.protocol == "servo":
             found = cm.mode_of_packet(int(self._mode_values(i)[cm.mode_field]))
             return found.name if found is not None else None
-        m = self._mode[i] or self._od_mode[i]
+        m = self._od_mode[i]
         return m.name if m is not None else None
 
     def error_code(self, slave: int | str) -> int:
-        """The error code of the motor's last accepted reply (family damiao)."""
+        """The error code of the motor's last accepted reply (families with error codes)."""
         return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
-        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer. The
+        """Send the clear-error frame to every motor that has one; returns the motors that did not answer. The
         motors stay disabled: :meth:`recover` clears one motor's fault and enables it again."""
         return [self.areas[i].slave.name for i in self._special("clear")]
 
@@ -601,23 +526,21 @@ class RawCanBackend(CanFaults, Backend):
             return True
         fam = self._fam_of.get(i)
         if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
-            if self._requests(fam.recover(i)):
+            if self._requests(fam.recover(i)) or not fam.enabled(i):
                 return False
-            self._codes[i] = 0
+            self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
             return True
         cm = self._cm[i]
         if cm is not None and cm.protocol == "servo":
             return int(self._codes[i]) == 0
-        if cfg.damiao is not None and not self._answered(i, cfg.damiao.clear):
-            return False
         if not self._answered(i, cfg.enter):
             return False
         at = self._error_at[i]
         if at is None:
             return True
         byte, shift, mask = at
-        self._codes[i] = code = (int(self._reply_rows[i][byte]) >> shift) & mask
-        return cfg.damiao is None or code == 1  # Damiao: 1 is ENABLED; CubeMars MIT: 0
+        self._codes[i] = (int(self._reply_rows[i][byte]) >> shift) & mask
+        return True  # CubeMars MIT: enter motor mode answered
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
@@ -635,18 +558,14 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("send", exc) from exc
             return True
         fam = self._fam_of.get(i)
-        if fam is not None:
-            frames = fam.commands("clear", i)
-            for can_id, ext, data in frames:
-                self._send_raw(can_id, ext, data)
-            return bool(frames)
-        if cfg.damiao is None or not self._answered(i, cfg.damiao.clear):
-            return False
-        at = self._error_at[i]
-        if at is not None:
-            byte, shift, mask = at
-            self._codes[i] = (int(self._reply_rows[i][byte]) >> shift) & mask
-        return True
+        if fam is not None:  # its clear requests (Damiao: answered, the code then in error_code)
+            requests = list(fam.clear(i))
+            if not requests or self._requests(requests):
+                return False
+            if (err := fam.error(i)) is not None and any(r.awaits for r in requests):
+                self._codes[i] = err[0]
+            return True
+        return False
 
     def _seed_from_actual(self, i: int) -> None:
         """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
@@ -654,11 +573,12 @@ class RawCanBackend(CanFaults, Backend):
         img = self.groups[a.group].image
         out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
         names, read = out.dtype.names or (), inp.dtype.names or ()
-        for n in ("velocity", "torque", "current", "duty", "brake_current"):
-            if n in names:
+        for n in names:  # a mode's own channels too ("velocity.velocity": a Damiao mode's field)
+            field = n.rpartition(".")[2]
+            if field in ("velocity", "torque", "current", "duty", "brake_current"):
                 out[n] = 0
-        if "position" in names and "position" in read:
-            out["position"] = inp["position"]
+            elif field == "position" and "position" in read:
+                out[n] = inp["position"]
 
     def _send_raw(self, can_id: int, extended: bool, data: bytes) -> None:
         try:
@@ -720,12 +640,9 @@ class RawCanBackend(CanFaults, Backend):
             code = (int(self._reply_rows[i][byte]) >> shift) & mask
             if code != self._codes[i]:
                 cm = self._cm[i]
-                proto: damiao.DamiaoProtocol | cubemars.CubemarsProtocol = (
-                    cm if cm is not None else self._proto(i)
-                )
-                ok = proto.ok_codes if isinstance(proto, damiao.DamiaoProtocol) else frozenset({0})
-                if code not in ok:
-                    self._fault(i, code, proto.error_name(code))
+                assert cm is not None
+                if code != 0:
+                    self._fault(i, code, cm.error_name(code))
                 self._codes[i] = code
 
     def _fault(self, i: int, code: int, name: str) -> None:
@@ -950,11 +867,11 @@ class RawCanBackend(CanFaults, Backend):
         self._bus.send(self._od_rtr[i])
 
     def configure(self) -> None:
-        """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); MIT motors
-        of family ``mit`` have no registers: nothing to configure."""
+        """Each family's configuration transaction (Damiao: registers checked, written and read back); MIT
+        motors of family ``mit`` have no registers: nothing to configure."""
+        for fam in self._fams:
+            self._transact(fam.configure())
         for i in range(self.n_slaves):
-            if self._mode[i] is not None:
-                self._configure_damiao(i)
             if self._od[i] is not None:
                 self._configure_odrive(i)
 
@@ -1008,11 +925,8 @@ class RawCanBackend(CanFaults, Backend):
                         self._od_request_state(i, cfg.odrive.idle)
                     continue  # no answer to await: the heartbeat tells
                 if which == "clear":
-                    if cfg.damiao is None:
-                        continue  # nothing to clear on this motor
-                    frame = cfg.damiao.clear
-                else:
-                    frame = getattr(cfg, which)
+                    continue  # nothing to clear on this motor (families on the protocol clear their own)
+                frame = getattr(cfg, which)
                 self._bus.send(
                     self._message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
                 )
@@ -1024,8 +938,8 @@ class RawCanBackend(CanFaults, Backend):
             fam_done = self._fr[i] and i not in awaited
             self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or fam_done
         if which == "clear":
-            for i, area in enumerate(self.areas):
-                self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
+            for i in range(self.n_slaves):
+                self._arrived[i] |= not self._fr[i]
         deadline = self._now() + ENTER_TIMEOUT_S
         try:
             while not self._arrived.all() and self._now() < deadline:
@@ -1041,8 +955,8 @@ class RawCanBackend(CanFaults, Backend):
         self._drain()
         try:
             for fam, msgs in self._fam_msgs:
-                fam.cycle()
-                for m in msgs:
+                for c, m in zip(fam.cycle(), msgs, strict=True):
+                    m.arbitration_id = c.can_id  # a mode switch may move a frame (Damiao: id + offset)
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
                 if self._fr[i]:
@@ -1055,14 +969,8 @@ class RawCanBackend(CanFaults, Backend):
                 if cm is not None and cm.protocol == "servo":
                     self._send_servo(i, cm)
                     continue
-                mode = self._mode[i]
-                if mode is None or mode.mit:
-                    np.copyto(data, rev)
-                    self._bus.send(msg)
-                else:  # a Damiao mode frame, from the image's engineering values (allocates: a dict per motor)
-                    m = self._mode_msgs[i][mode.name]
-                    m.data[:] = damiao.encode_mode(mode, self._mode_values(i), self._max[i])
-                    self._bus.send(m)
+                np.copyto(data, rev)
+                self._bus.send(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
 
@@ -1205,24 +1113,18 @@ class RawCanBackend(CanFaults, Backend):
         return [self.areas[i].slave.name for i in self._special("zero")]
 
     def _zero_commands(self) -> None:
-        """Families damiao and cubemars (MIT): each motor's zero command in its mode (MIT kp = kd = torque
-        = 0; velocity 0; position modes hold the last position read with no speed and no current)."""
-        for i, mode in enumerate(self._mode):
-            cm = self._cm[i]
-            if mode is None and (cm is None or cm.protocol != "mit"):
-                continue  # cubemars MIT: a zero-gain MIT command too
+        """Family cubemars (MIT): each motor's zero command (MIT kp = kd = torque = 0)."""
+        for i, cm in enumerate(self._cm):
+            if cm is None or cm.protocol != "mit":
+                continue
             cfg = self.areas[i].slave.map.rawcan
             assert cfg is not None
             a = self.areas[i]
             inputs = self.groups[a.group].image.inputs.values[a.row]
             here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
             values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
-            if mode is None or mode.mit:
-                msg = self._cmd[i][0]
-                data = encode_frame(cfg.command, cfg.span, values)
-            else:
-                msg = self._mode_msgs[i][mode.name]
-                data = damiao.encode_mode(mode, values, self._max[i])
+            msg = self._cmd[i][0]
+            data = encode_frame(cfg.command, cfg.span, values)
             self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
 
     def stop(self) -> None:

@@ -18,15 +18,21 @@ family there and nowhere else.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass
 from importlib import import_module
 from importlib.metadata import entry_points
 from typing import Any, ClassVar, NamedTuple, Protocol
 
+from fieldbus.errors import FieldbusError
+
 GROUP = "fieldbus.rawcan_families"
-#: Built-in families ported to the protocol (damiao, odrive, cubemars still run on the backend's own paths).
-BUILTIN = {"frames": "fieldbus.core.canframes:FramesFamily", "mit": "fieldbus.core.mitfamily:MitFamily"}
+#: Built-in families ported to the protocol (odrive, cubemars still run on the backend's own paths).
+BUILTIN = {
+    "frames": "fieldbus.core.canframes:FramesFamily",
+    "mit": "fieldbus.core.mitfamily:MitFamily",
+    "damiao": "fieldbus.core.damiaofamily:DamiaoFamily",
+}
 
 Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data)
 
@@ -54,15 +60,27 @@ class FamilyMotor:
     config: Any
     outputs: Any
     inputs: Any
+    name: str = ""  # the slave's name (for messages)
 
 
 @dataclass(frozen=True)
 class Request:
     """One step of a bring-up or recovery: send ``frame``, then await a reply from each motor index in
-    ``awaits`` (empty: nothing to await, the next cycle's replies tell)."""
+    ``awaits`` (empty: nothing to await, the next cycle's replies tell).
+
+    In a transaction (:data:`Steps`: register access, configuration, mode switches) ``answer`` tells the
+    frame ``(can id, extended, data)`` that answers it; the transport sends that frame's data back into
+    the generator (None when none came within ``timeout_s`` seconds), and routes it nowhere."""
 
     frame: Frame
     awaits: tuple[int, ...] = ()
+    answer: Callable[[int, bool, bytes], bool] | None = None
+    timeout_s: float = 0.2
+
+
+#: A transaction: a generator of requests, each answer's data (or None) sent back into it; its return
+#: value is the transaction's result. It raises a FieldbusError (timeout, refused value) to fail.
+Steps = Generator[Request, "bytes | None", Any]
 
 
 class CycleFrame(Protocol):
@@ -146,6 +164,48 @@ class CanFamily(ABC):
         it is first). Default: its ``clear`` then ``enable`` frames, no answer awaited."""
         for kind in ("clear", "enable"):
             yield from (Request(f) for f in self.commands(kind, motor))
+
+    def clear(self, motor: int) -> Iterator[Request]:
+        """Clear motor index ``motor``'s fault and leave it disabled. Default: its ``clear`` frames."""
+        yield from (Request(f) for f in self.commands("clear", motor))
+
+    def enabled(self, motor: int) -> bool:
+        """After :meth:`recover`: whether the motor's last reply says it is enabled (default True)."""
+        return True
+
+    @classmethod
+    def command_limits(cls, config: Any) -> list[tuple[str, float, float]]:
+        """``(channel, min, max)`` windows of command channels the output rules saturate to, beyond the
+        classic section's scaled fields (default none)."""
+        return []
+
+    def configure(self) -> Steps:
+        """The bring-up's transaction (registers checked and written, ...); default: nothing."""
+        return
+        yield
+
+    def set_mode(self, motor: int, name: str) -> Steps:
+        """Switch motor index ``motor`` to mode ``name`` (a transaction, between cycles)."""
+        raise FieldbusError(f"family {self.name} has no modes")
+        yield
+
+    def mode(self, motor: int) -> str | None:
+        """The mode motor ``motor``'s commands go out in; None for a family without modes."""
+        return None
+
+    def has_registers(self) -> bool:
+        """Whether :meth:`register` and :meth:`save` reach the motors' registers."""
+        return False
+
+    def register(self, motor: int, number: int, value: float | None = None, is_float: bool = False) -> Steps:
+        """Read (``value`` None) or write a register: a transaction returning the value answered."""
+        raise FieldbusError(f"family {self.name} has no registers")
+        yield
+
+    def save(self, motor: int) -> Steps:
+        """Store the registers to flash (a transaction)."""
+        raise FieldbusError(f"family {self.name} has no registers")
+        yield
 
 
 def families() -> dict[str, type[CanFamily]]:

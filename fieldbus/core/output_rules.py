@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.image import DirectionImage
 from fieldbus.core.pdo.layout import DirectionLayout, EntryLayout
 from fieldbus.core.pdo.model import DriveMap
@@ -144,6 +145,9 @@ def channel_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> tup
         for f in drive.rawcan.command:
             if f.min is not None and f.max is not None:
                 found[f.name] = ChannelLimit(f.name, f.min, f.max, source="rawcan min..max")
+        family = families().get(drive.rawcan.family) if drive.rawcan.protocol is not None else None
+        for name, lo, hi in family.command_limits(drive.rawcan.protocol) if family is not None else ():
+            found[name] = ChannelLimit(name, lo, hi, source="rawcan min..max")
     for lim in drive.limits:
         old = found.get(lim.channel, ChannelLimit(lim.channel))
         step = lim.max_step if lim.max_step is not None else math.inf
