@@ -47,13 +47,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.rawcan import FAMILIES
 from sim_slaves.busthread import serve_together
 
 READY_TIMEOUT_S = 20.0
 UDP_GROUP_BASE = "239.74.163."  # administratively scoped IPv4 multicast (python-can's default group is .2)
 UDP_INTERFACES = ("udp_multicast", "fieldbus_udp")  # python-can interfaces udp_bus() can describe
-KINDS = ("canopen", *FAMILIES, "auto")  # the raw-CAN families from their one table
+# the raw-CAN families: the classic ones and those of the one table (fieldbus.core.canfamily)
+KINDS = ("canopen", *dict.fromkeys((*FAMILIES, *families())), "auto")
 
 
 @dataclass(frozen=True)

@@ -397,7 +397,7 @@ class RawCanBackend(CanFaults, Backend):
 
     def _registers_of(self, i: int) -> CanFamily:
         fam = self._fam_of.get(i)
-        if fam is None or not fam.has_registers():
+        if fam is None or fam.register_table is None:
             raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no registers over CAN")
         return fam
 

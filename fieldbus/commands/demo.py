@@ -31,6 +31,7 @@ from fieldbus.commands import buslogs, cycleopts
 from fieldbus.commands.argtypes import UsageError, integer, non_negative, number
 from fieldbus.commands.outputs import check_plot
 from fieldbus.commands.usage import add_command
+from fieldbus.core.canfamily import families
 from fieldbus.core.cia402 import Cia402Controller, Goal, Mode, State402
 from fieldbus.core.network import load_network
 from fieldbus.emulators import emulator_part
@@ -55,8 +56,8 @@ MOTORS = (
     "odrive_3_6",
     "amr_seed_wheels",
 )
-# most axes per family: Damiao replies on id + 0x10 (MST_ID), kept clear of the others' ids; ODrive node < 64
-MAX_FAMILY_AXES = {"damiao": 15, "odrive": 63}
+# most axes per family not on the protocol (one on it says: CanFamily.max_motors): ODrive node < 64
+MAX_FAMILY_AXES = {"odrive": 63}
 SERVO_SPEED_LIMIT = 10.0  # rad/s, the CubeMars servo demo's position-speed limit
 AMPLITUDE_RAD = 0.5  # sine amplitude per joint
 FREQUENCY_HZ = 0.5
@@ -216,9 +217,9 @@ def motor_family(motor: str) -> str:
 def max_motor_axes(motor: str) -> int | None:
     """Most axes ``motor``'s ids allow: :data:`MAX_FAMILY_AXES`, or the slots of a shared frame."""
     cfg = _rawcan_config(motor)
-    if cfg.frames is not None:
-        shared = [s.motors for s in (cfg.frames.command, cfg.frames.feedback) if s.shared]
-        return min(shared) if shared else None
+    family = families().get(cfg.family)
+    if family is not None:  # a family on the protocol knows its own
+        return family.max_motors(cfg.protocol)
     return MAX_FAMILY_AXES.get(cfg.family)
 
 

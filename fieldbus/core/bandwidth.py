@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 from fieldbus.core import cubemars
 from fieldbus.core.canfamily import families
@@ -785,7 +785,7 @@ def _motor_frames(
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
     (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them;
     CAN FD frames on an FD bus (the backend sends every data frame as FD there)."""
-    if cfg.damiao is not None or cfg.odrive is not None:
+    if cfg.odrive is not None:
         return family_frames(name, cfg, node, frame_bits, fd=fd)
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
@@ -837,25 +837,22 @@ def family_frames(
     mode: str | None = None,
     fd: bool = False,
 ) -> list[CanFrame]:
-    """One cycle of a Damiao or ODrive motor as the rawcan backend runs it, from its map's family section.
+    """One cycle of a motor with modes as the rawcan backend runs it, from its map's family section.
 
-    Damiao: the command of ``mode`` (default: the map's, written to CTRL_MODE at bring-up) on
-    ``node + id_offset`` (MIT +0x000, position-velocity +0x100, velocity +0x200, position-force +0x300),
-    8 bytes, and its 8-byte reply on MST_ID. ODrive (CANSimple, ``node << 5 | command``): the mode's
+    A family on the protocol: its :meth:`~fieldbus.core.canfamily.CanFamily.wire_frames` in ``mode``
+    (default: the map's; Damiao: the mode's command on ``node + id_offset``, 8 bytes, and its 8-byte
+    reply on MST_ID). ODrive (CANSimple, ``node << 5 | command``): the mode's
     set-point (8 bytes), the Get_Encoder_Estimates remote frame (no data field: counted as 0 data bytes)
     and its 8-byte answer; the heartbeat (8 bytes every ``heartbeat_ms``) as a background frame.
     ``fd``: the data frames as CAN FD (an FD bus); a remote frame stays classic (CAN FD has none).
     """
-    if cfg.damiao is not None:
-        dm = cfg.damiao
-        m = dm.mode_named(mode or dm.mode)
-        command = CanFrame(
-            node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", fd=fd, frame_bits=frame_bits
-        )
-        reply = CanFrame(
-            cfg.reply_can_id(node), 8, f"{name} reply", fd=fd, frame_bits=frame_bits, after=command.label
-        )
-        return [command, reply]
+    if cfg.protocol is not None:
+        wire: Any = families()[cfg.family].wire_frames  # a family with modes takes mode=
+        times = wire(name, cfg.protocol, node, mode=mode) if mode else wire(name, cfg.protocol, node)
+        return [
+            CanFrame(t.can_id, t.data_bytes, t.label, t.extended, fd, frame_bits=frame_bits, after=t.after)
+            for t in times
+        ]
     od = cfg.odrive
     if od is None:
         raise ValueError(f"{name}: not a Damiao or ODrive map")

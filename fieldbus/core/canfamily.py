@@ -105,6 +105,10 @@ class CanFamily(ABC):
     #: motors of the bus, a :class:`~fieldbus.runtime.clock.Clock` or None), named, not imported: the
     #: emulators sit above fieldbus.
     emulator: ClassVar[str | None] = None
+    #: The motors' register table when :meth:`register` reaches them (``lookup(text)`` -> a row with
+    #: ``number``, ``name``, ``is_float``, ``read_only``, or an ``int`` outside the table, or None;
+    #: ``REGISTERS``: the rows), else None (:mod:`fieldbus.core.damiao_registers` for Damiao).
+    register_table: ClassVar[Any] = None
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         self.motors = {m.index: m for m in motors}
@@ -193,9 +197,10 @@ class CanFamily(ABC):
         """The mode motor ``motor``'s commands go out in; None for a family without modes."""
         return None
 
-    def has_registers(self) -> bool:
-        """Whether :meth:`register` and :meth:`save` reach the motors' registers."""
-        return False
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """Most motors of this map one bus can hold (their CAN ids), None: no limit of the family's own."""
+        return None
 
     def register(self, motor: int, number: int, value: float | None = None, is_float: bool = False) -> Steps:
         """Read (``value`` None) or write a register: a transaction returning the value answered."""

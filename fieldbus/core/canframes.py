@@ -405,6 +405,12 @@ class FramesFamily(CanFamily):
             out.append(FrameTime(cid, spec.length, label, spec.extended, after, spec.shared))
         return out
 
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """The slots of a shared frame (the fewer of command and feedback); None when none is shared."""
+        shared = [s.motors for s in (config.command, config.feedback) if s.shared]
+        return min(shared) if shared else None
+
     def cycle(self) -> list[WireFrame]:
         """The cycle's command frames, their data taken from the output rows (the image's ``to_wire``)."""
         np = self._np

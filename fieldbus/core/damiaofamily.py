@@ -22,11 +22,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from fieldbus.core import damiao
+from fieldbus.core import damiao, damiao_registers
 from fieldbus.core.canfamily import FamilyMotor, Frame, FrameTime, Request, Steps
 from fieldbus.core.mitfamily import MitFamily
 from fieldbus.core.pdo.model import Channel
@@ -109,6 +109,7 @@ class DamiaoFamily(MitFamily):
 
     name = "damiao"
     emulator = "sim_slaves.damiao:DamiaoSimulator"
+    register_table: ClassVar[Any] = damiao_registers
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         super().__init__(motors)
@@ -158,6 +159,12 @@ class DamiaoFamily(MitFamily):
             raise r.err(path, "family damiao needs its 'damiao' section (modes, registers, errors)")
         (command,) = rpdo
         return cfg, (replace(command, channels=(*command.channels, *_mode_channels(cfg))),), tpdo
+
+    @classmethod
+    def max_motors(cls, config: Any) -> int | None:
+        """Replies come on id + ``reply_id_offset`` (MST_ID): ids 1 .. offset - 1 keep clear of them."""
+        offset = config.reply_id_offset
+        return offset - 1 if offset else None
 
     @classmethod
     def command_limits(cls, config: Any) -> list[tuple[str, float, float]]:
@@ -319,9 +326,6 @@ class DamiaoFamily(MitFamily):
 
     def mode(self, motor: int) -> str | None:
         return self._mode[motor].mode.name
-
-    def has_registers(self) -> bool:
-        return True
 
 
 def _error_place(cfg: RawCanConfig, name: str) -> tuple[int, int, int]:

@@ -38,11 +38,11 @@ RAWCAN_KEYS = (
 )  # fmt: skip
 FAMILIES = (
     "mit",
-    "damiao",
     "odrive",
     "cubemars",
     "frames",
-)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive: CANSimple;
+)  # mit: the MIT frame alone; odrive: CANSimple; (damiao, on the protocol: fieldbus.core.damiaofamily,
+# its rawcan.damiao section parsed here as part of the classic section)
 # cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars);
 # frames: any protocol described in data (fieldbus.core.canframes)
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
