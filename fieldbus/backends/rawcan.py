@@ -37,14 +37,13 @@ its status frame (``0x29 << 8 | id``) is decoded into the image; :meth:`RawCanBa
 packet by name; the safe stop's ``mode`` 1 with current 0 takes the torque off, and ``stop()`` sends a
 current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` length are taken, and the
 reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
-outside 0 are counted, named faults as for Damiao.
+outside 0 are counted, named faults.
 
 Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
 a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
 cycle frames, reply routing, special and stop frames, recovery requests and error codes, and its
 transactions (:data:`~fieldbus.core.canfamily.Steps`: ``configure()``, :meth:`RawCanBackend.set_mode`,
-:meth:`RawCanBackend.register`), each request's answer awaited here. Family ``damiao``
-(:mod:`fieldbus.core.damiaofamily`) is one. Family ``frames``
+:meth:`RawCanBackend.register`), each request's answer awaited here. Family ``frames``
 (:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
 shared by several motors of the bus) are filled from the image's output rows and its feedback frames
 routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
@@ -106,10 +105,10 @@ class MotorFault:
 
 @dataclass(frozen=True)
 class MotorFaultEvent(DriveFault):
-    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a Damiao
-    error code outside ``ok_codes`` or of a new ODrive axis error, with the family's name for it.
+    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a family's
+    error code outside its ``ok_codes`` or of a new ODrive axis error, with the family's name for it.
 
-    ``code`` is the family's own code (Damiao error nibble, ODrive axis error bits), not a CiA 402 0x603F.
+    ``code`` is the family's own code (an error nibble, ODrive axis error bits), not a CiA 402 0x603F.
     """
 
     reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP, ...")
@@ -378,7 +377,7 @@ class RawCanBackend(CanFaults, Backend):
         self, slave: int | str, register: int, value: float | None = None, *, is_float: bool = False
     ) -> float:
         """Read (``value`` None) or write-and-confirm a register of a motor whose family has registers
-        (Damiao); the value the motor answers.
+        (its family's :attr:`~fieldbus.core.canfamily.CanFamily.register_table`); the value answered.
 
         Blocking (outside the cycle, or between cycles). Raises :class:`~fieldbus.errors.BusTimeoutError`
         when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
@@ -388,7 +387,7 @@ class RawCanBackend(CanFaults, Backend):
         return got
 
     def save_registers(self, slave: int | str) -> None:
-        """Store a motor's registers to its flash (Damiao: the motor answers only while disabled).
+        """Store a motor's registers to its flash (a family's transaction: a motor may answer only while disabled).
 
         Blocking, outside the cycle. Raises :class:`~fieldbus.errors.BusTimeoutError` without an answer.
         """
@@ -437,13 +436,13 @@ class RawCanBackend(CanFaults, Backend):
         return None
 
     def set_mode(self, slave: int | str, mode: str) -> None:
-        """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
-        then its commands go out as that mode's frames. Blocking: call it between cycles.
+        """Switch a motor to ``mode`` (a mode name of its map) by its family's transaction (a mode register
+        written and read back), then its commands go out as that mode's frames. Blocking: call it between cycles.
         An ODrive gets Set_Controller_Mode (CANSimple has no read-back of it; firmware 0.6 could read the
         endpoint) and its set-points go out as that mode's command from the next cycle."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
-        if fam is not None:  # its family's transaction (Damiao: CTRL_MODE written, read back)
+        if fam is not None:  # its family's transaction
             self._transact(fam.set_mode(i, mode))
             return
         od = self._od[i]
@@ -499,7 +498,8 @@ class RawCanBackend(CanFaults, Backend):
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
         the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
-        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); ODrive: Clear_Errors, then
+        A family on the protocol: its recovery requests, then :meth:`~fieldbus.core.canfamily.CanFamily.enabled`;
+        ODrive: Clear_Errors, then
         CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
         declarative (``frames``): the map's clear and enable patterns, if any. A CubeMars servo has no clear command:
         True only when its error code is 0 again (after a power cycle). Raises
@@ -544,8 +544,8 @@ class RawCanBackend(CanFaults, Backend):
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
-        session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). Damiao:
-        the clear-error frame, True when its status reply came (its code then in :meth:`error_code`);
+        session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). A family
+        on the protocol: its clear requests, True when each awaited reply came (its code then in :meth:`error_code`);
         ODrive: Clear_Errors (the heartbeat tells); declarative: the map's clear pattern. False for a
         motor whose family has no clear command (MIT, CubeMars)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
@@ -558,7 +558,7 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("send", exc) from exc
             return True
         fam = self._fam_of.get(i)
-        if fam is not None:  # its clear requests (Damiao: answered, the code then in error_code)
+        if fam is not None:  # its clear requests (answered: the code then in error_code)
             requests = list(fam.clear(i))
             if not requests or self._requests(requests):
                 return False
@@ -573,7 +573,7 @@ class RawCanBackend(CanFaults, Backend):
         img = self.groups[a.group].image
         out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
         names, read = out.dtype.names or (), inp.dtype.names or ()
-        for n in names:  # a mode's own channels too ("velocity.velocity": a Damiao mode's field)
+        for n in names:  # a mode's own channels too ("velocity.velocity": mode velocity's field)
             field = n.rpartition(".")[2]
             if field in ("velocity", "torque", "current", "duty", "brake_current"):
                 out[n] = 0
@@ -867,7 +867,7 @@ class RawCanBackend(CanFaults, Backend):
         self._bus.send(self._od_rtr[i])
 
     def configure(self) -> None:
-        """Each family's configuration transaction (Damiao: registers checked, written and read back); MIT
+        """Each family's configuration transaction (registers checked, written and read back); MIT
         motors of family ``mit`` have no registers: nothing to configure."""
         for fam in self._fams:
             self._transact(fam.configure())
@@ -956,7 +956,7 @@ class RawCanBackend(CanFaults, Backend):
         try:
             for fam, msgs in self._fam_msgs:
                 for c, m in zip(fam.cycle(), msgs, strict=True):
-                    m.arbitration_id = c.can_id  # a mode switch may move a frame (Damiao: id + offset)
+                    m.arbitration_id = c.can_id  # a mode switch may move a frame (id + the mode's offset)
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
                 if self._fr[i]:
@@ -1128,8 +1128,8 @@ class RawCanBackend(CanFaults, Backend):
             self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
 
     def stop(self) -> None:
-        """Exit motor mode on every motor (Damiao, CubeMars MIT: a zero command in its mode first, then
-        disable / exit; CubeMars servo: a current of 0).
+        """Exit motor mode on every motor (a family on the protocol: its exit requests, safe frames first;
+        CubeMars MIT: a zero command first, then exit; CubeMars servo: a current of 0).
         Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:

@@ -198,6 +198,12 @@ class CanFamily(ABC):
         return None
 
     @classmethod
+    def fault_codes(cls, config: Any) -> dict[int, str] | None:
+        """The error codes this map's motors report as faults, by name (an emulator injects one of them);
+        None: the family has no table of its own."""
+        return None
+
+    @classmethod
     def max_motors(cls, config: Any) -> int | None:
         """Most motors of this map one bus can hold (their CAN ids), None: no limit of the family's own."""
         return None

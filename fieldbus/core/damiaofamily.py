@@ -161,6 +161,12 @@ class DamiaoFamily(MitFamily):
         return cfg, (replace(command, channels=(*command.channels, *_mode_channels(cfg))),), tpdo
 
     @classmethod
+    def fault_codes(cls, config: Any) -> dict[int, str] | None:
+        """The reply's error codes outside ``ok_codes`` (the states disabled, enabled)."""
+        proto = config.damiao
+        return {code: name for code, name in proto.errors if code not in proto.ok_codes}
+
+    @classmethod
     def max_motors(cls, config: Any) -> int | None:
         """Replies come on id + ``reply_id_offset`` (MST_ID): ids 1 .. offset - 1 keep clear of them."""
         offset = config.reply_id_offset
