@@ -64,7 +64,8 @@ def simulator(
     """
     family = bus_family(d for d, _ in motors)
     items = list(motors)
-    registered = families().get(family)
+    cfg = items[0][0].rawcan if items else None
+    registered = families().get(cfg.family) if cfg is not None and cfg.protocol is not None else None
     if registered is not None and registered.emulator is not None:  # a family on the protocol names its own
         module, _, attr = registered.emulator.partition(":")
         emulator: MitMotorSimulator = getattr(import_module(module), attr)(
@@ -75,12 +76,4 @@ def simulator(
         from sim_slaves.odrive import OdriveSimulator
 
         return OdriveSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
-    if family == "cubemars-servo":
-        from sim_slaves.cubemars import CubemarsServoSimulator
-
-        return CubemarsServoSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
-    if family == "cubemars-mit":
-        from sim_slaves.cubemars import CubemarsMitSimulator
-
-        return CubemarsMitSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
     return MitMotorSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)

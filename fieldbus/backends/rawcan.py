@@ -31,14 +31,6 @@ IDLE no set-point goes out (the safe stop writes IDLE); ``op()`` requests CLOSED
 for the heartbeats to say so; ``stop()`` requests IDLE. ``configure()`` waits for a heartbeat, sends
 Set_Controller_Mode and writes the map's endpoints (RxSdo, 0.6) and reads them back (TxSdo).
 
-Family ``cubemars`` (:mod:`fieldbus.core.cubemars`): in servo mode each cycle a motor gets the packet the
-image's ``mode`` field names (29-bit id ``packet << 8 | id``, big-endian numbers at the map's scales) and
-its status frame (``0x29 << 8 | id``) is decoded into the image; :meth:`RawCanBackend.set_mode` picks the
-packet by name; the safe stop's ``mode`` 1 with current 0 takes the torque off, and ``stop()`` sends a
-current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` length are taken, and the
-reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
-outside 0 are counted, named faults.
-
 Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
 a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
 cycle frames, reply routing, special and stop frames, recovery requests and error codes, and its
@@ -55,7 +47,6 @@ with bit-rate switching when the data rate differs from the nominal one (remote 
 
 from __future__ import annotations
 
-import struct
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -68,11 +59,10 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core import cubemars, odrive
+from fieldbus.core import odrive
 from fieldbus.core.canfamily import CanFamily, FamilyMotor, Request, Steps, families
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.network import Bus
-from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.runtime.clock import monotonic_s
 from fieldbus.wire.canlog import open_log
@@ -86,7 +76,6 @@ except ImportError as exc:  # pragma: no cover - depends on the install
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
-SERVO_CURRENT = 1  # CubeMars servo packet: current loop (the stop sends 0 A)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -136,14 +125,6 @@ class RawCanBackend(CanFaults, Backend):
         fd_option = dict(bus.can_options).get("fd") is True
         self._fd = bus.data_bitrate is not None or fd_option  # CAN FD data frames
         self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
-        # family cubemars: protocol per motor, status routing (29-bit id -> motor), MIT unwrapping
-        self._cm: list[cubemars.CubemarsProtocol | None] = [
-            (c.cubemars if (c := a.slave.map.rawcan) is not None else None) for a in self.areas
-        ]
-        self._cm_status: dict[int, int] = {}
-        self._cm_unwrap: list[tuple[cubemars.Unwrapper, int, int, float, float] | None] = [
-            None
-        ] * self.n_slaves
         self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
         self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
@@ -154,16 +135,12 @@ class RawCanBackend(CanFaults, Backend):
         self._reply_rows = [
             self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
         ]
-        self._reply_len = [
-            8 if self._od_of(i) else (cm.reply_bytes if (cm := self._cm[i]) is not None else row.size)
-            for i, row in enumerate(self._reply_rows)
-        ]
+        self._reply_len = [8 if self._od_of(i) else row.size for i, row in enumerate(self._reply_rows)]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
-        self._error_at: list[tuple[int, int, int] | None] = [None] * self.n_slaves  # (byte, shift, mask)
         self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
@@ -211,10 +188,6 @@ class RawCanBackend(CanFaults, Backend):
             reply_id = cfg.reply_can_id(node)
             if cfg.odrive is not None:
                 reply_id = self._odrive_init(i, cfg, node)
-            if cfg.cubemars is not None:
-                self._cubemars_init(i, cfg, node)
-                if cfg.cubemars.protocol == "servo":
-                    continue  # routed by its 29-bit status id
             byte = -1
             if cfg.node_field:
                 bit = 0
@@ -240,18 +213,10 @@ class RawCanBackend(CanFaults, Backend):
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
         self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
-        # each family's cycle frames, a message built once around each (their data rewritten in place)
-        self._fam_msgs = [
-            (
-                f,
-                [
-                    self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
-                    for c in f.cycle()
-                ],
-            )
-            for f in self._fams
-        ]
-        self._families = any(at is not None for at in self._error_at) or bool(self._fam_of)
+        # each family's cycle frames, a message built once around each (their data rewritten in place),
+        # by the frame's id(): a family with modes sends another frame object after a switch
+        self._fam_msgs: list[tuple[CanFamily, dict[int, Any]]] = [(f, {}) for f in self._fams]
+        self._families = bool(self._fam_of)
         self._odrives = any(p is not None for p in self._od)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
@@ -272,106 +237,11 @@ class RawCanBackend(CanFaults, Backend):
             self._lock = lock_can_bus(self.bus)
         self._bus = attach_can_bus(self.bus, self._bus, self._log)
 
-    # -- family cubemars -------------------------------------------------------------------
     def _message(self, **kw: Any) -> Any:
         """A python-can frame; on a CAN FD bus a data frame is FD (bit-rate switched when the rates differ)."""
         if self._fd and not kw.get("is_remote_frame"):
             kw.update(is_fd=True, bitrate_switch=self._brs)
         return can.Message(**kw)
-
-    def _cubemars_init(self, i: int, cfg: Any, node: int) -> None:
-        proto: cubemars.CubemarsProtocol = cfg.cubemars
-        if proto.protocol == "servo":
-            if not 0 <= node <= 0xFF:
-                raise FieldbusError(f"{self.areas[i].slave.name}: a CubeMars motor id is 0..255")
-            self._cm_status[cubemars.servo_id(proto.status_packet, node)] = i
-            at = 0
-            for f in cfg.reply:  # the image row is little-endian, fields in order
-                if f.name == proto.error_field:
-                    break
-                at += f.bits // 8
-            self._error_at[i] = (at, 0, 0xFF)
-            return
-        bit = 0
-        offsets: dict[str, int] = {}
-        for f in cfg.reply:  # frame order, most significant first
-            offsets[f.name] = bit
-            bit += f.bits
-        wire = self._reply_len[i] * 8
-        e_at, e_bits = (
-            offsets[proto.error_field],
-            next(f.bits for f in cfg.reply if f.name == proto.error_field),
-        )
-        if e_at // 8 != (e_at + e_bits - 1) // 8:
-            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
-        self._error_at[i] = (e_at // 8, 8 - (e_at % 8) - e_bits, (1 << e_bits) - 1)
-        if proto.unwrap is not None:
-            f = next(f for f in cfg.reply if f.name == proto.unwrap[0])
-            assert f.min is not None and f.max is not None
-            steps = (1 << f.bits) - (1 if cfg.span == "full" else 0)
-            shift = wire - offsets[f.name] - f.bits
-            self._cm_unwrap[i] = (
-                cubemars.Unwrapper(f.min, f.max),
-                shift,
-                (1 << f.bits) - 1,
-                f.min,
-                (f.max - f.min) / steps,
-            )
-
-    def _cm_servo_in(self, i: int, data: bytes) -> bool:
-        """A servo status frame decoded into motor ``i``'s input row (little-endian image fields)."""
-        proto = self._cm[i]
-        assert proto is not None
-        if len(data) < sum(cubemars.TYPES[f.type][1] for f in proto.status):
-            return False
-        cfg = self.areas[i].slave.map.rawcan
-        assert cfg is not None
-        values = cubemars.decode_servo(proto.status, data)
-        row, at = self._in_rows[i], 0
-        for f in cfg.reply:
-            size = f.bits // 8
-            if f.name in values:
-                x = values[f.name]
-                if f.type == "float32":
-                    raw = struct.pack("<f", x)
-                else:
-                    raw = round(x).to_bytes(size, "little", signed=f.type == "int")
-                row[at : at + size] = np.frombuffer(raw, dtype=np.uint8)
-            at += size
-        return True
-
-    def _cm_unwrap_in(self, i: int, data: bytes) -> None:
-        """The multi-turn position of motor ``i`` from this reply's wrapped one, into its float32 field."""
-        got = self._cm_unwrap[i]
-        assert got is not None
-        unwrap, shift, mask, lo, per_raw = got
-        x = int.from_bytes(bytes(data).ljust(8, b"\0"), "big")
-        total = unwrap(((x >> shift) & mask) * per_raw + lo)
-        self._in_rows[i][:4] = np.frombuffer(struct.pack("<f", total), dtype=np.uint8)
-
-    def _send_servo(self, i: int, proto: cubemars.CubemarsProtocol) -> None:
-        """One servo-mode motor's cycle: the packet the image's mode field names (none when it names none)."""
-        values = self._mode_values(i)
-        mode = proto.mode_of_packet(int(values[proto.mode_field]))
-        if mode is None:
-            return  # no such packet in the map: nothing sent, the missing status counts as a miss
-        self._servo_packet(i, mode.packet, cubemars.encode_servo(mode.fields, values))
-
-    def _servo_packet(self, i: int, packet: int, data: bytes) -> None:
-        node = self.areas[i].slave.node_id or 0
-        self._bus.send(
-            self._message(arbitration_id=cubemars.servo_id(packet, node), data=data, is_extended_id=True)
-        )
-
-    def _set_servo_mode(self, i: int, proto: cubemars.CubemarsProtocol, name: str) -> None:
-        try:
-            mode = proto.mode_named(name)
-        except KeyError:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: no mode '{name}' (have: {', '.join(m.name for m in proto.modes)})"
-            ) from None
-        a = self.areas[i]
-        self.groups[a.group].image.outputs.values[a.row][proto.mode_field] = mode.packet
 
     def register(
         self, slave: int | str, register: int, value: float | None = None, *, is_float: bool = False
@@ -459,15 +329,6 @@ class RawCanBackend(CanFaults, Backend):
                 raise self._io_failed("send", exc) from exc
             self._od_mode[i] = new_od
             return
-        cm = self._cm[i]
-        if cm is not None:
-            if cm.protocol != "servo":
-                raise FieldbusError(
-                    f"{self.areas[i].slave.name}: a CubeMars motor in MIT mode has no other mode over CAN "
-                    "(servo or MIT is chosen in CubeMars' tool)"
-                )
-            self._set_servo_mode(i, cm, mode)
-            return
         raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no modes")
 
     def mode(self, slave: int | str) -> str | None:
@@ -475,10 +336,6 @@ class RawCanBackend(CanFaults, Backend):
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         if (fam := self._fam_of.get(i)) is not None:
             return fam.mode(i)
-        cm = self._cm[i]
-        if cm is not None and cm.protocol == "servo":
-            found = cm.mode_of_packet(int(self._mode_values(i)[cm.mode_field]))
-            return found.name if found is not None else None
         m = self._od_mode[i]
         return m.name if m is not None else None
 
@@ -498,12 +355,10 @@ class RawCanBackend(CanFaults, Backend):
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
         the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
-        A family on the protocol: its recovery requests, then :meth:`~fieldbus.core.canfamily.CanFamily.enabled`;
-        ODrive: Clear_Errors, then
-        CLOSED_LOOP_CONTROL, awaited in the heartbeat; MIT (CubeMars MIT too): enter motor mode, answered;
-        declarative (``frames``): the map's clear and enable patterns, if any. A CubeMars servo has no clear command:
-        True only when its error code is 0 again (after a power cycle). Raises
-        :class:`~fieldbus.errors.BusIoError` when the driver fails.
+        A family on the protocol: its recovery requests (MIT: enter motor mode, answered; declarative,
+        ``frames``: the map's clear and enable patterns, if any), then its
+        :meth:`~fieldbus.core.canfamily.CanFamily.enabled`; ODrive: Clear_Errors, then CLOSED_LOOP_CONTROL,
+        awaited in the heartbeat. Raises :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         self._seed_from_actual(i)
@@ -530,24 +385,14 @@ class RawCanBackend(CanFaults, Backend):
                 return False
             self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
             return True
-        cm = self._cm[i]
-        if cm is not None and cm.protocol == "servo":
-            return int(self._codes[i]) == 0
-        if not self._answered(i, cfg.enter):
-            return False
-        at = self._error_at[i]
-        if at is None:
-            return True
-        byte, shift, mask = at
-        self._codes[i] = (int(self._reply_rows[i][byte]) >> shift) & mask
-        return True  # CubeMars MIT: enter motor mode answered
+        return self._answered(i, cfg.enter)
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
         session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). A family
         on the protocol: its clear requests, True when each awaited reply came (its code then in :meth:`error_code`);
         ODrive: Clear_Errors (the heartbeat tells); declarative: the map's clear pattern. False for a
-        motor whose family has no clear command (MIT, CubeMars)."""
+        motor whose family has no clear command (MIT)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         cfg = self.areas[i].slave.map.rawcan
         assert cfg is not None
@@ -620,12 +465,6 @@ class RawCanBackend(CanFaults, Backend):
                 return missing
         return []
 
-    def _mode_values(self, i: int) -> dict[str, float]:
-        a = self.areas[i]
-        row = self.groups[a.group].image.outputs.values[a.row]
-        names = row.dtype.names or ()
-        return {n: float(row[n]) for n in names}
-
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
         for i, fam in self._fam_of.items():
@@ -633,17 +472,6 @@ class RawCanBackend(CanFaults, Backend):
                 if err[1] is not None:
                     self._fault(i, err[0], err[1])
                 self._codes[i] = err[0]
-        for i, at in enumerate(self._error_at):
-            if at is None or not self._arrived[i]:
-                continue
-            byte, shift, mask = at
-            code = (int(self._reply_rows[i][byte]) >> shift) & mask
-            if code != self._codes[i]:
-                cm = self._cm[i]
-                assert cm is not None
-                if code != 0:
-                    self._fault(i, code, cm.error_name(code))
-                self._codes[i] = code
 
     def _fault(self, i: int, code: int, name: str) -> None:
         """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
@@ -879,9 +707,6 @@ class RawCanBackend(CanFaults, Backend):
         """Nothing: motors stay out of motor mode until :meth:`op`."""
 
     def op(self) -> None:
-        for i, cm in enumerate(self._cm):
-            if cm is not None and cm.protocol == "servo":
-                self._set_servo_mode(i, cm, cm.mode)  # the map's packet, from the first cycle
         if self._odrives:
             self._op_odrive()
         missing = self._special("enter")
@@ -911,13 +736,6 @@ class RawCanBackend(CanFaults, Backend):
                 if self._fr[i]:
                     continue
                 msg, _, _ = self._cmd[i]
-                cm = cfg.cubemars
-                if cm is not None and cm.protocol == "servo":
-                    if which == "zero":  # set origin: 0 = temporary (until power-off), no answer
-                        self._servo_packet(i, cm.origin_packet, b"\0")
-                    elif which == "exit" and (off := cm.mode_of_packet(SERVO_CURRENT)) is not None:
-                        self._servo_packet(i, off.packet, cubemars.encode_servo(off.fields, {}))  # no current
-                    continue
                 if cfg.odrive is not None:
                     if which == "clear":
                         self._od_frame(i, "clear_errors", cfg.odrive.clear)
@@ -934,9 +752,8 @@ class RawCanBackend(CanFaults, Backend):
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
         for i, proto in enumerate(self._od):
-            cm = self._cm[i]
             fam_done = self._fr[i] and i not in awaited
-            self._arrived[i] = proto is not None or (cm is not None and cm.protocol == "servo") or fam_done
+            self._arrived[i] = proto is not None or fam_done
         if which == "clear":
             for i in range(self.n_slaves):
                 self._arrived[i] |= not self._fr[i]
@@ -955,7 +772,12 @@ class RawCanBackend(CanFaults, Backend):
         self._drain()
         try:
             for fam, msgs in self._fam_msgs:
-                for c, m in zip(fam.cycle(), msgs, strict=True):
+                for c in fam.cycle():
+                    m = msgs.get(id(c))
+                    if m is None:  # first sent: its message, kept (the family keeps the frame)
+                        m = msgs[id(c)] = self._message(
+                            arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended
+                        )
                     m.arbitration_id = c.can_id  # a mode switch may move a frame (id + the mode's offset)
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
@@ -964,10 +786,6 @@ class RawCanBackend(CanFaults, Backend):
                 proto = self._od[i]
                 if proto is not None:
                     self._send_odrive(i, proto)
-                    continue
-                cm = self._cm[i]
-                if cm is not None and cm.protocol == "servo":
-                    self._send_servo(i, cm)
                     continue
                 np.copyto(data, rev)
                 self._bus.send(msg)
@@ -1005,8 +823,6 @@ class RawCanBackend(CanFaults, Backend):
             return -1
         if self._odrives and self._side_frame(msg):
             return -1
-        if msg.is_extended_id and not msg.is_remote_frame:
-            return self._cm_status.get(msg.arbitration_id, -1)
         if msg.is_extended_id or msg.is_remote_frame:
             return -1
         can_id = msg.arbitration_id
@@ -1035,9 +851,6 @@ class RawCanBackend(CanFaults, Backend):
             row = self._reply_rows[i]
             data = msg.data
             n = self._reply_len[i]
-            cm = self._cm[i]
-            if cm is not None:
-                return self._accept_cubemars(i, cm, bytes(data))
             if len(data) != n:
                 return False
             row[:n] = np.frombuffer(data, dtype=np.uint8)
@@ -1066,22 +879,6 @@ class RawCanBackend(CanFaults, Backend):
                 return motors
         return ()
 
-    def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
-        """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
-        ``short_reply``) bytes copied and its position unwrapped."""
-        if cm.protocol == "servo":
-            if not self._cm_servo_in(i, data):
-                return False
-        else:
-            n = len(data)
-            if n != self._reply_len[i] and n != cm.short_reply:
-                return False
-            self._reply_rows[i][:n] = np.frombuffer(data, dtype=np.uint8)
-            if self._cm_unwrap[i] is not None:
-                self._cm_unwrap_in(i, data)
-        self._arrived[i] = True
-        return True
-
     def _drain(self) -> None:
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
@@ -1107,34 +904,13 @@ class RawCanBackend(CanFaults, Backend):
 
     def zero_position(self) -> list[str]:
         """Set the current position of every motor as zero; returns the motors that did not answer."""
-        for got in self._cm_unwrap:
-            if got is not None:
-                got[0].reset()
         return [self.areas[i].slave.name for i in self._special("zero")]
 
-    def _zero_commands(self) -> None:
-        """Family cubemars (MIT): each motor's zero command (MIT kp = kd = torque = 0)."""
-        for i, cm in enumerate(self._cm):
-            if cm is None or cm.protocol != "mit":
-                continue
-            cfg = self.areas[i].slave.map.rawcan
-            assert cfg is not None
-            a = self.areas[i]
-            inputs = self.groups[a.group].image.inputs.values[a.row]
-            here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
-            values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
-            msg = self._cmd[i][0]
-            data = encode_frame(cfg.command, cfg.span, values)
-            self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
-
     def stop(self) -> None:
-        """Exit motor mode on every motor (a family on the protocol: its exit requests, safe frames first;
-        CubeMars MIT: a zero command first, then exit; CubeMars servo: a current of 0).
+        """Exit motor mode on every motor (a family on the protocol: its exit requests, safe frames first).
         Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:
-                if self._families:
-                    self._zero_commands()
                 self._special("exit")
             except Exception as exc:
                 self._shut_failed("stop", exc)

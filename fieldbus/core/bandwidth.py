@@ -24,7 +24,6 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
-from fieldbus.core import cubemars
 from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
@@ -790,15 +789,6 @@ def _motor_frames(
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
     out_bytes, in_bytes, extended = sum(p.size for p in rpdo), sum(p.size for p in tpdo), False
-    cm = cfg.cubemars
-    if cm is not None and cm.protocol == "servo":  # 29-bit ids; the map's packet and its status frame
-        mode = cm.mode_named(cm.mode)
-        extended = True
-        out_bytes = sum(cubemars.TYPES[f.type][1] for f in mode.fields)
-        in_bytes = sum(cubemars.TYPES[f.type][1] for f in cm.status)
-        command_id, reply_id = cubemars.servo_id(mode.packet, node), cubemars.servo_id(cm.status_packet, node)
-    elif cm is not None:
-        in_bytes = cm.reply_bytes  # an unwrapped multi-turn position is the image's, not on the wire
     command = CanFrame(command_id, out_bytes, f"{name} command", extended, fd, frame_bits=frame_bits)
     reply = CanFrame(
         reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label

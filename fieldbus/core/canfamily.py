@@ -27,11 +27,12 @@ from typing import Any, ClassVar, NamedTuple, Protocol
 from fieldbus.errors import FieldbusError
 
 GROUP = "fieldbus.rawcan_families"
-#: Built-in families ported to the protocol (odrive, cubemars still run on the backend's own paths).
+#: Built-in families ported to the protocol (odrive still runs on the backend's own paths).
 BUILTIN = {
     "frames": "fieldbus.core.canframes:FramesFamily",
     "mit": "fieldbus.core.mitfamily:MitFamily",
     "damiao": "fieldbus.core.damiaofamily:DamiaoFamily",
+    "cubemars": "fieldbus.core.cubemarsfamily:CubemarsFamily",
 }
 
 Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data)

@@ -28,9 +28,9 @@ import numpy as np
 
 from fieldbus.core import damiao, damiao_registers
 from fieldbus.core.canfamily import FamilyMotor, Frame, FrameTime, Request, Steps
-from fieldbus.core.mitfamily import MitFamily
+from fieldbus.core.mitfamily import MitFamily, field_place, safe_patch
 from fieldbus.core.pdo.model import Channel
-from fieldbus.core.rawcan import COMMAND_OBJECT, RawCanConfig, RawCanField, encode_frame, field_channel
+from fieldbus.core.rawcan import COMMAND_OBJECT, RawCanConfig, field_channel
 from fieldbus.core.yamlsrc import PathT
 from fieldbus.errors import BusTimeoutError, FieldbusError, StateTransitionError
 
@@ -134,7 +134,7 @@ class DamiaoFamily(MitFamily):
                     mit = m.outputs[:mit_bytes]
                     src = mit if cfg.byte_order == "little" else mit[::-1]
                     wires[mode.name] = _ModeWire(
-                        mode, m.node + mode.id_offset, src, data[:mit_bytes], _mit_safe(cfg)
+                        mode, m.node + mode.id_offset, src, data[:mit_bytes], safe_patch(cfg)
                     )
                     continue
                 n = sum(damiao.MODE_TYPES[f.type][1] for f in mode.fields)
@@ -145,7 +145,7 @@ class DamiaoFamily(MitFamily):
             self._wire[m.index] = wires
             self._frame_of[m.index] = frame
             self._frames.append(frame)  # type: ignore[arg-type]
-            self._error_at[m.index] = _error_place(cfg, proto.error_field)
+            self._error_at[m.index] = field_place(cfg, proto.error_field)
             self._select(m.index, proto.mode)
 
     # -- the map ---------------------------------------------------------------------------------
@@ -332,39 +332,6 @@ class DamiaoFamily(MitFamily):
 
     def mode(self, motor: int) -> str | None:
         return self._mode[motor].mode.name
-
-
-def _error_place(cfg: RawCanConfig, name: str) -> tuple[int, int, int]:
-    """``(byte, shift, mask)`` of reply field ``name`` in the frame; ValueError when it spans two bytes."""
-    bit = 0
-    for f in cfg.reply:
-        if f.name == name:
-            if bit // 8 != (bit + f.bits - 1) // 8:
-                raise ValueError("the error field must sit inside one byte")
-            return bit // 8, 8 - (bit % 8) - f.bits, (1 << f.bits) - 1
-        bit += f.bits
-    raise ValueError(f"no reply field '{name}'")
-
-
-def _mit_safe(cfg: RawCanConfig) -> Callable[[bytearray], None]:
-    """Puts the safe values' raw bits into an MIT frame (big-endian, fields MSB first)."""
-    total = sum(f.bits for f in cfg.command)
-    keep, put, bit = (1 << total) - 1, 0, total
-    for f in cfg.command:
-        bit -= f.bits
-        if f.safe_value is not None:
-            pad = RawCanField("pad", -f.bits % 8)  # encode_frame packs whole bytes
-            fields = (f, pad) if pad.bits else (f,)
-            raw = int.from_bytes(encode_frame(fields, cfg.span, {f.name: f.safe_value}), "big") >> pad.bits
-            keep &= ~(((1 << f.bits) - 1) << bit)
-            put |= raw << bit
-    n = total // 8
-
-    def safe(data: bytearray) -> None:
-        x = int.from_bytes(data[:n], "big") & keep | put
-        data[:n] = x.to_bytes(n, "big")
-
-    return safe
 
 
 def _mode_safe(cfg: RawCanConfig, mode: damiao.Mode) -> Callable[[bytearray], None]:

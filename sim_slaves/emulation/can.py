@@ -298,8 +298,6 @@ class CanBus(BusEmulator):
             raise self._unsupported(
                 "drive_fault", f"map {self.bus.slaves[slave].map.name} has no fault field"
             )
-        elif cfg.cubemars is not None and code > 0xFF:  # the status / reply error byte
-            raise FieldbusError(f"drive_fault: a CubeMars error code is 1..255, got {code:#x}")
         sim.inject_error(n, code)  # ODrive: axis error bits (up to 32)
 
     def silence(self, slave: int, silent: bool) -> None:
