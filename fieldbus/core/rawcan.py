@@ -39,12 +39,11 @@ RAWCAN_KEYS = (
 FAMILIES = (
     "mit",
     "odrive",
-    "cubemars",
     "frames",
-)  # mit: the MIT frame alone; odrive: CANSimple; (damiao, on the protocol: fieldbus.core.damiaofamily,
-# its rawcan.damiao section parsed here as part of the classic section)
-# cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars);
-# frames: any protocol described in data (fieldbus.core.canframes)
+)  # mit: the MIT frame alone; odrive: CANSimple; frames: any protocol described in data
+# (fieldbus.core.canframes). The families on the protocol (fieldbus.core.canfamily.families: damiao,
+# cubemars, ...) are chosen from their table; damiao's and cubemars' sections (rawcan.damiao,
+# rawcan.cubemars) are parsed here as parts of the classic section.
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
 FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
