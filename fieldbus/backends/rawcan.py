@@ -307,13 +307,17 @@ class RawCanBackend(CanFaults, Backend):
 
     def set_mode(self, slave: int | str, mode: str) -> None:
         """Switch a motor to ``mode`` (a mode name of its map) by its family's transaction (a mode register
-        written and read back), then its commands go out as that mode's frames. Blocking: call it between cycles.
+        written and read back), then its commands go out as that mode's frames, its own channels
+        (``<mode>.<field>``) first seeded where the motor is (position as read, speed and torque limits 0):
+        a switch starts no motion by itself, a value left there from an earlier use of the mode is never
+        sent. Blocking: call it between cycles.
         An ODrive gets Set_Controller_Mode (CANSimple has no read-back of it; firmware 0.6 could read the
         endpoint) and its set-points go out as that mode's command from the next cycle."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
-        if fam is not None:  # its family's transaction
+        if fam is not None:  # its family's transaction; the mode's own channels start where the motor is
             self._transact(fam.set_mode(i, mode))
+            self._seed_from_actual(i, within=f"{mode}.")
             return
         od = self._od[i]
         if od is not None:
@@ -412,13 +416,16 @@ class RawCanBackend(CanFaults, Backend):
             return True
         return False
 
-    def _seed_from_actual(self, i: int) -> None:
-        """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept)."""
+    def _seed_from_actual(self, i: int, within: str = "") -> None:
+        """Motor ``i``'s set-points where it is: position as read, speed, torque and currents 0 (gains kept);
+        only the channels whose names start with ``within`` (a mode's: ``"velocity."``)."""
         a = self.areas[i]
         img = self.groups[a.group].image
         out, inp = img.outputs.values[a.row], img.inputs.values[a.row]
         names, read = out.dtype.names or (), inp.dtype.names or ()
         for n in names:  # a mode's own channels too ("velocity.velocity": mode velocity's field)
+            if not n.startswith(within):
+                continue
             field = n.rpartition(".")[2]
             if field in ("velocity", "torque", "current", "duty", "brake_current"):
                 out[n] = 0
