@@ -129,8 +129,10 @@ class CanFamily(ABC):
 
     @abstractmethod
     def cycle(self) -> Sequence[CycleFrame]:
-        """The command frames of one cycle, their data from the motors' output rows (same objects every
-        call, data rewritten in place: no allocation per cycle)."""
+        """The command frames of one cycle, their data from the motors' output rows (the family keeps its
+        frame objects, data rewritten in place: no allocation per cycle). Which of them a cycle sends may
+        change (a mode's or a packet's frame), and so may a frame's ``can_id``: the transport builds one
+        message per frame object, the first time it is sent, and takes its id each cycle."""
 
     @abstractmethod
     def carries(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
