@@ -1,9 +1,9 @@
 """Which emulator speaks a raw-CAN drive map's family, for the testing kit, the emulator process and the demo.
 
-A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`): ``damiao``, ``cubemars``
-(servo or MIT by its ``protocol``), or a family on the protocol (:func:`fieldbus.core.canfamily.families`:
-``mit``, the MIT frame alone; ``odrive``, :mod:`sim_slaves.odrive`; ``frames``, described in data,
-:mod:`sim_slaves.frames_motor`; or a third party's) whose class names its emulator. One emulator object
+A raw-CAN map names its family in ``rawcan.family`` (:mod:`fieldbus.core.rawcan`), a family on the protocol
+(:func:`fieldbus.core.canfamily.families`: ``mit``, the MIT frame alone; ``damiao``; ``cubemars``, servo or
+MIT by its ``protocol``, :mod:`sim_slaves.cubemars`; ``odrive``, :mod:`sim_slaves.odrive`; ``frames``,
+described in data, :mod:`sim_slaves.frames_motor`; or a third party's) whose class names its emulator. One emulator object
 serves the motors of one bus, so the motors of a bus must be of one family (and, for CubeMars, of one
 protocol); :func:`bus_family` refuses a mix, naming the maps.
 """
@@ -17,7 +17,7 @@ from typing import Any
 from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.core.rawcan import FAMILIES
-from fieldbus.platform.clock import Clock, monotonic_s
+from fieldbus.platform.clock import Clock
 from sim_slaves.mit_motor import MitMotorSimulator
 
 __all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]
@@ -62,25 +62,14 @@ def simulator(
     ``clock``: the time the motors read (timeouts, heartbeats, watchdogs; default the machine's);
     ``dt_s``: unused (the physics run on ``clock``, in steps of :data:`sim_slaves.mit_motor.STEP_S`).
     """
-    family = bus_family(d for d, _ in motors)
+    bus_family(d for d, _ in motors)  # one family (and CubeMars protocol) per bus, else refused
     items = list(motors)
-    registered = families().get(family)
+    cfg = items[0][0].rawcan if items else None
+    registered = families().get(cfg.family) if cfg is not None and cfg.protocol is not None else None
     if registered is not None and registered.emulator is not None:  # a family on the protocol names its own
         module, _, attr = registered.emulator.partition(":")
         emulator: MitMotorSimulator = getattr(import_module(module), attr)(
             bus, items, dt_s=dt_s, log=log, clock=clock
         )
         return emulator
-    if family == "damiao":
-        from sim_slaves.damiao import DamiaoSimulator
-
-        return DamiaoSimulator(bus, items, dt_s=dt_s, log=log, clock=monotonic_s(clock))
-    if family == "cubemars-servo":
-        from sim_slaves.cubemars import CubemarsServoSimulator
-
-        return CubemarsServoSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
-    if family == "cubemars-mit":
-        from sim_slaves.cubemars import CubemarsMitSimulator
-
-        return CubemarsMitSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)
     return MitMotorSimulator(bus, items, dt_s=dt_s, log=log, clock=clock)

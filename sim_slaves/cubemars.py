@@ -212,3 +212,18 @@ class CubemarsMitSimulator(MitMotorSimulator):
         data = frame.encode(values)
         proto = cfg.cubemars
         return data[: proto.short_reply] if self.short_replies and proto.short_reply else data
+
+
+def simulator(
+    bus: can.BusABC,
+    motors: list[tuple[DriveMap, int]],
+    *,
+    dt_s: float | None = None,
+    log: str | Path | None = None,
+    clock: Clock | None = None,
+) -> MitMotorSimulator:
+    """The emulator of family ``cubemars`` (its ``emulator``): servo or MIT by the maps' ``protocol``."""
+    cfg = motors[0][0].rawcan if motors else None
+    servo = cfg is not None and cfg.cubemars is not None and cfg.cubemars.protocol == "servo"
+    kind = CubemarsServoSimulator if servo else CubemarsMitSimulator
+    return kind(bus, motors, dt_s=dt_s, log=log, clock=clock)

@@ -25,7 +25,6 @@ so a speed is reached without steady-state error.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ import can
 
 from fieldbus.core import damiao
 from fieldbus.core.pdo.model import DriveMap
+from fieldbus.platform.clock import Clock
 from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator
 
 POSITION_GAIN = 20.0  # 1/s: speed command per rad of position error (position modes)
@@ -76,7 +76,7 @@ class DamiaoSimulator(MitMotorSimulator):
         *,
         dt_s: float | None = None,
         log: str | Path | None = None,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | Callable[[], float] | None = None,
         registers: dict[int, dict[int, float]] | None = None,
     ) -> None:
         super().__init__(bus, motors, dt_s=dt_s, log=log, clock=clock)
@@ -103,6 +103,23 @@ class DamiaoSimulator(MitMotorSimulator):
             self._esc[node] = node
             self._proto[node] = (proto, cfg)
         self._boot = {n: dict(ds.registers) for n, ds in self.state.items()}  # registers at power-up
+        # a command's CAN id -> (node, mode): one look-up per frame, not a search over nodes and modes
+        self._commands = {
+            node + mode.id_offset: (node, mode)
+            for node, (proto, _) in self._proto.items()
+            for mode in proto.modes
+        }
+        self._tmax = {  # the MIT frame's torque range per node: a position-force frame's current limit base
+            node: next(f.max for f in cfg.command if f.name == "torque")
+            for node, (_, cfg) in self._proto.items()
+        }
+        self._fixed: dict[int, tuple[float, int]] = {}  # node -> (TIMEOUT in s, MST_ID): kept as written
+        for node in self.state:
+            self._refresh(node)
+        self._maxima = {
+            node: {f.name: f.max for f in cfg.command if f.max is not None}
+            for node, (_, cfg) in self._proto.items()
+        }
 
     # -- fault hooks -------------------------------------------------------------------------------
     def inject_error(self, node_id: int, code: int) -> None:
@@ -118,6 +135,7 @@ class DamiaoSimulator(MitMotorSimulator):
             ds = self.state[node_id]
             ds.registers = dict(self._boot[node_id])
             ds.error, ds.last_command_t, ds.mode_command = DISABLED, None, None
+            self._refresh(node_id)
 
     def set_temperatures(self, node_id: int, mos: float, rotor: float) -> None:
         with self._lock:
@@ -128,13 +146,18 @@ class DamiaoSimulator(MitMotorSimulator):
         super()._tick()
         self.check_timeouts()
 
+    def _refresh(self, node: int) -> None:
+        """The registers every frame reads (TIMEOUT, MST_ID), decoded once after each write."""
+        ds = self.state[node]
+        self._fixed[node] = (int(ds.reg(self._proto[node][0].registers.timeout)) * 50e-6, int(ds.reg(7)))
+
     def check_timeouts(self) -> None:
         """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off."""
         now = self.clock()
         for node, ds in self.state.items():
-            units = int(ds.reg(self._proto[node][0].registers.timeout))
+            limit = self._fixed[node][0]
             last = ds.last_command_t
-            if units and ds.error == ENABLED and last is not None and now - last > units * 50e-6:
+            if limit and ds.error == ENABLED and last is not None and now - last > limit:
                 ds.error = COMM_LOST
                 self.motor(node).enabled = False
 
@@ -159,18 +182,18 @@ class DamiaoSimulator(MitMotorSimulator):
         any_proto = next(iter(self._proto.values()))[0]
         if can_id == any_proto.registers.can_id:
             return self._register(data)
-        for node, (proto, cfg) in self._proto.items():
-            for mode in proto.modes:
-                if can_id == node + mode.id_offset:
-                    self.state[node].frames.append((can_id, data))
-                    return self._command(node, proto, cfg, mode, data)
-        return None
+        found = self._commands.get(can_id)
+        if found is None:
+            return None
+        node, mode = found
+        proto, cfg = self._proto[node]
+        self.state[node].frames.append((can_id, data))
+        return self._command(node, proto, cfg, mode, data)
 
     def _reply(self, node: int, data: bytes) -> can.Message:
-        ds = self.state[node]
         fd, brs = getattr(self, "_fd", (False, False))
         reply = can.Message(
-            arbitration_id=int(ds.reg(7)), data=data, is_extended_id=False, is_fd=fd, bitrate_switch=brs
+            arbitration_id=self._fixed[node][1], data=data, is_extended_id=False, is_fd=fd, bitrate_switch=brs
         )
         self.bus.send(reply)
         return reply
@@ -214,6 +237,7 @@ class DamiaoSimulator(MitMotorSimulator):
             return None
         if op == regs.write and number not in READ_ONLY:
             ds.registers[number] = data[4:8]
+            self._refresh(node)
             return self._reply(node, data[:4] + ds.registers[number])
         if op == regs.read:
             return self._reply(node, data[:4] + ds.registers[number])
@@ -245,7 +269,7 @@ class DamiaoSimulator(MitMotorSimulator):
             return None  # not the mode the motor is in: ignored
         ds.last_command_t = now
         st.commands += 1
-        tmax = next(f.max for f in cfg.command if f.name == "torque")
+        tmax = self._tmax[node]
         if mode.mit:
             frame: MitFrame = self._by_id[node + cfg.command_id][1][0]
             v = frame.decode(data)
@@ -253,8 +277,7 @@ class DamiaoSimulator(MitMotorSimulator):
             reply = self._status(node)
             st.law = Law(*st.command)
             return reply
-        maxima = {f.name: f.max for f in cfg.command if f.max is not None}
-        v = damiao.decode_mode(mode, data, maxima)
+        v = damiao.decode_mode(mode, data, self._maxima[node])
         ds.mode_command = (mode.name, v)
         reply = self._status(node)
         limit = v.get("torque", tmax) if mode.fields[-1].per_unit else None  # position-force: its share

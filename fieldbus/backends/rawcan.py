@@ -17,33 +17,18 @@ and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
 ``close()`` never raise. ``open()`` takes the CAN channel's lock
 (:mod:`fieldbus.backends.buslock`): one master per channel.
 
-Family ``damiao`` (:mod:`fieldbus.core.damiao`): ``configure()`` checks MST_ID,
-writes CTRL_MODE and TIMEOUT and reads them back, and refuses PMAX/VMAX/TMAX
-that differ from the map, naming both values; :meth:`RawCanBackend.set_mode`
-switches a motor's mode between cycles; the reply's error code is watched
-(a rising code outside ``ok_codes`` is one counted, named fault in
-:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`); ``stop()``
-sends each motor a zero command in its mode (MIT: kp = kd = torque = 0), then
-the disable frame.
-
-A fault's onset (either family) is also queued for :meth:`RawCanBackend.take_motor_events`, which the
+A family's error code is watched (a rising code outside its ``ok_codes`` is one counted, named fault in
+:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`). A fault's onset is also queued for :meth:`RawCanBackend.take_motor_events`, which the
 network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
 with the family's name) in ``CycleResult.events`` and recordings, once per onset.
-
-Family ``cubemars`` (:mod:`fieldbus.core.cubemars`): in servo mode each cycle a motor gets the packet the
-image's ``mode`` field names (29-bit id ``packet << 8 | id``, big-endian numbers at the map's scales) and
-its status frame (``0x29 << 8 | id``) is decoded into the image; :meth:`RawCanBackend.set_mode` picks the
-packet by name; the safe stop's ``mode`` 1 with current 0 takes the torque off, and ``stop()`` sends a
-current of 0. In MIT mode replies of 8 bytes or of the map's ``short_reply`` length are taken, and the
-reply's wrapping position is unwrapped into the map's ``unwrap.into`` field (multi-turn). Error codes
-outside 0 are counted, named faults as for Damiao.
 
 Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
 a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
 cycle frames, reply routing, status frames taken whenever they come (:meth:`~fieldbus.core.canfamily.CanFamily.take`:
 a status whose error code changed is checked at once), bring-up steps (``configure``, ``enter``, ``exit``; a
-step's condition awaited, bounded), modes, register / endpoint access (:meth:`RawCanBackend.access`), special
-and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
+step's condition awaited, bounded), transactions (:data:`~fieldbus.core.canfamily.Steps`: ``configure()``,
+:meth:`RawCanBackend.set_mode`, :meth:`RawCanBackend.register`, :meth:`RawCanBackend.access`; each request's
+answer awaited here, bounded), special and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
 ``deadline_s`` after the cycle's commands is stale: counted late, its motors' inputs held). Family ``frames``
 (:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
 shared by several motors of the bus) are filled from the image's output rows and its feedback frames
@@ -56,7 +41,6 @@ with bit-rate switching when the data rate differs from the nominal one (remote 
 
 from __future__ import annotations
 
-import struct
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -69,12 +53,10 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core import cubemars, damiao
 from fieldbus.core.canfamily import CanFamily, FamilyMotor, Remote, Request, StepRefused, families
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.hold import hold_row
 from fieldbus.core.network import Bus
-from fieldbus.core.rawcan import encode_frame
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.platform.clock import monotonic_s
 from fieldbus.wire.canlog import open_log
@@ -87,9 +69,6 @@ except ImportError as exc:  # pragma: no cover - depends on the install
     ) from None
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
-REGISTER_TIMEOUT_S = 0.2  # a register read/write answer, bring-up and mode switches only
-SAVE_REGISTER = 1  # the register byte of a Damiao save request (the damiao-motor package's store_parameters)
-SERVO_CURRENT = 1  # CubeMars servo packet: current loop (the stop sends 0 A)
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -108,10 +87,10 @@ class MotorFault:
 
 @dataclass(frozen=True)
 class MotorFaultEvent(DriveFault):
-    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a Damiao
-    error code outside ``ok_codes`` or of a new error of a family on the protocol, with the family's name for it.
+    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a family's
+    error code outside its ``ok_codes`` (a new error), with the family's name for it.
 
-    ``code`` is the family's own code (Damiao error nibble, a family's error bits), not a CiA 402 0x603F.
+    ``code`` is the family's own code (an error nibble, a family's error bits), not a CiA 402 0x603F.
     """
 
     reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP", ...)
@@ -139,14 +118,6 @@ class RawCanBackend(CanFaults, Backend):
         fd_option = dict(bus.can_options).get("fd") is True
         self._fd = bus.data_bitrate is not None or fd_option  # CAN FD data frames
         self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
-        # family cubemars: protocol per motor, status routing (29-bit id -> motor), MIT unwrapping
-        self._cm: list[cubemars.CubemarsProtocol | None] = [
-            (c.cubemars if (c := a.slave.map.rawcan) is not None else None) for a in self.areas
-        ]
-        self._cm_status: dict[int, int] = {}
-        self._cm_unwrap: list[tuple[cubemars.Unwrapper, int, int, float, float] | None] = [
-            None
-        ] * self.n_slaves
         self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
         self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
@@ -157,22 +128,12 @@ class RawCanBackend(CanFaults, Backend):
         self._reply_rows = [
             self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
         ]
-        self._reply_len = [
-            cm.reply_bytes if (cm := self._cm[i]) is not None else row.size
-            for i, row in enumerate(self._reply_rows)
-        ]
+        self._reply_len = [row.size for row in self._reply_rows]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
-        # family damiao: the mode of each motor, its mode frames, the error nibble's place in the reply
-        self._mode: list[damiao.Mode | None] = [None] * self.n_slaves
-        self._mode_msgs: list[dict[str, Any]] = [{} for _ in range(self.n_slaves)]
-        self._error_at: list[tuple[int, int, int] | None] = [None] * self.n_slaves  # (byte, shift, mask)
-        self._max: list[dict[str, float]] = [
-            {} for _ in range(self.n_slaves)
-        ]  # per-unit bases of mode fields
         self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
         self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
         self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
@@ -197,16 +158,10 @@ class RawCanBackend(CanFaults, Backend):
             self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
             if cfg.protocol is not None:
                 self._fr[i] = True
-                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i])
+                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i], area.slave.name)
                 declared.setdefault(cfg.family, []).append(motor)
                 continue
             reply_id = cfg.reply_can_id(node)
-            if cfg.damiao is not None:
-                self._family_init(i, cfg, node)
-            if cfg.cubemars is not None:
-                self._cubemars_init(i, cfg, node)
-                if cfg.cubemars.protocol == "servo":
-                    continue  # routed by its 29-bit status id
             byte = -1
             if cfg.node_field:
                 bit = 0
@@ -232,7 +187,8 @@ class RawCanBackend(CanFaults, Backend):
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
         self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
-        # the families' cycle frames by id(): a message built once around each (its data rewritten in place)
+        # the families' cycle frames by id(): a message built once around each (its data rewritten in place;
+        # a family with modes sends another frame object after a switch, or moves a frame's id)
         self._fam_msgs: dict[int, Any] = {}
         # a family's reply deadline per motor (s after the cycle's commands; None: the receive time-out)
         self._reply_by: list[float | None] = [None] * self.n_slaves
@@ -242,7 +198,7 @@ class RawCanBackend(CanFaults, Backend):
         by = [d for d in self._reply_by if d is not None]
         self._deadlines = bool(by)
         self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
-        self._families = any(at is not None for at in self._error_at) or bool(self._fam_of)
+        self._families = bool(self._fam_of)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -262,280 +218,67 @@ class RawCanBackend(CanFaults, Backend):
             self._lock = lock_can_bus(self.bus)
         self._bus = attach_can_bus(self.bus, self._bus, self._log)
 
-    # -- family damiao ------------------------------------------------------------------
-    def _family_init(self, i: int, cfg: Any, node: int) -> None:
-        proto: damiao.DamiaoProtocol = cfg.damiao
-        self._mode[i] = proto.mode_named(proto.mode)
-        for m in proto.modes:
-            self._mode_msgs[i][m.name] = self._message(
-                arbitration_id=node + m.id_offset, data=bytearray(8), is_extended_id=False
-            )
-        self._max[i] = {f.name: f.max for f in cfg.command if f.max is not None}
-        bit = 0
-        for f in cfg.reply:
-            if f.name == proto.error_field:
-                break
-            bit += f.bits
-        width = next(f.bits for f in cfg.reply if f.name == proto.error_field)
-        if bit // 8 != (bit + width - 1) // 8:
-            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
-        self._error_at[i] = (bit // 8, 8 - (bit % 8) - width, (1 << width) - 1)
-
-    # -- family cubemars -------------------------------------------------------------------
     def _message(self, **kw: Any) -> Any:
         """A python-can frame; on a CAN FD bus a data frame is FD (bit-rate switched when the rates differ)."""
         if self._fd and not kw.get("is_remote_frame"):
             kw.update(is_fd=True, bitrate_switch=self._brs)
         return can.Message(**kw)
 
-    def _cubemars_init(self, i: int, cfg: Any, node: int) -> None:
-        proto: cubemars.CubemarsProtocol = cfg.cubemars
-        if proto.protocol == "servo":
-            if not 0 <= node <= 0xFF:
-                raise FieldbusError(f"{self.areas[i].slave.name}: a CubeMars motor id is 0..255")
-            self._cm_status[cubemars.servo_id(proto.status_packet, node)] = i
-            at = 0
-            for f in cfg.reply:  # the image row is little-endian, fields in order
-                if f.name == proto.error_field:
-                    break
-                at += f.bits // 8
-            self._error_at[i] = (at, 0, 0xFF)
-            return
-        bit = 0
-        offsets: dict[str, int] = {}
-        for f in cfg.reply:  # frame order, most significant first
-            offsets[f.name] = bit
-            bit += f.bits
-        wire = self._reply_len[i] * 8
-        e_at, e_bits = (
-            offsets[proto.error_field],
-            next(f.bits for f in cfg.reply if f.name == proto.error_field),
-        )
-        if e_at // 8 != (e_at + e_bits - 1) // 8:
-            raise FieldbusError(f"{self.areas[i].slave.map.name}: the error field must sit inside one byte")
-        self._error_at[i] = (e_at // 8, 8 - (e_at % 8) - e_bits, (1 << e_bits) - 1)
-        if proto.unwrap is not None:
-            f = next(f for f in cfg.reply if f.name == proto.unwrap[0])
-            assert f.min is not None and f.max is not None
-            steps = (1 << f.bits) - (1 if cfg.span == "full" else 0)
-            shift = wire - offsets[f.name] - f.bits
-            self._cm_unwrap[i] = (
-                cubemars.Unwrapper(f.min, f.max),
-                shift,
-                (1 << f.bits) - 1,
-                f.min,
-                (f.max - f.min) / steps,
-            )
-
-    def _cm_servo_in(self, i: int, data: bytes) -> bool:
-        """A servo status frame decoded into motor ``i``'s input row (little-endian image fields)."""
-        proto = self._cm[i]
-        assert proto is not None
-        if len(data) < sum(cubemars.TYPES[f.type][1] for f in proto.status):
-            return False
-        cfg = self.areas[i].slave.map.rawcan
-        assert cfg is not None
-        values = cubemars.decode_servo(proto.status, data)
-        row, at = self._in_rows[i], 0
-        for f in cfg.reply:
-            size = f.bits // 8
-            if f.name in values:
-                x = values[f.name]
-                if f.type == "float32":
-                    raw = struct.pack("<f", x)
-                else:
-                    raw = round(x).to_bytes(size, "little", signed=f.type == "int")
-                row[at : at + size] = np.frombuffer(raw, dtype=np.uint8)
-            at += size
-        return True
-
-    def _cm_unwrap_in(self, i: int, data: bytes) -> None:
-        """The multi-turn position of motor ``i`` from this reply's wrapped one, into its float32 field."""
-        got = self._cm_unwrap[i]
-        assert got is not None
-        unwrap, shift, mask, lo, per_raw = got
-        x = int.from_bytes(bytes(data).ljust(8, b"\0"), "big")
-        total = unwrap(((x >> shift) & mask) * per_raw + lo)
-        self._in_rows[i][:4] = np.frombuffer(struct.pack("<f", total), dtype=np.uint8)
-
-    def _send_servo(self, i: int, proto: cubemars.CubemarsProtocol) -> None:
-        """One servo-mode motor's cycle: the packet the image's mode field names (none when it names none)."""
-        values = self._mode_values(i)
-        mode = proto.mode_of_packet(int(values[proto.mode_field]))
-        if mode is None:
-            return  # no such packet in the map: nothing sent, the missing status counts as a miss
-        self._servo_packet(i, mode.packet, cubemars.encode_servo(mode.fields, values))
-
-    def _servo_packet(self, i: int, packet: int, data: bytes) -> None:
-        node = self.areas[i].slave.node_id or 0
-        self._bus.send(
-            self._message(arbitration_id=cubemars.servo_id(packet, node), data=data, is_extended_id=True)
-        )
-
-    def _set_servo_mode(self, i: int, proto: cubemars.CubemarsProtocol, name: str) -> None:
-        try:
-            mode = proto.mode_named(name)
-        except KeyError:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: no mode '{name}' (have: {', '.join(m.name for m in proto.modes)})"
-            ) from None
-        a = self.areas[i]
-        self.groups[a.group].image.outputs.values[a.row][proto.mode_field] = mode.packet
-
-    def _proto(self, i: int) -> damiao.DamiaoProtocol:
-        cfg = self.areas[i].slave.map.rawcan
-        if cfg is None or cfg.damiao is None:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: its map has no register protocol (family damiao)"
-            )
-        return cfg.damiao
-
     def register(
         self, slave: int | str, register: int, value: float | None = None, *, is_float: bool = False
     ) -> float:
-        """Read (``value`` None) or write-and-confirm a register of a Damiao motor; the value the motor answers.
+        """Read (``value`` None) or write-and-confirm a register of a motor whose family has registers
+        (its family's :attr:`~fieldbus.core.canfamily.CanFamily.register_table`); the value answered.
 
         Blocking (outside the cycle, or between cycles). Raises :class:`~fieldbus.errors.BusTimeoutError`
         when the motor does not answer, :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        regs = self._proto(i).registers
-        if value is None:
-            op, data = regs.read, bytes(4)
-        else:
-            op, data = regs.write, damiao.pack_register(value, is_float)
         what = f"{'read' if value is None else 'write'} of register {register}"
-        return damiao.unpack_register(self._register_request(i, op, register, data, what), is_float)
+        got: float = self._steps(self._registers_of(i).register(i, register, value, is_float), what, i)
+        return got
 
     def save_registers(self, slave: int | str) -> None:
-        """Store a Damiao motor's registers to its flash (op save); the motor answers only while disabled.
+        """Store a motor's registers to its flash (a family's transaction: a motor may answer only while disabled).
 
         Blocking, outside the cycle. Raises :class:`~fieldbus.errors.BusTimeoutError` without an answer.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        what = "save to flash (a motor saves only while disabled)"
-        self._register_request(i, self._proto(i).registers.save, SAVE_REGISTER, bytes(4), what)
+        self._steps(self._registers_of(i).save(i), "save to flash", i)
 
-    def _register_request(self, i: int, op: int, register: int, data: bytes, what: str) -> bytes:
-        """One register request to motor ``i`` on the register id; the 4 value bytes of its answer."""
-        proto, node = self._proto(i), self.areas[i].slave.node_id or 0
-        regs = proto.registers
-        self._drain()
-        try:
-            self._bus.send(
-                self._message(
-                    arbitration_id=regs.can_id,
-                    data=damiao.register_frame(node, op, register, data),
-                    is_extended_id=False,
-                )
-            )
-            cfg = self.areas[i].slave.map.rawcan
-            assert cfg is not None
-            reply_id = cfg.reply_can_id(node)
-            deadline = self._now() + REGISTER_TIMEOUT_S
-            while (left := deadline - self._now()) > 0:
-                msg = self._bus.recv(timeout=left)
-                if msg is None or msg.is_error_frame or msg.arbitration_id != reply_id:
-                    continue
-                got = damiao.register_reply(node, bytes(msg.data), (op,))
-                if got is not None and got[1] == register:
-                    return got[2]
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("register access", exc) from exc
-        raise BusTimeoutError(
-            f"bus '{self.bus.name}': {self.areas[i].slave.name} (node {node}) did not answer the {what} "
-            f"within {REGISTER_TIMEOUT_S * 1000:.0f} ms"
-        )
-
-    def _write_checked(self, i: int, name: str, register: int, value: float, is_float: bool = False) -> None:
-        self.register(i, register, value, is_float=is_float)
-        back = self.register(i, register, is_float=is_float)
-        if back != value:
-            raise StateTransitionError(
-                f"bus '{self.bus.name}': {self.areas[i].slave.name} register {name} ({register}) reads back "
-                f"{back:g} after writing {value:g}",
-                slave=self.areas[i].slave.name,
-            )
-
-    def _configure_damiao(self, i: int) -> None:
-        """MST_ID checked; PMAX/VMAX/TMAX compared with the map; CTRL_MODE and TIMEOUT written, read back."""
-        proto, slave = self._proto(i), self.areas[i].slave
-        cfg = slave.map.rawcan
-        assert cfg is not None
-        node, regs = slave.node_id or 0, proto.registers
-        mst = self.register(i, regs.master_id)
-        if int(mst) != cfg.reply_can_id(node):
-            raise StateTransitionError(
-                f"bus '{self.bus.name}': {slave.name} (node {node}) answers with MST_ID (register "
-                f"{regs.master_id}) = 0x{int(mst):X}; the map {slave.map.name} expects 0x{cfg.reply_can_id(node):X}",
-                slave=slave.name,
-            )
-        for reg_name, reg, want in proto.limits:
-            have = self.register(i, reg, is_float=True)
-            if have != damiao.float32(want):
-                raise StateTransitionError(
-                    f"bus '{self.bus.name}': {slave.name} (node {node}) has {reg_name} (register {reg}) = "
-                    f"{have:g}, the map {slave.map.name} says {want:g}: the MIT frame would be scaled wrongly; "
-                    "set the motor's register (Damiao tool) or use the map of this motor",
-                    slave=slave.name,
-                )
-        mode = self._mode[i]
-        assert mode is not None
-        self._write_checked(i, "CTRL_MODE", regs.ctrl_mode, mode.ctrl_mode)
-        self._write_checked(i, "TIMEOUT", regs.timeout, proto.timeout_units)
+    def _registers_of(self, i: int) -> CanFamily:
+        fam = self._fam_of.get(i)
+        if fam is None or fam.register_table is None:
+            raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no registers over CAN")
+        return fam
 
     def set_mode(self, slave: int | str, mode: str) -> None:
-        """Switch a Damiao motor to ``mode`` (a mode name of its map): CTRL_MODE written and read back,
-        then its commands go out as that mode's frames. Blocking: call it between cycles.
-        A family on the protocol: its ``set_mode`` steps, that mode's commands from the next cycle. The
-        motor's set-points are then seeded where it is (position as read, speeds and torque 0, gains kept):
-        the new mode starts no motion until the controller writes its targets (S12)."""
+        """Switch a motor to ``mode`` (a mode name of its map) by its family's ``set_mode`` transaction
+        (a mode register written and read back, a packet chosen, a controller mode sent), that mode's
+        commands from the next cycle. Blocking: call it between
+        cycles. The motor's set-points are then seeded where it is (position as read, speeds, torque and
+        currents 0, gains kept), its mode's own channels (``<mode>.<field>``) too: the new mode starts no
+        motion until the controller writes its targets, and a value left there from an earlier use of the
+        mode is never sent (S12)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
-        if fam is not None:
-            self._steps(fam.set_mode(i, mode), "mode switch", i, timeout=StateTransitionError)
-            self._seed_from_actual(i)  # the new mode starts where the motor is (S12)
-            return
-        cm = self._cm[i]
-        if cm is not None:
-            if cm.protocol != "servo":
-                raise FieldbusError(
-                    f"{self.areas[i].slave.name}: a CubeMars motor in MIT mode has no other mode over CAN "
-                    "(servo or MIT is chosen in CubeMars' tool)"
-                )
-            self._set_servo_mode(i, cm, mode)
-            self._seed_from_actual(i)
-            return
-        proto = self._proto(i)
-        try:
-            new = proto.mode_named(mode)
-        except KeyError:
-            raise FieldbusError(
-                f"{self.areas[i].slave.name}: no mode '{mode}' (have: {', '.join(m.name for m in proto.modes)})"
-            ) from None
-        self._write_checked(i, "CTRL_MODE", proto.registers.ctrl_mode, new.ctrl_mode)
-        self._mode[i] = new
-        self._seed_from_actual(i)
+        if fam is None:
+            raise FieldbusError(f"{self.areas[i].slave.name}: its map's family has no modes")
+        self._steps(fam.set_mode(i, mode), "mode switch", i, timeout=StateTransitionError)
+        self._seed_from_actual(i)  # the new mode starts where the motor is (S12)
 
     def mode(self, slave: int | str) -> str | None:
-        """The mode a Damiao motor's commands are sent in (None: not a Damiao motor)."""
+        """The mode a motor's commands are sent in (None: its family has no modes)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        cm = self._cm[i]
-        if cm is not None and cm.protocol == "servo":
-            found = cm.mode_of_packet(int(self._mode_values(i)[cm.mode_field]))
-            return found.name if found is not None else None
         fam = self._fam_of.get(i)
-        if fam is not None:
-            return fam.mode(i)
-        m = self._mode[i]
-        return m.name if m is not None else None
+        return fam.mode(i) if fam is not None else None
 
     def error_code(self, slave: int | str) -> int:
-        """The error code of the motor's last accepted reply (family damiao)."""
+        """The error code of the motor's last accepted reply (families with error codes)."""
         return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
-        """Send the clear-error frame to every Damiao motor; returns the motors that did not answer. The
+        """Send the clear-error frame to every motor that has one; returns the motors that did not answer. The
         motors stay disabled: :meth:`recover` clears one motor's fault and enables it again."""
         return [self.areas[i].slave.name for i in self._special("clear")]
 
@@ -546,10 +289,11 @@ class RawCanBackend(CanFaults, Backend):
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
         the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
-        Damiao: clear-error frame, then enable, the reply's code 1 (enabled); a family on the protocol: its
-        recovery steps, each awaited answer or condition bounded (MIT: enter motor mode, answered;
-        declarative ``frames``: the map's clear and enable patterns, if any). A CubeMars servo has no clear command:
-        True only when its error code is 0 again (after a power cycle). Raises
+        A family on the protocol: its recovery requests, each awaited answer or condition bounded (a
+        clear-error frame, then enable, answered; MIT: enter motor mode, answered; declarative ``frames``:
+        the map's clear and enable patterns, if any), then its
+        :meth:`~fieldbus.core.canfamily.CanFamily.enabled` (the reply's code says enabled; a family without
+        a clear command: only when its code is back to no fault, after a power cycle). Raises
         :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
@@ -558,49 +302,33 @@ class RawCanBackend(CanFaults, Backend):
         assert cfg is not None
         fam = self._fam_of.get(i)
         if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
-            if self._requests(fam.recover(i)):
+            if self._requests(fam.recover(i)) or not fam.enabled(i):
                 return False
-            self._codes[i] = 0
+            self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
             return True
-        cm = self._cm[i]
-        if cm is not None and cm.protocol == "servo":
-            return int(self._codes[i]) == 0
-        if cfg.damiao is not None and not self._answered(i, cfg.damiao.clear):
-            return False
-        if not self._answered(i, cfg.enter):
-            return False
-        at = self._error_at[i]
-        if at is None:
-            return True
-        byte, shift, mask = at
-        self._codes[i] = code = (int(self._reply_rows[i][byte]) >> shift) & mask
-        return cfg.damiao is None or code == 1  # Damiao: 1 is ENABLED; CubeMars MIT: 0
+        return self._answered(i, cfg.enter)
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
-        session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). Damiao:
-        the clear-error frame, True when its status reply came (its code then in :meth:`error_code`);
-        a family on the protocol: its clear frames (declarative: the map's clear pattern). False for a motor whose family has no clear command (MIT, CubeMars)."""
+        session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). A family
+        on the protocol: its clear requests, True when each awaited reply came (its code then in
+        :meth:`error_code`; a request awaiting nothing: the next status tells; declarative: the map's clear
+        pattern). False for a motor whose family has no clear command (MIT)."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
-        cfg = self.areas[i].slave.map.rawcan
-        assert cfg is not None
         fam = self._fam_of.get(i)
-        if fam is not None:
-            frames = fam.commands("clear", i)
-            for can_id, ext, data in frames:
-                self._send_raw(can_id, ext, data)
-            return bool(frames)
-        if cfg.damiao is None or not self._answered(i, cfg.damiao.clear):
+        if fam is None:
             return False
-        at = self._error_at[i]
-        if at is not None:
-            byte, shift, mask = at
-            self._codes[i] = (int(self._reply_rows[i][byte]) >> shift) & mask
+        requests = list(fam.clear(i))
+        if not requests or self._requests(requests):
+            return False
+        if (err := fam.error(i)) is not None and any(r.awaits for r in requests):
+            self._codes[i] = err[0]
         return True
 
     def _seed_from_actual(self, i: int) -> None:
         """Motor ``i``'s set-points where it is (:func:`~fieldbus.core.hold.hold_row`: position as read,
-        speed, torque and currents 0, gains kept); the output rules restart from them (S12)."""
+        speed, torque and currents 0, gains kept; each mode's own channels ``<mode>.<field>`` too); the
+        output rules restart from them (S12)."""
         a = self.areas[i]
         img = self.groups[a.group].image
         hold_row(img.outputs.values[a.row], img.inputs.values[a.row])
@@ -724,6 +452,10 @@ class RawCanBackend(CanFaults, Backend):
         :class:`~fieldbus.errors.FieldbusError`."""
         try:
             missing, req, result = self._run(steps)
+        except StateTransitionError as exc:  # a family's refusal (a value read back otherwise, ...)
+            raise StateTransitionError(f"bus '{self.bus.name}': {exc}", slave=exc.slave) from None
+        except BusTimeoutError as exc:
+            raise BusTimeoutError(f"bus '{self.bus.name}': {exc}") from None
         except StepRefused as exc:
             name = self.areas[exc.motor].slave.name
             raise StateTransitionError(f"bus '{self.bus.name}': {name} {exc}", slave=name) from None
@@ -757,31 +489,11 @@ class RawCanBackend(CanFaults, Backend):
         the backend's own paths (for its own state)."""
         return self._fam_of.get(slave if isinstance(slave, int) else self.slave_index(slave))
 
-    def _mode_values(self, i: int) -> dict[str, float]:
-        a = self.areas[i]
-        row = self.groups[a.group].image.outputs.values[a.row]
-        names = row.dtype.names or ()
-        return {n: float(row[n]) for n in names}
-
     def _watch_errors(self) -> None:
         """Error codes of this cycle's replies: a new code outside ``ok_codes`` is a counted, named fault."""
         for i, fam in self._fam_of.items():
             if self._arrived[i]:
                 self._family_error(i, fam)
-        for i, at in enumerate(self._error_at):
-            if at is None or not self._arrived[i]:
-                continue
-            byte, shift, mask = at
-            code = (int(self._reply_rows[i][byte]) >> shift) & mask
-            if code != self._codes[i]:
-                cm = self._cm[i]
-                proto: damiao.DamiaoProtocol | cubemars.CubemarsProtocol = (
-                    cm if cm is not None else self._proto(i)
-                )
-                ok = proto.ok_codes if isinstance(proto, damiao.DamiaoProtocol) else frozenset({0})
-                if code not in ok:
-                    self._fault(i, code, proto.error_name(code))
-                self._codes[i] = code
 
     def _family_error(self, i: int, fam: CanFamily) -> None:
         """Motor ``i``'s error code as its family reads it: a new fault code is one counted, named fault."""
@@ -813,11 +525,8 @@ class RawCanBackend(CanFaults, Backend):
         return cfg is not None and cfg.byte_order == "little"
 
     def configure(self) -> None:
-        """Family damiao: registers checked, written and read back (:meth:`_configure_damiao`); families on
-        the protocol: their ``configure`` steps; MIT motors have no registers: nothing to configure."""
-        for i in range(self.n_slaves):
-            if self._mode[i] is not None:
-                self._configure_damiao(i)
+        """Each family's ``configure`` transaction (registers or endpoints checked, written and read back, a
+        status awaited); MIT motors have no registers: nothing to configure."""
         for fam in self._fams:
             self._steps(fam.configure(), "configure", timeout=StateTransitionError)
 
@@ -825,9 +534,6 @@ class RawCanBackend(CanFaults, Backend):
         """Nothing: motors stay out of motor mode until :meth:`op`."""
 
     def op(self) -> None:
-        for i, cm in enumerate(self._cm):
-            if cm is not None and cm.protocol == "servo":
-                self._set_servo_mode(i, cm, cm.mode)  # the map's packet, from the first cycle
         missing = self._special("enter")
         if missing:
             raise StateTransitionError(
@@ -863,31 +569,20 @@ class RawCanBackend(CanFaults, Backend):
                 if self._fr[i]:
                     continue
                 msg, _, _ = self._cmd[i]
-                cm = cfg.cubemars
-                if cm is not None and cm.protocol == "servo":
-                    if which == "zero":  # set origin: 0 = temporary (until power-off), no answer
-                        self._servo_packet(i, cm.origin_packet, b"\0")
-                    elif which == "exit" and (off := cm.mode_of_packet(SERVO_CURRENT)) is not None:
-                        self._servo_packet(i, off.packet, cubemars.encode_servo(off.fields, {}))  # no current
-                    continue
                 if which == "clear":
-                    if cfg.damiao is None:
-                        continue  # nothing to clear on this motor
-                    frame = cfg.damiao.clear
-                else:
-                    frame = getattr(cfg, which)
+                    continue  # nothing to clear on this motor (families on the protocol clear their own)
+                frame = getattr(cfg, which)
                 self._bus.send(
                     self._message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
                 )
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
-        for i, cm in enumerate(self._cm):
-            fam_done = self._fr[i] and i not in awaited
-            self._arrived[i] = (cm is not None and cm.protocol == "servo") or fam_done
+        for i in range(self.n_slaves):
+            self._arrived[i] = self._fr[i] and i not in awaited
         if which == "clear":
-            for i, area in enumerate(self.areas):
-                self._arrived[i] |= area.slave.map.rawcan is None or area.slave.map.rawcan.damiao is None
+            for i in range(self.n_slaves):
+                self._arrived[i] |= not self._fr[i]
         deadline = self._now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
 
         def met() -> bool:
@@ -916,22 +611,13 @@ class RawCanBackend(CanFaults, Backend):
                     m = self._fam_msgs.get(id(c))
                     if m is None:  # once per frame object: its data bytearray is the message's
                         m = self._fam_msgs[id(c)] = self._cycle_message(c)
+                    m.arbitration_id = c.can_id  # a mode switch may move a frame (id + the mode's offset)
                     self._bus.send(m)
             for i, (msg, rev, data) in enumerate(self._cmd):
                 if self._fr[i]:
                     continue
-                cm = self._cm[i]
-                if cm is not None and cm.protocol == "servo":
-                    self._send_servo(i, cm)
-                    continue
-                mode = self._mode[i]
-                if mode is None or mode.mit:
-                    np.copyto(data, rev)
-                    self._bus.send(msg)
-                else:  # a Damiao mode frame, from the image's engineering values (allocates: a dict per motor)
-                    m = self._mode_msgs[i][mode.name]
-                    m.data[:] = damiao.encode_mode(mode, self._mode_values(i), self._max[i])
-                    self._bus.send(m)
+                np.copyto(data, rev)
+                self._bus.send(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
 
@@ -968,8 +654,6 @@ class RawCanBackend(CanFaults, Backend):
         if msg.is_error_frame:
             self._error_frame(msg)
             return -1
-        if msg.is_extended_id and not msg.is_remote_frame:
-            return self._cm_status.get(msg.arbitration_id, -1)
         if msg.is_extended_id or msg.is_remote_frame:
             return -1
         can_id = msg.arbitration_id
@@ -1000,9 +684,6 @@ class RawCanBackend(CanFaults, Backend):
             row = self._reply_rows[i]
             data = msg.data
             n = self._reply_len[i]
-            cm = self._cm[i]
-            if cm is not None:
-                return self._accept_cubemars(i, cm, bytes(data))
             if len(data) != n:
                 return False
             row[:n] = np.frombuffer(data, dtype=np.uint8)
@@ -1040,22 +721,6 @@ class RawCanBackend(CanFaults, Backend):
                 return motors
         return ()
 
-    def _accept_cubemars(self, i: int, cm: cubemars.CubemarsProtocol, data: bytes) -> bool:
-        """A CubeMars reply into the input row: a servo status decoded, or an MIT reply of 8 (or
-        ``short_reply``) bytes copied and its position unwrapped."""
-        if cm.protocol == "servo":
-            if not self._cm_servo_in(i, data):
-                return False
-        else:
-            n = len(data)
-            if n != self._reply_len[i] and n != cm.short_reply:
-                return False
-            self._reply_rows[i][:n] = np.frombuffer(data, dtype=np.uint8)
-            if self._cm_unwrap[i] is not None:
-                self._cm_unwrap_in(i, data)
-        self._arrived[i] = True
-        return True
-
     def _drain(self) -> None:
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
@@ -1083,40 +748,14 @@ class RawCanBackend(CanFaults, Backend):
 
     def zero_position(self) -> list[str]:
         """Set the current position of every motor as zero; returns the motors that did not answer."""
-        for got in self._cm_unwrap:
-            if got is not None:
-                got[0].reset()
         return [self.areas[i].slave.name for i in self._special("zero")]
 
-    def _zero_commands(self) -> None:
-        """Families damiao and cubemars (MIT): each motor's zero command in its mode (MIT kp = kd = torque
-        = 0; velocity 0; position modes hold the last position read with no speed and no current)."""
-        for i, mode in enumerate(self._mode):
-            cm = self._cm[i]
-            if mode is None and (cm is None or cm.protocol != "mit"):
-                continue  # cubemars MIT: a zero-gain MIT command too
-            cfg = self.areas[i].slave.map.rawcan
-            assert cfg is not None
-            a = self.areas[i]
-            inputs = self.groups[a.group].image.inputs.values[a.row]
-            here = float(inputs["position"]) if "position" in (inputs.dtype.names or ()) else 0.0
-            values = {"position": here, "velocity": 0.0, "kp": 0.0, "kd": 0.0, "torque": 0.0}
-            if mode is None or mode.mit:
-                msg = self._cmd[i][0]
-                data = encode_frame(cfg.command, cfg.span, values)
-            else:
-                msg = self._mode_msgs[i][mode.name]
-                data = damiao.encode_mode(mode, values, self._max[i])
-            self._bus.send(self._message(arbitration_id=msg.arbitration_id, data=data, is_extended_id=False))
-
     def stop(self) -> None:
-        """Exit motor mode on every motor (Damiao, CubeMars MIT: a zero command in its mode first, then
-        disable / exit; CubeMars servo: a current of 0).
+        """Exit motor mode on every motor (a family on the protocol: its exit requests, its safe stop frames
+        first: a zero command in the motor's mode, or no current).
         Never raises: a failing bus is kept in :attr:`last_error`."""
         if self._bus is not None:
             try:
-                if self._families:
-                    self._zero_commands()
                 self._special("exit")
             except Exception as exc:
                 self._shut_failed("stop", exc)

@@ -56,9 +56,6 @@ MOTORS = (
     "odrive_3_6",
     "amr_seed_wheels",
 )
-# most axes per family: Damiao replies on id + 0x10 (MST_ID), kept clear of the others' ids; a family on
-# the protocol says its own (CanFamily.max_motors)
-MAX_FAMILY_AXES = {"damiao": 15}
 SERVO_SPEED_LIMIT = 10.0  # rad/s, the CubeMars servo demo's position-speed limit
 AMPLITUDE_RAD = 0.5  # sine amplitude per joint
 FREQUENCY_HZ = 0.5
@@ -216,12 +213,11 @@ def motor_family(motor: str) -> str:
 
 
 def max_motor_axes(motor: str) -> int | None:
-    """Most axes ``motor``'s ids allow: :data:`MAX_FAMILY_AXES`, or the slots of a shared frame."""
+    """Most axes ``motor``'s ids allow (its family's :meth:`CanFamily.max_motors`: Damiao's MST_ID
+    offset, ODrive's node ids, the slots of a shared frame), or None for no limit."""
     cfg = _rawcan_config(motor)
     family = families().get(cfg.family)
-    if family is not None:  # a family on the protocol knows its own
-        return family.max_motors(cfg.protocol)
-    return MAX_FAMILY_AXES.get(cfg.family)
+    return None if family is None else family.max_motors(cfg.protocol)
 
 
 def check_motor_axes(motor: str, axes: int) -> None:

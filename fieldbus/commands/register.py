@@ -31,9 +31,7 @@ from typing import Any
 
 from fieldbus.commands.argtypes import UsageError
 from fieldbus.commands.usage import FAILED, add_command
-from fieldbus.core import damiao_registers
 from fieldbus.core.canfamily import families
-from fieldbus.core.damiao_registers import Register
 from fieldbus.errors import FieldbusError
 
 EXAMPLES = __doc__.split("\n\n")[1].strip("\n")
@@ -120,16 +118,16 @@ def run(args: argparse.Namespace) -> int:
     if args.reg is None:
         raise UsageError("give REG (a register or endpoint), or --clear-fault")
     registered = families().get(family) if cfg is not None and cfg.protocol is not None else None
-    if cfg is None or (cfg.damiao is None and registered is None):
+    table = registered.register_table if registered is not None else None
+    if cfg is None or registered is None:
         raise FieldbusError(
             f"{slave.name} (map {slave.map.name}, family {family}): no registers over CAN; "
             "Damiao (family damiao) and ODrive 0.6 (family odrive) motors have them"
         )
     where = f"{bus.name} {slave.name} (node {slave.node_id})"
-    if cfg.damiao is not None:
-        reg_no, reg_name, type_name, read_only = _damiao_register(args, where)
-    else:  # a family on the protocol names its own (ODrive: endpoints)
-        assert registered is not None
+    if table is not None:  # a register table (Damiao)
+        reg_no, reg_name, type_name, read_only = _table_register(args, table, where)
+    else:  # a family on the protocol names its own (ODrive: endpoints; others refuse)
         try:
             reg_no, reg_name, type_name, read_only = registered.register_key(
                 cfg.protocol, args.reg, args.type_name, args.value is not None
@@ -139,11 +137,9 @@ def run(args: argparse.Namespace) -> int:
     value = None if args.value is None else parse_value(args.value, type_name, f"{where} {reg_name}")
     if value is not None and read_only:
         raise FieldbusError(f"{where}: register {reg_name} ({reg_no}) is read-only")
-    if args.save and cfg.damiao is None:
+    if args.save and table is None:
         raise FieldbusError(f"{where}: --save stores a Damiao motor's registers; an ODrive saves over USB")
-    got = _transfer(
-        bus, slave, damiao=cfg.damiao is not None, reg=(reg_no, type_name), value=value, save=args.save
-    )
+    got = _transfer(bus, slave, table=table is not None, reg=(reg_no, type_name), value=value, save=args.save)
     if value is not None:
         value = _as_written(value, type_name)
     same = value is None or got == value
@@ -195,11 +191,11 @@ def _motor(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def _transfer(
-    bus: Any, slave: Any, *, damiao: bool, reg: tuple[int, str], value: float | None, save: bool
+    bus: Any, slave: Any, *, table: bool, reg: tuple[int, str], value: float | None, save: bool
 ) -> float:
     """Write ``value`` (None: only read) to register ``reg`` (number, type) of the motor and read it back:
-    a Damiao register (``save``: then stored to flash, when it reads back as written), else an ODrive
-    endpoint over RxSdo. The value read."""
+    with a register ``table``, the family's register (Damiao; ``save``: then stored to flash, when it
+    reads back as written), else the family's endpoint access (ODrive: RxSdo). The value read."""
     from fieldbus.backends.rawcan import RawCanBackend
 
     reg_no, type_name = reg
@@ -207,7 +203,7 @@ def _transfer(
     backend.open()
     try:
         i = backend.slave_index(slave.name)
-        if damiao:
+        if table:
             is_float = type_name == "float32"
             if value is not None:
                 backend.register(i, reg_no, value, is_float=is_float)
@@ -251,12 +247,13 @@ def _clear_fault(args: argparse.Namespace, bus: Any, slave: Any) -> int:
     return 0
 
 
-def _damiao_register(args: argparse.Namespace, where: str) -> tuple[int, str, str, bool]:
-    found = damiao_registers.lookup(args.reg)
+def _table_register(args: argparse.Namespace, table: Any, where: str) -> tuple[int, str, str, bool]:
+    """REG looked up in the family's register table: number, name, type, read-only."""
+    found = table.lookup(args.reg)
     if found is None:
-        known = ", ".join(r.name for r in damiao_registers.REGISTERS if not r.read_only)
+        known = ", ".join(r.name for r in table.REGISTERS if not r.read_only)
         raise FieldbusError(f"{where}: no register '{args.reg}': a number 0..255 or a name ({known}...)")
-    if isinstance(found, Register):
+    if not isinstance(found, int):
         type_name = "float32" if found.is_float else "uint32"
         if args.type_name not in (None, type_name):
             raise FieldbusError(f"{where}: register {found.name} ({found.number}) is a {type_name}")

@@ -22,9 +22,8 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
-from fieldbus.core import cubemars
 from fieldbus.core.canfamily import families
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
@@ -785,20 +784,9 @@ def _motor_frames(
     """A raw-CAN motor's command (CAN id ``command_id + node``) and the reply that follows it
     (``reply_id``, or the command's id when the map names none), as the rawcan backend sends them;
     CAN FD frames on an FD bus (the backend sends every data frame as FD there)."""
-    if cfg.damiao is not None:
-        return family_frames(name, cfg, node, frame_bits, fd=fd)
     command_id = cfg.command_id + node
     reply_id = cfg.reply_can_id(node)
     out_bytes, in_bytes, extended = sum(p.size for p in rpdo), sum(p.size for p in tpdo), False
-    cm = cfg.cubemars
-    if cm is not None and cm.protocol == "servo":  # 29-bit ids; the map's packet and its status frame
-        mode = cm.mode_named(cm.mode)
-        extended = True
-        out_bytes = sum(cubemars.TYPES[f.type][1] for f in mode.fields)
-        in_bytes = sum(cubemars.TYPES[f.type][1] for f in cm.status)
-        command_id, reply_id = cubemars.servo_id(mode.packet, node), cubemars.servo_id(cm.status_packet, node)
-    elif cm is not None:
-        in_bytes = cm.reply_bytes  # an unwrapped multi-turn position is the image's, not on the wire
     command = CanFrame(command_id, out_bytes, f"{name} command", extended, fd, frame_bits=frame_bits)
     reply = CanFrame(
         reply_id, in_bytes, f"{name} reply", extended, fd, frame_bits=frame_bits, after=command.label
@@ -831,11 +819,6 @@ def protocol_frames(
     ]
 
 
-#: Data bytes the master puts in every Damiao mode frame: the rawcan backend zero-pads them to 8 (Damiao
-#: velocity mode carries 4 bytes of numbers).
-RAWCAN_COMMAND_BYTES = 8
-
-
 def family_frames(
     name: str,
     cfg: RawCanConfig,
@@ -844,22 +827,28 @@ def family_frames(
     mode: str | None = None,
     fd: bool = False,
 ) -> list[CanFrame]:
-    """One cycle of a Damiao motor as the rawcan backend runs it, from its map's family section: the
-    command of ``mode`` (default: the map's, written to CTRL_MODE at bring-up) on ``node + id_offset``
-    (MIT +0x000, position-velocity +0x100, velocity +0x200, position-force +0x300), 8 bytes, and its
-    8-byte reply on MST_ID. ``fd``: the data frames as CAN FD (an FD bus).
+    """One cycle of a motor of a family on the protocol as the rawcan backend runs it: its family's
+    :meth:`~fieldbus.core.canfamily.CanFamily.wire_frames`, in ``mode`` for a family with modes (default:
+    the map's; Damiao: the mode's command on ``node + id_offset``, 8 bytes, and its 8-byte reply on
+    MST_ID). ``fd``: the data frames as CAN FD (an FD bus); a remote frame stays classic (CAN FD has none).
     """
-    dm = cfg.damiao
-    if dm is None:
-        raise ValueError(f"{name}: not a Damiao map")
-    m = dm.mode_named(mode or dm.mode)
-    command = CanFrame(
-        node + m.id_offset, RAWCAN_COMMAND_BYTES, f"{name} {m.name} command", fd=fd, frame_bits=frame_bits
-    )
-    reply = CanFrame(
-        cfg.reply_can_id(node), 8, f"{name} reply", fd=fd, frame_bits=frame_bits, after=command.label
-    )
-    return [command, reply]
+    if cfg.protocol is None:
+        raise ValueError(f"{name}: its map's family is not on the protocol (fieldbus.core.canfamily)")
+    wire: Any = families()[cfg.family].wire_frames  # a family with modes takes mode=
+    times = wire(name, cfg.protocol, node, mode=mode) if mode else wire(name, cfg.protocol, node)
+    return [
+        CanFrame(
+            t.can_id,
+            t.data_bytes,
+            t.label,
+            t.extended,
+            fd and not t.remote,
+            t.period_us,
+            frame_bits=frame_bits,
+            after=t.after,
+        )
+        for t in times
+    ]
 
 
 def bus_bandwidth(

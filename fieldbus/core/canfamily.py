@@ -24,12 +24,16 @@ from importlib import import_module
 from importlib.metadata import entry_points
 from typing import Any, ClassVar, NamedTuple, Protocol
 
+from fieldbus.errors import FieldbusError
+
 GROUP = "fieldbus.rawcan_families"
-#: Built-in families ported to the protocol (damiao, cubemars still run on the backend's own paths).
+#: Built-in families ported to the protocol (every built-in one: the backend has no family paths of its own).
 BUILTIN = {
     "frames": "fieldbus.core.canframes:FramesFamily",
     "mit": "fieldbus.core.mitfamily:MitFamily",
     "odrive": "fieldbus.core.odrivefamily:OdriveFamily",
+    "damiao": "fieldbus.core.damiaofamily:DamiaoFamily",
+    "cubemars": "fieldbus.core.cubemarsfamily:CubemarsFamily",
 }
 
 Frame = tuple[int, bool, bytes]  # (CAN id, extended 29-bit id, data; a Remote: a remote frame)
@@ -64,6 +68,7 @@ class FamilyMotor:
     config: Any
     outputs: Any
     inputs: Any
+    name: str = ""  # the slave's name (for messages)
 
 
 @dataclass(frozen=True)
@@ -78,7 +83,8 @@ class Request:
     time-out); ``awaits`` then names the motors blamed when none came, ``what`` what they did not answer
     (the generator is not resumed). The backend runs a family's generator step by step: code after a
     ``yield`` sees the answer (a generator's ``return`` value is the result of an access). ``answer`` is
-    for transactions (configure, set_mode, access, recover); :meth:`CanFamily.bring_up`'s requests are
+    for transactions (:data:`Steps`: configure, set_mode, register access, recover), its frame routed
+    nowhere; :meth:`CanFamily.bring_up`'s requests are
     sent together and await replies (``awaits``) or conditions (``until``)."""
 
     frame: Frame
@@ -90,7 +96,7 @@ class Request:
 
 
 #: A transaction: a generator of requests (each sent, its answer or condition awaited), its return value
-#: the transaction's result.
+#: the transaction's result. It raises a FieldbusError (or :class:`StepRefused`) for a refused value.
 Steps = Generator[Request, "bytes | None", Any]
 
 
@@ -125,6 +131,10 @@ class CanFamily(ABC):
     #: motors of the bus, a :class:`~fieldbus.platform.clock.Clock` or None), named, not imported: the
     #: emulators sit above fieldbus.
     emulator: ClassVar[str | None] = None
+    #: The motors' register table when :meth:`register` reaches them (``lookup(text)`` -> a row with
+    #: ``number``, ``name``, ``is_float``, ``read_only``, or an ``int`` outside the table, or None;
+    #: ``REGISTERS``: the rows), else None (:mod:`fieldbus.core.damiao_registers` for Damiao).
+    register_table: ClassVar[Any] = None
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         self.motors = {m.index: m for m in motors}
@@ -144,9 +154,10 @@ class CanFamily(ABC):
 
     @abstractmethod
     def cycle(self) -> Sequence[CycleFrame]:
-        """The command frames of one cycle, their data from the motors' output rows (objects of a fixed
-        set, data rewritten in place: no allocation per cycle; which of them go out may change from one
-        cycle to the next, e.g. with a motor's mode)."""
+        """The command frames of one cycle, their data from the motors' output rows (the family keeps its
+        frame objects, data rewritten in place: no allocation per cycle). Which of them a cycle sends may
+        change (a mode's or a packet's frame), and so may a frame's ``can_id``: the transport builds one
+        message per frame object, the first time it is sent, and takes its id each cycle."""
 
     @abstractmethod
     def carries(self, can_id: int, extended: bool, data: bytes) -> Sequence[int]:
@@ -191,9 +202,10 @@ class CanFamily(ABC):
 
     def set_mode(self, motor: int, mode: str) -> Steps:
         """Switch motor index ``motor`` to the map's mode ``mode``, between cycles: the requests; its
-        commands go out in that mode from the next cycle. ``ValueError`` for an unknown mode or a
-        family without modes (the default)."""
-        raise ValueError(f"family {self.name} has no modes to switch")
+        commands go out in that mode from the next cycle. :class:`~fieldbus.errors.FieldbusError` (or
+        ``ValueError``, the backend names the bus) for an unknown mode or a family without modes (the
+        default)."""
+        raise FieldbusError(f"family {self.name} has no modes")
         yield  # pragma: no cover - a generator
 
     def mode(self, motor: int) -> str | None:
@@ -237,6 +249,36 @@ class CanFamily(ABC):
         it is first). Default: its ``clear`` then ``enable`` frames, no answer awaited."""
         for kind in ("clear", "enable"):
             yield from (Request(f) for f in self.commands(kind, motor))
+
+    def clear(self, motor: int) -> Iterator[Request]:
+        """Clear motor index ``motor``'s fault and leave it disabled. Default: its ``clear`` frames."""
+        yield from (Request(f) for f in self.commands("clear", motor))
+
+    def enabled(self, motor: int) -> bool:
+        """After :meth:`recover`: whether the motor's last reply says it is enabled (default True)."""
+        return True
+
+    @classmethod
+    def command_limits(cls, config: Any) -> list[tuple[str, float, float]]:
+        """``(channel, min, max)`` windows of command channels the output rules saturate to, beyond the
+        classic section's scaled fields (default none)."""
+        return []
+
+    @classmethod
+    def fault_codes(cls, config: Any) -> dict[int, str] | None:
+        """The error codes this map's motors report as faults, by name (an emulator injects one of them);
+        None: the family has no table of its own."""
+        return None
+
+    def register(self, motor: int, number: int, value: float | None = None, is_float: bool = False) -> Steps:
+        """Read (``value`` None) or write a register: a transaction returning the value answered."""
+        raise FieldbusError(f"family {self.name} has no registers")
+        yield
+
+    def save(self, motor: int) -> Steps:
+        """Store the registers to flash (a transaction)."""
+        raise FieldbusError(f"family {self.name} has no registers")
+        yield
 
 
 def families() -> dict[str, type[CanFamily]]:

@@ -215,11 +215,6 @@ def float32(value: float) -> float:
     return float(struct.unpack("<f", struct.pack("<f", value))[0])
 
 
-def encode_mode(mode: Mode, values: Mapping[str, float], maxima: Mapping[str, float]) -> bytes:
-    """A non-MIT mode frame from engineering values (``maxima``: per-unit bases), zero-padded to 8 bytes."""
-    return encode_fields(mode.fields, values, maxima)
-
-
 def encode_fields(
     fields: tuple[ModeField, ...], values: Mapping[str, float], maxima: Mapping[str, float], size: int = 8
 ) -> bytes:

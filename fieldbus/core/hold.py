@@ -6,7 +6,8 @@ target, speed, torque or gains the image held from before it. :func:`hold_row` w
 into one row of a raw-CAN group's outputs:
 
 - ``position`` <- the position last read (``inputs["position"]``, when the map has both);
-- ``velocity``, ``torque``, ``current``, ``duty``, ``brake_current`` <- 0 (MIT: no speed and no
+- ``velocity``, ``torque``, ``current``, ``duty``, ``brake_current`` <- 0 (a mode's channels
+  ``<mode>.<field>`` alike) (MIT: no speed and no
   feed-forward torque; Damiao velocity / position-velocity: no speed; CubeMars servo: no current);
 - the gains (``kp``, ``kd``) and every other field stay as the image has them: after a safe stop that is
   what the safe-stop frames carried (by default kp = kd = 0: no stiffness), after a recovery the
@@ -33,13 +34,17 @@ ZERO_FIELDS = ("velocity", "torque", "current", "duty", "brake_current")  # comm
 
 
 def hold_row(out: Any, inp: Any) -> None:
-    """One motor's outputs ``out`` (a structured row of the image) hold where ``inp`` says it is."""
+    """One motor's outputs ``out`` (a structured row of the image) hold where ``inp`` says it is; a mode's
+    own channels (``<mode>.<field>``: ``velocity.velocity``, ``pos_vel.position``) by their field too, so
+    a mode switched to later never sends a value left there from an earlier use."""
     names, read = out.dtype.names or (), inp.dtype.names or ()
-    for n in ZERO_FIELDS:
-        if n in names:
+    here = "position" in read
+    for n in names:
+        field = n.rpartition(".")[2]
+        if field in ZERO_FIELDS:
             out[n] = 0
-    if "position" in names and "position" in read:
-        out["position"] = inp["position"]
+        elif field == "position" and here:
+            out[n] = inp["position"]
 
 
 class TransitionHold:

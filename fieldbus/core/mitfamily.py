@@ -10,13 +10,14 @@ motors report no error code and have no clear command. The map section is the cl
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from fieldbus.core.canfamily import CanFamily, FamilyMotor, Frame, FrameTime, Request
+from fieldbus.core.rawcan import RawCanConfig, RawCanField, encode_frame
 from fieldbus.core.yamlsrc import PathT
 
 SPECIAL = {"enable": "enter", "disable": "exit", "zero": "zero"}  # the protocol's names -> the map's
@@ -139,3 +140,36 @@ def _node_byte(cfg: Any) -> int:
             return bit // 8
         bit += f.bits
     return -1
+
+
+def field_place(cfg: RawCanConfig, name: str) -> tuple[int, int, int]:
+    """``(byte, shift, mask)`` of reply field ``name`` in the frame; ValueError when it spans two bytes."""
+    bit = 0
+    for f in cfg.reply:
+        if f.name == name:
+            if bit // 8 != (bit + f.bits - 1) // 8:
+                raise ValueError("the error field must sit inside one byte")
+            return bit // 8, 8 - (bit % 8) - f.bits, (1 << f.bits) - 1
+        bit += f.bits
+    raise ValueError(f"no reply field '{name}'")
+
+
+def safe_patch(cfg: RawCanConfig) -> Callable[[bytearray], None]:
+    """Puts the safe values' raw bits into an MIT frame (big-endian, fields MSB first)."""
+    total = sum(f.bits for f in cfg.command)
+    keep, put, bit = (1 << total) - 1, 0, total
+    for f in cfg.command:
+        bit -= f.bits
+        if f.safe_value is not None:
+            pad = RawCanField("pad", -f.bits % 8)  # encode_frame packs whole bytes
+            fields = (f, pad) if pad.bits else (f,)
+            raw = int.from_bytes(encode_frame(fields, cfg.span, {f.name: f.safe_value}), "big") >> pad.bits
+            keep &= ~(((1 << f.bits) - 1) << bit)
+            put |= raw << bit
+    n = total // 8
+
+    def safe(data: bytearray) -> None:
+        x = int.from_bytes(data[:n], "big") & keep | put
+        data[:n] = x.to_bytes(n, "big")
+
+    return safe

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.command_guard import UnsafeOutputError as UnsafeOutputError
 from fieldbus.core.command_guard import finite as finite
 from fieldbus.core.pdo.image import DirectionImage
@@ -156,6 +157,9 @@ def _map_limits(drive: DriveMap, lay: DirectionLayout, cycle_s: float) -> dict[s
         for f in drive.rawcan.command:
             if f.min is not None and f.max is not None:
                 found[f.name] = ChannelLimit(f.name, f.min, f.max, source="rawcan min..max")
+        family = families().get(drive.rawcan.family) if drive.rawcan.protocol is not None else None
+        for name, lo, hi in family.command_limits(drive.rawcan.protocol) if family is not None else ():
+            found[name] = ChannelLimit(name, lo, hi, source="rawcan min..max")
     for lim in drive.limits:
         old = found.get(lim.channel, ChannelLimit(lim.channel))
         found[lim.channel] = ChannelLimit(

@@ -37,13 +37,11 @@ RAWCAN_KEYS = (
 )  # fmt: skip
 FAMILIES = (
     "mit",
-    "damiao",
-    "cubemars",
     "frames",
-)  # mit: the MIT frame alone; damiao: plus modes, registers, errors (rawcan.damiao); odrive (CANSimple) is
-# found in the family table (fieldbus.core.canfamily.families) only;
-# cubemars: AK servo mode (29-bit ids, status frames) or MIT mode with multi-turn unwrapping (rawcan.cubemars);
-# frames: any protocol described in data (fieldbus.core.canframes)
+)  # mit: the MIT frame alone; frames: any protocol described in data (fieldbus.core.canframes). The
+# families on the protocol (fieldbus.core.canfamily.families: odrive, damiao, cubemars, ...) are chosen
+# from their table; their sections (rawcan.odrive, rawcan.damiao, rawcan.cubemars) are parsed here as
+# parts of the classic section.
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
 FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque

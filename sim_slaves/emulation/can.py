@@ -17,6 +17,7 @@ from collections import deque
 from contextlib import ExitStack
 from typing import Any
 
+from fieldbus.core.canfamily import families
 from fieldbus.core.network import Bus
 from fieldbus.errors import FieldbusError
 from fieldbus.testing.provider import BusEmulator, EmulationContext, EmulationError, EmulationUnavailable
@@ -287,17 +288,16 @@ class CanBus(BusEmulator):
             raise self._unsupported("drive_fault", f"a {self.kind} motor has one axis")
         cfg = self.bus.slaves[slave].map.rawcan
         assert cfg is not None
-        if cfg.damiao is not None:  # the reply's error nibble
-            faults = [(c, name) for c, name in cfg.damiao.errors if c not in cfg.damiao.ok_codes]
-            if code > 0xF or code in cfg.damiao.ok_codes:
-                have = ", ".join(f"0x{c:X} {name}" for c, name in faults)
-                raise FieldbusError(f"drive_fault: a Damiao fault code is one of {have}; got {code:#x}")
+        registered = families().get(cfg.family) if cfg.protocol is not None else None
+        faults = registered.fault_codes(cfg.protocol) if registered is not None else None
+        if faults is not None:  # the family's table (Damiao: the reply's error nibble)
+            if code not in faults:
+                have = ", ".join(f"0x{c:X} {name}" for c, name in faults.items())
+                raise FieldbusError(f"drive_fault: a {cfg.family} fault code is one of {have}; got {code:#x}")
         elif cfg.frames is not None and cfg.frames.fault_field is None:
             raise self._unsupported(
                 "drive_fault", f"map {self.bus.slaves[slave].map.name} has no fault field"
             )
-        elif cfg.cubemars is not None and code > 0xFF:  # the status / reply error byte
-            raise FieldbusError(f"drive_fault: a CubeMars error code is 1..255, got {code:#x}")
         sim.inject_error(n, code)  # ODrive: axis error bits (up to 32)
 
     def silence(self, slave: int, silent: bool) -> None:

@@ -144,14 +144,15 @@ def test_trajectory_at_1khz_mode_switch_fault_and_safe_stop(net_file: tuple[Path
         backend.set_mode("j0", "velocity")
         assert sim.state[1].reg(10) == 3
         drain(listener)
-        out["velocity"][:] = 3.0
+        out["velocity.velocity"][:] = 3.0  # the velocity mode's own channel (float32 rad/s)
         for _ in range(300):
             assert _fresh_or_held(op.exchange())
         sent = [bytes(m.data) for m in drain(listener) if m.arbitration_id == 0x201]
         assert len(sent) == 300 and struct.unpack("<f", sent[-1][:4])[0] == pytest.approx(3.0)
         assert float(inp["velocity"][0]) == pytest.approx(3.0, abs=0.1)
         backend.set_mode("j0", "position_force")
-        out["position"][0], out["velocity"][0], out["torque"][0] = 0.2, 2.0, 5.0
+        pf = ("position_force.position", "position_force.velocity", "position_force.torque")
+        out[pf[0]][0], out[pf[1]][0], out[pf[2]][0] = 0.2, 2.0, 5.0
         for _ in range(1000):  # from about 1.5 rad at the 2 rad/s limit
             op.exchange()
         sent = [bytes(m.data) for m in drain(listener) if m.arbitration_id == 0x301]

@@ -66,6 +66,46 @@ def test_a_damiao_motor_that_faulted_is_enabled_again_by_name_and_does_not_move(
         assert sim.motor(2).position == pytest.approx(0.3, abs=0.01)
 
 
+def test_a_damiao_motor_in_velocity_mode_is_enabled_again_at_rest(tmp_path: Path) -> None:
+    """The mode's own channel (``velocity.velocity``) is seeded at 0 too: enabling starts no motion."""
+    with emulate(_network(tmp_path, "damiao_dm_j4310")) as emu:
+        legs, sim = emu.op["legs"], _sim(emu)
+        backend = emu.op.network.backend("legs")
+        backend.set_mode("m1", "velocity")
+        assert backend.mode("m1") == "velocity" and sim.state[2].reg(10) == 3
+        legs.outputs["velocity.velocity"][1] = 2.0
+        emu.cycles(300)
+        assert sim.motor(2).velocity == pytest.approx(2.0, abs=0.05)
+        emu.drive_fault("legs", "m1", 0xE)
+        emu.cycles(20)
+        assert not sim.motor(2).enabled
+        assert emu.recover_motor("legs", "m1")
+        assert legs.outputs["velocity.velocity"][1] == 0  # before: the 2 rad/s left there, sent again
+        emu.cycles(300)
+        assert sim.motor(2).enabled and abs(sim.motor(2).velocity) < 1e-3
+
+
+def test_a_damiao_mode_switch_starts_from_rest_not_from_a_value_left_in_the_mode(tmp_path: Path) -> None:
+    with emulate(_network(tmp_path, "damiao_dm_j4310")) as emu:
+        legs, sim = emu.op["legs"], _sim(emu)
+        backend = emu.op.network.backend("legs")
+        backend.set_mode("m0", "velocity")
+        legs.outputs["velocity.velocity"][0] = 2.0
+        emu.cycles(300)
+        assert sim.motor(1).velocity == pytest.approx(2.0, abs=0.05)
+        backend.set_mode("m0", "mit")  # kp = kd = 0 in the image: the motor coasts
+        legs.outputs["velocity"][0], legs.outputs["kd"][0] = 0.0, 2.0  # damped to rest
+        emu.cycles(500)
+        assert abs(sim.motor(1).velocity) < 0.05
+        backend.set_mode("m0", "velocity")  # before: the 2 rad/s left in velocity.velocity went out again
+        assert legs.outputs["velocity.velocity"][0] == 0
+        emu.cycles(300)
+        assert abs(sim.motor(1).velocity) < 1e-3
+        backend.set_mode("m0", "position_velocity")
+        assert legs.outputs["position_velocity.velocity"][0] == 0  # the speed limit: it holds
+        assert legs.outputs["position_velocity.position"][0] == pytest.approx(legs.inputs["position"][0])
+
+
 def test_an_odrive_axis_that_faulted_is_armed_again_by_name_and_holds_where_it_is(tmp_path: Path) -> None:
     with emulate(_network(tmp_path, "odrive_s1")) as emu:
         legs, sim = emu.op["legs"], _sim(emu)

@@ -226,12 +226,13 @@ def test_damiao_mode_frames_never_carry_nan_nor_more_than_vmax(tmp_path: Path) -
         out = op["arm"].outputs
         backend.set_mode("j0", "velocity")  # float32 rad/s on 0x200 + id
         backend.set_mode("j1", "position_velocity")  # float32 rad, float32 rad/s on 0x100 + id
-        out["velocity"][:] = [1000.0, 2.0]
-        out["position"][:] = [0.0, math.nan]
+        vel, pv_pos, pv_vel = "velocity.velocity", "position_velocity.position", "position_velocity.velocity"
+        out[vel][0], out[pv_vel][1] = 1000.0, 2.0
+        out[pv_pos][1] = math.nan
         for _ in range(3):
             op.exchange()
-        out["velocity"][:] = [math.nan, -math.inf]
-        out["position"][1] = math.inf
+        out[vel][0], out[pv_vel][1] = math.nan, -math.inf
+        out[pv_pos][1] = math.inf
         for _ in range(3):
             op.exchange()
         frames = drain(listener)

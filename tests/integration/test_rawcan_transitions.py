@@ -223,19 +223,22 @@ def test_a_recovered_damiao_motor_given_nan_holds_where_it_is(tmp_path: Path) ->
 
 
 def test_a_damiao_mode_switch_starts_from_where_the_motor_is(tmp_path: Path) -> None:
-    """set_mode seeds too: velocity mode does not run the MIT feed-forward speed the image held."""
+    """set_mode seeds too: velocity mode runs neither the MIT feed-forward speed the image held nor a
+    speed left in the mode's own channel (``velocity.velocity``) from before."""
     with emulate(_network(tmp_path, "damiao_dm_j4310")) as emu:
         legs, sim = emu.op["legs"], emu.emulators["legs"].sim
         out = legs.outputs
         out["kp"][:], out["kd"][:], out["position"][:], out["velocity"][:] = 20.0, 1.0, 0.3, 0.0
         emu.cycles(800)
         out["velocity"][0] = 4.0  # an MIT feed-forward the controller left there
+        out["velocity.velocity"][0] = 4.0  # and a speed left in the velocity mode's channel
         emu.op.network.backend("legs").set_mode("m0", "velocity")
         assert out["velocity"][0] == 0.0 and out["position"][0] == pytest.approx(legs.inputs["position"][0])
+        assert out["velocity.velocity"][0] == 0.0
         at = sim.motor(1).position
         emu.cycles(300)
         assert abs(sim.motor(1).position - at) < 0.01, (sim.motor(1).position, at)  # before: 4 rad/s
-        out["velocity"][0] = 2.0
+        out["velocity.velocity"][0] = 2.0  # the velocity mode's own channel (float32 rad/s)
         emu.cycles(300)
         assert float(legs.inputs["velocity"][0]) == pytest.approx(2.0, abs=0.1)
 

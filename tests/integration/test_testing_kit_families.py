@@ -151,7 +151,8 @@ def test_a_bus_of_several_maps_of_one_family_runs(tmp_path: Path) -> None:
     ("drive_map", "code", "message"),
     [
         ("damiao_dm_j4310", 0x1, "0x8 over-voltage"),  # 1 is "enabled", a state
-        ("cubemars_ak80_9_servo", 0x100, "1..255"),
+        ("cubemars_ak80_9_servo", 0x100, "0x6 phase current unbalance; got 0x100"),
+        ("cubemars_ak80_9_servo", 0x7, "0x2 over-current"),  # not in the map's table
     ],
 )
 def test_a_fault_code_the_family_does_not_have_is_refused(

@@ -235,11 +235,11 @@ def test_the_driver_encodes_what_our_master_sent(tmp_path: Path) -> None:
             ),
         ):
             backend.set_mode("j1", mode)
-            out["position"][0], out["velocity"][0], out["torque"][0] = (
-                1.25,
-                -3.0 if mode == "velocity" else 2.5,
-                2.5,
-            )
+            for name, value in (("position", 1.25), ("velocity", -3.0 if mode == "velocity" else 2.5)):
+                if f"{mode}.{name}" in out.names:  # the mode's own channels
+                    out[f"{mode}.{name}"][0] = value
+            if mode == "position_force":
+                out["position_force.torque"][0] = 2.5
             while listener.recv(timeout=0) is not None:
                 pass
             op.exchange()

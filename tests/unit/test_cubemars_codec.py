@@ -81,3 +81,34 @@ def test_a_servo_map_needs_a_little_endian_image() -> None:
     text = SERVO.read_text().replace("  byte_order: little\n", "")
     with pytest.raises(PdoMapError, match="byte_order"):
         drive_map_from_text(text, file="servo.yaml")
+
+
+def test_the_family_takes_packets_and_status_through_the_image_codec_only() -> None:
+    """The servo image is the wire's numbers: a packet's bytes are the row's (``to_wire``), a status frame
+    lands in the row and ``from_wire`` decodes it; both against ``struct`` per the manual's layout."""
+    from fieldbus.core.canfamily import FamilyMotor
+    from fieldbus.core.cubemarsfamily import CubemarsFamily
+    from fieldbus.core.pdo.image import ProcessImage
+    from fieldbus.core.pdo.layout import layout
+
+    drive = load_drive_map(SERVO)
+    img = ProcessImage(layout(drive), 1)
+    fam = CubemarsFamily([FamilyMotor(0, 0x68, drive.rawcan, img.outputs.wire[0], img.inputs.wire[0], "j0")])
+    out = img.outputs
+    out["mode"][0], out["position"][0], out["speed_limit"][0] = 6, math.radians(90.0), 2.0
+    out["accel_limit"][0] = math.nan  # the image keeps the raw value sent last (0): never INT16_MAX
+    out.to_wire()
+    (frame,) = fam.cycle()
+    erpm_per_rad_s = 21 * 9 * 60 / (2 * math.pi)
+    assert (frame.can_id, frame.extended) == (0x668, True)
+    assert struct.unpack(">ihh", frame.data) == (900_000, round(2.0 * erpm_per_rad_s / 10), 0)
+    out["mode"][0] = 9  # names no packet: nothing sent
+    out.to_wire()
+    assert fam.cycle() == []
+    status = struct.pack(">hhhbB", -1234, 250, -310, -5, 3)
+    assert fam.route(0x2968, True, status) == [0] and fam.route(0x2968, True, status[:6]) == []
+    img.inputs.from_wire()
+    inp = img.inputs
+    assert inp["position"][0] == pytest.approx(math.radians(-123.4), abs=1e-6)
+    assert inp["current"][0] == pytest.approx(-3.1) and int(inp["temperature"][0]) == -5
+    assert fam.error(0) == (3, "over-voltage")
