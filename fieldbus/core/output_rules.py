@@ -260,7 +260,8 @@ class _Block:
         self.started = False  # the first cycle sets the reference of the step rule
         self.col = self.x[:, 0]
         # the clean cycle's test, on the image's columns as they are (no gather): without a step rule and
-        # without an integer source; with no finite window anywhere it is one "all finite" test
+        # without an integer source; with no finite window anywhere it is one "all finite" test. It reads
+        # lo/hi/step as built here: limits are fixed for the block's life (a change means a new OutputRules)
         self.quick = src is None and not self.stepped
         self.windowed = bool(np.any(self.lo > -big) or np.any(self.hi < big))
         self.size = n * m
