@@ -222,16 +222,26 @@ class CycleTime:
 def sim_bare_step(axes: int, clock: CycleTime | None = None) -> Callable[[], object]:
     """One LRW through an in-process ESC chain in OP, with no master logic around it (``clock``: its
     time, one cycle per LRW; default the wall clock)."""
+    from fieldbus.core.ecat import decode_frame
     from fieldbus.core.pdo import load_drive_map
     from sim_slaves.ethercat.bringup import bring_up
     from sim_slaves.ethercat.chain import EscChain
 
     chain = EscChain.from_maps([load_drive_map(DEMO_MAP)] * axes)
-    plan = bring_up(chain)
-    frame = bytearray(plan.lrw())
-
     if clock is not None:
         clock.start()
+    now = clock if clock is not None else time.monotonic_ns
+    # brought up on the time its cycles run on: at time 0 the first LRW, a "second" later, found the
+    # process-data watchdog expired and every slave fell back to SAFE-OP (outputs ignored, drives idle)
+    plan = bring_up(chain, now())
+    frame = bytearray(plan.lrw())
+    probe = bytearray(frame)
+    chain.process_into(probe, len(probe), clock.tick() if clock is not None else now())
+    got = decode_frame(probe).datagrams[0].wkc
+    if got != plan.expected_wkc:
+        raise RuntimeError(f"bare LRW: WKC {got}, expected {plan.expected_wkc} (slaves not in OP)")
+
+    if clock is not None:
         tick = clock.tick
 
         def cycle() -> object:

@@ -78,6 +78,7 @@ class DriveFaultWatch:
         self._fresh = np.zeros(n, dtype=bool)  # per row, from the per-slave freshness of a multi-axis group
         self.faults: npt.NDArray[np.int64] = np.zeros(n, dtype=np.int64)  # fault edges per axis since start
         self.in_fault: npt.NDArray[np.bool_] = np.zeros(n, dtype=bool)
+        self._faulted = False  # an axis of in_fault is set (the clean cycle's test skips the rest without)
         self._now = np.zeros(n, dtype=bool)
         self._edge = np.zeros(n, dtype=bool)
         self._bits = np.zeros(n, dtype=np.uint16)
@@ -86,15 +87,18 @@ class DriveFaultWatch:
         """Judge the fresh rows of this cycle; the faults that began now (allocation-free when none)."""
         if self._sw is None:
             return _NONE
+        np.bitwise_and(self._sw, FAULT_BIT, out=self._bits)
+        if not self._faulted and not np.count_nonzero(self._bits):
+            return _NONE  # no fault bit anywhere and no axis in fault: nothing can change (the clean cycle)
         if self.axes > 1:  # ``fresh`` per slave: each of its axes' rows
             np.copyto(self._fresh.reshape(-1, self.axes), fresh.reshape(-1, 1))
             fresh = self._fresh
-        np.bitwise_and(self._sw, FAULT_BIT, out=self._bits)
         np.not_equal(self._bits, 0, out=self._now)
         np.logical_and(self._now, fresh, out=self._edge)
         np.greater(self._edge, self.in_fault, out=self._edge)  # fresh, in fault now, not before
         np.copyto(self.in_fault, self._now, where=fresh)
-        if not self._edge.any():
+        self._faulted = bool(np.count_nonzero(self.in_fault))
+        if not np.count_nonzero(self._edge):
             return _NONE
         self.faults += self._edge
         rows = np.flatnonzero(self._edge)

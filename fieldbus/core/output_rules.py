@@ -251,6 +251,7 @@ class _Block:
         self.ok = np.zeros((n, m), dtype=bool)
         self.flag = [np.zeros((n, m), dtype=bool) for _ in Reason]  # per reason: refused this cycle
         self.was = np.zeros((n, m), dtype=bool)  # refused the cycle before (streaks: one event each)
+        self.was_any = False  # an element of ``was`` is set
         self.any = np.zeros((n, m), dtype=bool)
         self.keep, self.side, self.new = (np.zeros((n, m), dtype=bool) for _ in range(3))
         self.per_axis = np.zeros(n, dtype=bool)
@@ -262,6 +263,12 @@ class _Block:
         self.hit = False
         self.started = False  # the first cycle sets the reference of the step rule
         self.col = self.x[:, 0]
+        # the clean cycle's test, on the image's columns as they are (no gather): without a step rule and
+        # without an integer source; with no finite window anywhere it is one "all finite" test. It reads
+        # lo/hi/step as built here: limits are fixed for the block's life (a change means a new OutputRules)
+        self.quick = src is None and not self.stepped
+        self.windowed = bool(np.any(self.lo > -big) or np.any(self.hi < big))
+        self.size = n * m
 
     def apply(self, engaged: Callable[[], npt.NDArray[np.bool_]] | None) -> bool:
         """The rules on this block; True when a value was refused (the flags then say which).
@@ -269,6 +276,20 @@ class _Block:
         ``engaged()``: (N, 1) per axis, the step rule applies (None: every axis, after the first cycle).
         """
         x, last, w, ok = self.x, self.last, self.work, self.ok
+        if self.quick and not self.hit:  # the clean cycle: no value can be refused, none is changed
+            view = self.view
+            if self.windowed:
+                np.minimum(view, self.hi, out=w)
+                np.maximum(w, self.lo, out=w)
+                np.not_equal(w, view, out=ok)
+                clean = not np.count_nonzero(ok)
+            else:  # no window: only NaN and infinities can be refused
+                np.isfinite(view, out=ok)
+                clean = np.count_nonzero(ok) == self.size
+            if clean:
+                np.copyto(last, view)
+                self.started = True
+                return False
         if self.src is not None:
             np.copyto(self.col, self.src, casting="unsafe")
         else:
@@ -390,12 +411,16 @@ class OutputRules:
         self._sw = np.zeros(n, dtype=np.uint16)
         self._mask, self._enabled = np.uint16(OPERATION_ENABLED_MASK), np.uint16(OPERATION_ENABLED)
         self._stepped = any(b.stepped for b in self.blocks)
+        # bound once: apply() makes no method object per cycle
+        self._engaged_fn: Callable[[], npt.NDArray[np.bool_]] | None = (
+            self._engaged_now if self._engaged is not None else None
+        )
         self.refused_now = False  # a value was refused in the last apply()
 
     def apply(self) -> bool:
         """The rules on every output value of the group, in place; True when one was refused this cycle."""
         hit = False
-        engaged = self._engaged_now if self._engaged is not None else None
+        engaged = self._engaged_fn
         for b in self.blocks:
             if b.apply(engaged):
                 hit = True
@@ -448,6 +473,7 @@ class OutputRules:
                 for r in reversed(Reason):  # the first reason wins, as in the events
                     np.copyto(b.last_reason, int(r), where=b.flag[r])
             np.copyto(b.was, b.any)
+            b.was_any = bool(np.count_nonzero(b.any))
         return out
 
     def last_clamp(self, row: int) -> OutputClamp | None:
@@ -477,5 +503,6 @@ class OutputRules:
     def settle(self) -> None:
         """No refusal this cycle: streaks end (call instead of :meth:`events` on a clean cycle)."""
         for b in self.blocks:
-            if np.count_nonzero(b.was):
+            if b.was_any:
                 b.was.fill(False)
+                b.was_any = False

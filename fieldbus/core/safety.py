@@ -96,6 +96,7 @@ class SafetyPolicy:
         self.config = config or PolicyConfig()
         self.fresh: npt.NDArray[np.bool_] = np.zeros(n_slaves, dtype=bool)
         self.stale_cycles: npt.NDArray[np.int64] = np.zeros(n_slaves, dtype=np.int64)
+        self._stale = False  # an element of stale_cycles may be nonzero (judge() alone writes them)
         self.consecutive_misses = 0
         self.fresh_streak = 0  # cycles in a row with the verdict OK
         self.safe_stop = False  # latched until cleared and healthy (S4)
@@ -142,9 +143,12 @@ class SafetyPolicy:
             else:  # one datagram for all (EtherCAT): a miss makes every slave stale
                 self.fresh.fill(verdict is Verdict.OK)
         if verdict is Verdict.OK:
-            self.stale_cycles.fill(0)
+            if self._stale:  # a good cycle after good ones leaves the zeros as they are
+                self.stale_cycles.fill(0)
+                self._stale = False
         else:
             self.stale_cycles += 1
+            self._stale = True
             if slave_ok is not None:
                 np.copyto(self.stale_cycles, 0, where=self.fresh)
         self.last_verdict = verdict
