@@ -53,7 +53,8 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core.canfamily import CanFamily, FamilyMotor, Remote, Request, StepRefused, families
+from fieldbus.core.canfamily import CanFamily, FamilyMotor, Frame, Remote, Request, StepRefused, families
+from fieldbus.core.canrequests import ENTER_TIMEOUT_S, Answer, await_until, run_requests
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.hold import hold_row
 from fieldbus.core.network import Bus
@@ -68,7 +69,6 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         f"the rawcan backend needs python-can ({exc}): pip install 'fieldbus[can]'"
     ) from None
 
-ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
 
 
@@ -120,15 +120,7 @@ class RawCanBackend(CanFaults, Backend):
         self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
         self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
-        self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
-        self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
-        self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
         self._arrived = np.zeros(self.n_slaves, dtype=bool)
-        # each motor's reply bytes as the frame has them: its input row, reversed (a view)
-        self._reply_rows = [
-            self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
-        ]
-        self._reply_len = [row.size for row in self._reply_rows]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
@@ -141,47 +133,17 @@ class RawCanBackend(CanFaults, Backend):
             maxlen=FAULT_LOG
         )  # (motor, code, name) not yet taken
         self._cycles = 0
-        declared: dict[str, list[FamilyMotor]] = {}  # families on the protocol: their motors
-        self._fr = [False] * self.n_slaves  # motor i runs on a CanFamily
+        declared: dict[str, list[FamilyMotor]] = {}  # the families of the bus: their motors
         for i, area in enumerate(self.areas):
             cfg = area.slave.map.rawcan
-            if cfg is None:
+            if cfg is None or cfg.protocol is None:
                 raise FieldbusError(
-                    f"bus '{bus.name}': slave {area.slave.name} map {area.slave.map.name} has no rawcan section"
+                    f"bus '{bus.name}': slave {area.slave.name} map {area.slave.map.name} has no rawcan family"
                 )
             node = area.slave.node_id or 0
-            out_row = self.out_row(i)
-            msg = self._message(
-                arbitration_id=cfg.command_id + node, data=bytearray(out_row.size), is_extended_id=False
-            )
-            # the frame's data bytearray seen as a numpy array: encoding writes straight into it
-            self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
-            if cfg.protocol is not None:
-                self._fr[i] = True
-                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i], area.slave.name)
-                declared.setdefault(cfg.family, []).append(motor)
-                continue
-            reply_id = cfg.reply_can_id(node)
-            byte = -1
-            if cfg.node_field:
-                bit = 0
-                for f in cfg.reply:
-                    if f.name == cfg.node_field:
-                        break
-                    bit += f.bits
-                if bit % 8 or next(f.bits for f in cfg.reply if f.name == cfg.node_field) != 8:
-                    raise FieldbusError(
-                        f"{area.slave.map.name}: node_field must be a whole byte of the reply"
-                    )
-                byte = bit // 8
-            self._node_byte[reply_id] = byte
-            key = (reply_id, node if byte >= 0 else -1)
-            if key in self._route:
-                raise FieldbusError(
-                    f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
-                )
-            self._route[key] = i
-        registered = families() if declared else {}
+            motor = FamilyMotor(i, node, cfg.protocol, self.out_row(i), self._in_rows[i], area.slave.name)
+            declared.setdefault(cfg.family, []).append(motor)
+        registered = families()
         try:
             self._fams: list[CanFamily] = [registered[name](ms) for name, ms in declared.items()]
         except ValueError as exc:
@@ -198,7 +160,6 @@ class RawCanBackend(CanFaults, Backend):
         by = [d for d in self._reply_by if d is not None]
         self._deadlines = bool(by)
         self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
-        self._families = bool(self._fam_of)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -298,15 +259,11 @@ class RawCanBackend(CanFaults, Backend):
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         self._seed_from_actual(i)
-        cfg = self.areas[i].slave.map.rawcan
-        assert cfg is not None
-        fam = self._fam_of.get(i)
-        if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
-            if self._requests(fam.recover(i)) or not fam.enabled(i):
-                return False
-            self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
-            return True
-        return self._answered(i, cfg.enter)
+        fam = self._fam_of[i]  # its recovery requests (declarative: the map's clear, enable)
+        if self._requests(fam.recover(i)) or not fam.enabled(i):
+            return False
+        self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
+        return True
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
@@ -371,76 +328,24 @@ class RawCanBackend(CanFaults, Backend):
                 return True
         return False
 
-    def _answered(self, i: int, frame: bytes) -> bool:
-        """Send ``frame`` on motor ``i``'s command id; True when its reply came (copied to its row)."""
-        self._drain()
-        self._arrived[i] = False
-        self._send_raw(self._cmd[i][0].arbitration_id, False, frame)
-        deadline = self._now() + ENTER_TIMEOUT_S
-        try:
-            while not self._arrived[i] and self._now() < deadline:
-                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("receive", exc) from exc
-        return bool(self._arrived[i])
-
     def _requests(self, requests: Any) -> list[int]:
-        """Send a family's requests in order (:meth:`_run`); the motors that did not answer."""
-        return self._run(requests)[0]
+        """Send a family's requests in order (:func:`~fieldbus.core.canrequests.run_requests`); the motors
+        that did not answer."""
+        return run_requests(requests, _Link(self, copy=True), self._arrived, self._now).missing
 
-    def _run(self, requests: Any) -> tuple[list[int], Request | None, Any]:
-        """Send a family's requests in order, each awaited reply (or condition: ``until``) within
-        ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); a step unanswered ends the sequence.
-        ``(the motors that did not answer, that request, the generator's result)``."""
-        requests = iter(requests)
-        send = getattr(requests, "send", None)  # a generator takes each answer's data back
-        got: bytes | None = None
-        while True:
-            try:
-                req = send(got) if send is not None else next(requests)
-            except StopIteration as done:
-                return [], None, done.value
-            self._drain()
-            for j in req.awaits:
-                self._arrived[j] = False
-            self._send_raw(*req.frame)
-            got = None
-            if req.answer is not None:
-                got = self._answer(req)
-                if got is None:
-                    return list(req.awaits), req, None
-                continue
-            if not req.awaits and req.until is None:
-                continue
-
-            def answered(r: Request = req) -> bool:
-                return r.until() if r.until is not None else all(self._arrived[j] for j in r.awaits)
-
-            deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
-            try:
-                while not answered() and self._now() < deadline:
-                    self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("receive", exc) from exc
-            if not answered():
-                return [j for j in req.awaits if req.until is not None or not self._arrived[j]], req, None
-
-    def _answer(self, req: Request) -> bytes | None:
-        """The data of the frame that answers ``req`` within its time-out (others taken in as ever), or None."""
-        assert req.answer is not None
-        deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
+    def _receive_one(self, timeout_s: float, answer: Answer | None, copy: bool) -> bytes | None:
+        """One frame within ``timeout_s``: its data when ``answer`` says it answers, else taken in, None."""
         try:
-            while (left := deadline - self._now()) > 0:
-                msg = self._bus.recv(timeout=left)
-                if msg is None:
-                    continue
-                if not (msg.is_error_frame or msg.is_remote_frame):
-                    data = bytes(msg.data)
-                    if req.answer(msg.arbitration_id, msg.is_extended_id, data):
-                        return data
-                self._accept(msg, copy=True)
+            msg = self._bus.recv(timeout=timeout_s)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
+        if msg is None:
+            return None
+        if answer is not None and not (msg.is_error_frame or msg.is_remote_frame):
+            data = bytes(msg.data)
+            if answer(msg.arbitration_id, msg.is_extended_id, data):
+                return data
+        self._accept(msg, copy=copy)
         return None
 
     def _steps(
@@ -451,7 +356,7 @@ class RawCanBackend(CanFaults, Backend):
         answer :class:`~fieldbus.errors.StateTransitionError`, an unknown name
         :class:`~fieldbus.errors.FieldbusError`."""
         try:
-            missing, req, result = self._run(steps)
+            missing, req, result = run_requests(steps, _Link(self, copy=True), self._arrived, self._now)
         except StateTransitionError as exc:  # a family's refusal (a value read back otherwise, ...)
             raise StateTransitionError(f"bus '{self.bus.name}': {exc}", slave=exc.slave) from None
         except BusTimeoutError as exc:
@@ -520,10 +425,6 @@ class RawCanBackend(CanFaults, Backend):
             out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
         return tuple(out)
 
-    def _little(self, i: int) -> bool:
-        cfg = self.areas[i].slave.map.rawcan
-        return cfg is not None and cfg.byte_order == "little"
-
     def configure(self) -> None:
         """Each family's ``configure`` transaction (registers or endpoints checked, written and read back, a
         status awaited); MIT motors have no registers: nothing to configure."""
@@ -563,36 +464,17 @@ class RawCanBackend(CanFaults, Backend):
                         conditions.append(req)
                     else:
                         awaited.update(req.awaits)
-            for i, area in enumerate(self.areas):
-                cfg = area.slave.map.rawcan
-                assert cfg is not None
-                if self._fr[i]:
-                    continue
-                msg, _, _ = self._cmd[i]
-                if which == "clear":
-                    continue  # nothing to clear on this motor (families on the protocol clear their own)
-                frame = getattr(cfg, which)
-                self._bus.send(
-                    self._message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
-                )
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
         self._arrived.fill(False)
         for i in range(self.n_slaves):
-            self._arrived[i] = self._fr[i] and i not in awaited
-        if which == "clear":
-            for i in range(self.n_slaves):
-                self._arrived[i] |= not self._fr[i]
+            self._arrived[i] = i not in awaited
         deadline = self._now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
 
         def met() -> bool:
             return all(r.until() for r in conditions if r.until is not None)
 
-        try:
-            while not (self._arrived.all() and met()) and self._now() < deadline:
-                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("receive", exc) from exc
+        await_until(_Link(self, copy=False), self._now, deadline, lambda: bool(self._arrived.all()) and met())
         self._unmet = {
             j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits
         }
@@ -613,11 +495,6 @@ class RawCanBackend(CanFaults, Backend):
                         m = self._fam_msgs[id(c)] = self._cycle_message(c)
                     m.arbitration_id = c.can_id  # a mode switch may move a frame (id + the mode's offset)
                     self._bus.send(m)
-            for i, (msg, rev, data) in enumerate(self._cmd):
-                if self._fr[i]:
-                    continue
-                np.copyto(data, rev)
-                self._bus.send(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
 
@@ -627,7 +504,7 @@ class RawCanBackend(CanFaults, Backend):
         Raises :class:`~fieldbus.errors.BusIoError` (no motor arrived) when the driver fails.
         """
         self._arrived.fill(False)
-        recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
+        recv, accept, n = self._bus.recv, self._accept, self.n_slaves
         clock = self._now
         deadline = clock() + self._timeout_s
         if self._wait_cap is not None and self._sent_at is not None:  # every reply has its own deadline
@@ -645,50 +522,24 @@ class RawCanBackend(CanFaults, Backend):
             raise self._io_failed("receive", exc) from exc
         self._cycles += 1
         self._sent_at = None
-        if self._families:
-            self._watch_errors()
+        self._watch_errors()
         return count if count else None
-
-    def _motor(self, msg: Any) -> int:
-        """The motor whose reply ``msg`` is, or -1 (not a reply; error frames counted here)."""
-        if msg.is_error_frame:
-            self._error_frame(msg)
-            return -1
-        if msg.is_extended_id or msg.is_remote_frame:
-            return -1
-        can_id = msg.arbitration_id
-        byte = self._node_byte.get(can_id)
-        if byte is None:
-            return -1
-        data = msg.data
-        return self._route.get((can_id, (data[byte] if byte < len(data) else -1) if byte >= 0 else -1), -1)
 
     def _accept(self, msg: Any, *, copy: bool) -> int:
         """Take ``msg`` as a reply; the number of motors it answered for (a shared frame: several)."""
         if msg is None:
             return 0
-        if self._fams and not (msg.is_remote_frame or msg.is_error_frame):
-            for fam in self._fams:
-                motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
-                if motors:
-                    return self._accept_family(fam, motors, msg, copy=copy)
-            if self._take(msg):
-                return 0
-        i = self._motor(msg)
-        if i < 0:
-            return False
-        if self._arrived[i]:
-            self.extra_frames += 1
-            return False
-        if copy:
-            row = self._reply_rows[i]
-            data = msg.data
-            n = self._reply_len[i]
-            if len(data) != n:
-                return False
-            row[:n] = np.frombuffer(data, dtype=np.uint8)
-        self._arrived[i] = True
-        return True
+        if msg.is_error_frame:
+            self._error_frame(msg)
+            return 0
+        if msg.is_remote_frame:
+            return 0
+        for fam in self._fams:
+            motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+            if motors:
+                return self._accept_family(fam, motors, msg, copy=copy)
+        self._take(msg)
+        return 0
 
     def _accept_family(self, fam: CanFamily, motors: Any, msg: Any, *, copy: bool) -> int:
         """A reply of a family on the protocol (one frame may carry several motors): into the rows of its
@@ -725,21 +576,15 @@ class RawCanBackend(CanFaults, Backend):
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
-                motors = self._family_carries(msg) if self._fams else ()
-                if motors:  # a family's reply: extra when its motors answered this cycle, else late
+                if msg.is_error_frame:
+                    self._error_frame(msg)
+                elif motors := self._family_carries(msg):  # extra when its motors answered, else late
                     if all(self._arrived[j] for j in motors):
                         self.extra_frames += 1
                     else:
                         self.late_frames += 1
-                    continue
-                if self._fams and self._take(msg):
-                    continue
-                i = self._motor(msg)
-                if i >= 0:
-                    if self._arrived[i]:
-                        self.extra_frames += 1
-                    else:
-                        self.late_frames += 1
+                else:
+                    self._take(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
 
@@ -774,3 +619,21 @@ class RawCanBackend(CanFaults, Backend):
             if self._lock is not None:
                 self._lock.release()
                 self._lock = None
+
+
+class _Link:
+    """The backend's bus as the request runner's :class:`~fieldbus.core.canrequests.Link` (``copy``: replies
+    go into the motors' input rows)."""
+
+    def __init__(self, backend: RawCanBackend, *, copy: bool) -> None:
+        self._backend = backend
+        self._copy = copy
+
+    def drain(self) -> None:
+        self._backend._drain()
+
+    def send(self, frame: Frame) -> None:
+        self._backend._send_raw(*frame)
+
+    def receive(self, timeout_s: float, answer: Answer | None) -> bytes | None:
+        return self._backend._receive_one(timeout_s, answer, self._copy)
