@@ -1,39 +1,27 @@
-"""Raw-CAN backend for MIT-mode actuators on python-can.
+"""Raw-CAN backend on python-can: the transport of the motor families of one CAN bus.
 
-One command frame per motor per cycle (CAN id ``command_id + node_id``), one
-reply expected from each; replies are routed by the map's ``node_field`` (the
-motor-id byte) or by CAN id. Frames are the byte-reversed wire rows of the
-process image (see :mod:`fieldbus.core.rawcan`). ``op()`` sends the
-enter-motor-mode frame to every motor and waits for each to answer;
-``stop()`` sends exit-motor-mode.
+Every motor runs on a family (:mod:`fieldbus.core.canfamily`, registered in
+:func:`~fieldbus.core.canfamily.families`, a third party's through the ``fieldbus.rawcan_families``
+entry points); the families build and decode the frames, this backend only moves them: the channel's
+lock (:mod:`fieldbus.backends.buslock`: one master per channel), the drain, the deadlines, the counters,
+error frames and a loop over the families' motors. Replies go to the motors through the bus's
+:class:`~fieldbus.core.canroute.ReplyRouter`; a family's transactions (``configure()``,
+:meth:`RawCanBackend.set_mode`, :meth:`RawCanBackend.register`, :meth:`RawCanBackend.access`, recovery)
+run through :func:`~fieldbus.core.canrequests.run_requests`, each answer awaited, bounded; bring-up
+(``op()``: ``enter``, ``stop()``: ``exit``, ``zero``, ``clear``) sends every family's requests together.
 
-``receive()`` returns the number of replies that arrived (the "working
-counter" of a CAN cycle) and ``arrived()`` says which motors answered. A
-reply that comes after its cycle's timeout is dropped at the next ``send()``
-and counted in ``late_frames``: it never passes for the next cycle's; a second
-reply of a motor in one cycle is counted in ``extra_frames``. Driver errors
-raise :class:`~fieldbus.errors.BusIoError` and are counted with error frames
-and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
-``close()`` never raise. ``open()`` takes the CAN channel's lock
-(:mod:`fieldbus.backends.buslock`): one master per channel.
+``receive()`` returns the number of replies that arrived (the "working counter" of a CAN cycle) and
+``arrived()`` says which motors answered. A reply found queued at the next ``send()`` is late
+(``late_frames``): it never passes for the next cycle's; a reply later than its family's ``deadline_s``
+after the cycle's commands is stale (late, its motors' inputs held); a second reply of a motor in one
+cycle is counted in ``extra_frames``. Driver errors raise :class:`~fieldbus.errors.BusIoError` and are
+counted with error frames and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
+``close()`` never raise.
 
-A family's error code is watched (a rising code outside its ``ok_codes`` is one counted, named fault in
-:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`). A fault's onset is also queued for :meth:`RawCanBackend.take_motor_events`, which the
-network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
-with the family's name) in ``CycleResult.events`` and recordings, once per onset.
-
-Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
-a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
-cycle frames, reply routing, status frames taken whenever they come (:meth:`~fieldbus.core.canfamily.CanFamily.take`:
-a status whose error code changed is checked at once), bring-up steps (``configure``, ``enter``, ``exit``; a
-step's condition awaited, bounded), transactions (:data:`~fieldbus.core.canfamily.Steps`: ``configure()``,
-:meth:`RawCanBackend.set_mode`, :meth:`RawCanBackend.register`, :meth:`RawCanBackend.access`; each request's
-answer awaited here, bounded), special and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
-``deadline_s`` after the cycle's commands is stale: counted late, its motors' inputs held). Family ``frames``
-(:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
-shared by several motors of the bus) are filled from the image's output rows and its feedback frames
-routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
-awaited), and ``stop()`` sends every motor's ``safe_value`` command before the disable pattern.
+A family's error code is watched (:mod:`fieldbus.core.motorfaults`): a rising code outside its
+``ok_codes`` is one counted, named fault in :attr:`RawCanBackend.motor_faults` /
+:attr:`RawCanBackend.faults`, and a :class:`MotorFaultEvent` in ``CycleResult.events`` once per onset
+(:meth:`RawCanBackend.take_motor_events`, called by the network every cycle).
 
 CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
 with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
@@ -42,8 +30,6 @@ with bit-rate switching when the data rate differs from the nominal one (remote 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -53,10 +39,12 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core.canfamily import CanFamily, FamilyMotor, Frame, Remote, Request, StepRefused, families
-from fieldbus.core.canrequests import ENTER_TIMEOUT_S, Answer, await_until, run_requests
-from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.canfamily import CanFamily, Frame, Remote, StepRefused, families
+from fieldbus.core.canrequests import ENTER_TIMEOUT_S, Answer, run_bring_up, run_requests
+from fieldbus.core.canroute import EXTRA, LATE, ReplyRouter, bus_motors
 from fieldbus.core.hold import hold_row
+from fieldbus.core.motorfaults import FAULT_LOG as FAULT_LOG
+from fieldbus.core.motorfaults import FaultWatch, MotorFault, MotorFaultEvent, MotorPlace
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.platform.clock import monotonic_s
@@ -69,45 +57,9 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         f"the rawcan backend needs python-can ({exc}): pip install 'fieldbus[can]'"
     ) from None
 
-FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
-
-
-@dataclass(frozen=True)
-class MotorFault:
-    """A motor reported an error code outside the family's ``ok_codes``: which, when (cycle count) and its name."""
-
-    cycle: int
-    slave: str
-    code: int
-    name: str
-
-    def __str__(self) -> str:
-        return f"{self.slave}: motor error 0x{self.code:X} {self.name}"
-
-
-@dataclass(frozen=True)
-class MotorFaultEvent(DriveFault):
-    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a family's
-    error code outside its ``ok_codes`` (a new error), with the family's name for it.
-
-    ``code`` is the family's own code (an error nibble, a family's error bits), not a CiA 402 0x603F.
-    """
-
-    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP", ...)
-
-    @property
-    def name(self) -> str:
-        return self.reason
-
-    def __str__(self) -> str:
-        return f"{self.slave} ({self.group}[{self.axis}]): motor fault 0x{self.code or 0:X} {self.reason}"
-
-
-_NO_EVENTS: tuple[MotorFaultEvent, ...] = ()
-
 
 class RawCanBackend(CanFaults, Backend):
-    """MIT-mode motors on one CAN bus (``interface`` = python-can channel)."""
+    """The motors of one CAN bus (``interface`` = python-can channel), each on its family."""
 
     kind = "rawcan"
     pdo_align = 8
@@ -120,46 +72,27 @@ class RawCanBackend(CanFaults, Backend):
         self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
         self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
-        self._arrived = np.zeros(self.n_slaves, dtype=bool)
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
-        self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
-        self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
-        self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
-        self._onsets: deque[tuple[int, int, str]] = deque(
-            maxlen=FAULT_LOG
-        )  # (motor, code, name) not yet taken
+        places = [MotorPlace(a.slave.name, self.groups[a.group].name, a.row) for a in self.areas]
+        self._watch = FaultWatch(places)  # error codes, fault onsets
+        self.faults: deque[MotorFault] = self._watch.faults  # the newest kept, newest last
         self._cycles = 0
-        declared: dict[str, list[FamilyMotor]] = {}  # the families of the bus: their motors
-        for i, area in enumerate(self.areas):
-            cfg = area.slave.map.rawcan
-            if cfg is None or cfg.protocol is None:
-                raise FieldbusError(
-                    f"bus '{bus.name}': slave {area.slave.name} map {area.slave.map.name} has no rawcan family"
-                )
-            node = area.slave.node_id or 0
-            motor = FamilyMotor(i, node, cfg.protocol, self.out_row(i), self._in_rows[i], area.slave.name)
-            declared.setdefault(cfg.family, []).append(motor)
-        registered = families()
+        rows = [(a.slave, self.out_row(i), self._in_rows[i]) for i, a in enumerate(self.areas)]
+        declared = bus_motors(bus.name, rows)
         try:
-            self._fams: list[CanFamily] = [registered[name](ms) for name, ms in declared.items()]
+            self._router = ReplyRouter.build(declared, families(), self.n_slaves, self._family_error)
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
-        self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
+        self._fams = self._router.families
+        self._fam_of = self._router.family_of
+        self._arrived = self._router.arrived  # the motors that answered this cycle
         # the families' cycle frames by id(): a message built once around each (its data rewritten in place;
         # a family with modes sends another frame object after a switch, or moves a frame's id)
         self._fam_msgs: dict[int, Any] = {}
-        # a family's reply deadline per motor (s after the cycle's commands; None: the receive time-out)
-        self._reply_by: list[float | None] = [None] * self.n_slaves
-        for i, fam in self._fam_of.items():
-            self._reply_by[i] = fam.deadline_s(i)
-        self._sent_at: float | None = None  # when this cycle's commands went out (while a deadline counts)
-        by = [d for d in self._reply_by if d is not None]
-        self._deadlines = bool(by)
-        self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -236,7 +169,7 @@ class RawCanBackend(CanFaults, Backend):
 
     def error_code(self, slave: int | str) -> int:
         """The error code of the motor's last accepted reply (families with error codes)."""
-        return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
+        return int(self._watch.codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
         """Send the clear-error frame to every motor that has one; returns the motors that did not answer. The
@@ -248,10 +181,10 @@ class RawCanBackend(CanFaults, Backend):
         (each answer awaited at most ``ENTER_TIMEOUT_S``); True when it is enabled again.
 
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
-        the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
+        the controller's gains kept: a motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
         A family on the protocol: its recovery requests, each awaited answer or condition bounded (a
-        clear-error frame, then enable, answered; MIT: enter motor mode, answered; declarative ``frames``:
+        clear-error frame, then enable, answered; a family without a clear command: enable, answered; declarative:
         the map's clear and enable patterns, if any), then its
         :meth:`~fieldbus.core.canfamily.CanFamily.enabled` (the reply's code says enabled; a family without
         a clear command: only when its code is back to no fault, after a power cycle). Raises
@@ -262,7 +195,7 @@ class RawCanBackend(CanFaults, Backend):
         fam = self._fam_of[i]  # its recovery requests (declarative: the map's clear, enable)
         if self._requests(fam.recover(i)) or not fam.enabled(i):
             return False
-        self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
+        self._watch.codes[i] = err[0] if (err := fam.error(i)) is not None else 0
         return True
 
     def clear_fault(self, slave: int | str) -> bool:
@@ -270,7 +203,7 @@ class RawCanBackend(CanFaults, Backend):
         session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). A family
         on the protocol: its clear requests, True when each awaited reply came (its code then in
         :meth:`error_code`; a request awaiting nothing: the next status tells; declarative: the map's clear
-        pattern). False for a motor whose family has no clear command (MIT)."""
+        pattern). False for a motor whose family has no clear command."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
         if fam is None:
@@ -279,7 +212,7 @@ class RawCanBackend(CanFaults, Backend):
         if not requests or self._requests(requests):
             return False
         if (err := fam.error(i)) is not None and any(r.awaits for r in requests):
-            self._codes[i] = err[0]
+            self._watch.codes[i] = err[0]
         return True
 
     def _seed_from_actual(self, i: int) -> None:
@@ -313,20 +246,6 @@ class RawCanBackend(CanFaults, Backend):
                 arbitration_id=c.can_id, is_remote_frame=True, dlc=len(c.data), is_extended_id=c.extended
             )
         return self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
-
-    def _take(self, msg: Any) -> bool:
-        """A family's status frame (not a cycle reply) taken in; a motor whose error code it changed is
-        checked at once. False when no family takes it."""
-        if msg.is_remote_frame or msg.is_error_frame:
-            return False
-        data = bytes(msg.data)
-        for fam in self._fams:
-            motors = fam.take(msg.arbitration_id, msg.is_extended_id, data)
-            if motors:
-                for i in motors:
-                    self._family_error(i, fam)
-                return True
-        return False
 
     def _requests(self, requests: Any) -> list[int]:
         """Send a family's requests in order (:func:`~fieldbus.core.canrequests.run_requests`); the motors
@@ -402,32 +321,21 @@ class RawCanBackend(CanFaults, Backend):
 
     def _family_error(self, i: int, fam: CanFamily) -> None:
         """Motor ``i``'s error code as its family reads it: a new fault code is one counted, named fault."""
-        if (err := fam.error(i)) is not None and err[0] != self._codes[i]:
-            if err[1] is not None:
-                self._fault(i, err[0], err[1])
-            self._codes[i] = err[0]
+        self._watch.seen(i, fam.error(i), self._cycles)
 
-    def _fault(self, i: int, code: int, name: str) -> None:
-        """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
-        self.motor_faults += 1
-        self.faults.append(MotorFault(self._cycles, self.areas[i].slave.name, code, name))
-        self._onsets.append((i, code, name))
+    @property
+    def motor_faults(self) -> int:  # type: ignore[override]  # read-only here; an attribute on the base
+        """Fault onsets since open, ever (the kept list :attr:`faults` is bounded)."""
+        return self._watch.count
 
     def take_motor_events(self, cycle: int) -> tuple[MotorFaultEvent, ...]:
         """The fault onsets since the last call as events of cycle ``cycle`` (the network's cycle index), each
         once; onsets seen during bring-up come with the first cycle. An empty tuple (no allocation) mostly."""
-        if not self._onsets:
-            return _NO_EVENTS
-        out = []
-        while self._onsets:
-            i, code, name = self._onsets.popleft()
-            a = self.areas[i]
-            out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
-        return tuple(out)
+        return self._watch.take(cycle)
 
     def configure(self) -> None:
         """Each family's ``configure`` transaction (registers or endpoints checked, written and read back, a
-        status awaited); MIT motors have no registers: nothing to configure."""
+        status awaited); a family without registers has nothing to configure."""
         for fam in self._fams:
             self._steps(fam.configure(), "configure", timeout=StateTransitionError)
 
@@ -447,46 +355,21 @@ class RawCanBackend(CanFaults, Backend):
             )
 
     def _special(self, which: str) -> list[int]:
-        """Send the enter/exit/zero frame to every motor; return the ones that did not answer.
+        """Every family's ``which`` requests (enter, exit, zero, clear); return the motors that did not answer.
 
         Raises :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
-        self._drain()
-        self._unmet: dict[int, str] = {}  # motor -> the condition it did not meet (its request's ``what``)
-        conditions: list[Request] = []  # requests whose condition is awaited (not a reply)
-        try:
-            awaited: set[int] = set()
-            for fam in self._fams:  # the families' requests (declarative: patterns, no answer awaited)
-                reqs: list[Request] = list(fam.bring_up(which))
-                for req in reqs:
-                    self._bus.send(self._frame_message(*req.frame))
-                    if req.until is not None:
-                        conditions.append(req)
-                    else:
-                        awaited.update(req.awaits)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("send", exc) from exc
-        self._arrived.fill(False)
-        for i in range(self.n_slaves):
-            self._arrived[i] = i not in awaited
-        deadline = self._now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
-
-        def met() -> bool:
-            return all(r.until() for r in conditions if r.until is not None)
-
-        await_until(_Link(self, copy=False), self._now, deadline, lambda: bool(self._arrived.all()) and met())
-        self._unmet = {
-            j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits
-        }
-        return [i for i in range(self.n_slaves) if not self._arrived[i] or i in self._unmet]
+        link = _Link(self, copy=False)
+        missing, self._unmet = run_bring_up(self._fams, which, link, self._arrived, self._now)
+        return missing  # _unmet: motor -> the condition it did not meet (its request's ``what``)
 
     def send(self) -> None:
         """One command frame per motor. Raises :class:`~fieldbus.errors.BusIoError` when the driver refuses one."""
         # What is still queued came after the last receive(): a reply there answers an earlier
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
-        if self._deadlines:
-            self._sent_at = self._now()
+        if self._router.deadlines:
+            self._router.sent_at = self._now()
         try:
             for fam in self._fams:
                 for c in fam.cycle():
@@ -506,9 +389,7 @@ class RawCanBackend(CanFaults, Backend):
         self._arrived.fill(False)
         recv, accept, n = self._bus.recv, self._accept, self.n_slaves
         clock = self._now
-        deadline = clock() + self._timeout_s
-        if self._wait_cap is not None and self._sent_at is not None:  # every reply has its own deadline
-            deadline = min(deadline, self._sent_at + self._wait_cap)
+        deadline = self._router.wait_until(clock() + self._timeout_s)  # every reply has its own: the last
         count = 0
         try:
             while count < n:
@@ -518,10 +399,10 @@ class RawCanBackend(CanFaults, Backend):
                 count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
-            self._sent_at = None
+            self._router.sent_at = None
             raise self._io_failed("receive", exc) from exc
         self._cycles += 1
-        self._sent_at = None
+        self._router.sent_at = None
         self._watch_errors()
         return count if count else None
 
@@ -534,43 +415,14 @@ class RawCanBackend(CanFaults, Backend):
             return 0
         if msg.is_remote_frame:
             return 0
-        for fam in self._fams:
-            motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
-            if motors:
-                return self._accept_family(fam, motors, msg, copy=copy)
-        self._take(msg)
-        return 0
-
-    def _accept_family(self, fam: CanFamily, motors: Any, msg: Any, *, copy: bool) -> int:
-        """A reply of a family on the protocol (one frame may carry several motors): into the rows of its
-        motors when none of them has answered this cycle yet, else counted extra."""
-        if any(self._arrived[i] for i in motors):
+        n = self._router.reply(msg.arbitration_id, msg.is_extended_id, bytes(msg.data), self._now, copy=copy)
+        if n >= 0:
+            return n
+        if n == EXTRA:
             self.extra_frames += 1
-            return 0
-        if copy and self._sent_at is not None and self._past_deadline(motors):
+        else:
             self.late_frames += 1  # stale: its motors' inputs are held
-            return 0
-        if copy:
-            motors = fam.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
-        for i in motors:
-            self._arrived[i] = True
-        return len(motors)
-
-    def _past_deadline(self, motors: Any) -> bool:
-        """A reply of ``motors`` now is past the reply deadline of one of them (a shared frame: any)."""
-        assert self._sent_at is not None
-        now = self._now()
-        return any((d := self._reply_by[i]) is not None and now > self._sent_at + d for i in motors)
-
-    def _family_carries(self, msg: Any) -> Sequence[int]:
-        """The motors a family's reply ``msg`` is for (empty: no family's)."""
-        if msg.is_remote_frame or msg.is_error_frame:
-            return ()
-        data = bytes(msg.data)
-        for f in self._fams:
-            if motors := f.carries(msg.arbitration_id, msg.is_extended_id, data):
-                return motors
-        return ()
+        return 0
 
     def _drain(self) -> None:
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
@@ -578,13 +430,12 @@ class RawCanBackend(CanFaults, Backend):
             while (msg := self._bus.recv(timeout=0)) is not None:
                 if msg.is_error_frame:
                     self._error_frame(msg)
-                elif motors := self._family_carries(msg):  # extra when its motors answered, else late
-                    if all(self._arrived[j] for j in motors):
+                elif not msg.is_remote_frame:
+                    verdict = self._router.drained(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+                    if verdict == EXTRA:
                         self.extra_frames += 1
-                    else:
+                    elif verdict == LATE:
                         self.late_frames += 1
-                else:
-                    self._take(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
 

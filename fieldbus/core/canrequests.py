@@ -16,7 +16,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from fieldbus.core.canfamily import Frame, Request
+from fieldbus.core.canfamily import CanFamily, Frame, Request
 
 ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
 
@@ -96,3 +96,35 @@ def run_requests(
         deadline = now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
         if not await_until(link, now, deadline, answered):
             return Outcome([j for j in req.awaits if req.until is not None or not arrived[j]], req, None)
+
+
+def run_bring_up(
+    families: Iterable[CanFamily],
+    which: str,
+    link: Link,
+    arrived: npt.NDArray[np.bool_],
+    now: Callable[[], float],
+) -> tuple[list[int], dict[int, str]]:
+    """Send every family's ``bring_up(which)`` requests together (``enter``, ``exit``, ``zero``, ``clear``),
+    then await their replies (``awaits``) and conditions (``until``) within the longest time-out.
+    ``(the motors that did not answer or meet their condition, motor -> the condition it did not meet)``."""
+    link.drain()
+    conditions: list[Request] = []  # requests whose condition is awaited (not a reply)
+    awaited: set[int] = set()
+    for fam in families:  # declarative families: patterns, no answer awaited
+        for req in list(fam.bring_up(which)):
+            link.send(req.frame)
+            if req.until is not None:
+                conditions.append(req)
+            else:
+                awaited.update(req.awaits)
+    for i in range(arrived.size):
+        arrived[i] = i not in awaited
+    deadline = now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
+
+    def met() -> bool:
+        return all(r.until() for r in conditions if r.until is not None)
+
+    await_until(link, now, deadline, lambda: bool(arrived.all()) and met())
+    unmet = {j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits}
+    return [i for i in range(arrived.size) if not arrived[i] or i in unmet], unmet
