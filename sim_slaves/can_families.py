@@ -24,14 +24,16 @@ __all__ = ["FAMILIES", "bus_family", "family_of", "simulator"]
 
 
 def family_of(drive: DriveMap) -> str:
-    """The emulator family of a raw-CAN map: its ``rawcan.family`` (``cubemars-servo`` or ``cubemars-mit``
-    for CubeMars). Raises ``ValueError`` for a map without a ``rawcan`` section."""
+    """The emulator kind of a raw-CAN map, as its family in the table says
+    (:meth:`~fieldbus.core.canfamily.CanFamily.emulator_kind`: mostly its ``rawcan.family``; one kind per
+    protocol where a family's emulators differ). Raises ``ValueError`` for a map without a ``rawcan`` section."""
     cfg = drive.rawcan
     if cfg is None:
         raise ValueError(f"drive map {drive.name} has no rawcan section")
-    if cfg.cubemars is not None:
-        return f"cubemars-{cfg.cubemars.protocol}"
-    return cfg.family
+    registered = families().get(cfg.family)
+    if registered is None or cfg.protocol is None:
+        return cfg.family
+    return registered.emulator_kind(cfg.protocol)  # the family's table says (CubeMars: per protocol)
 
 
 def bus_family(drives: Iterable[DriveMap]) -> str:

@@ -46,6 +46,7 @@ class CubemarsServoSimulator(MitMotorSimulator):
     """CubeMars motors in servo mode ``motors = [(drive_map, node_id), ...]`` on ``bus``."""
 
     thread_name = "cubemars-servo"
+    corrupts_replies = False  # its own replies: corrupt_replies() does not reach them
 
     def __init__(
         self,

@@ -67,6 +67,8 @@ class DamiaoSimulator(MitMotorSimulator):
     """Damiao motors ``motors = [(drive_map, node_id), ...]`` on ``bus``; ``registers`` overrides
     a motor's register values at power-up: ``{node_id: {register: value}}``."""
 
+    corrupts_replies = False  # its own replies: corrupt_replies() does not reach them
+
     thread_name = "damiao-motors"
 
     def __init__(

@@ -38,6 +38,7 @@ class FramesMotorSimulator(MitMotorSimulator):
     """Motors ``motors = [(drive_map, node_id), ...]`` of family ``frames`` on ``bus``."""
 
     thread_name = "frames-motors"
+    corrupts_replies = False  # its own replies: corrupt_replies() does not reach them
 
     def __init__(
         self,

@@ -146,6 +146,9 @@ class MitMotorSimulator(BusThread):
     """Motors with maps ``motors = [(drive_map, node_id), ...]`` on ``bus`` (python-can)."""
 
     thread_name = "mit-motors"
+    corrupts_replies = (
+        True  # corrupt_replies() inverts the next replies (a subclass with its own replies: False)
+    )
 
     def __init__(
         self,

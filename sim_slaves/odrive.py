@@ -69,6 +69,7 @@ class OdriveSimulator(MitMotorSimulator):
     """ODrive axes ``motors = [(drive_map, node_id), ...]`` on ``bus``."""
 
     thread_name = "odrive-axes"
+    corrupts_replies = False  # its own replies: corrupt_replies() does not reach them
 
     def __init__(
         self,

@@ -1,39 +1,27 @@
-"""Raw-CAN backend for MIT-mode actuators on python-can.
+"""Raw-CAN backend on python-can: the transport of the motor families of one CAN bus.
 
-One command frame per motor per cycle (CAN id ``command_id + node_id``), one
-reply expected from each; replies are routed by the map's ``node_field`` (the
-motor-id byte) or by CAN id. Frames are the byte-reversed wire rows of the
-process image (see :mod:`fieldbus.core.rawcan`). ``op()`` sends the
-enter-motor-mode frame to every motor and waits for each to answer;
-``stop()`` sends exit-motor-mode.
+Every motor runs on a family (:mod:`fieldbus.core.canfamily`, registered in
+:func:`~fieldbus.core.canfamily.families`, a third party's through the ``fieldbus.rawcan_families``
+entry points); the families build and decode the frames, this backend only moves them: the channel's
+lock (:mod:`fieldbus.backends.buslock`: one master per channel), the drain, the deadlines, the counters,
+error frames and a loop over the families' motors. Replies go to the motors through the bus's
+:class:`~fieldbus.core.canroute.ReplyRouter`; a family's transactions (``configure()``,
+:meth:`RawCanBackend.set_mode`, :meth:`RawCanBackend.register`, :meth:`RawCanBackend.access`, recovery)
+run through :func:`~fieldbus.core.canrequests.run_requests`, each answer awaited, bounded; bring-up
+(``op()``: ``enter``, ``stop()``: ``exit``, ``zero``, ``clear``) sends every family's requests together.
 
-``receive()`` returns the number of replies that arrived (the "working
-counter" of a CAN cycle) and ``arrived()`` says which motors answered. A
-reply that comes after its cycle's timeout is dropped at the next ``send()``
-and counted in ``late_frames``: it never passes for the next cycle's; a second
-reply of a motor in one cycle is counted in ``extra_frames``. Driver errors
-raise :class:`~fieldbus.errors.BusIoError` and are counted with error frames
-and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
-``close()`` never raise. ``open()`` takes the CAN channel's lock
-(:mod:`fieldbus.backends.buslock`): one master per channel.
+``receive()`` returns the number of replies that arrived (the "working counter" of a CAN cycle) and
+``arrived()`` says which motors answered. A reply found queued at the next ``send()`` is late
+(``late_frames``): it never passes for the next cycle's; a reply later than its family's ``deadline_s``
+after the cycle's commands is stale (late, its motors' inputs held); a second reply of a motor in one
+cycle is counted in ``extra_frames``. Driver errors raise :class:`~fieldbus.errors.BusIoError` and are
+counted with error frames and bus-off (:class:`~fieldbus.backends.canfaults.CanFaults`); ``stop()`` and
+``close()`` never raise.
 
-A family's error code is watched (a rising code outside its ``ok_codes`` is one counted, named fault in
-:attr:`RawCanBackend.motor_faults` / :attr:`RawCanBackend.faults`). A fault's onset is also queued for :meth:`RawCanBackend.take_motor_events`, which the
-network calls every cycle: a :class:`MotorFaultEvent` (a :class:`~fieldbus.core.drivefault.DriveFault`
-with the family's name) in ``CycleResult.events`` and recordings, once per onset.
-
-Families on the protocol (:mod:`fieldbus.core.canfamily`, registered in :func:`~fieldbus.core.canfamily.families`,
-a third party's through the ``fieldbus.rawcan_families`` entry points) are reached through it only: their
-cycle frames, reply routing, status frames taken whenever they come (:meth:`~fieldbus.core.canfamily.CanFamily.take`:
-a status whose error code changed is checked at once), bring-up steps (``configure``, ``enter``, ``exit``; a
-step's condition awaited, bounded), transactions (:data:`~fieldbus.core.canfamily.Steps`: ``configure()``,
-:meth:`RawCanBackend.set_mode`, :meth:`RawCanBackend.register`, :meth:`RawCanBackend.access`; each request's
-answer awaited here, bounded), special and stop frames, recovery requests, error codes and reply deadlines (a reply later than its family's
-``deadline_s`` after the cycle's commands is stale: counted late, its motors' inputs held). Family ``frames``
-(:mod:`fieldbus.core.canframes`) is one: a protocol described in data; its command frames (per motor, or
-shared by several motors of the bus) are filled from the image's output rows and its feedback frames
-routed into the motors' input rows; enable / disable / zero are the map's byte patterns (no answer
-awaited), and ``stop()`` sends every motor's ``safe_value`` command before the disable pattern.
+A family's error code is watched (:mod:`fieldbus.core.motorfaults`): a rising code outside its
+``ok_codes`` is one counted, named fault in :attr:`RawCanBackend.motor_faults` /
+:attr:`RawCanBackend.faults`, and a :class:`MotorFaultEvent` in ``CycleResult.events`` once per onset
+(:meth:`RawCanBackend.take_motor_events`, called by the network every cycle).
 
 CAN FD: a bus with a ``data_bitrate`` (or ``can_options: {fd: true}``) sends every data frame as CAN FD,
 with bit-rate switching when the data rate differs from the nominal one (remote frames stay classic).
@@ -42,8 +30,6 @@ with bit-rate switching when the data rate differs from the nominal one (remote 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -53,9 +39,12 @@ from fieldbus.backends.base import Backend
 from fieldbus.backends.buslock import InterfaceLock, lock_can_bus
 from fieldbus.backends.canbus import attach_can_bus, release_can_bus
 from fieldbus.backends.canfaults import CanFaults
-from fieldbus.core.canfamily import CanFamily, FamilyMotor, Remote, Request, StepRefused, families
-from fieldbus.core.drivefault import DriveFault
+from fieldbus.core.canfamily import CanFamily, Frame, Remote, StepRefused, families
+from fieldbus.core.canrequests import ENTER_TIMEOUT_S, Answer, run_bring_up, run_requests
+from fieldbus.core.canroute import EXTRA, LATE, ReplyRouter, bus_motors
 from fieldbus.core.hold import hold_row
+from fieldbus.core.motorfaults import FAULT_LOG as FAULT_LOG
+from fieldbus.core.motorfaults import FaultWatch, MotorFault, MotorFaultEvent, MotorPlace
 from fieldbus.core.network import Bus
 from fieldbus.errors import BackendUnavailableError, BusTimeoutError, FieldbusError, StateTransitionError
 from fieldbus.platform.clock import monotonic_s
@@ -68,46 +57,9 @@ except ImportError as exc:  # pragma: no cover - depends on the install
         f"the rawcan backend needs python-can ({exc}): pip install 'fieldbus[can]'"
     ) from None
 
-ENTER_TIMEOUT_S = 2.0  # bring-up (outside the cycle): generous, a loaded host schedules the motors late
-FAULT_LOG = 100  # motor faults kept per backend (oldest dropped; motor_faults counts them all)
-
-
-@dataclass(frozen=True)
-class MotorFault:
-    """A motor reported an error code outside the family's ``ok_codes``: which, when (cycle count) and its name."""
-
-    cycle: int
-    slave: str
-    code: int
-    name: str
-
-    def __str__(self) -> str:
-        return f"{self.slave}: motor error 0x{self.code:X} {self.name}"
-
-
-@dataclass(frozen=True)
-class MotorFaultEvent(DriveFault):
-    """A raw-CAN motor fault as a cycle event (``CycleResult.events``, recordings): the onset of a family's
-    error code outside its ``ok_codes`` (a new error), with the family's name for it.
-
-    ``code`` is the family's own code (an error nibble, a family's error bits), not a CiA 402 0x603F.
-    """
-
-    reason: str = ""  # the family's name of ``code`` ("overload", "MOTOR_OVER_TEMP", ...)
-
-    @property
-    def name(self) -> str:
-        return self.reason
-
-    def __str__(self) -> str:
-        return f"{self.slave} ({self.group}[{self.axis}]): motor fault 0x{self.code or 0:X} {self.reason}"
-
-
-_NO_EVENTS: tuple[MotorFaultEvent, ...] = ()
-
 
 class RawCanBackend(CanFaults, Backend):
-    """MIT-mode motors on one CAN bus (``interface`` = python-can channel)."""
+    """The motors of one CAN bus (``interface`` = python-can channel), each on its family."""
 
     kind = "rawcan"
     pdo_align = 8
@@ -120,85 +72,27 @@ class RawCanBackend(CanFaults, Backend):
         self._brs = bus.data_bitrate is not None and bus.data_bitrate != bus.bitrate  # bit-rate switch
         self._in_rows = [self.in_row(i) for i in range(self.n_slaves)]
         self._own_bus = self._bus is None
-        self._cmd: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
-        self._route: dict[tuple[int, int], int] = {}  # (can id, node byte or -1) -> slave index
-        self._node_byte: dict[int, int] = {}  # reply CAN id -> index of the node byte in the frame, or -1
-        self._arrived = np.zeros(self.n_slaves, dtype=bool)
-        # each motor's reply bytes as the frame has them: its input row, reversed (a view)
-        self._reply_rows = [
-            self.in_row(i) if self._little(i) else self.in_row(i)[::-1] for i in range(self.n_slaves)
-        ]
-        self._reply_len = [row.size for row in self._reply_rows]
         self._timeout_s = bus.receive_timeout_us / 1e6
         self._lock: InterfaceLock | None = None
         self._now = monotonic_s(
             options.get("clock")
         )  # seconds; in tests a virtual clock's (fieldbus.testing)
-        self._codes = np.zeros(self.n_slaves, dtype=np.int64)  # last error code per motor
-        self.motor_faults = 0  # faults reported since open, ever (the kept list is bounded)
-        self.faults: deque[MotorFault] = deque(maxlen=FAULT_LOG)  # newest last
-        self._onsets: deque[tuple[int, int, str]] = deque(
-            maxlen=FAULT_LOG
-        )  # (motor, code, name) not yet taken
+        places = [MotorPlace(a.slave.name, self.groups[a.group].name, a.row) for a in self.areas]
+        self._watch = FaultWatch(places)  # error codes, fault onsets
+        self.faults: deque[MotorFault] = self._watch.faults  # the newest kept, newest last
         self._cycles = 0
-        declared: dict[str, list[FamilyMotor]] = {}  # families on the protocol: their motors
-        self._fr = [False] * self.n_slaves  # motor i runs on a CanFamily
-        for i, area in enumerate(self.areas):
-            cfg = area.slave.map.rawcan
-            if cfg is None:
-                raise FieldbusError(
-                    f"bus '{bus.name}': slave {area.slave.name} map {area.slave.map.name} has no rawcan section"
-                )
-            node = area.slave.node_id or 0
-            out_row = self.out_row(i)
-            msg = self._message(
-                arbitration_id=cfg.command_id + node, data=bytearray(out_row.size), is_extended_id=False
-            )
-            # the frame's data bytearray seen as a numpy array: encoding writes straight into it
-            self._cmd.append((msg, out_row[::-1], np.frombuffer(msg.data, dtype=np.uint8)))
-            if cfg.protocol is not None:
-                self._fr[i] = True
-                motor = FamilyMotor(i, node, cfg.protocol, out_row, self._in_rows[i], area.slave.name)
-                declared.setdefault(cfg.family, []).append(motor)
-                continue
-            reply_id = cfg.reply_can_id(node)
-            byte = -1
-            if cfg.node_field:
-                bit = 0
-                for f in cfg.reply:
-                    if f.name == cfg.node_field:
-                        break
-                    bit += f.bits
-                if bit % 8 or next(f.bits for f in cfg.reply if f.name == cfg.node_field) != 8:
-                    raise FieldbusError(
-                        f"{area.slave.map.name}: node_field must be a whole byte of the reply"
-                    )
-                byte = bit // 8
-            self._node_byte[reply_id] = byte
-            key = (reply_id, node if byte >= 0 else -1)
-            if key in self._route:
-                raise FieldbusError(
-                    f"bus '{bus.name}': two motors answer as CAN id 0x{reply_id:X} node {node}"
-                )
-            self._route[key] = i
-        registered = families() if declared else {}
+        rows = [(a.slave, self.out_row(i), self._in_rows[i]) for i, a in enumerate(self.areas)]
+        declared = bus_motors(bus.name, rows)
         try:
-            self._fams: list[CanFamily] = [registered[name](ms) for name, ms in declared.items()]
+            self._router = ReplyRouter.build(declared, families(), self.n_slaves, self._family_error)
         except ValueError as exc:
             raise FieldbusError(f"bus '{bus.name}': {exc}") from None
-        self._fam_of: dict[int, CanFamily] = {i: f for f in self._fams for i in f.motors}
+        self._fams = self._router.families
+        self._fam_of = self._router.family_of
+        self._arrived = self._router.arrived  # the motors that answered this cycle
         # the families' cycle frames by id(): a message built once around each (its data rewritten in place;
         # a family with modes sends another frame object after a switch, or moves a frame's id)
         self._fam_msgs: dict[int, Any] = {}
-        # a family's reply deadline per motor (s after the cycle's commands; None: the receive time-out)
-        self._reply_by: list[float | None] = [None] * self.n_slaves
-        for i, fam in self._fam_of.items():
-            self._reply_by[i] = fam.deadline_s(i)
-        self._sent_at: float | None = None  # when this cycle's commands went out (while a deadline counts)
-        by = [d for d in self._reply_by if d is not None]
-        self._deadlines = bool(by)
-        self._wait_cap = max(by) if len(by) == self.n_slaves else None  # every motor has a deadline: the last
-        self._families = bool(self._fam_of)
         # last: a refused configuration above leaves no file open
         self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
@@ -275,7 +169,7 @@ class RawCanBackend(CanFaults, Backend):
 
     def error_code(self, slave: int | str) -> int:
         """The error code of the motor's last accepted reply (families with error codes)."""
-        return int(self._codes[slave if isinstance(slave, int) else self.slave_index(slave)])
+        return int(self._watch.codes[slave if isinstance(slave, int) else self.slave_index(slave)])
 
     def clear_errors(self) -> list[str]:
         """Send the clear-error frame to every motor that has one; returns the motors that did not answer. The
@@ -287,10 +181,10 @@ class RawCanBackend(CanFaults, Backend):
         (each answer awaited at most ``ENTER_TIMEOUT_S``); True when it is enabled again.
 
         First its set-points are seeded from where it is (position as read; velocity, torque and currents 0;
-        the controller's gains kept: an MIT motor holds where it is), so enabling starts no motion by
+        the controller's gains kept: a motor holds where it is), so enabling starts no motion by
         itself: the controller writes its targets after.
         A family on the protocol: its recovery requests, each awaited answer or condition bounded (a
-        clear-error frame, then enable, answered; MIT: enter motor mode, answered; declarative ``frames``:
+        clear-error frame, then enable, answered; a family without a clear command: enable, answered; declarative:
         the map's clear and enable patterns, if any), then its
         :meth:`~fieldbus.core.canfamily.CanFamily.enabled` (the reply's code says enabled; a family without
         a clear command: only when its code is back to no fault, after a power cycle). Raises
@@ -298,22 +192,18 @@ class RawCanBackend(CanFaults, Backend):
         """
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         self._seed_from_actual(i)
-        cfg = self.areas[i].slave.map.rawcan
-        assert cfg is not None
-        fam = self._fam_of.get(i)
-        if fam is not None:  # the family's recovery requests (declarative: the map's clear, enable)
-            if self._requests(fam.recover(i)) or not fam.enabled(i):
-                return False
-            self._codes[i] = err[0] if (err := fam.error(i)) is not None else 0
-            return True
-        return self._answered(i, cfg.enter)
+        fam = self._fam_of[i]  # its recovery requests (declarative: the map's clear, enable)
+        if self._requests(fam.recover(i)) or not fam.enabled(i):
+            return False
+        self._watch.codes[i] = err[0] if (err := fam.error(i)) is not None else 0
+        return True
 
     def clear_fault(self, slave: int | str) -> bool:
         """Clear motor ``slave``'s fault by its family's clear command and leave it disabled (outside a
         session: ``fieldbus register --clear-fault``; in one, :meth:`recover` also enables it). A family
         on the protocol: its clear requests, True when each awaited reply came (its code then in
         :meth:`error_code`; a request awaiting nothing: the next status tells; declarative: the map's clear
-        pattern). False for a motor whose family has no clear command (MIT)."""
+        pattern). False for a motor whose family has no clear command."""
         i = slave if isinstance(slave, int) else self.slave_index(slave)
         fam = self._fam_of.get(i)
         if fam is None:
@@ -322,7 +212,7 @@ class RawCanBackend(CanFaults, Backend):
         if not requests or self._requests(requests):
             return False
         if (err := fam.error(i)) is not None and any(r.awaits for r in requests):
-            self._codes[i] = err[0]
+            self._watch.codes[i] = err[0]
         return True
 
     def _seed_from_actual(self, i: int) -> None:
@@ -357,90 +247,24 @@ class RawCanBackend(CanFaults, Backend):
             )
         return self._message(arbitration_id=c.can_id, data=c.data, is_extended_id=c.extended)
 
-    def _take(self, msg: Any) -> bool:
-        """A family's status frame (not a cycle reply) taken in; a motor whose error code it changed is
-        checked at once. False when no family takes it."""
-        if msg.is_remote_frame or msg.is_error_frame:
-            return False
-        data = bytes(msg.data)
-        for fam in self._fams:
-            motors = fam.take(msg.arbitration_id, msg.is_extended_id, data)
-            if motors:
-                for i in motors:
-                    self._family_error(i, fam)
-                return True
-        return False
-
-    def _answered(self, i: int, frame: bytes) -> bool:
-        """Send ``frame`` on motor ``i``'s command id; True when its reply came (copied to its row)."""
-        self._drain()
-        self._arrived[i] = False
-        self._send_raw(self._cmd[i][0].arbitration_id, False, frame)
-        deadline = self._now() + ENTER_TIMEOUT_S
-        try:
-            while not self._arrived[i] and self._now() < deadline:
-                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("receive", exc) from exc
-        return bool(self._arrived[i])
-
     def _requests(self, requests: Any) -> list[int]:
-        """Send a family's requests in order (:meth:`_run`); the motors that did not answer."""
-        return self._run(requests)[0]
+        """Send a family's requests in order (:func:`~fieldbus.core.canrequests.run_requests`); the motors
+        that did not answer."""
+        return run_requests(requests, _Link(self, copy=True), self._arrived, self._now).missing
 
-    def _run(self, requests: Any) -> tuple[list[int], Request | None, Any]:
-        """Send a family's requests in order, each awaited reply (or condition: ``until``) within
-        ``ENTER_TIMEOUT_S`` (or the request's ``timeout_s``); a step unanswered ends the sequence.
-        ``(the motors that did not answer, that request, the generator's result)``."""
-        requests = iter(requests)
-        send = getattr(requests, "send", None)  # a generator takes each answer's data back
-        got: bytes | None = None
-        while True:
-            try:
-                req = send(got) if send is not None else next(requests)
-            except StopIteration as done:
-                return [], None, done.value
-            self._drain()
-            for j in req.awaits:
-                self._arrived[j] = False
-            self._send_raw(*req.frame)
-            got = None
-            if req.answer is not None:
-                got = self._answer(req)
-                if got is None:
-                    return list(req.awaits), req, None
-                continue
-            if not req.awaits and req.until is None:
-                continue
-
-            def answered(r: Request = req) -> bool:
-                return r.until() if r.until is not None else all(self._arrived[j] for j in r.awaits)
-
-            deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
-            try:
-                while not answered() and self._now() < deadline:
-                    self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=True)
-            except (can.CanError, OSError) as exc:
-                raise self._io_failed("receive", exc) from exc
-            if not answered():
-                return [j for j in req.awaits if req.until is not None or not self._arrived[j]], req, None
-
-    def _answer(self, req: Request) -> bytes | None:
-        """The data of the frame that answers ``req`` within its time-out (others taken in as ever), or None."""
-        assert req.answer is not None
-        deadline = self._now() + (req.timeout_s if req.timeout_s is not None else ENTER_TIMEOUT_S)
+    def _receive_one(self, timeout_s: float, answer: Answer | None, copy: bool) -> bytes | None:
+        """One frame within ``timeout_s``: its data when ``answer`` says it answers, else taken in, None."""
         try:
-            while (left := deadline - self._now()) > 0:
-                msg = self._bus.recv(timeout=left)
-                if msg is None:
-                    continue
-                if not (msg.is_error_frame or msg.is_remote_frame):
-                    data = bytes(msg.data)
-                    if req.answer(msg.arbitration_id, msg.is_extended_id, data):
-                        return data
-                self._accept(msg, copy=True)
+            msg = self._bus.recv(timeout=timeout_s)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
+        if msg is None:
+            return None
+        if answer is not None and not (msg.is_error_frame or msg.is_remote_frame):
+            data = bytes(msg.data)
+            if answer(msg.arbitration_id, msg.is_extended_id, data):
+                return data
+        self._accept(msg, copy=copy)
         return None
 
     def _steps(
@@ -451,7 +275,7 @@ class RawCanBackend(CanFaults, Backend):
         answer :class:`~fieldbus.errors.StateTransitionError`, an unknown name
         :class:`~fieldbus.errors.FieldbusError`."""
         try:
-            missing, req, result = self._run(steps)
+            missing, req, result = run_requests(steps, _Link(self, copy=True), self._arrived, self._now)
         except StateTransitionError as exc:  # a family's refusal (a value read back otherwise, ...)
             raise StateTransitionError(f"bus '{self.bus.name}': {exc}", slave=exc.slave) from None
         except BusTimeoutError as exc:
@@ -497,36 +321,21 @@ class RawCanBackend(CanFaults, Backend):
 
     def _family_error(self, i: int, fam: CanFamily) -> None:
         """Motor ``i``'s error code as its family reads it: a new fault code is one counted, named fault."""
-        if (err := fam.error(i)) is not None and err[0] != self._codes[i]:
-            if err[1] is not None:
-                self._fault(i, err[0], err[1])
-            self._codes[i] = err[0]
+        self._watch.seen(i, fam.error(i), self._cycles)
 
-    def _fault(self, i: int, code: int, name: str) -> None:
-        """One fault onset of motor ``i``: counted, kept in :attr:`faults`, queued for :meth:`take_motor_events`."""
-        self.motor_faults += 1
-        self.faults.append(MotorFault(self._cycles, self.areas[i].slave.name, code, name))
-        self._onsets.append((i, code, name))
+    @property
+    def motor_faults(self) -> int:  # type: ignore[override]  # read-only here; an attribute on the base
+        """Fault onsets since open, ever (the kept list :attr:`faults` is bounded)."""
+        return self._watch.count
 
     def take_motor_events(self, cycle: int) -> tuple[MotorFaultEvent, ...]:
         """The fault onsets since the last call as events of cycle ``cycle`` (the network's cycle index), each
         once; onsets seen during bring-up come with the first cycle. An empty tuple (no allocation) mostly."""
-        if not self._onsets:
-            return _NO_EVENTS
-        out = []
-        while self._onsets:
-            i, code, name = self._onsets.popleft()
-            a = self.areas[i]
-            out.append(MotorFaultEvent(cycle, self.groups[a.group].name, a.row, a.slave.name, code, name))
-        return tuple(out)
-
-    def _little(self, i: int) -> bool:
-        cfg = self.areas[i].slave.map.rawcan
-        return cfg is not None and cfg.byte_order == "little"
+        return self._watch.take(cycle)
 
     def configure(self) -> None:
         """Each family's ``configure`` transaction (registers or endpoints checked, written and read back, a
-        status awaited); MIT motors have no registers: nothing to configure."""
+        status awaited); a family without registers has nothing to configure."""
         for fam in self._fams:
             self._steps(fam.configure(), "configure", timeout=StateTransitionError)
 
@@ -546,65 +355,21 @@ class RawCanBackend(CanFaults, Backend):
             )
 
     def _special(self, which: str) -> list[int]:
-        """Send the enter/exit/zero frame to every motor; return the ones that did not answer.
+        """Every family's ``which`` requests (enter, exit, zero, clear); return the motors that did not answer.
 
         Raises :class:`~fieldbus.errors.BusIoError` when the driver fails.
         """
-        self._drain()
-        self._unmet: dict[int, str] = {}  # motor -> the condition it did not meet (its request's ``what``)
-        conditions: list[Request] = []  # requests whose condition is awaited (not a reply)
-        try:
-            awaited: set[int] = set()
-            for fam in self._fams:  # the families' requests (declarative: patterns, no answer awaited)
-                reqs: list[Request] = list(fam.bring_up(which))
-                for req in reqs:
-                    self._bus.send(self._frame_message(*req.frame))
-                    if req.until is not None:
-                        conditions.append(req)
-                    else:
-                        awaited.update(req.awaits)
-            for i, area in enumerate(self.areas):
-                cfg = area.slave.map.rawcan
-                assert cfg is not None
-                if self._fr[i]:
-                    continue
-                msg, _, _ = self._cmd[i]
-                if which == "clear":
-                    continue  # nothing to clear on this motor (families on the protocol clear their own)
-                frame = getattr(cfg, which)
-                self._bus.send(
-                    self._message(arbitration_id=msg.arbitration_id, data=frame, is_extended_id=False)
-                )
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("send", exc) from exc
-        self._arrived.fill(False)
-        for i in range(self.n_slaves):
-            self._arrived[i] = self._fr[i] and i not in awaited
-        if which == "clear":
-            for i in range(self.n_slaves):
-                self._arrived[i] |= not self._fr[i]
-        deadline = self._now() + max([ENTER_TIMEOUT_S, *(r.timeout_s or 0.0 for r in conditions)])
-
-        def met() -> bool:
-            return all(r.until() for r in conditions if r.until is not None)
-
-        try:
-            while not (self._arrived.all() and met()) and self._now() < deadline:
-                self._accept(self._bus.recv(timeout=max(0.0, deadline - self._now())), copy=False)
-        except (can.CanError, OSError) as exc:
-            raise self._io_failed("receive", exc) from exc
-        self._unmet = {
-            j: r.what for r in conditions if r.until is not None and not r.until() for j in r.awaits
-        }
-        return [i for i in range(self.n_slaves) if not self._arrived[i] or i in self._unmet]
+        link = _Link(self, copy=False)
+        missing, self._unmet = run_bring_up(self._fams, which, link, self._arrived, self._now)
+        return missing  # _unmet: motor -> the condition it did not meet (its request's ``what``)
 
     def send(self) -> None:
         """One command frame per motor. Raises :class:`~fieldbus.errors.BusIoError` when the driver refuses one."""
         # What is still queued came after the last receive(): a reply there answers an earlier
         # command (late) and must not pass for this cycle's; it is counted and dropped.
         self._drain()
-        if self._deadlines:
-            self._sent_at = self._now()
+        if self._router.deadlines:
+            self._router.sent_at = self._now()
         try:
             for fam in self._fams:
                 for c in fam.cycle():
@@ -613,11 +378,6 @@ class RawCanBackend(CanFaults, Backend):
                         m = self._fam_msgs[id(c)] = self._cycle_message(c)
                     m.arbitration_id = c.can_id  # a mode switch may move a frame (id + the mode's offset)
                     self._bus.send(m)
-            for i, (msg, rev, data) in enumerate(self._cmd):
-                if self._fr[i]:
-                    continue
-                np.copyto(data, rev)
-                self._bus.send(msg)
         except (can.CanError, OSError) as exc:
             raise self._io_failed("send", exc) from exc
 
@@ -627,11 +387,9 @@ class RawCanBackend(CanFaults, Backend):
         Raises :class:`~fieldbus.errors.BusIoError` (no motor arrived) when the driver fails.
         """
         self._arrived.fill(False)
-        recv, accept, n = self._bus.recv, self._accept, len(self._reply_rows)
+        recv, accept, n = self._bus.recv, self._accept, self.n_slaves
         clock = self._now
-        deadline = clock() + self._timeout_s
-        if self._wait_cap is not None and self._sent_at is not None:  # every reply has its own deadline
-            deadline = min(deadline, self._sent_at + self._wait_cap)
+        deadline = self._router.wait_until(clock() + self._timeout_s)  # every reply has its own: the last
         count = 0
         try:
             while count < n:
@@ -641,104 +399,42 @@ class RawCanBackend(CanFaults, Backend):
                 count += accept(recv(timeout=remaining), copy=True)
         except (can.CanError, OSError) as exc:
             self._arrived.fill(False)
-            self._sent_at = None
+            self._router.sent_at = None
             raise self._io_failed("receive", exc) from exc
         self._cycles += 1
-        self._sent_at = None
-        if self._families:
-            self._watch_errors()
+        self._router.sent_at = None
+        self._watch_errors()
         return count if count else None
-
-    def _motor(self, msg: Any) -> int:
-        """The motor whose reply ``msg`` is, or -1 (not a reply; error frames counted here)."""
-        if msg.is_error_frame:
-            self._error_frame(msg)
-            return -1
-        if msg.is_extended_id or msg.is_remote_frame:
-            return -1
-        can_id = msg.arbitration_id
-        byte = self._node_byte.get(can_id)
-        if byte is None:
-            return -1
-        data = msg.data
-        return self._route.get((can_id, (data[byte] if byte < len(data) else -1) if byte >= 0 else -1), -1)
 
     def _accept(self, msg: Any, *, copy: bool) -> int:
         """Take ``msg`` as a reply; the number of motors it answered for (a shared frame: several)."""
         if msg is None:
             return 0
-        if self._fams and not (msg.is_remote_frame or msg.is_error_frame):
-            for fam in self._fams:
-                motors = fam.carries(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
-                if motors:
-                    return self._accept_family(fam, motors, msg, copy=copy)
-            if self._take(msg):
-                return 0
-        i = self._motor(msg)
-        if i < 0:
-            return False
-        if self._arrived[i]:
-            self.extra_frames += 1
-            return False
-        if copy:
-            row = self._reply_rows[i]
-            data = msg.data
-            n = self._reply_len[i]
-            if len(data) != n:
-                return False
-            row[:n] = np.frombuffer(data, dtype=np.uint8)
-        self._arrived[i] = True
-        return True
-
-    def _accept_family(self, fam: CanFamily, motors: Any, msg: Any, *, copy: bool) -> int:
-        """A reply of a family on the protocol (one frame may carry several motors): into the rows of its
-        motors when none of them has answered this cycle yet, else counted extra."""
-        if any(self._arrived[i] for i in motors):
-            self.extra_frames += 1
+        if msg.is_error_frame:
+            self._error_frame(msg)
             return 0
-        if copy and self._sent_at is not None and self._past_deadline(motors):
+        if msg.is_remote_frame:
+            return 0
+        n = self._router.reply(msg.arbitration_id, msg.is_extended_id, bytes(msg.data), self._now, copy=copy)
+        if n >= 0:
+            return n
+        if n == EXTRA:
+            self.extra_frames += 1
+        else:
             self.late_frames += 1  # stale: its motors' inputs are held
-            return 0
-        if copy:
-            motors = fam.route(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
-        for i in motors:
-            self._arrived[i] = True
-        return len(motors)
-
-    def _past_deadline(self, motors: Any) -> bool:
-        """A reply of ``motors`` now is past the reply deadline of one of them (a shared frame: any)."""
-        assert self._sent_at is not None
-        now = self._now()
-        return any((d := self._reply_by[i]) is not None and now > self._sent_at + d for i in motors)
-
-    def _family_carries(self, msg: Any) -> Sequence[int]:
-        """The motors a family's reply ``msg`` is for (empty: no family's)."""
-        if msg.is_remote_frame or msg.is_error_frame:
-            return ()
-        data = bytes(msg.data)
-        for f in self._fams:
-            if motors := f.carries(msg.arbitration_id, msg.is_extended_id, data):
-                return motors
-        return ()
+        return 0
 
     def _drain(self) -> None:
         """Drop every frame already queued: a motor's reply there is late, or extra when it had answered."""
         try:
             while (msg := self._bus.recv(timeout=0)) is not None:
-                motors = self._family_carries(msg) if self._fams else ()
-                if motors:  # a family's reply: extra when its motors answered this cycle, else late
-                    if all(self._arrived[j] for j in motors):
+                if msg.is_error_frame:
+                    self._error_frame(msg)
+                elif not msg.is_remote_frame:
+                    verdict = self._router.drained(msg.arbitration_id, msg.is_extended_id, bytes(msg.data))
+                    if verdict == EXTRA:
                         self.extra_frames += 1
-                    else:
-                        self.late_frames += 1
-                    continue
-                if self._fams and self._take(msg):
-                    continue
-                i = self._motor(msg)
-                if i >= 0:
-                    if self._arrived[i]:
-                        self.extra_frames += 1
-                    else:
+                    elif verdict == LATE:
                         self.late_frames += 1
         except (can.CanError, OSError) as exc:
             raise self._io_failed("receive", exc) from exc
@@ -774,3 +470,21 @@ class RawCanBackend(CanFaults, Backend):
             if self._lock is not None:
                 self._lock.release()
                 self._lock = None
+
+
+class _Link:
+    """The backend's bus as the request runner's :class:`~fieldbus.core.canrequests.Link` (``copy``: replies
+    go into the motors' input rows)."""
+
+    def __init__(self, backend: RawCanBackend, *, copy: bool) -> None:
+        self._backend = backend
+        self._copy = copy
+
+    def drain(self) -> None:
+        self._backend._drain()
+
+    def send(self, frame: Frame) -> None:
+        self._backend._send_raw(*frame)
+
+    def receive(self, timeout_s: float, answer: Answer | None) -> bytes | None:
+        return self._backend._receive_one(timeout_s, answer, self._copy)

@@ -265,6 +265,12 @@ class CanFamily(ABC):
         return []
 
     @classmethod
+    def emulator_kind(cls, config: Any) -> str:
+        """The emulator kind of a motor with map section ``config``: motors of one kind share one emulator
+        on a bus (default the family's name; a family whose emulators differ by protocol: one per protocol)."""
+        return cls.name
+
+    @classmethod
     def fault_codes(cls, config: Any) -> dict[int, str] | None:
         """The error codes this map's motors report as faults, by name (an emulator injects one of them);
         None: the family has no table of its own."""

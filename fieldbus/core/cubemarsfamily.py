@@ -243,6 +243,11 @@ class CubemarsFamily(MitFamily):
 
     # -- the map ---------------------------------------------------------------------------------
     @classmethod
+    def emulator_kind(cls, config: Any) -> str:
+        """``cubemars-servo`` or ``cubemars-mit``: one emulator per protocol."""
+        return f"{cls.name}-{config.cubemars.protocol}"
+
+    @classmethod
     def parse(cls, r: Any, raw: Any, path: PathT) -> tuple[Any, tuple[Any, ...], tuple[Any, ...]]:
         from fieldbus.core.rawcan import parse_classic
 

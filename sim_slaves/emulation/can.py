@@ -256,7 +256,7 @@ class CanBus(BusEmulator):
         n = self.node_ids[slave]
         if self.kind == "canopen":
             sim.corrupt_tpdos(n, cycles * self._tpdos(n))
-        elif self.kind in ("mit", "cubemars-mit"):
+        elif getattr(sim, "corrupts_replies", False):  # the emulator says whether it can
             sim.corrupt_replies(n, cycles)
         else:
             raise self._unsupported("corrupt_inputs", f"the {self.kind} emulator sends no corrupted replies")
