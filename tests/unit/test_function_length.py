@@ -19,7 +19,6 @@ LIMIT = 80  # lines, def to last line
 ALLOWED = {
     "rawcan.py::RawCanBackend.__init__": 133,
     "odrive.py::parse_odrive": 124,
-    "ethercat.py::EthercatBackend.__init__": 113,
     "load.py::_channel": 100,
     "image.py::DirectionImage.__init__": 94,
     "load.py::parse_drive_map": 90,
