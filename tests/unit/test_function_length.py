@@ -20,7 +20,6 @@ ALLOWED = {
     "rawcan.py::RawCanBackend.__init__": 133,
     "rawcan.py::parse_classic": 83,
     "network.py::Network.__init__": 82,
-    "canopen.py::CanopenBackend.__init__": 82,
     "cubemars.py::parse_cubemars": 81,
 }
 
