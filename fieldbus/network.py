@@ -115,6 +115,17 @@ class _Phase:
             )
 
 
+def _check_bus_cycles(model: netfile.NetworkConfig) -> None:
+    """Every bus's cycle (µs) is a whole multiple of the shortest: a bus runs every n-th cycle of the fastest."""
+    base = min(bus.cycle_time_us for bus in model.buses)
+    for bus in model.buses:
+        if bus.cycle_time_us % base:
+            raise FieldbusError(
+                f"{model.source}: bus '{bus.name}' cycle_time_us {bus.cycle_time_us} is not a whole multiple "
+                f"of the shortest bus cycle ({base} us): a bus runs every n-th cycle of the fastest"
+            )
+
+
 class Network(_Phase):
     """Configured: the network file is loaded and its backends created, nothing opened yet."""
 
@@ -134,6 +145,38 @@ class Network(_Phase):
             raise FieldbusError(
                 f"bus_options name no bus of the network: {', '.join(unknown)} (have {', '.join(names)})"
             )
+        clock = self._take_network_options(backend_options)
+        self.last_wind_down: WindDownReport | None = None  # the outcome of the last close() from OP
+        self.close_errors: list[str] = []  # what the buses raised while closing (close() itself does not)
+        per_instance = [k for k in backend_options if k in PER_BUS_OPTIONS]
+        if per_instance and len(names) > 1:
+            raise FieldbusError(
+                f"option {per_instance[0]!r} is one bus's own (an interface instance) and this network has "
+                f"{len(names)} buses: pass it per bus, bus_options={{'{names[0]}': {{'{per_instance[0]}': ...}}}}"
+            )
+        _check_bus_cycles(model)
+        netfile.check_open_options(model, backend, backend_options, bus_options)
+        self.backends = self._make_backends(backend, backend_options, bus_options, clock)
+        self.policies = [
+            SafetyPolicy(
+                b.expected_wkc,
+                b.n_slaves,
+                PolicyConfig(b.bus.safe_stop_after, self.release_after),
+                name=b.bus.name,
+            )
+            for b in self.backends
+        ]
+        self.groups: dict[str, AxisGroup] = {g.name: g for b in self.backends for g in b.groups}
+        self._phase: _Phase = self
+        self._opened = False
+        self._closed = False
+        self._open_backends: list[Backend] = []  # every backend whose close() has not succeeded yet
+        self._close_lock = threading.Lock()  # one close() at a time: a second one waits for the first
+        self._closing_thread: int | None = None  # the thread inside close() now
+
+    def _take_network_options(self, backend_options: dict[str, object]) -> Clock | None:
+        """Take the network's own options out of ``backend_options``: ``clock`` (a Clock), ``release_after``
+        (cycles), ``wind_down_max_s`` (s); returns the clock given (None: the wall clock)."""
         # ``clock``: a fieldbus.platform.clock.Clock paces the close wind-down and is the time of every
         # backend that reads a clock (sim, CAN); a bare ``() -> ns`` callable is the sim backend's option
         clock = backend_options.get("clock")
@@ -152,54 +195,32 @@ class Network(_Phase):
         self.clock: Clock = WALL if clock is None else clock
         self.release_after = release_after
         self.wind_down_cap_s = float(wind_down_cap_s)
-        self.last_wind_down: WindDownReport | None = None  # the outcome of the last close() from OP
-        self.close_errors: list[str] = []  # what the buses raised while closing (close() itself does not)
-        per_instance = [k for k in backend_options if k in PER_BUS_OPTIONS]
-        if per_instance and len(names) > 1:
-            raise FieldbusError(
-                f"option {per_instance[0]!r} is one bus's own (an interface instance) and this network has "
-                f"{len(names)} buses: pass it per bus, bus_options={{'{names[0]}': {{'{per_instance[0]}': ...}}}}"
-            )
-        base = min(bus.cycle_time_us for bus in model.buses)
-        for bus in model.buses:
-            if bus.cycle_time_us % base:
-                raise FieldbusError(
-                    f"{model.source}: bus '{bus.name}' cycle_time_us {bus.cycle_time_us} is not a whole multiple "
-                    f"of the shortest bus cycle ({base} us): a bus runs every n-th cycle of the fastest"
-                )
-        netfile.check_open_options(model, backend, backend_options, bus_options)
-        # atomic construction: every check above ran before anything exists; a backend that fails to
-        # construct takes down the ones made before it (none has opened its interface yet)
-        self.backends: list[Backend] = []
+        return None if clock is None else self.clock
+
+    def _make_backends(
+        self,
+        backend: str | None,
+        backend_options: Mapping[str, object],
+        bus_options: Mapping[str, Mapping[str, object]] | None,
+        clock: Clock | None,
+    ) -> list[Backend]:
+        """One backend per bus, all or none: one that fails to construct takes down the ones made before
+        it (none has opened its interface yet). Every check ran before: nothing exists until here."""
+        backends: list[Backend] = []
         try:
-            for bus in model.buses:
+            for bus in self.model.buses:
                 kind = backend or bus.type
                 cls = backend_class(kind)
                 opts = {**backend_options, **(bus_options or {}).get(bus.name, {})}
                 if clock is not None and "clock" in (netfile.backend_options(kind) or ("clock",)):
                     opts.setdefault("clock", clock)
-                self.backends.append(cls(bus, **opts))
+                backends.append(cls(bus, **opts))
         except BaseException:
-            for made in self.backends:
+            for made in backends:
                 with contextlib.suppress(Exception):  # the construction error is the one to report
                     made.close()
             raise
-        self.policies = [
-            SafetyPolicy(
-                b.expected_wkc,
-                b.n_slaves,
-                PolicyConfig(b.bus.safe_stop_after, release_after),
-                name=b.bus.name,
-            )
-            for b in self.backends
-        ]
-        self.groups: dict[str, AxisGroup] = {g.name: g for b in self.backends for g in b.groups}
-        self._phase: _Phase = self
-        self._opened = False
-        self._closed = False
-        self._open_backends: list[Backend] = []  # every backend whose close() has not succeeded yet
-        self._close_lock = threading.Lock()  # one close() at a time: a second one waits for the first
-        self._closing_thread: int | None = None  # the thread inside close() now
+        return backends
 
     def backend(self, bus: str) -> Backend:
         """The backend of bus ``bus`` (by name)."""

@@ -123,7 +123,30 @@ class CanopenBackend(CanFaults, Backend):
                 )
             self.node_ids.append(a.slave.node_id)
         self._index = {node: i for i, node in enumerate(self.node_ids)}
-        # cycle tables (filled by safe_op)
+        self._init_tpdo_tables(n)
+        self._lock: InterfaceLock | None = None
+        self._init_heartbeat_consumer(bus, options.get("heartbeat_consumer_ms"))
+        # EMCY, boot-ups
+        self.emergencies: list[Emergency] = []
+        self.last_emergency: dict[int, Emergency] = {}  # node id -> its last EMCY
+        self.boots: list[int] = []  # node ids seen booting while OPERATIONAL (in order)
+        # recovery
+        self._needs_setup = np.zeros(n, dtype=bool)
+        self._retry_at = np.zeros(n)
+        self._recovering: int | None = None  # node id whose SDO answer the recovery (or acyclic) awaits
+        self._acyclic: Generator[None, None, bytes] | None = None  # an SDO asked for in OP, under way
+        self._acyclic_request: SdoRequest | None = None
+        self._reply: bytes | None = None
+        self.sdo_transfers = 0
+        self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
+        self._open = False
+        self._operational = False
+        # last: a refused configuration above leaves no file open
+        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
+
+    def _init_tpdo_tables(self, n: int) -> None:
+        """The cycle's tables: RPDOs to send, TPDOs awaited per SYNC, and the deadlines of the others."""
+        # filled by safe_op
         self._rpdos: list[tuple[Any, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         # TPDO COB-ID -> (slave, its bytes in the input row, k: index among awaited TPDOs or -1,
         # j: its deadline slot in the slave's row or -1)
@@ -147,14 +170,16 @@ class CanopenBackend(CanFaults, Backend):
         self._min_t = np.zeros(n)
         self._min_s = np.zeros(n, dtype=np.int64)
         self._timed = self._counted = False
-        self._lock: InterfaceLock | None = None
-        # heartbeat consumer
+
+    def _init_heartbeat_consumer(self, bus: Bus, consumer: Any) -> None:
+        """Heartbeat consumer: per node the time (s) without a heartbeat after which it is lost
+        (``consumer``: the ``heartbeat_consumer_ms`` option, else a factor of the producer's period)."""
+        n = self.n_slaves
         self.heartbeat_lost = np.zeros(n, dtype=bool)
         self.nmt_state: npt.NDArray[np.int16] = np.full(
             n, -1, dtype=np.int16
         )  # last heartbeat state byte per node
         self._last_hb = np.zeros(n)
-        consumer = options.get("heartbeat_consumer_ms")
         self._hb_limit = np.array(
             [
                 float(consumer) / 1000 if consumer is not None else HEARTBEAT_FACTOR * _producer_ms(a) / 1000
@@ -169,23 +194,6 @@ class CanopenBackend(CanFaults, Backend):
                     f"bus '{bus.name}': node {self.node_ids[i]} ({a.slave.name}, heartbeat consumer "
                     f"{self._hb_limit[i] * 1e3:g} ms): {why}"
                 )
-        # EMCY, boot-ups
-        self.emergencies: list[Emergency] = []
-        self.last_emergency: dict[int, Emergency] = {}  # node id -> its last EMCY
-        self.boots: list[int] = []  # node ids seen booting while OPERATIONAL (in order)
-        # recovery
-        self._needs_setup = np.zeros(n, dtype=bool)
-        self._retry_at = np.zeros(n)
-        self._recovering: int | None = None  # node id whose SDO answer the recovery (or acyclic) awaits
-        self._acyclic: Generator[None, None, bytes] | None = None  # an SDO asked for in OP, under way
-        self._acyclic_request: SdoRequest | None = None
-        self._reply: bytes | None = None
-        self.sdo_transfers = 0
-        self._sync = can.Message(arbitration_id=COB_SYNC, data=b"", is_extended_id=False)
-        self._open = False
-        self._operational = False
-        # last: a refused configuration above leaves no file open
-        self._log = open_log(options.get("can_log"))  # every frame to a python-can log file
 
     @property
     def expected_wkc(self) -> int:

@@ -125,6 +125,13 @@ class EthercatBackend(Backend):
 
     def __init__(self, bus: Bus, **options: object) -> None:
         super().__init__(bus, **options)
+        self._init_master(bus, options)
+        self._init_cycle(bus, options)
+        self._init_acyclic(bus, options)
+        self._init_slave_records()
+
+    def _init_master(self, bus: Bus, options: dict[str, object]) -> None:
+        """The master: pysoem's on a network card, or the emulated chain in this process (``transport``)."""
         transport = options.get("transport", "soem")  # "in-process": the emulated chain (ecat_inprocess)
         if not bus.interface and transport != "in-process":
             raise FieldbusError(f"bus '{bus.name}': an ethercat bus needs 'interface'")
@@ -159,6 +166,9 @@ class EthercatBackend(Backend):
             if options.get("chain_maps") is not None:
                 raise FieldbusError(f"bus '{bus.name}': option chain_maps needs transport='in-process'")
             self.master = pysoem.Master()
+
+    def _init_cycle(self, bus: Bus, options: dict[str, object]) -> None:
+        """The cycle's state: receive timeout (ns), process-data views or copies, capture, stale frames."""
         self._slaves: list[Any] = []
         self._open = False
         self._timeout_us = bus.receive_timeout_us
@@ -198,6 +208,9 @@ class EthercatBackend(Backend):
         # frame index only (16 of them), so a frame still queued when a cycle starts is discarded.
         self.stale_frames = 0
         self._drain_buf = [bytearray(soem_socket.MAX_FRAME)]
+
+    def _init_acyclic(self, bus: Bus, options: dict[str, object]) -> None:
+        """The acyclic budget beside the LRW: SDO tries and timeout, frame timeout (µs), error-counter reads."""
         self._sdo_tries = SDO_RETRIES + 1  # tries per blocking SDO (bring-up)
         cap = int(pysoem.settings.timeouts.ret)
         default = min(bus.receive_timeout_us, FRAME_TIMEOUT_US, cap)
@@ -222,6 +235,9 @@ class EthercatBackend(Backend):
             raise FieldbusError(
                 f"bus '{bus.name}': frame_timeout_us {self.frame_timeout_us} out of 1..{cap} (SOEM's EC_TIMEOUTRET)"
             )
+
+    def _init_slave_records(self) -> None:
+        """Per slave, what bring-up learns and recovery needs: mailboxes, stations, SM/FMMU registers, AL."""
         # one datagram besides the LRW per cycle: set by the ports, cleared by send()
         self._frame_sent = False
         self._mailboxes: list[SlaveMailbox | None] = []  # per slave, from its SM0/SM1 registers (SAFE-OP)

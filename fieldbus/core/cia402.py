@@ -682,23 +682,44 @@ class Cia402Controller:
         np.equal(sm, self._hold, out=self._b1)
         np.copyto(sm, self._last_sm, where=self._b1)
 
-        # modes: write the request, compare the display, gate the enable on a match
+        # modes: write the request; with a display, gate the enable on a match
         if modes_out is not None:
             np.copyto(modes_out, self.mode_request, casting="unsafe")
         if modes_display is None:
             self.mode_ok.fill(True)
         else:
-            np.equal(modes_display, self.mode_request, out=self.mode_ok)
-            np.equal(state, np.int8(State402.SWITCHED_ON), out=self._b1)
-            np.logical_and(self._b1, self._goal_enable, out=self._b1)
-            np.logical_not(self.mode_ok, out=self._b2)
-            np.logical_and(self._b1, self._b2, out=self._b1)
-            np.copyto(sm, self._switch_on, where=self._b1)
-            np.logical_or(self.mode_ok, self._goal_not_enable, out=self._b2)
-            np.logical_and(self.reached, self._b2, out=self.reached)
+            self._gate_enable_on_mode(modes_display)
+        self._fault_reset_pulse(hold_reset)
 
-        # fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat; bounded per axis
-        phase = self._phase
+        # write bits 0-3, 7; keep the caller's other bits
+        np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
+        np.bitwise_or(controlword_out, sm, out=controlword_out)
+        np.copyto(self._last_sm, sm)
+
+        # progress bookkeeping
+        np.logical_not(self.reached, out=self._b2)
+        np.add(self.cycles, self._b2, out=self.cycles)
+        np.add(self.since_progress, self._b2, out=self.since_progress)
+        np.logical_or(self._changed, self.reached, out=self._b1)
+        np.copyto(self.since_progress, self._zero_i32, where=self._b1)
+        np.greater(self.since_progress, self.timeout_cycles, out=self.stuck)
+        self._cycle += 1
+
+    def _gate_enable_on_mode(self, modes_display: npt.NDArray[Any]) -> None:
+        """Modes: compare the display with the request; an ENABLE goal waits in SWITCHED_ON for a match."""
+        sm = self._sm
+        np.equal(modes_display, self.mode_request, out=self.mode_ok)
+        np.equal(self.state, np.int8(State402.SWITCHED_ON), out=self._b1)
+        np.logical_and(self._b1, self._goal_enable, out=self._b1)
+        np.logical_not(self.mode_ok, out=self._b2)
+        np.logical_and(self._b1, self._b2, out=self._b1)
+        np.copyto(sm, self._switch_on, where=self._b1)
+        np.logical_or(self.mode_ok, self._goal_not_enable, out=self._b2)
+        np.logical_and(self.reached, self._b2, out=self.reached)
+
+    def _fault_reset_pulse(self, hold_reset: npt.NDArray[np.bool_] | None) -> None:
+        """Fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat; bounded per axis."""
+        sm, phase = self._sm, self._phase
         np.greater(self._pulse, self.gave_up, out=self._pulse)  # an axis that gave up gets no pulse
         np.multiply(self._held, self._pulse, out=self._held)  # out of fault: the next fault may wait again
         if hold_reset is not None:  # its 0x603F read is pending: no reset yet (bounded per fault)
@@ -717,20 +738,6 @@ class Cia402Controller:
         np.logical_and(self._b1, self._pulse, out=self._b1)
         np.bitwise_or(sm, self._bit7, out=sm, where=self._b1)
         np.add(phase, self._pulse, out=phase)
-
-        # write bits 0-3, 7; keep the caller's other bits
-        np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
-        np.bitwise_or(controlword_out, sm, out=controlword_out)
-        np.copyto(self._last_sm, sm)
-
-        # progress bookkeeping
-        np.logical_not(self.reached, out=self._b2)
-        np.add(self.cycles, self._b2, out=self.cycles)
-        np.add(self.since_progress, self._b2, out=self.since_progress)
-        np.logical_or(self._changed, self.reached, out=self._b1)
-        np.copyto(self.since_progress, self._zero_i32, where=self._b1)
-        np.greater(self.since_progress, self.timeout_cycles, out=self.stuck)
-        self._cycle += 1
 
     def _count_resets(self, starting: npt.NDArray[np.bool_]) -> None:
         """Axes whose reset pulse begins this cycle: count it, or give up past the budget (rare path)."""

@@ -12,7 +12,7 @@ what may work but is likely a mistake is a warning in
 from __future__ import annotations
 
 import difflib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -200,6 +200,62 @@ def _bus(
     m = r.mapping(raw, path, _BUS_KEYS, required=("name", "type", "slaves"))
     name = r.name(m["name"], (*path, "name"))
     kind = r.choice(m["type"], (*path, "type"), bus_type_names())
+    link = _bus_link(r, m, path, kind)
+    slaves: list[Slave] = []
+    names: dict[str, PathT] = {}
+    node_ids: dict[int, PathT] = {}
+    raw_slaves = r.sequence(m["slaves"], (*path, "slaves"))
+    if not raw_slaves:
+        raise r.err((*path, "slaves"), "a bus needs at least one slave")
+    for j, sraw in enumerate(raw_slaves):
+        spath: PathT = (*path, "slaves", j)
+        for slave in _slave_entry(r, sraw, spath, m, path, kind, link, base, cache, cycle, len(slaves)):
+            if slave.name in names:
+                raise r.err((*spath, "name"), f"duplicate slave name '{slave.name}' on bus '{name}'")
+            names[slave.name] = spath
+            if slave.node_id is not None:
+                if slave.node_id in node_ids:
+                    raise r.err((*spath, "node_id"), f"node id {slave.node_id} used twice on bus '{name}'")
+                node_ids[slave.node_id] = spath
+            slaves.append(slave)
+    bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+    bus_timeout = r.integer(
+        m.get("receive_timeout_us", timeout), (*path, "receive_timeout_us"), 10, 1_000_000
+    )
+    if bus_timeout > bus_cycle:
+        warnings.append(_late_reply_warning(r, m, path, name, bus_cycle, bus_timeout))
+    return Bus(
+        name=name,
+        type=kind,
+        slaves=tuple(slaves),
+        cycle_time_us=bus_cycle,
+        receive_timeout_us=bus_timeout,
+        safe_stop_after=r.integer(
+            m.get("safe_stop_after", stop_after), (*path, "safe_stop_after"), 1, 100_000
+        ),
+        interface=link.interface,
+        redundant_interface=link.redundant,
+        can_options=_can_options(r, m.get("can_options"), (*path, "can_options")),
+        can_interface=link.can_interface,
+        bitrate=link.bitrate,
+        data_bitrate=link.data_bitrate,
+    )
+
+
+@dataclass(frozen=True)
+class _Link:
+    """How a bus reaches its wire: network card(s) for EtherCAT, CAN interface and bit rates for CAN."""
+
+    is_can: bool
+    interface: str | None
+    redundant: str | None
+    can_interface: str | None
+    bitrate: int | None  # bit/s, CAN arbitration phase
+    data_bitrate: int | None  # bit/s, CAN FD data phase
+
+
+def _bus_link(r: Reader, m: Mapping[Any, Any], path: PathT, kind: str) -> _Link:
+    """The bus's link keys, each checked against the bus type (CAN keys on a CAN bus only, and so on)."""
     is_can = is_can_type(kind)
     for key in ("can_interface", "can_options", "bitrate", "data_bitrate"):
         if key in m and not is_can:
@@ -231,104 +287,105 @@ def _bus(
             raise r.err(
                 (*path, "redundant_interface"), f"the redundant port must be another card than '{redundant}'"
             )
-    slaves: list[Slave] = []
-    names: dict[str, PathT] = {}
-    node_ids: dict[int, PathT] = {}
-    raw_slaves = r.sequence(m["slaves"], (*path, "slaves"))
-    if not raw_slaves:
-        raise r.err((*path, "slaves"), "a bus needs at least one slave")
-    for j, sraw in enumerate(raw_slaves):
-        spath: PathT = (*path, "slaves", j)
-        s = r.mapping(sraw, spath, _SLAVE_KEYS, required=("name", "map"))
-        if "position" in s:
-            raise r.err(
-                (*spath, "position"), "EtherCAT slaves are listed in wire order; drop 'position'", key=True
-            )
-        count = r.integer(s.get("count", 1), (*spath, "count"), 1, 1024)
-        pattern = r.string(s["name"], (*spath, "name"))
-        if count > 1 and "{i}" not in pattern:
-            raise r.err((*spath, "name"), f"count: {count} needs '{{i}}' in the name to keep names unique")
-        drive = _drive(r, s["map"], (*spath, "map"), base, cache)
-        emu = None
-        if "emulator" in s:
-            bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
-            emu = emulator_section(r, s["emulator"], (*spath, "emulator"), bus_cycle)
-            _check_emulator(emu)
-        if is_can:
-            if "node_id" not in s:
-                raise r.err(spath, "a CAN slave needs 'node_id'")
-            first = r.integer(s["node_id"], (*spath, "node_id"), 1, 127)
-            if first + count - 1 > 127:
-                raise r.err((*spath, "count"), f"node ids {first}..{first + count - 1} pass 127")
-            if kind == "canopen" and drive.canopen is None:
-                raise r.err((*spath, "map"), f"map {drive.source} has no 'canopen' section")
-            if kind == "canopen":
-                _check_canopen_liveness(r, drive, (*spath, "map"))
-            if kind == "rawcan" and drive.rawcan is None:
-                raise r.err((*spath, "map"), f"map {drive.source} has no 'rawcan' section")
-            if kind == "canopen" and data_bitrate is None and not _fd_option(m.get("can_options")):
-                _classic_frames_only(r, drive, (*spath, "map"))
-        elif drive.rawcan is not None:
-            raise r.err((*spath, "map"), f"map {drive.source} is a rawcan map; it needs a 'rawcan' bus")
-        elif "node_id" in s:
-            raise r.err((*spath, "node_id"), f"node_id is for CAN buses, this bus is {kind}", key=True)
-        else:
-            first = 0
-        narrow: tuple[OutputLimit, ...] = ()
-        if "limits" in s:
-            bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
-            narrow = _slave_limits(r, s["limits"], (*spath, "limits"), drive, bus_cycle / 1e6, is_can)
-        for k in range(count):
-            sname = r.name(pattern.replace("{i}", str(k)), (*spath, "name"))
-            if sname in names:
-                raise r.err((*spath, "name"), f"duplicate slave name '{sname}' on bus '{name}'")
-            names[sname] = spath
-            node = first + k if is_can else None
-            if node is not None:
-                if node in node_ids:
-                    raise r.err((*spath, "node_id"), f"node id {node} used twice on bus '{name}'")
-                node_ids[node] = spath
-            slaves.append(
-                Slave(name=sname, map=drive, position=len(slaves), node_id=node, emulator=emu, limits=narrow)
-            )
-    bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
-    bus_timeout = r.integer(
-        m.get("receive_timeout_us", timeout), (*path, "receive_timeout_us"), 10, 1_000_000
+    return _Link(is_can, interface, redundant, can_interface, bitrate, data_bitrate)
+
+
+def _slave_entry(
+    r: Reader,
+    sraw: Any,
+    spath: PathT,
+    m: Mapping[Any, Any],
+    path: PathT,
+    kind: str,
+    link: _Link,
+    base: Path,
+    cache: dict[Path, DriveMap],
+    cycle: int,
+    start: int,
+) -> Iterator[Slave]:
+    """One entry of ``slaves:``: ``count`` slaves of one map from wire position ``start``, names from ``{i}``.
+
+    The entry is read whole first; each slave is named as the bus takes it (so the bus checks each name
+    for a duplicate before the next is read).
+    """
+    s = r.mapping(sraw, spath, _SLAVE_KEYS, required=("name", "map"))
+    if "position" in s:
+        raise r.err(
+            (*spath, "position"), "EtherCAT slaves are listed in wire order; drop 'position'", key=True
+        )
+    count = r.integer(s.get("count", 1), (*spath, "count"), 1, 1024)
+    pattern = r.string(s["name"], (*spath, "name"))
+    if count > 1 and "{i}" not in pattern:
+        raise r.err((*spath, "name"), f"count: {count} needs '{{i}}' in the name to keep names unique")
+    drive = _drive(r, s["map"], (*spath, "map"), base, cache)
+    emu = None
+    if "emulator" in s:
+        bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+        emu = emulator_section(r, s["emulator"], (*spath, "emulator"), bus_cycle)
+        _check_emulator(emu)
+    first = _first_node_id(r, s, spath, m, kind, link, drive, count)
+    narrow: tuple[OutputLimit, ...] = ()
+    if "limits" in s:
+        bus_cycle = r.integer(m.get("cycle_time_us", cycle), (*path, "cycle_time_us"), 50, 1_000_000)
+        narrow = _slave_limits(r, s["limits"], (*spath, "limits"), drive, bus_cycle / 1e6, link.is_can)
+    for k in range(count):
+        sname = r.name(pattern.replace("{i}", str(k)), (*spath, "name"))
+        node = first + k if link.is_can else None
+        yield Slave(name=sname, map=drive, position=start + k, node_id=node, emulator=emu, limits=narrow)
+
+
+def _first_node_id(
+    r: Reader,
+    s: Mapping[Any, Any],
+    spath: PathT,
+    m: Mapping[Any, Any],
+    kind: str,
+    link: _Link,
+    drive: DriveMap,
+    count: int,
+) -> int:
+    """The entry's first CAN node id (0 off CAN), and its map checked against the bus type."""
+    if link.is_can:
+        if "node_id" not in s:
+            raise r.err(spath, "a CAN slave needs 'node_id'")
+        first = r.integer(s["node_id"], (*spath, "node_id"), 1, 127)
+        if first + count - 1 > 127:
+            raise r.err((*spath, "count"), f"node ids {first}..{first + count - 1} pass 127")
+        if kind == "canopen" and drive.canopen is None:
+            raise r.err((*spath, "map"), f"map {drive.source} has no 'canopen' section")
+        if kind == "canopen":
+            _check_canopen_liveness(r, drive, (*spath, "map"))
+        if kind == "rawcan" and drive.rawcan is None:
+            raise r.err((*spath, "map"), f"map {drive.source} has no 'rawcan' section")
+        if kind == "canopen" and link.data_bitrate is None and not _fd_option(m.get("can_options")):
+            _classic_frames_only(r, drive, (*spath, "map"))
+        return first
+    if drive.rawcan is not None:
+        raise r.err((*spath, "map"), f"map {drive.source} is a rawcan map; it needs a 'rawcan' bus")
+    if "node_id" in s:
+        raise r.err((*spath, "node_id"), f"node_id is for CAN buses, this bus is {kind}", key=True)
+    return 0
+
+
+def _late_reply_warning(
+    r: Reader, m: Mapping[Any, Any], path: PathT, name: str, bus_cycle: int, bus_timeout: int
+) -> str:
+    """The warning for a receive timeout (us) longer than the bus's cycle (us), at the key that set it."""
+    where: PathT = (
+        (*path, "receive_timeout_us")
+        if "receive_timeout_us" in m
+        else ("receive_timeout_us",)
+        if "receive_timeout_us" in r.doc.data
+        else path
     )
-    if bus_timeout > bus_cycle:
-        where: PathT = (
-            (*path, "receive_timeout_us")
-            if "receive_timeout_us" in m
-            else ("receive_timeout_us",)
-            if "receive_timeout_us" in r.doc.data
-            else path
+    default = "" if "receive_timeout_us" in m or "receive_timeout_us" in r.doc.data else " (the default)"
+    return str(
+        r.err(
+            where,
+            f"bus '{name}': receive_timeout_us {bus_timeout}{default} is longer than its cycle "
+            f"({bus_cycle} us): a lost reply makes that cycle late by up to "
+            f"{bus_timeout - bus_cycle} us",
         )
-        default = "" if "receive_timeout_us" in m or "receive_timeout_us" in r.doc.data else " (the default)"
-        warnings.append(
-            str(
-                r.err(
-                    where,
-                    f"bus '{name}': receive_timeout_us {bus_timeout}{default} is longer than its cycle "
-                    f"({bus_cycle} us): a lost reply makes that cycle late by up to "
-                    f"{bus_timeout - bus_cycle} us",
-                )
-            )
-        )
-    return Bus(
-        name=name,
-        type=kind,
-        slaves=tuple(slaves),
-        cycle_time_us=bus_cycle,
-        receive_timeout_us=bus_timeout,
-        safe_stop_after=r.integer(
-            m.get("safe_stop_after", stop_after), (*path, "safe_stop_after"), 1, 100_000
-        ),
-        interface=interface,
-        redundant_interface=redundant,
-        can_options=_can_options(r, m.get("can_options"), (*path, "can_options")),
-        can_interface=can_interface,
-        bitrate=bitrate,
-        data_bitrate=data_bitrate,
     )
 
 

@@ -128,62 +128,17 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         raw, path, ODRIVE_KEYS, required=("protocol", "commands", "modes", "states", "errors")
     )
     version = r.choice(str(m["protocol"]), (*path, "protocol"), tuple(ONLY))
-    cp: PathT = (*path, "commands")
-    cm = r.mapping(m["commands"], cp, (*COMMON, *ONLY["0.5"], *ONLY["0.6"]))
-    other = next(v for v in ONLY if v != version)
-    for name in ONLY[other]:
-        if name in cm:
-            raise r.err((*cp, name), f"{name} is a command of firmware {other}, not {version}", key=True)
-    for name in (*COMMON, *ONLY[version]):
-        if name not in cm:
-            raise r.err(cp, f"firmware {version} has command '{name}': give its id")
-    commands = {k: r.integer(v, (*cp, k), 0, 0x1F) for k, v in cm.items()}
-    if len(set(commands.values())) != len(commands):
-        raise r.err(cp, "two commands share an id")
+    commands = _command_ids(r, m["commands"], (*path, "commands"), version)
     by_name = {f.name: f for f in command}
     offsets: dict[str, tuple[int, int]] = {}  # byte offset and size of each command field in the row
     bit = 0
     for f in command:
         offsets[f.name] = (bit // 8, f.bits // 8)
         bit += f.bits
-    modes: list[OdriveMode] = []
-    for i, item in enumerate(r.sequence(m["modes"], (*path, "modes"))):
-        mp: PathT = (*path, "modes", i)
-        mm = r.mapping(item, mp, MODE_KEYS, required=MODE_KEYS)
-        cmd = r.choice(
-            mm["command"], (*mp, "command"), ("set_input_pos", "set_input_vel", "set_input_torque")
-        )
-        fields: list[SetpointField] = []
-        size = 0
-        for j, fraw in enumerate(r.sequence(mm["fields"], (*mp, "fields"))):
-            fp: PathT = (*mp, "fields", j)
-            fm = r.mapping(fraw, fp, SETPOINT_KEYS, required=("from", "type"))
-            src = r.string(fm["from"], (*fp, "from"))
-            if src not in by_name:
-                raise r.err((*fp, "from"), f"'{src}' is not a command field ({', '.join(by_name)})")
-            if by_name[src].scaled or by_name[src].bits % 8:
-                raise r.err(
-                    (*fp, "from"), f"'{src}' is scaled or not whole bytes: a set-point takes a number as is"
-                )
-            kind = r.choice(fm["type"], (*fp, "type"), tuple(SETPOINT_TYPES))
-            size += SETPOINT_TYPES[kind][1]
-            at, nbytes = offsets[src]
-            fields.append(
-                SetpointField(
-                    src, kind, r.number(fm.get("scale", 1.0), (*fp, "scale")), at, by_name[src].type, nbytes
-                )
-            )
-        if size > 8:
-            raise r.err((*mp, "fields"), f"the fields take {size} bytes; a classic CAN frame has 8")
-        modes.append(
-            OdriveMode(
-                r.name(mm["name"], (*mp, "name")),
-                commands[cmd],
-                r.integer(mm["control_mode"], (*mp, "control_mode"), 0, 0xFFFFFFFF),
-                r.integer(mm["input_mode"], (*mp, "input_mode"), 0, 0xFFFFFFFF),
-                tuple(fields),
-            )
-        )
+    modes = [
+        _mode(r, item, (*path, "modes", i), commands, by_name, offsets)
+        for i, item in enumerate(r.sequence(m["modes"], (*path, "modes")))
+    ]
     names = [md.name for md in modes]
     if not names or len(set(names)) != len(names):
         raise r.err((*path, "modes"), "name the modes, each once")
@@ -195,6 +150,92 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         errors.append(
             (r.integer(em["bit"], (*ep, "bit"), 1, 0xFFFFFFFF), r.string(em["name"], (*ep, "name")))
         )
+    config = _endpoint_config(r, m, path, version)
+    fields_named = _heartbeat_fields(r, m, path, by_name, {f.name for f in reply})
+    request = by_name[fields_named["request_field"]]
+    clear = bytes(
+        r.integer(v, (*path, "clear", i), 0, 255)
+        for i, v in enumerate(r.sequence(m.get("clear", []), (*path, "clear")))
+    )
+    return OdriveProtocol(
+        protocol=version,
+        commands=commands,
+        modes=tuple(modes),
+        mode=r.choice(m.get("mode", names[0]), (*path, "mode"), names),
+        idle=r.integer(sm["idle"], (*path, "states", "idle"), 0, 255),
+        closed_loop=r.integer(sm["closed_loop"], (*path, "states", "closed_loop"), 0, 255),
+        errors=tuple(errors),
+        watchdog_ms=r.number(m.get("watchdog_ms", 0.0), (*path, "watchdog_ms")),
+        heartbeat_ms=r.number(m.get("heartbeat_ms", 100.0), (*path, "heartbeat_ms")),
+        config=config,
+        request_field=fields_named["request_field"],
+        request_at=offsets[request.name],
+        state_field=fields_named["state_field"],
+        error_field=fields_named["error_field"],
+        clear=clear,
+    )
+
+
+def _command_ids(r: Any, raw: Any, cp: PathT, version: str) -> dict[str, int]:
+    """``commands:``: the CAN command id (0..0x1F) of each command of firmware ``version``, all distinct."""
+    cm = r.mapping(raw, cp, (*COMMON, *ONLY["0.5"], *ONLY["0.6"]))
+    other = next(v for v in ONLY if v != version)
+    for name in ONLY[other]:
+        if name in cm:
+            raise r.err((*cp, name), f"{name} is a command of firmware {other}, not {version}", key=True)
+    for name in (*COMMON, *ONLY[version]):
+        if name not in cm:
+            raise r.err(cp, f"firmware {version} has command '{name}': give its id")
+    commands = {k: r.integer(v, (*cp, k), 0, 0x1F) for k, v in cm.items()}
+    if len(set(commands.values())) != len(commands):
+        raise r.err(cp, "two commands share an id")
+    return commands
+
+
+def _mode(
+    r: Any,
+    item: Any,
+    mp: PathT,
+    commands: dict[str, int],
+    by_name: dict[str, Any],
+    offsets: dict[str, tuple[int, int]],
+) -> OdriveMode:
+    """One entry of ``modes:``: its set-point command, control and input modes, and the fields it sends."""
+    mm = r.mapping(item, mp, MODE_KEYS, required=MODE_KEYS)
+    cmd = r.choice(mm["command"], (*mp, "command"), ("set_input_pos", "set_input_vel", "set_input_torque"))
+    fields: list[SetpointField] = []
+    size = 0
+    for j, fraw in enumerate(r.sequence(mm["fields"], (*mp, "fields"))):
+        fp: PathT = (*mp, "fields", j)
+        fm = r.mapping(fraw, fp, SETPOINT_KEYS, required=("from", "type"))
+        src = r.string(fm["from"], (*fp, "from"))
+        if src not in by_name:
+            raise r.err((*fp, "from"), f"'{src}' is not a command field ({', '.join(by_name)})")
+        if by_name[src].scaled or by_name[src].bits % 8:
+            raise r.err(
+                (*fp, "from"), f"'{src}' is scaled or not whole bytes: a set-point takes a number as is"
+            )
+        kind = r.choice(fm["type"], (*fp, "type"), tuple(SETPOINT_TYPES))
+        size += SETPOINT_TYPES[kind][1]
+        at, nbytes = offsets[src]
+        fields.append(
+            SetpointField(
+                src, kind, r.number(fm.get("scale", 1.0), (*fp, "scale")), at, by_name[src].type, nbytes
+            )
+        )
+    if size > 8:
+        raise r.err((*mp, "fields"), f"the fields take {size} bytes; a classic CAN frame has 8")
+    return OdriveMode(
+        r.name(mm["name"], (*mp, "name")),
+        commands[cmd],
+        r.integer(mm["control_mode"], (*mp, "control_mode"), 0, 0xFFFFFFFF),
+        r.integer(mm["input_mode"], (*mp, "input_mode"), 0, 0xFFFFFFFF),
+        tuple(fields),
+    )
+
+
+def _endpoint_config(r: Any, m: Mapping[Any, Any], path: PathT, version: str) -> tuple[ConfigItem, ...]:
+    """``config:``: endpoint writes at bring-up (firmware 0.6 only: 0.5 has no endpoint access over CAN)."""
     config: list[ConfigItem] = []
     for i, item in enumerate(r.sequence(m.get("config", []), (*path, "config"))):
         gp: PathT = (*path, "config", i)
@@ -209,7 +250,13 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
                 r.number(gm["value"], (*gp, "value")),
             )
         )
-    replies = {f.name for f in reply}
+    return tuple(config)
+
+
+def _heartbeat_fields(
+    r: Any, m: Mapping[Any, Any], path: PathT, by_name: dict[str, Any], replies: set[str]
+) -> dict[str, str]:
+    """The image fields of the requested state (a command field) and of the heartbeat's state and error."""
     fields_named: dict[str, str] = {}
     for key, default, pool in (
         ("request_field", "requested_state", by_name),
@@ -225,27 +272,7 @@ def parse_odrive(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> Odr
         raise r.err(
             (*path, "request_field"), f"'{request.name}' is not an unscaled uint field of whole bytes"
         )
-    clear = bytes(
-        r.integer(v, (*path, "clear", i), 0, 255)
-        for i, v in enumerate(r.sequence(m.get("clear", []), (*path, "clear")))
-    )
-    return OdriveProtocol(
-        protocol=version,
-        commands=commands,
-        modes=tuple(modes),
-        mode=r.choice(m.get("mode", names[0]), (*path, "mode"), names),
-        idle=r.integer(sm["idle"], (*path, "states", "idle"), 0, 255),
-        closed_loop=r.integer(sm["closed_loop"], (*path, "states", "closed_loop"), 0, 255),
-        errors=tuple(errors),
-        watchdog_ms=r.number(m.get("watchdog_ms", 0.0), (*path, "watchdog_ms")),
-        heartbeat_ms=r.number(m.get("heartbeat_ms", 100.0), (*path, "heartbeat_ms")),
-        config=tuple(config),
-        request_field=fields_named["request_field"],
-        request_at=offsets[request.name],
-        state_field=fields_named["state_field"],
-        error_field=fields_named["error_field"],
-        clear=clear,
-    )
+    return fields_named
 
 
 # -- codec -----------------------------------------------------------------------------------------------

@@ -46,6 +46,7 @@ import numpy as np
 from fieldbus.core.al import AL_INIT, AL_OP
 from fieldbus.core.cia402 import Cia402Controller, Goal, State402
 from fieldbus.core.emcy import Emergency
+from fieldbus.cycle.status import CycleResult
 from fieldbus.errors import FieldbusError, SdoAbortError
 from fieldbus.network import Network, Operational
 from fieldbus.operations.monitor import monitor_context
@@ -276,109 +277,22 @@ class Soak:
         t_start = time.perf_counter()
         next_status = 0
         op = self.bring_up()
-        backend, policy = self.net.backends[0], self.net.policies[0]
-        threshold = policy.config.safe_stop_after
-        n = backend.n_slaves
-        img = next(iter(self.net.groups.values())).image
-        sw, cw = img.inputs["statusword"], img.outputs["controlword"]
-        ctrl = Cia402Controller(n, timeout_cycles=100_000)
-        ctrl.set_goal(Goal.ENABLE)
-        can = backend.kind == "canopen"
-        for kind in CAN_ONLY if not can else ETHERCAT_ONLY:
-            if getattr(self.spec, kind):
-                raise FaultSpecError(f"fault '{kind}' has no meaning on a {backend.kind} bus")
-        plan = schedule(self.spec, cycles, n, self.rng, self.warmup)
-        notices: list[tuple[str, int, int, int]] = []  # (kind, slave, injected at cycle, emcy count before)
-        bus_off_until: list[tuple[int, int]] = []  # (cycle, slave): back on the bus then
-        burst_left = 0
-        consecutive = 0
-        stop_latched = False
-        check_quick_stop = False
-        recovering: list[int] = []  # cycles at which a power cycle is still being recovered
-        fresh_streak = 0
-        # paced at the network's cycle time unless told otherwise (0: as fast as it goes)
-        period_us = self.cycle_time_us if self.cycle_time_us is not None else backend.bus.cycle_time_us
-        period_ns = int(period_us * 1000)
-        limit_ns = int((backend.bus.receive_timeout_us + self.margin_us) * 1000)
-        deadline = time.perf_counter_ns()
-        prev_fresh = True
-        timer = op.phases = PhaseTimer() if self.phases else None
+        run = _SoakRun(self, op, cycles)
         # gc held as run_cycles holds it (fieldbus run): a full collection of a large heap is a pause of
         # many ms in whichever cycle it lands, the harness's doing, not the bus's
         with monitor_context(op, None, self.monitor), gc_held():
             for k in range(cycles):
-                event = plan.get(k)
-                if event is not None and event[0] in IN_FLIGHT and not prev_fresh:
-                    # The last cycle's frame may still be on its way to the emulator (its reply was late):
-                    # "drop the next frame" could hit that one. Inject once a cycle came back fresh.
-                    later = k + 1
-                    while later in plan:
-                        later += 1
-                    plan[later] = event
-                    event = None
-                lost_now = False
-                if event is not None:
-                    kind, slave = event
-                    lost_now = kind not in NOTICED
-                    if kind == "loss":
-                        if can:
-                            self.control(cmd="drop_frame", slave=slave)
-                        else:
-                            self.control(cmd="drop", count=1, pd=True)
-                    elif kind == "emcy":
-                        before = len(backend.emergencies)
-                        self.control(cmd="emergency", slave=slave, code=EMCY_CODE)
-                        notices.append((kind, slave, k, before))
-                    elif kind == "heartbeat":
-                        self.control(cmd="heartbeat", slave=slave, silent=True)
-                        notices.append((kind, slave, k, 0))
-                    elif kind == "bus_off":
-                        self.control(cmd="bus_off", slave=slave, off=True)
-                        bus_off_until.append((k + BUS_OFF_CYCLES, slave))
-                    elif kind == "delay":
-                        timeout_s = backend.bus.receive_timeout_us / 1e6
-                        self.control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
-                    elif kind == "wkc":
-                        self.control(cmd="corrupt_wkc", delta=-1, count=1)
-                    elif kind == "power_cycle":
-                        self.control(cmd="power_cycle", slave=slave)
-                        recovering.append(k)
-                    elif kind == "burst":
-                        self.control(cmd="drop", count=threshold, pd=True)
-                        burst_left = threshold
-                    rep.injected[kind] += 1
-                if burst_left:
-                    lost_now = True
-                    burst_left -= 1
-                for until, slave_off in list(bus_off_until):
-                    if k >= until:
-                        self.control(cmd="bus_off", slave=slave_off, off=False)
-                        bus_off_until.remove((until, slave_off))
-                        recovering.append(k)
+                event = run.defer_in_flight(k, run.plan.get(k))
+                lost_now = run.inject(k, event)
                 t0 = time.perf_counter_ns()
                 try:
                     res = op.exchange()
                 except Exception as exc:  # the invariant is that this never happens
                     rep.violate(k, f"exception escaped exchange(): {type(exc).__name__}: {exc}")
                     break
-                fresh = res.fresh
-                # a miss is a miss even when a recovery step ran in it; "recovery": fresh, but still recovering
-                kind_of_cycle = (
-                    "miss" if not fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
-                )
-                rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
-                if timer is not None:
-                    rep.note_phases(kind_of_cycle, timer.last_ns)
-                    if fresh and not prev_fresh:
-                        rep.note_phases("after_miss", timer.last_ns)
-                if res.exchange_ns > limit_ns:
-                    rep.violate(
-                        k,
-                        f"exchange() took {res.exchange_ns / 1e3:.0f} us on a {kind_of_cycle} cycle, more than the "
-                        f"receive timeout plus {self.margin_us:g} us",
-                    )
-                if fresh and not stop_latched:
-                    ctrl.step(sw, cw)
+                run.time_exchange(k, res)
+                if res.fresh and not run.stop_latched:
+                    run.ctrl.step(run.sw, run.cw)
                 self.timer.add(time.perf_counter_ns() - t0)
                 rep.cycles += 1
                 if status is not None and t0 >= next_status:
@@ -386,79 +300,12 @@ class Soak:
                     elapsed = t0 - int(t_start * 1e9)
                     status.write(f"\r{progress(k + 1, cycles, elapsed)} violations {len(rep.violations)}   ")
                     status.flush()
-                # -- invariants --
-                if lost_now and fresh:
-                    rep.violate(
-                        k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh"
-                    )
-                if event is not None and not fresh and event[0] not in NOTICED:
-                    rep.detected[event[0]] += 1
-                for note in list(notices):
-                    kind, slave, at, before = note
-                    if kind == "emcy":
-                        seen = [
-                            e
-                            for e in backend.emergencies[before:]
-                            if isinstance(e, Emergency) and e.code == EMCY_CODE
-                        ]
-                        done = bool(seen) and "over-current" in seen[0].name
-                    else:
-                        done = bool(backend.heartbeat_lost[slave])  # type: ignore[attr-defined]
-                        if done:
-                            self.control(cmd="heartbeat", slave=slave, silent=False)
-                            recovering.append(k)  # the node is configured again when it comes back
-                    if done:
-                        rep.detected[kind] += 1
-                        notices.remove(note)
-                    elif k - at > NOTICE_CYCLES:
-                        rep.violate(k, f"{kind} on slave {slave} not reported within {NOTICE_CYCLES} cycles")
-                        notices.remove(note)
-                consecutive = 0 if fresh else consecutive + 1
-                if not fresh:
-                    rep.missed += 1
-                if res.safe_stop and not stop_latched:
-                    rep.safe_stops += 1
-                    stop_latched = True
-                    check_quick_stop = True
-                    if consecutive != threshold:
-                        rep.violate(
-                            k, f"safe stop after {consecutive} consecutive misses, threshold {threshold}"
-                        )
-                elif not stop_latched and consecutive >= threshold:
-                    rep.violate(
-                        k, f"{consecutive} consecutive misses and no safe stop (threshold {threshold})"
-                    )
-                if check_quick_stop and fresh:
-                    check_quick_stop = False
-                    states = self.control(cmd="status")["drive_states"]
-                    if OE in states:
-                        rep.violate(
-                            k,
-                            f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}",
-                        )
-                fresh_streak = fresh_streak + 1 if fresh else 0
-                prev_fresh = fresh
-                if recovering and fresh_streak >= 20:
-                    emulated = self.control(cmd="status")
-                    if all(s == AL_OP for s in emulated["states"]):
-                        rep.recovered += len(recovering)
-                        recovering.clear()
-                if recovering and k - recovering[0] > self.recovery_cycles:
-                    rep.violate(k, f"power-cycled slave not back in OP after {self.recovery_cycles} cycles")
-                    recovering.clear()
-                if stop_latched and fresh_streak >= 20 and not recovering and not burst_left:
-                    op.clear_safe_stop()  # what an operator or a supervisor would do: then re-enable
-                    stop_latched = False
-                    ctrl.set_goal(Goal.ENABLE)
-                    rep.reenabled += 1
-                if period_ns:
-                    deadline += period_ns
-                    while time.perf_counter_ns() < deadline:
-                        pass
+                run.judge(k, event, lost_now, res)
+                run.pace()
         if status is not None:
             status.write("\n")
         rep.seconds = time.perf_counter() - t_start
-        if recovering:
+        if run.recovering:
             rep.violate(rep.cycles, "run ended while a power-cycled slave was still recovering")
         return rep
 
@@ -485,3 +332,207 @@ class Soak:
         if not down:
             want = "below OPERATIONAL" if can else "in INIT"
             self.report.violate(self.report.cycles, f"slaves not {want} after close(): {status['states']}")
+
+
+class _SoakRun:
+    """The state of one soak run between cycles: the fault plan, what is still to be noticed, the latch."""
+
+    def __init__(self, soak: Soak, op: Operational, cycles: int) -> None:
+        self.soak, self.op, self.rep, self.control = soak, op, soak.report, soak.control
+        backend, policy = soak.net.backends[0], soak.net.policies[0]
+        self.backend = backend
+        self.threshold = policy.config.safe_stop_after
+        n = backend.n_slaves
+        img = next(iter(soak.net.groups.values())).image
+        self.sw, self.cw = img.inputs["statusword"], img.outputs["controlword"]
+        self.ctrl = Cia402Controller(n, timeout_cycles=100_000)
+        self.ctrl.set_goal(Goal.ENABLE)
+        self.can = backend.kind == "canopen"
+        for kind in CAN_ONLY if not self.can else ETHERCAT_ONLY:
+            if getattr(soak.spec, kind):
+                raise FaultSpecError(f"fault '{kind}' has no meaning on a {backend.kind} bus")
+        self.plan = schedule(soak.spec, cycles, n, soak.rng, soak.warmup)
+        self.notices: list[
+            tuple[str, int, int, int]
+        ] = []  # (kind, slave, injected at cycle, emcy count before)
+        self.bus_off_until: list[tuple[int, int]] = []  # (cycle, slave): back on the bus then
+        self.burst_left = 0
+        self.consecutive = 0
+        self.stop_latched = False
+        self.check_quick_stop = False
+        self.recovering: list[int] = []  # cycles at which a power cycle is still being recovered
+        self.fresh_streak = 0
+        # paced at the network's cycle time unless told otherwise (0: as fast as it goes)
+        period_us = soak.cycle_time_us if soak.cycle_time_us is not None else backend.bus.cycle_time_us
+        self.period_ns = int(period_us * 1000)
+        self.limit_ns = int((backend.bus.receive_timeout_us + soak.margin_us) * 1000)
+        self.deadline = time.perf_counter_ns()
+        self.prev_fresh = True
+        self.phase_timer = op.phases = PhaseTimer() if soak.phases else None
+
+    # -- before the exchange: the fault injection step ----------------------------------
+    def defer_in_flight(self, k: int, event: tuple[str, int] | None) -> tuple[str, int] | None:
+        """The fault to inject at cycle ``k``: one aimed at the next frame waits for a fresh cycle.
+
+        The last cycle's frame may still be on its way to the emulator (its reply was late): "drop the
+        next frame" could hit that one. Inject once a cycle came back fresh.
+        """
+        if event is not None and event[0] in IN_FLIGHT and not self.prev_fresh:
+            later = k + 1
+            while later in self.plan:
+                later += 1
+            self.plan[later] = event
+            return None
+        return event
+
+    def inject(self, k: int, event: tuple[str, int] | None) -> bool:
+        """Tell the emulator to commit ``event`` (and end bus-offs due); True: this cycle must be a miss."""
+        lost_now = False
+        if event is not None:
+            kind, slave = event
+            lost_now = kind not in NOTICED
+            self._commit(k, kind, slave)
+            self.rep.injected[kind] += 1
+        if self.burst_left:
+            lost_now = True
+            self.burst_left -= 1
+        for until, slave_off in list(self.bus_off_until):
+            if k >= until:
+                self.control(cmd="bus_off", slave=slave_off, off=False)
+                self.bus_off_until.remove((until, slave_off))
+                self.recovering.append(k)
+        return lost_now
+
+    def _commit(self, k: int, kind: str, slave: int) -> None:
+        """One fault of ``kind`` on ``slave`` at cycle ``k``, through the emulator's control."""
+        control, backend = self.control, self.backend
+        if kind == "loss":
+            if self.can:
+                control(cmd="drop_frame", slave=slave)
+            else:
+                control(cmd="drop", count=1, pd=True)
+        elif kind == "emcy":
+            before = len(backend.emergencies)
+            control(cmd="emergency", slave=slave, code=EMCY_CODE)
+            self.notices.append((kind, slave, k, before))
+        elif kind == "heartbeat":
+            control(cmd="heartbeat", slave=slave, silent=True)
+            self.notices.append((kind, slave, k, 0))
+        elif kind == "bus_off":
+            control(cmd="bus_off", slave=slave, off=True)
+            self.bus_off_until.append((k + BUS_OFF_CYCLES, slave))
+        elif kind == "delay":
+            timeout_s = backend.bus.receive_timeout_us / 1e6
+            control(cmd="delay", seconds=timeout_s * 2 + 0.001, count=1)
+        elif kind == "wkc":
+            control(cmd="corrupt_wkc", delta=-1, count=1)
+        elif kind == "power_cycle":
+            control(cmd="power_cycle", slave=slave)
+            self.recovering.append(k)
+        elif kind == "burst":
+            control(cmd="drop", count=self.threshold, pd=True)
+            self.burst_left = self.threshold
+
+    # -- after the exchange: the judge ---------------------------------------------------
+    def time_exchange(self, k: int, res: CycleResult) -> None:
+        """File the exchange's duration under its kind of cycle; over the limit is a violation."""
+        rep, timer = self.rep, self.phase_timer
+        # a miss is a miss even when a recovery step ran in it; "recovery": fresh, but still recovering
+        kind_of_cycle = (
+            "miss" if not res.fresh else "recovery" if any(st.recovering for st in res.buses) else "good"
+        )
+        rep.exchange_ns[kind_of_cycle].append(res.exchange_ns)
+        if timer is not None:
+            rep.note_phases(kind_of_cycle, timer.last_ns)
+            if res.fresh and not self.prev_fresh:
+                rep.note_phases("after_miss", timer.last_ns)
+        if res.exchange_ns > self.limit_ns:
+            rep.violate(
+                k,
+                f"exchange() took {res.exchange_ns / 1e3:.0f} us on a {kind_of_cycle} cycle, more than the "
+                f"receive timeout plus {self.soak.margin_us:g} us",
+            )
+
+    def judge(self, k: int, event: tuple[str, int] | None, lost_now: bool, res: CycleResult) -> None:
+        """The invariants of cycle ``k``: losses seen, faults noticed, the safe stop, recovery."""
+        rep, fresh = self.rep, res.fresh
+        if lost_now and fresh:
+            rep.violate(k, f"injected {event[0] if event else 'burst'} but the cycle was reported fresh")
+        if event is not None and not fresh and event[0] not in NOTICED:
+            rep.detected[event[0]] += 1
+        self._judge_notices(k)
+        self._judge_safe_stop(k, res)
+        self.fresh_streak = self.fresh_streak + 1 if fresh else 0
+        self.prev_fresh = fresh
+        self._judge_recovery(k)
+        if self.stop_latched and self.fresh_streak >= 20 and not self.recovering and not self.burst_left:
+            self.op.clear_safe_stop()  # what an operator or a supervisor would do: then re-enable
+            self.stop_latched = False
+            self.ctrl.set_goal(Goal.ENABLE)
+            rep.reenabled += 1
+
+    def _judge_notices(self, k: int) -> None:
+        """An EMCY must be reported with its name, a heartbeat loss seen, within NOTICE_CYCLES."""
+        for note in list(self.notices):
+            kind, slave, at, before = note
+            if kind == "emcy":
+                seen = [
+                    e
+                    for e in self.backend.emergencies[before:]
+                    if isinstance(e, Emergency) and e.code == EMCY_CODE
+                ]
+                done = bool(seen) and "over-current" in seen[0].name
+            else:
+                done = bool(self.backend.heartbeat_lost[slave])  # type: ignore[attr-defined]
+                if done:
+                    self.control(cmd="heartbeat", slave=slave, silent=False)
+                    self.recovering.append(k)  # the node is configured again when it comes back
+            if done:
+                self.rep.detected[kind] += 1
+                self.notices.remove(note)
+            elif k - at > NOTICE_CYCLES:
+                self.rep.violate(k, f"{kind} on slave {slave} not reported within {NOTICE_CYCLES} cycles")
+                self.notices.remove(note)
+
+    def _judge_safe_stop(self, k: int, res: CycleResult) -> None:
+        """The safe stop fires exactly at the threshold; the first delivered cycle after it has no drive in OE."""
+        rep, fresh, threshold = self.rep, res.fresh, self.threshold
+        self.consecutive = 0 if fresh else self.consecutive + 1
+        if not fresh:
+            rep.missed += 1
+        if res.safe_stop and not self.stop_latched:
+            rep.safe_stops += 1
+            self.stop_latched = True
+            self.check_quick_stop = True
+            if self.consecutive != threshold:
+                rep.violate(
+                    k, f"safe stop after {self.consecutive} consecutive misses, threshold {threshold}"
+                )
+        elif not self.stop_latched and self.consecutive >= threshold:
+            rep.violate(k, f"{self.consecutive} consecutive misses and no safe stop (threshold {threshold})")
+        if self.check_quick_stop and fresh:
+            self.check_quick_stop = False
+            states = self.control(cmd="status")["drive_states"]
+            if OE in states:
+                rep.violate(
+                    k,
+                    f"drives still OPERATION ENABLED one delivered cycle after the safe stop: {states}",
+                )
+
+    def _judge_recovery(self, k: int) -> None:
+        """A power-cycled (or rebooted) slave is back in OP within the soak's ``recovery_cycles``."""
+        if self.recovering and self.fresh_streak >= 20:
+            emulated = self.control(cmd="status")
+            if all(s == AL_OP for s in emulated["states"]):
+                self.rep.recovered += len(self.recovering)
+                self.recovering.clear()
+        if self.recovering and k - self.recovering[0] > self.soak.recovery_cycles:
+            self.rep.violate(k, f"power-cycled slave not back in OP after {self.soak.recovery_cycles} cycles")
+            self.recovering.clear()
+
+    def pace(self) -> None:
+        """Busy-wait to the next cycle's deadline (no wait when the period is 0)."""
+        if self.period_ns:
+            self.deadline += self.period_ns
+            while time.perf_counter_ns() < self.deadline:
+                pass

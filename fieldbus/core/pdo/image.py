@@ -366,9 +366,21 @@ class DirectionImage:
         self._last = np.zeros((n_axes, k), dtype=np.float64)  # raw values (float64) encoded last
         self._work = np.zeros((n_axes, k), dtype=np.float64)
         self._ok = np.zeros((n_axes, k), dtype=bool)
+        c, d = self._bind_scaling(il, dl.direction, n_axes)
+        self._bind_groups(il, n_axes, stride)
+        self._bit_scaled = [(il.scaled.index(e), e) for e in il.scaled if not e.aligned]
+        self._apply_defaults(dl, il, c, d)
+        self._choose_engine(engine, k)
+        self._bind_bits(dl, il, n_axes)
+
+    def _bind_scaling(
+        self, il: ImageLayout, direction: Direction, n_axes: int
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """The scaled channels' coefficients: ``a*x + b`` from value to raw, ``c*x + d`` from raw to value
+        (per channel and, as contiguous copies, per axis), and each type's raw range; returns (c, d)."""
         f = np.array([e.channel.factor for e in il.scaled], dtype=np.float64)
         o = np.array([e.channel.offset for e in il.scaled], dtype=np.float64)
-        if dl.direction is Direction.OUTPUTS:  # raw = f*value + o
+        if direction is Direction.OUTPUTS:  # raw = f*value + o
             a, b, c, d = f, o, 1.0 / f, -o / f
         else:  # value = f*raw + o
             a, b, c, d = 1.0 / f, -o / f, f, o
@@ -381,12 +393,15 @@ class DirectionImage:
         self._coef = (a, b, c, d, lo, hi)
         # per-axis copies of the coefficients: contiguous (N, k) operands are ~2x faster than broadcasting
         self._a, self._b, self._c, self._d, self._lo, self._hi = (
-            np.ascontiguousarray(np.broadcast_to(v, (n_axes, k))) for v in self._coef
+            np.ascontiguousarray(np.broadcast_to(v, (n_axes, self._k))) for v in self._coef
         )
         self._use_b = bool(np.any(b != 0.0))
         self._use_d = bool(np.any(d != 0.0))
         self._is_int = [not e.channel.type.is_float for e in il.scaled]
-        # wire views of each run of same-typed, adjacent scaled entries: one ufunc each
+        return c, d
+
+    def _bind_groups(self, il: ImageLayout, n_axes: int, stride: int) -> None:
+        """Wire views of each run of same-typed, adjacent scaled entries: one ufunc each."""
         self._groups: list[
             tuple[npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], npt.NDArray[Any], bool, _Top | None]
         ] = []
@@ -399,8 +414,11 @@ class DirectionImage:
             self._groups.append(
                 (wv, self._last[:, cols], self._scaled[:, cols], self._c[:, cols], not dt.is_float, top)
             )
-        self._bit_scaled = [(il.scaled.index(e), e) for e in il.scaled if not e.aligned]
-        # defaults: plain ones straight into values; scaled ones as the initial raw value
+
+    def _apply_defaults(
+        self, dl: DirectionLayout, il: ImageLayout, c: npt.NDArray[np.float64], d: npt.NDArray[np.float64]
+    ) -> None:
+        """Defaults: plain ones straight into values; scaled ones as the initial raw value."""
         for e in dl.channels:
             if e.channel.default is None:
                 continue
@@ -410,6 +428,9 @@ class DirectionImage:
                 self._scaled[:, j] = c[j] * e.channel.default + d[j]
             else:
                 self.values[e.name] = e.channel.default
+
+    def _choose_engine(self, engine: str, k: int) -> None:
+        """The C codec when asked for or on "auto" and it can code these channels; else numpy."""
         self.engine = "numpy"
         self._fast: Any = None
         bit_floats = any(e.channel.type.is_float for _, e in self._bit_scaled)  # no bit-level floats in C
@@ -424,8 +445,10 @@ class DirectionImage:
                 else "fieldbus._codec did not build or import"
             )
             raise FieldbusError(f"the C codec is not available: {why}")
-        # bit-level entries on the numpy bit path: all of them, or only the unscaled ones when the C
-        # codec codes the scaled ones; one uint64 per 8-byte word of the row for the entries inside it
+
+    def _bind_bits(self, dl: DirectionLayout, il: ImageLayout, n_axes: int) -> None:
+        """Bit-level entries on the numpy bit path: all of them, or only the unscaled ones when the C
+        codec codes the scaled ones; one uint64 per 8-byte word of the row for the entries inside it."""
         bit_entries: list[tuple[EntryLayout, _BitField]] = []
         for e in dl.channels:
             if e.aligned or (self._fast is not None and e.channel.scaled):

@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fieldbus.core import datatypes
 from fieldbus.core.datatypes import DataType
@@ -35,6 +35,9 @@ from fieldbus.core.pdo.model import (
 from fieldbus.core.pdo.names import CONTROLWORD, STATUSWORD, default_name
 from fieldbus.core.yamlread import Reader
 from fieldbus.core.yamlsrc import Located, PathT, format_path, load_file, load_located
+
+if TYPE_CHECKING:
+    from fieldbus.core.rawcan_config import RawCanConfig
 
 CLASSIC_CAN_PDO_BYTES = 8
 CAN_FD_PDO_BYTES = 64
@@ -130,20 +133,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if not looks_like_drive_map(doc.data):
         raise r.err((), NOT_A_MAP.format(shape=shape(doc.data)))
     top = r.mapping(doc.data, (), _TOP_KEYS)
-    rawcan = None
-    if "rawcan" in top:
-        from fieldbus.core.rawcan import parse_rawcan
-
-        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing", "motion_profile", "axes"):
-            if key in top:
-                raise r.err(
-                    (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
-                )
-        rawcan, raw_rpdo, raw_tpdo = parse_rawcan(r, top["rawcan"])
-    else:
-        for key in ("vendor_id", "product_id"):
-            if key not in top:
-                raise r.err((), f"missing required key '{key}'")
+    rawcan, raw_rpdo, raw_tpdo = _rawcan_frames(r, top)
     name = r.name(top["name"], ("name",)) if "name" in top else _safe_name(default_name)
     profile = r.choice(top["profile"], ("profile",), _PROFILES) if "profile" in top else None
     canopen_raw = top.get("canopen")
@@ -165,13 +155,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if not isinstance(top.get("axes"), int | Mapping) or canopen is None:  # else checked after the axes
         _check_can_pdos(r, can_pdos, {p.index for p in (*rpdo, *tpdo)})
 
-    sdos = _sdos(r, top.get("sdo"))
-    homing = _homing(r, top["homing"], sdos) if "homing" in top else None
-    if homing is not None:
-        sdos = (*sdos, *homing_sdos(homing))
-    motion_profile = _motion_profile(r, top["motion_profile"], sdos) if "motion_profile" in top else None
-    if motion_profile is not None:
-        sdos = (*sdos, *motion_profile_sdos(motion_profile))
+    sdos, homing, motion_profile = _startup_sdos(r, top)
     drive = DriveMap(
         name=name,
         vendor_id=r.integer(top.get("vendor_id", 0), ("vendor_id",), 0, 0xFFFFFFFF),
@@ -195,13 +179,7 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
     if "limits" in top:
         limits, off = _limits(r, top["limits"], drive)
         drive = replace(drive, limits=limits, limits_off=off)
-    modes = drive.ethercat.dc_modes
-    if modes and drive.assign_activate and all(m.assign_activate != drive.assign_activate for m in modes):
-        offered = ", ".join(f"{m.name} 0x{m.assign_activate:04X}" for m in modes)
-        raise r.err(
-            ("assign_activate",),
-            f"0x{drive.assign_activate:04X} is none of the device's ethercat.dc_modes ({offered})",
-        )
+    _check_dc_mode(r, drive)
     if "axes" in top:
         object_offsets, pdo_offsets = _axes(r, top["axes"], drive, canopen is not None)
         drive = replace(drive, object_offsets=object_offsets, pdo_offsets=pdo_offsets)
@@ -214,6 +192,51 @@ def parse_drive_map(doc: Located, default_name: str = "drive") -> DriveMap:
         if drive.find(Direction.INPUTS, STATUSWORD) is None:
             raise r.err(("tpdo",), "profile cia402 needs the statusword 0x6041:00 in a tpdo")
     return drive
+
+
+def _rawcan_frames(
+    r: Reader, top: Mapping[Any, Any]
+) -> tuple[RawCanConfig | None, tuple[Pdo, ...], tuple[Pdo, ...]]:
+    """A rawcan map's ``rawcan:`` section (config, rpdo, tpdo: its frames), with none of the CoE keys;
+    (None, (), ()) for a CoE map, which must then name its vendor and product ids."""
+    if "rawcan" in top:
+        from fieldbus.core.rawcan import parse_rawcan
+
+        for key in ("rpdo", "tpdo", "sdo", "sm", "canopen", "ethercat", "homing", "motion_profile", "axes"):
+            if key in top:
+                raise r.err(
+                    (key,), f"a rawcan map describes its frames under rawcan:, not with '{key}'", key=True
+                )
+        return parse_rawcan(r, top["rawcan"])
+    for key in ("vendor_id", "product_id"):
+        if key not in top:
+            raise r.err((), f"missing required key '{key}'")
+    return None, (), ()
+
+
+def _startup_sdos(
+    r: Reader, top: Mapping[Any, Any]
+) -> tuple[tuple[SdoWrite, ...], HomingConfig | None, MotionProfileConfig | None]:
+    """The start-up SDO writes: ``sdo:``, then those of ``homing:`` and ``motion_profile:`` (each returned too)."""
+    sdos = _sdos(r, top.get("sdo"))
+    homing = _homing(r, top["homing"], sdos) if "homing" in top else None
+    if homing is not None:
+        sdos = (*sdos, *homing_sdos(homing))
+    motion_profile = _motion_profile(r, top["motion_profile"], sdos) if "motion_profile" in top else None
+    if motion_profile is not None:
+        sdos = (*sdos, *motion_profile_sdos(motion_profile))
+    return sdos, homing, motion_profile
+
+
+def _check_dc_mode(r: Reader, drive: DriveMap) -> None:
+    """``assign_activate`` must be one of the device's ``ethercat.dc_modes`` when it lists any."""
+    modes = drive.ethercat.dc_modes
+    if modes and drive.assign_activate and all(m.assign_activate != drive.assign_activate for m in modes):
+        offered = ", ".join(f"{m.name} 0x{m.assign_activate:04X}" for m in modes)
+        raise r.err(
+            ("assign_activate",),
+            f"0x{drive.assign_activate:04X} is none of the device's ethercat.dc_modes ({offered})",
+        )
 
 
 def _limits(r: Reader, raw: Any, drive: DriveMap) -> tuple[tuple[OutputLimit, ...], bool]:
@@ -394,86 +417,19 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
     index = r.integer(m["index"], (*path, "index"), 0, 0xFFFF)
     sub = r.integer(m["sub_index"], (*path, "sub_index"), 0, 0xFF)
     dt = _dtype(r, m["type"], (*path, "type"))
-    wrong_iface = "state_interface" if direction is Direction.OUTPUTS else "command_interface"
-    if wrong_iface in m:
-        right = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
-        raise r.err(
-            (*path, wrong_iface),
-            f"{wrong_iface} belongs in the other direction; a {direction.yaml_key} channel uses {right}",
-            key=True,
-        )
-    iface_key = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
-    interface = r.string(m[iface_key], (*path, iface_key)) if iface_key in m else None
+    iface_key, interface = _channel_interface(r, m, path, direction)
     if index <= 0x0007:
-        if index == 0 and sub != 0:
-            raise r.err((*path, "sub_index"), "a gap (index 0) has sub_index 0")
-        for k in (
-            "name",
-            "command_interface",
-            "state_interface",
-            "default",
-            "factor",
-            "offset",
-            "unit",
-            "safe_value",
-        ):
-            if k in m:
-                raise r.err((*path, k), f"a gap entry (index 0x{index:04X}) carries no '{k}'", key=True)
+        _check_gap(r, m, path, index, sub)
     if "name" in m:
         name = r.name(m["name"], (*path, "name"))
     elif interface:
         name = r.name(interface, (*path, iface_key))
     else:
         name = default_name(index, sub)
-    mask = None
-    if "mask" in m:
-        if dt.name != "bool":
-            raise r.err((*path, "mask"), f"mask is only used with type bool, not {dt.name}", key=True)
-        mask = r.integer(m["mask"], (*path, "mask"), 1, 0x80)
-        if mask & (mask - 1):
-            raise r.err((*path, "mask"), f"mask 0x{mask:02X} must be a single bit of the byte")
-    default = None
-    if "default" in m:
-        if direction is Direction.INPUTS:
-            raise r.err((*path, "default"), "default is only for rpdo channels (master outputs)", key=True)
-        d = r.number(m["default"], (*path, "default"), allow_nan=True)
-        if not math.isnan(d):
-            if dt.is_bits and dt.name != "bool":
-                ok = d == int(d) and 0 <= d < (1 << dt.bits)
-            else:
-                ok = dt.fits(d) if dt.name != "bool" else d in (0.0, 1.0)
-            if not ok:
-                raise r.err((*path, "default"), f"default {m['default']!r} does not fit {dt.name}")
-            default = d
-    factor = r.number(m["factor"], (*path, "factor")) if "factor" in m else 1.0
-    if factor == 0.0:
-        raise r.err((*path, "factor"), "factor 0 would lose the value")
-    if not math.isfinite(1.0 / factor):  # the codec divides by it (outputs) or by its inverse (inputs)
-        raise r.err((*path, "factor"), f"factor {factor!r} is too small: 1/factor overflows a double")
-    offset = r.number(m["offset"], (*path, "offset")) if "offset" in m else 0.0
-    if not math.isfinite(offset / factor):
-        raise r.err((*path, "offset"), f"offset {offset!r} / factor {factor!r} overflows a double")
-    unit = r.string(m["unit"], (*path, "unit")) if "unit" in m else None
-    scaled = any(k in m for k in ("factor", "offset", "unit"))
-    if scaled and (dt.is_bits):
-        raise r.err(path, f"factor/offset/unit need a numeric type, not {dt.name}")
-    safe_value = None
-    if "safe_value" in m:
-        if direction is Direction.INPUTS:
-            raise r.err(
-                (*path, "safe_value"), "safe_value is only for rpdo channels (master outputs)", key=True
-            )
-        safe_value = r.number(m["safe_value"], (*path, "safe_value"))
-        raw = factor * safe_value + offset if scaled else safe_value
-        fits = (
-            (raw in (0.0, 1.0) if dt.name == "bool" else 0 <= raw < (1 << dt.bits) and raw == int(raw))
-            if dt.is_bits
-            else dt.fits(raw)
-        )
-        if not fits:
-            raise r.err(
-                (*path, "safe_value"), f"safe_value {safe_value:g} (raw {raw:g}) does not fit {dt.name}"
-            )
+    mask = _mask(r, m, path, dt)
+    default = _default(r, m, path, dt, direction)
+    factor, offset, unit, scaled = _scaling(r, m, path, dt)
+    safe_value = _safe_value(r, m, path, dt, direction, factor, offset, scaled)
     return Channel(
         index=index,
         sub_index=sub,
@@ -489,6 +445,118 @@ def _channel(r: Reader, raw: Any, path: PathT, direction: Direction) -> Channel:
         description=r.string(m.get("description", ""), (*path, "description")),
         safe_value=safe_value,
     )
+
+
+def _channel_interface(
+    r: Reader, m: Mapping[Any, Any], path: PathT, direction: Direction
+) -> tuple[str, str | None]:
+    """The channel's ros2_control interface key for its direction, and the interface it names (or None)."""
+    wrong_iface = "state_interface" if direction is Direction.OUTPUTS else "command_interface"
+    if wrong_iface in m:
+        right = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
+        raise r.err(
+            (*path, wrong_iface),
+            f"{wrong_iface} belongs in the other direction; a {direction.yaml_key} channel uses {right}",
+            key=True,
+        )
+    iface_key = "command_interface" if direction is Direction.OUTPUTS else "state_interface"
+    return iface_key, r.string(m[iface_key], (*path, iface_key)) if iface_key in m else None
+
+
+def _check_gap(r: Reader, m: Mapping[Any, Any], path: PathT, index: int, sub: int) -> None:
+    """A gap entry (index 0..7: padding of its type's size) carries no name, interface, or value."""
+    if index == 0 and sub != 0:
+        raise r.err((*path, "sub_index"), "a gap (index 0) has sub_index 0")
+    for k in (
+        "name",
+        "command_interface",
+        "state_interface",
+        "default",
+        "factor",
+        "offset",
+        "unit",
+        "safe_value",
+    ):
+        if k in m:
+            raise r.err((*path, k), f"a gap entry (index 0x{index:04X}) carries no '{k}'", key=True)
+
+
+def _mask(r: Reader, m: Mapping[Any, Any], path: PathT, dt: DataType) -> int | None:
+    """A bool's ``mask``: the single bit of its byte it lives in (None: none given)."""
+    if "mask" not in m:
+        return None
+    if dt.name != "bool":
+        raise r.err((*path, "mask"), f"mask is only used with type bool, not {dt.name}", key=True)
+    mask = r.integer(m["mask"], (*path, "mask"), 1, 0x80)
+    if mask & (mask - 1):
+        raise r.err((*path, "mask"), f"mask 0x{mask:02X} must be a single bit of the byte")
+    return mask
+
+
+def _default(
+    r: Reader, m: Mapping[Any, Any], path: PathT, dt: DataType, direction: Direction
+) -> float | None:
+    """An output's ``default`` (raw value before the first command; NaN: none), checked against its type."""
+    if "default" not in m:
+        return None
+    if direction is Direction.INPUTS:
+        raise r.err((*path, "default"), "default is only for rpdo channels (master outputs)", key=True)
+    d = r.number(m["default"], (*path, "default"), allow_nan=True)
+    if math.isnan(d):
+        return None
+    if dt.is_bits and dt.name != "bool":
+        ok = d == int(d) and 0 <= d < (1 << dt.bits)
+    else:
+        ok = dt.fits(d) if dt.name != "bool" else d in (0.0, 1.0)
+    if not ok:
+        raise r.err((*path, "default"), f"default {m['default']!r} does not fit {dt.name}")
+    return d
+
+
+def _scaling(
+    r: Reader, m: Mapping[Any, Any], path: PathT, dt: DataType
+) -> tuple[float, float, str | None, bool]:
+    """``factor``, ``offset`` (raw = factor * value + offset), ``unit``, and whether any was given."""
+    factor = r.number(m["factor"], (*path, "factor")) if "factor" in m else 1.0
+    if factor == 0.0:
+        raise r.err((*path, "factor"), "factor 0 would lose the value")
+    if not math.isfinite(1.0 / factor):  # the codec divides by it (outputs) or by its inverse (inputs)
+        raise r.err((*path, "factor"), f"factor {factor!r} is too small: 1/factor overflows a double")
+    offset = r.number(m["offset"], (*path, "offset")) if "offset" in m else 0.0
+    if not math.isfinite(offset / factor):
+        raise r.err((*path, "offset"), f"offset {offset!r} / factor {factor!r} overflows a double")
+    unit = r.string(m["unit"], (*path, "unit")) if "unit" in m else None
+    scaled = any(k in m for k in ("factor", "offset", "unit"))
+    if scaled and (dt.is_bits):
+        raise r.err(path, f"factor/offset/unit need a numeric type, not {dt.name}")
+    return factor, offset, unit, scaled
+
+
+def _safe_value(
+    r: Reader,
+    m: Mapping[Any, Any],
+    path: PathT,
+    dt: DataType,
+    direction: Direction,
+    factor: float,
+    offset: float,
+    scaled: bool,
+) -> float | None:
+    """An output's ``safe_value`` (in the channel's unit), whose raw value must fit its type."""
+    if "safe_value" not in m:
+        return None
+    if direction is Direction.INPUTS:
+        raise r.err((*path, "safe_value"), "safe_value is only for rpdo channels (master outputs)", key=True)
+    safe_value = r.number(m["safe_value"], (*path, "safe_value"))
+    raw = factor * safe_value + offset if scaled else safe_value
+    fits = (
+        (raw in (0.0, 1.0) if dt.name == "bool" else 0 <= raw < (1 << dt.bits) and raw == int(raw))
+        if dt.is_bits
+        else dt.fits(raw)
+    )
+    if not fits:
+        raise r.err((*path, "safe_value"), f"safe_value {safe_value:g} (raw {raw:g}) does not fit {dt.name}")
+    return safe_value
 
 
 def _place_bits(r: Reader, ch: Channel, path: PathT, cursor: int, owner: dict[int, PathT]) -> None:
