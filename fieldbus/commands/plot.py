@@ -101,6 +101,7 @@ EVENT_STYLES: dict[str, tuple[str, str, float]] = {
     "emcy": ("tab:purple", ":", 1.0),
     "nmt_state": ("tab:blue", "-.", 0.8),
     "sdo_abort": ("tab:cyan", "--", 0.8),
+    "fault": ("tab:red", ":", 0.8),  # a bus fault's kind changed (BusStatus.fault)
     "gap": ("black", ":", 0.8),
 }
 OTHER_EVENT = ("tab:gray", ":", 0.8)

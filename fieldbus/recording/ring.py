@@ -52,6 +52,7 @@ EXCLUDED = {
     "expected_wkc": "channel metadata 'expected_wkc' (constant)",
     "error": "'bus_error' events (the cycle's BusEvent)",
     "last_error": "'bus_error' events (the cycle's BusEvent)",
+    "last_fault": "'fault' events (the newest of them)",
 }
 TEXTS = 64  # texts kept per bus and text field (by its change count % TEXTS)
 
