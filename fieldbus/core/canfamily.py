@@ -108,6 +108,18 @@ class StepRefused(ValueError):
         self.motor = motor
 
 
+class ClassicSection(NamedTuple):
+    """A classic ``rawcan:`` section as parsed so far, for :meth:`CanFamily.parse_section`: its ``path``,
+    its ``mapping`` (every key, the family's own section among them or not), its command and reply fields
+    (:class:`~fieldbus.core.rawcan_config.RawCanField`, frame order) and its ``byte_order``."""
+
+    path: tuple[Any, ...]
+    mapping: Any
+    command: tuple[Any, ...]
+    reply: tuple[Any, ...]
+    byte_order: str
+
+
 class CycleFrame(Protocol):
     """A command frame of the cycle; its ``data`` bytearray is rewritten in place by every
     :meth:`CanFamily.cycle`, so the transport builds its message around it once. An object with a true
@@ -135,6 +147,15 @@ class CanFamily(ABC):
     #: ``number``, ``name``, ``is_float``, ``read_only``, or an ``int`` outside the table, or None;
     #: ``REGISTERS``: the rows), else None (:mod:`fieldbus.core.damiao_registers` for Damiao).
     register_table: ClassVar[Any] = None
+    #: The key of the family's own part of a classic ``rawcan:`` section (``rawcan.<section>``, parsed by
+    #: :meth:`parse_section`; a map of another family refuses it), or None: the family has none.
+    section: ClassVar[str | None] = None
+    #: Most bits the command's and the reply's fields of a classic section take (a classic CAN frame: 64;
+    #: a family whose image is more than one frame: more).
+    max_bits: ClassVar[int] = 64
+    #: Whether a classic section's big-endian reply may end in a float32 field that is not on the wire
+    #: (a value the family computes, as an unwrapped multi-turn position).
+    tail_float32: ClassVar[bool] = False
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         self.motors = {m.index: m for m in motors}
@@ -145,6 +166,16 @@ class CanFamily(ABC):
         """The family's map section ``raw`` (``r``: the map loader's Reader, raising typed errors naming
         file, line, field): ``(config, rpdo, tpdo)``; the PDOs compile into the process image
         (rpdo = command = master outputs, tpdo = replies = master inputs)."""
+
+    @classmethod
+    def parse_section(cls, r: Any, classic: ClassicSection) -> Any:
+        """The family's own part ``classic.mapping[section]`` of a classic section of this family, checked
+        against the rest of it (``r``: the map loader's Reader): its config, kept in
+        :attr:`~fieldbus.core.rawcan_config.RawCanConfig.sections`. Default: the part is required and kept
+        as the map gives it."""
+        if cls.section not in classic.mapping:
+            raise r.err(classic.path, f"family {cls.name} needs its '{cls.section}' section")
+        return classic.mapping[cls.section]
 
     @classmethod
     @abstractmethod

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from fieldbus.core import cubemars
-from fieldbus.core.canfamily import FamilyMotor, Frame, FrameTime, Request, Steps
+from fieldbus.core.canfamily import ClassicSection, FamilyMotor, Frame, FrameTime, Request, Steps
 from fieldbus.core.mitfamily import MitFamily, field_place, safe_patch
 from fieldbus.core.pdo.model import Channel
 from fieldbus.core.rawcan import COMMAND_OBJECT, REPLY_OBJECT, RawCanConfig, field_channel
@@ -184,6 +184,27 @@ class CubemarsFamily(MitFamily):
 
     name = "cubemars"
     emulator = "sim_slaves.cubemars:simulator"
+    section = "cubemars"
+    max_bits = 256  # servo: the image holds every mode's fields; MIT: the frame plus the unwrapped position
+    tail_float32 = True  # MIT: a float32 reply field after the frame holds the multi-turn position
+
+    @classmethod
+    def parse_section(cls, r: Any, classic: ClassicSection) -> Any:
+        """``rawcan.cubemars``: protocol servo or mit (:func:`fieldbus.core.cubemars.parse_cubemars`)."""
+        path = classic.path
+        if "cubemars" not in classic.mapping:
+            raise r.err(path, "family cubemars needs its 'cubemars' section (protocol servo or mit)")
+        proto = cubemars.parse_cubemars(
+            r, classic.mapping["cubemars"], (*path, "cubemars"), classic.command, classic.reply
+        )
+        if proto.protocol == "servo" and classic.byte_order != "little":
+            raise r.err(path, "a CubeMars servo map's image is little-endian: give byte_order: little")
+        wire = sum(f.bits for f in classic.command)
+        if proto.protocol == "mit" and wire > 64:
+            raise r.err(
+                (*path, "command"), f"fields add up to {wire} bits; a classic CAN frame is 8..64 bits"
+            )
+        return proto
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         mit = [m for m in motors if m.config.cubemars.protocol == "mit"]

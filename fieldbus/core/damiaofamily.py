@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from fieldbus.core import damiao, damiao_registers
-from fieldbus.core.canfamily import FamilyMotor, Frame, FrameTime, Request, Steps
+from fieldbus.core.canfamily import ClassicSection, FamilyMotor, Frame, FrameTime, Request, Steps
 from fieldbus.core.mitfamily import MitFamily, field_place, safe_patch
 from fieldbus.core.pdo.model import Channel
 from fieldbus.core.rawcan import COMMAND_OBJECT, RawCanConfig, field_channel
@@ -110,6 +110,15 @@ class DamiaoFamily(MitFamily):
     name = "damiao"
     emulator = "sim_slaves.damiao:DamiaoSimulator"
     register_table: ClassVar[Any] = damiao_registers
+    section = "damiao"
+
+    @classmethod
+    def parse_section(cls, r: Any, classic: ClassicSection) -> Any:
+        """``rawcan.damiao``: modes, registers, errors (:func:`fieldbus.core.damiao.parse_damiao`)."""
+        if "damiao" not in classic.mapping:
+            raise r.err(classic.path, "family damiao needs its 'damiao' section (modes, registers, errors)")
+        path = (*classic.path, "damiao")
+        return damiao.parse_damiao(r, classic.mapping["damiao"], path, classic.command, classic.reply)
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         super().__init__(motors)

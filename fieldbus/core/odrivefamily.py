@@ -26,6 +26,7 @@ import numpy as np
 
 from fieldbus.core.canfamily import (
     CanFamily,
+    ClassicSection,
     FamilyMotor,
     Frame,
     FrameTime,
@@ -44,6 +45,7 @@ from fieldbus.core.odrive import (
     encode_setpoint,
     heartbeat,
     pack_config,
+    parse_odrive,
     requested_state,
     sdo_reply,
     sdo_request,
@@ -88,6 +90,18 @@ class OdriveFamily(CanFamily):
 
     name = "odrive"
     emulator = "sim_slaves.odrive:OdriveSimulator"
+    section = "odrive"
+    max_bits = 128  # the image is no one frame: set-points built per mode, the reply plus the heartbeat
+
+    @classmethod
+    def parse_section(cls, r: Any, classic: ClassicSection) -> Any:
+        """``rawcan.odrive``: CANSimple commands, modes, states, errors (:func:`fieldbus.core.odrive.parse_odrive`)."""
+        if "odrive" not in classic.mapping or classic.byte_order != "little":
+            raise r.err(
+                classic.path, "family odrive needs byte_order: little and its 'odrive' section (CANSimple)"
+            )
+        path = (*classic.path, "odrive")
+        return parse_odrive(r, classic.mapping["odrive"], path, classic.command, classic.reply)
 
     def __init__(self, motors: Sequence[FamilyMotor]) -> None:
         super().__init__(motors)

@@ -1,6 +1,6 @@
 """Raw-CAN motor frames (MIT-mode style actuators) described in a drive map's ``rawcan:`` section.
 
-MIT-mode frames (bgkatz/motorcontrol; CubeMars AK, Damiao DM-J) pack fields
+MIT-mode frames (bgkatz/motorcontrol, and the MIT mode of the actuators built on it) pack fields
 most-significant bit first, big-endian: the 8-byte command is
 ``[p15-8][p7-0][v11-4][v3-0|kp11-8][kp7-0][kd11-4][kd3-0|t11-8][t7-0]``.
 Reversing the frame's bytes turns that into an ordinary least-significant-bit
@@ -11,8 +11,8 @@ reverses bytes on the wire.
 
 A field with ``min``/``max`` is a float sent as an unsigned integer over its
 range: ``raw = (x - min) * steps / (max - min)`` with ``steps = 2**bits - 1``
-(bgkatz's ``float_to_uint``) or ``2**bits`` (``span: power_of_two``, CubeMars'
-library). That is an affine map, i.e. a ``factor``/``offset`` of the PDO model.
+(bgkatz's ``float_to_uint``) or ``2**bits`` (``span: power_of_two``, as some vendors'
+libraries scale). That is an affine map, i.e. a ``factor``/``offset`` of the PDO model.
 """
 
 from __future__ import annotations
@@ -22,26 +22,27 @@ from dataclasses import replace
 from typing import Any
 
 from fieldbus.core import datatypes
-from fieldbus.core.canfamily import families
+from fieldbus.core.canfamily import CanFamily, ClassicSection, families
 from fieldbus.core.pdo.model import Channel, Pdo
 from fieldbus.core.rawcan_config import MIT_ENTER as MIT_ENTER
 from fieldbus.core.rawcan_config import MIT_EXIT as MIT_EXIT
 from fieldbus.core.rawcan_config import MIT_ZERO as MIT_ZERO
+from fieldbus.core.rawcan_config import SECTION_FIELDS
 from fieldbus.core.rawcan_config import RawCanConfig as RawCanConfig
 from fieldbus.core.rawcan_config import RawCanField as RawCanField
 from fieldbus.core.yamlsrc import PathT
 
+#: The classic section's own keys; a registered family adds the key of its own part (CanFamily.section)
 RAWCAN_KEYS = (
     "family", "command_id", "reply_id", "reply_id_offset", "node_field", "span", "enter", "exit", "zero",
-    "command", "reply", "damiao", "odrive", "byte_order", "cubemars",
+    "command", "reply", "byte_order",
 )  # fmt: skip
 FAMILIES = (
     "mit",
     "frames",
 )  # mit: the MIT frame alone; frames: any protocol described in data (fieldbus.core.canframes). The
-# families on the protocol (fieldbus.core.canfamily.families: odrive, damiao, cubemars, ...) are chosen
-# from their table; their sections (rawcan.odrive, rawcan.damiao, rawcan.cubemars) are parsed here as
-# parts of the classic section.
+# other families on the protocol (fieldbus.core.canfamily.families) are chosen from their table; the
+# part of the classic section a family owns (rawcan.<CanFamily.section>) is parsed by the family.
 FIELD_KEYS = ("name", "bits", "min", "max", "unit", "description", "safe_value", "type")
 FIELD_TYPES = ("uint", "int", "float32")  # float32 and int: byte_order little only
 # MIT-mode safe stop when the map names no safe_value: no stiffness, no damping, no torque
@@ -70,18 +71,18 @@ def parse_rawcan(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple
 
 
 def parse_classic(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tuple[Pdo, ...]]:
-    """A classic ``rawcan:`` section (command and reply fields; families mit, damiao, odrive, cubemars)."""
+    """A classic ``rawcan:`` section (command and reply fields): family mit, or a registered family that
+    adds its own part (:attr:`CanFamily.section <fieldbus.core.canfamily.CanFamily.section>`)."""
     path: PathT = ("rawcan",)
     registered = families()
-    m: Mapping[Any, Any] = r.mapping(raw, path, RAWCAN_KEYS, required=("command", "reply"))
+    owners = section_owners(registered)
+    m: Mapping[Any, Any] = r.mapping(raw, path, (*RAWCAN_KEYS, *owners), required=("command", "reply"))
     span = r.choice(m.get("span", "full"), (*path, "span"), ("full", "power_of_two"))
     family = r.choice(m.get("family", "mit"), (*path, "family"), (*FAMILIES, *registered))
     order = r.choice(m.get("byte_order", "big"), (*path, "byte_order"), ("big", "little"))
-    # an ODrive's image is not one frame: its set-points are built per mode, its reply plus the heartbeat
-    max_bits = {"odrive": 128, "cubemars": 256}.get(family, 64)
-    # cubemars MIT: a float32 reply field after the frame holds the multi-turn position (not on the wire)
-    command = _fields(r, m["command"], (*path, "command"), order, max_bits)
-    reply = _fields(r, m["reply"], (*path, "reply"), order, max_bits, family == "cubemars")
+    kind = registered[family]
+    command = _fields(r, m["command"], (*path, "command"), order, kind.max_bits)
+    reply = _fields(r, m["reply"], (*path, "reply"), order, kind.max_bits, kind.tail_float32)
     for i, f in enumerate(reply):
         if f.safe_value is not None:
             raise r.err((*path, "reply", i, "safe_value"), "safe_value belongs to command fields (outputs)")
@@ -91,40 +92,7 @@ def parse_classic(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tupl
         if node_field not in {f.name for f in reply} or any(f.scaled for f in reply if f.name == node_field):
             raise r.err((*path, "node_field"), f"'{node_field}' is not an unscaled reply field")
     command = _safe_defaults(r, command, (*path, "command"))
-    damiao = odrive = None
-    if family == "damiao":
-        from fieldbus.core.damiao import parse_damiao
-
-        if "damiao" not in m:
-            raise r.err(path, "family damiao needs its 'damiao' section (modes, registers, errors)")
-        damiao = parse_damiao(r, m["damiao"], (*path, "damiao"), command, reply)
-    elif "damiao" in m:
-        raise r.err((*path, "damiao"), "a 'damiao' section needs family: damiao", key=True)
-    if family == "odrive":
-        from fieldbus.core.odrive import parse_odrive
-
-        if "odrive" not in m or order != "little":
-            raise r.err(path, "family odrive needs byte_order: little and its 'odrive' section (CANSimple)")
-        odrive = parse_odrive(r, m["odrive"], (*path, "odrive"), command, reply)
-    elif "odrive" in m:
-        raise r.err((*path, "odrive"), "an 'odrive' section needs family: odrive", key=True)
-    cubemars = None
-    if family == "cubemars":
-        from fieldbus.core.cubemars import parse_cubemars
-
-        if "cubemars" not in m:
-            raise r.err(path, "family cubemars needs its 'cubemars' section (protocol servo or mit)")
-        cubemars = parse_cubemars(r, m["cubemars"], (*path, "cubemars"), command, reply)
-        if cubemars.protocol == "servo" and order != "little":
-            raise r.err(path, "a CubeMars servo map's image is little-endian: give byte_order: little")
-    elif "cubemars" in m:
-        raise r.err((*path, "cubemars"), "a 'cubemars' section needs family: cubemars", key=True)
-    if cubemars is not None and cubemars.protocol == "mit":
-        wire = sum(f.bits for f in command)
-        if wire > 64:
-            raise r.err(
-                (*path, "command"), f"fields add up to {wire} bits; a classic CAN frame is 8..64 bits"
-            )
+    sections = _own_sections(r, owners, family, ClassicSection(path, m, command, reply, order))
     if "reply_id" in m and "reply_id_offset" in m:
         raise r.err((*path, "reply_id_offset"), "give reply_id or reply_id_offset, not both", key=True)
     cfg = RawCanConfig(
@@ -143,15 +111,46 @@ def parse_classic(r: Any, raw: Any) -> tuple[RawCanConfig, tuple[Pdo, ...], tupl
             if "reply_id_offset" in m
             else None
         ),
-        damiao=damiao,
-        odrive=odrive,
         byte_order=order,
-        cubemars=cubemars,
+        sections=tuple(sections.items()),
+        **{key: part for key, part in sections.items() if key in SECTION_FIELDS},
     )
     little = order == "little"
     rpdo = (Pdo(0x1600, _channels(command, COMMAND_OBJECT, span, outputs=True, little=little)),)
     tpdo = (Pdo(0x1A00, _channels(reply, REPLY_OBJECT, span, outputs=False, little=little)),)
     return cfg, rpdo, tpdo
+
+
+def section_owners(registered: Mapping[str, type[CanFamily]]) -> dict[str, type[CanFamily]]:
+    """The registered families that own a part of the classic section, by its key. ``TypeError`` for a
+    key the classic section has already or two families claim (a family's mistake, not the map's)."""
+    owners: dict[str, type[CanFamily]] = {}
+    for name, kind in registered.items():
+        key = kind.section
+        if key is None:
+            continue
+        if key in RAWCAN_KEYS or key in owners:
+            raise TypeError(
+                f"family {name}'s section '{key}' is a key of the classic section or another family's"
+            )
+        owners[key] = kind
+    return owners
+
+
+def _own_sections(
+    r: Any, owners: Mapping[str, type[CanFamily]], family: str, classic: ClassicSection
+) -> dict[str, Any]:
+    """The family's own part of the section, parsed by the family; another family's part is refused."""
+    out: dict[str, Any] = {}
+    for key, kind in owners.items():
+        if kind.name == family:
+            out[key] = kind.parse_section(r, classic)
+        elif key in classic.mapping:
+            article = "an" if key[:1] in "aeiou" else "a"
+            raise r.err(
+                (*classic.path, key), f"{article} '{key}' section needs family: {kind.name}", key=True
+            )
+    return out
 
 
 def _safe_defaults(r: Any, fields: tuple[RawCanField, ...], path: PathT) -> tuple[RawCanField, ...]:
@@ -215,7 +214,7 @@ def _fields(
         unit = r.string(f["unit"], (*fp, "unit")) if "unit" in f else None
         safe = r.number(f["safe_value"], (*fp, "safe_value")) if "safe_value" in f else None
         kind = r.choice(f.get("type", "uint"), (*fp, "type"), FIELD_TYPES)
-        big_ok = float_big and kind == "float32"  # cubemars: the unwrapped position, after the frame
+        big_ok = float_big and kind == "float32"  # a value computed after the frame (CanFamily.tail_float32)
         if kind != "uint" and (
             (order != "little" and not big_ok) or bits not in (8, 16, 32) or lo is not None
         ):

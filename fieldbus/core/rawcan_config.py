@@ -7,7 +7,7 @@ families' parsers and codecs.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -56,12 +56,24 @@ class RawCanConfig:
     zero: bytes = MIT_ZERO
     family: str = "mit"
     reply_id_offset: int | None = None
-    damiao: DamiaoProtocol | None = None  # family "damiao": modes, registers, errors
-    odrive: OdriveProtocol | None = None  # family "odrive": CANSimple commands, modes, states, errors
+    # a built-in family's own section (CanFamily.section) also under its name; other families' in sections
+    damiao: DamiaoProtocol | None = field(
+        default=None, metadata={"section": True}
+    )  # modes, registers, errors
+    odrive: OdriveProtocol | None = field(default=None, metadata={"section": True})  # CANSimple
     byte_order: str = "big"  # "little": fields LSB first in frame order (the image row is the frame)
-    cubemars: CubemarsProtocol | None = None  # family "cubemars": servo packets or MIT unwrapping
+    cubemars: CubemarsProtocol | None = field(default=None, metadata={"section": True})  # servo or MIT
     frames: FramesProtocol | None = None  # family "frames": the protocol described in data
     protocol: Any = None  # a family on the protocol (fieldbus.core.canfamily): its parsed map section
+    #: (key, config) of the family's own part of a classic section (CanFamily.parse_section)
+    sections: tuple[tuple[str, Any], ...] = ()
+
+    def section(self, key: str) -> Any:
+        """The parsed part ``rawcan.<key>`` of a classic section, None when the map has none (a built-in
+        family's: its field of that name, which ``dataclasses.replace`` may have changed)."""
+        if key in SECTION_FIELDS:
+            return getattr(self, key)
+        return dict(self.sections).get(key)
 
     def reply_can_id(self, node: int) -> int:
         """The CAN id motor ``node`` answers on."""
@@ -70,3 +82,7 @@ class RawCanConfig:
         if self.reply_id_offset is not None:
             return node + self.reply_id_offset
         return self.command_id + node
+
+
+#: The fields holding a built-in family's own section under its key (filled by the parser from ``sections``)
+SECTION_FIELDS = frozenset(f.name for f in fields(RawCanConfig) if f.metadata.get("section"))
