@@ -100,7 +100,6 @@ def parse_cubemars(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> C
     """Validate ``rawcan.cubemars`` (``command``/``reply``: the parsed image fields)."""
     m: Mapping[Any, Any] = r.mapping(raw, path, CUBEMARS_KEYS, required=("protocol", "error_field", "errors"))
     protocol = r.choice(m["protocol"], (*path, "protocol"), ("servo", "mit"))
-    commands = {f.name: f for f in command}
     replies = {f.name: f for f in reply}
     error_field = r.string(m["error_field"], (*path, "error_field"))
     if error_field not in replies or replies[error_field].scaled:
@@ -111,36 +110,64 @@ def parse_cubemars(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> C
         em = r.mapping(item, ep, ERROR_KEYS, required=ERROR_KEYS)
         errors.append((r.integer(em["code"], (*ep, "code"), 0, 255), r.string(em["name"], (*ep, "name"))))
     if protocol == "mit":
-        for key in ("modes", "mode", "mode_field", "status", "status_packet", "origin_packet"):
-            if key in m:
-                raise r.err((*path, key), f"'{key}' is for protocol servo", key=True)
-        unwrap = None
-        if "unwrap" in m:
-            um = r.mapping(m["unwrap"], (*path, "unwrap"), UNWRAP_KEYS, required=UNWRAP_KEYS)
-            src, into = (
-                r.string(um["from"], (*path, "unwrap", "from")),
-                r.string(um["into"], (*path, "unwrap", "into")),
-            )
-            f = replies.get(src)
-            if f is None or f.min is None or f.max is None:
-                raise r.err((*path, "unwrap", "from"), f"'{src}' is not a scaled reply field (min..max)")
-            if into not in replies or replies[into].type != "float32" or reply[-1].name != into:
-                raise r.err((*path, "unwrap", "into"), f"'{into}' is not the last reply field, float32")
-            unwrap = (src, into)
-        wire = [f for f in reply if unwrap is None or f.name != unwrap[1]]
-        bits = sum(f.bits for f in wire)
-        if any(f.type != "uint" for f in wire) or bits > 64:
-            raise r.err(
-                (*path, "unwrap"),
-                f"the MIT reply on the wire is {bits} bits of unsigned fields; a classic frame has at most 64 "
-                "(only the unwrap.into field is not on the wire)",
-            )
-        short = None
-        if "short_reply" in m:
-            short = r.integer(m["short_reply"], (*path, "short_reply"), 1, bits // 8)
-        return CubemarsProtocol(
-            "mit", error_field, tuple(errors), unwrap=unwrap, short_reply=short, reply_bytes=bits // 8
+        return _parse_mit(r, m, path, error_field, tuple(errors), reply)
+    return _parse_servo(r, m, path, error_field, tuple(errors), command, reply)
+
+
+def _parse_mit(
+    r: Any,
+    m: Mapping[Any, Any],
+    path: PathT,
+    error_field: str,
+    errors: tuple[tuple[int, str], ...],
+    reply: Any,
+) -> CubemarsProtocol:
+    """``protocol: mit``: the unwrapped position (``unwrap``), the short reply of older firmware."""
+    replies = {f.name: f for f in reply}
+    for key in ("modes", "mode", "mode_field", "status", "status_packet", "origin_packet"):
+        if key in m:
+            raise r.err((*path, key), f"'{key}' is for protocol servo", key=True)
+    unwrap = None
+    if "unwrap" in m:
+        um = r.mapping(m["unwrap"], (*path, "unwrap"), UNWRAP_KEYS, required=UNWRAP_KEYS)
+        src, into = (
+            r.string(um["from"], (*path, "unwrap", "from")),
+            r.string(um["into"], (*path, "unwrap", "into")),
         )
+        f = replies.get(src)
+        if f is None or f.min is None or f.max is None:
+            raise r.err((*path, "unwrap", "from"), f"'{src}' is not a scaled reply field (min..max)")
+        if into not in replies or replies[into].type != "float32" or reply[-1].name != into:
+            raise r.err((*path, "unwrap", "into"), f"'{into}' is not the last reply field, float32")
+        unwrap = (src, into)
+    wire = [f for f in reply if unwrap is None or f.name != unwrap[1]]
+    bits = sum(f.bits for f in wire)
+    if any(f.type != "uint" for f in wire) or bits > 64:
+        raise r.err(
+            (*path, "unwrap"),
+            f"the MIT reply on the wire is {bits} bits of unsigned fields; a classic frame has at most 64 "
+            "(only the unwrap.into field is not on the wire)",
+        )
+    short = None
+    if "short_reply" in m:
+        short = r.integer(m["short_reply"], (*path, "short_reply"), 1, bits // 8)
+    return CubemarsProtocol(
+        "mit", error_field, errors, unwrap=unwrap, short_reply=short, reply_bytes=bits // 8
+    )
+
+
+def _parse_servo(
+    r: Any,
+    m: Mapping[Any, Any],
+    path: PathT,
+    error_field: str,
+    errors: tuple[tuple[int, str], ...],
+    command: Any,
+    reply: Any,
+) -> CubemarsProtocol:
+    """``protocol: servo``: the packets (``modes``), the image's mode field, the status frame."""
+    commands = {f.name: f for f in command}
+    replies = {f.name: f for f in reply}
     for key in ("unwrap", "short_reply"):
         if key in m:
             raise r.err((*path, key), f"'{key}' is for protocol mit", key=True)
@@ -169,7 +196,7 @@ def parse_cubemars(r: Any, raw: Any, path: PathT, command: Any, reply: Any) -> C
     return CubemarsProtocol(
         "servo",
         error_field,
-        tuple(errors),
+        errors,
         tuple(modes),
         mode,
         mode_field,
