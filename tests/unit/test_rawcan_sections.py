@@ -197,3 +197,11 @@ def test_built_in_sections_refuse_as_before(
     with pytest.raises(PdoMapError) as info:
         load_drive_map(target)
     assert (info.value.path, info.value.message) == (path, message)
+
+
+def test_the_reference_documents_every_built_in_familys_section_key() -> None:
+    """RAWCAN_KEYS holds the classic keys only now: the families' keys are checked here instead."""
+    doc = (ROOT / "docs" / "yaml-reference.md").read_text(encoding="utf-8")
+    keys = list(rawcan.section_owners(families()))
+    assert sorted(keys) == ["cubemars", "damiao", "odrive"]
+    assert [k for k in keys if f"`{k}`" not in doc] == []
