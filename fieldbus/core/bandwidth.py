@@ -24,7 +24,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
-from fieldbus.core.canfamily import families
+from fieldbus.core.canfamily import FrameTime, families
 from fieldbus.core.pdo.model import CanopenConfig, DriveMap, Pdo
 from fieldbus.core.rawcan import RawCanConfig
 from fieldbus.errors import PdoMapError
@@ -801,22 +801,22 @@ def protocol_frames(
     family reports its frames, each with whether several motors share it (then it comes once per motor,
     the same id, and is counted once)."""
     family = families()[cfg.family]
-    return [
-        (
-            CanFrame(
-                t.can_id,
-                t.data_bytes,
-                t.label,
-                t.extended,
-                fd and not t.remote,  # a remote frame stays classic (CAN FD has none)
-                t.period_us,
-                frame_bits=frame_bits,
-                after=t.after,
-            ),
-            t.shared,
-        )
-        for t in family.wire_frames(name, cfg.protocol, node)
-    ]
+    return [(_wire_frame(t, frame_bits, fd), t.shared) for t in family.wire_frames(name, cfg.protocol, node)]
+
+
+def _wire_frame(t: FrameTime, frame_bits: int | None, fd: bool) -> CanFrame:
+    """A family's reported frame ``t`` (:meth:`~fieldbus.core.canfamily.CanFamily.wire_frames`) as the
+    calculator's frame; ``fd``: data frames as CAN FD, a remote frame stays classic (CAN FD has none)."""
+    return CanFrame(
+        t.can_id,
+        t.data_bytes,
+        t.label,
+        t.extended,
+        fd and not t.remote,
+        t.period_us,
+        frame_bits=frame_bits,
+        after=t.after,
+    )
 
 
 def family_frames(
@@ -836,19 +836,7 @@ def family_frames(
         raise ValueError(f"{name}: its map's family is not on the protocol (fieldbus.core.canfamily)")
     wire: Any = families()[cfg.family].wire_frames  # a family with modes takes mode=
     times = wire(name, cfg.protocol, node, mode=mode) if mode else wire(name, cfg.protocol, node)
-    return [
-        CanFrame(
-            t.can_id,
-            t.data_bytes,
-            t.label,
-            t.extended,
-            fd and not t.remote,
-            t.period_us,
-            frame_bits=frame_bits,
-            after=t.after,
-        )
-        for t in times
-    ]
+    return [_wire_frame(t, frame_bits, fd) for t in times]
 
 
 def bus_bandwidth(
