@@ -8,8 +8,8 @@ For each ``--spin-us`` value, side by side on the same load: ``fieldbus serve``
 every cycle through ``fieldbus.remote`` (each exchange waits for the state
 that applied it: about 1 kHz), and ``--burners`` processes spinning
 ``while 1: pass``. Reported per run, from serve's own report: the longest
-step (cycle_time_us max), overruns, the longest gap between two cycles'
-starts and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
+step (cycle_time_us max) and its p99, overruns, the longest gap between two cycles'
+starts, the gaps over 5 ms and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
 safe stops; and serve's CPU use while it was commanded (all its threads, from
 /proc). ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
 (requests, commands, exchange, publish, diagnostics, DDS writes) and reports the longest steps' breakdown. A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
@@ -80,9 +80,12 @@ def _run(
         "client_late": misses,
         "serve_cpu_percent": round(100 * cpu, 1),
         "longest_step_us": report["cycle_time_us"]["max"],
+        "step_p99_us": report["cycle_time_us"]["p99"],
         "overruns": report["overruns"],
         "longest_gap_us": report["stalls"]["longest_gap_us"],
+        "gaps_over_5ms": report["stalls"]["over_5ms"],
         "stalls_20ms": report["stalls"]["count"],
+        "other_threads": [a for a in ready["realtime"]["applied"] if "other thread" in a],
         "bus_misses": report["missed"],
         "safe_stops": report["safe_stops"],
         "cycles": report["cycles"],

@@ -125,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.network import open_network
     from fieldbus.operations.report import run_report
     from fieldbus.platform.clock import DeadlineClock
+    from fieldbus.platform.rt import rank_below
 
     if args.cycles < 0:
         raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")
@@ -142,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
         # real-time settings first: the DDS participant's threads (Cyclone's receive threads) are made
-        # next and inherit them, so a command is in the reader before the cycle that takes it
+        # next and inherit them, so a command is in the reader before the cycle that takes it; once all
+        # are up, rank_below puts them one priority under the cycle, which then preempts them
         with cycleopts.rt_context(args) as rt:
             participant = Participant(args.domain, args.interface, args.peer)
             with open_network(model, backend=args.backend) as net:
@@ -150,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
                 op = net.bring_up()
                 server.attach(op)
                 cycleopts.start_recording(op, args)
+                if rt.fifo is not None:  # Cyclone's threads (and a recorder's) one priority under the cycle
+                    rt.applied.append(rank_below(rt.fifo))
                 print(
                     json.dumps(_ready(server, options.namespace, participant.domain_id, rt.to_json()))
                     if args.json
@@ -235,6 +239,7 @@ def _served(server: BusServer) -> dict[str, Any]:
             "count": w.count,
             "longest_us": w.longest_ns // 1000,
             "longest_gap_us": w.longest_gap_ns // 1000,  # between two cycles' starts: period + lateness
+            "over_5ms": w.over_5ms,  # gaps between two cycles' starts longer than 5 ms
             "note": w.note,
         },
     }
