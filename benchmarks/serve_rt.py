@@ -11,7 +11,8 @@ that applied it: about 1 kHz), and ``--burners`` processes spinning
 step (cycle_time_us max) and its p99, overruns, the longest gap between two cycles'
 starts, the gaps over 5 ms and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
 safe stops; and serve's CPU use while it was commanded (all its threads, from
-/proc). ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
+/proc). ``--meter``: first, on the same load, ``cpu_meter.py`` (fixed Python work every millisecond at the same
+priority, without fieldbus): how steady the machine's CPU itself is. ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
 (requests, commands, exchange, publish, diagnostics, DDS writes) and reports the longest steps' breakdown. A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
 sched_rt_period_us is throttled for the rest of that period: the point of a
 short spin is to stay well below it. Wall-clock figures: they depend on the
@@ -99,6 +100,11 @@ def main() -> int:
     ap.add_argument("--burners", type=int, default=2)
     ap.add_argument("--spin-us", type=int, nargs="+", default=[30, 150])
     ap.add_argument(
+        "--meter",
+        action="store_true",
+        help="first, beside the same burners: benchmarks/cpu_meter.py for --seconds at --rt-priority",
+    )
+    ap.add_argument(
         "--trace", action="store_true", help="time the served step's phases (benchmarks/serve_phases.py)"
     )
     args = ap.parse_args()
@@ -116,6 +122,11 @@ def main() -> int:
             print(
                 json.dumps({"loadavg": load, "cpus": os.cpu_count(), "sched_rt_runtime_us": rt}), flush=True
             )
+            if args.meter:  # the machine's own steadiness, in the same load, just before serve
+                meter = [sys.executable, str(Path(__file__).with_name("cpu_meter.py"))]
+                meter += ["--seconds", str(args.seconds), "--rt-priority", str(args.rt_priority)]
+                out = subprocess.run(meter, capture_output=True, text=True, check=True).stdout
+                print(json.dumps({"cpu_meter": json.loads(out)}), flush=True)
             for i, spin in enumerate(args.spin_us):
                 domain = 1 + (os.getpid() * 3 + i) % 200
                 trace = Path(tmp) / f"phases-{i}.json" if args.trace else None
