@@ -56,6 +56,7 @@ def _run(
     spin_us: int,
     trace: Path | None = None,
     backend: str | None = "sim",
+    extra: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
     serve = [sys.executable, "-m", "fieldbus", "serve"]
@@ -63,7 +64,7 @@ def _run(
         serve = [sys.executable, str(Path(__file__).with_name("serve_phases.py")), str(trace)]
     cmd = [*serve, str(net), *(["--backend", backend] if backend else []), "--domain", str(domain)]
     cmd += ["--interface", "lo", "--json", "--hold-after", "5000", "--stop-after", "10000"]
-    cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us)]
+    cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us), *extra]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     refused = ""
     try:
@@ -121,6 +122,8 @@ def main() -> int:
         action="store_true",
         help="serve a real EtherCAT bus: pysoem over a veth pair to the emulator in its own process",
     )
+    ap.add_argument("--cpu", type=int, help="serve's --cpu: pin the cycle thread to this CPU")
+    ap.add_argument("--lock-memory", action="store_true", help="serve's --lock-memory")
     ap.add_argument("--receive-timeout-us", type=int, default=500, help="the network's receive_timeout_us")
     ap.add_argument(
         "--meter",
@@ -165,7 +168,9 @@ def _bench(args: argparse.Namespace, iface: str) -> int:
                 domain = 1 + (os.getpid() * 3 + i) % 200
                 trace = Path(tmp) / f"phases-{i}.json" if args.trace else None
                 backend = None if args.veth else "sim"
-                res = _run(net, domain, args.seconds, args.rt_priority, spin, trace, backend)
+                extra = (*(["--cpu", str(args.cpu)] if args.cpu is not None else []),)
+                extra += ("--lock-memory",) if args.lock_memory else ()
+                res = _run(net, domain, args.seconds, args.rt_priority, spin, trace, backend, extra)
                 print(json.dumps(res), flush=True)
             print(json.dumps({"loadavg_after": os.getloadavg()}), flush=True)
     finally:

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.network import open_network
     from fieldbus.operations.report import run_report
     from fieldbus.platform.clock import DeadlineClock
-    from fieldbus.platform.rt import rank_below
+    from fieldbus.platform.rt import rank_below, unpin_others
 
     if args.cycles < 0:
         raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")
@@ -155,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
                 cycleopts.start_recording(op, args)
                 if rt.fifo is not None:  # Cyclone's threads (and a recorder's) one priority under the cycle
                     rt.applied.append(rank_below(rt.fifo))
+                if rt.cpus_before is not None:  # ... and not on the cycle's one CPU with it
+                    rt.applied.append(unpin_others(rt.cpus_before))
                 print(
                     json.dumps(_ready(server, options.namespace, participant.domain_id, rt.to_json()))
                     if args.json

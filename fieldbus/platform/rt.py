@@ -63,6 +63,7 @@ class RtState:
     applied: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
     fifo: int | None = None  # the SCHED_FIFO priority the calling thread was given (None: none)
+    cpus_before: set[int] | None = None  # the CPUs it was allowed before it was pinned (None: not pinned)
 
     def to_json(self) -> dict[str, list[str]]:
         return {"applied": self.applied, "refused": self.refused}
@@ -123,6 +124,7 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
                 try:
                     os.sched_setaffinity(0, {cfg.cpu})
                     state.applied.append(f"pinned to CPU {cfg.cpu}")
+                    state.cpus_before = set(old_cpus)
                 except OSError as exc:
                     refuse(
                         f"pinning to CPU {cfg.cpu} refused ({exc.strerror}): is it in this process's cpuset?"
@@ -185,3 +187,23 @@ def rank_below(priority: int) -> str:
     where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
     left = f" ({refused} refused: EPERM)" if refused else ""
     return f"{moved} other thread(s) below the cycle: {where}{left}"
+
+
+def unpin_others(cpus: set[int]) -> str:
+    """Every other thread of this process allowed on ``cpus`` again (the CPUs before the cycle was pinned).
+
+    Threads the pinned cycle thread started inherit its one CPU: every real-time thread of the process
+    would then share it with the cycle (and with its RT throttling budget). Returns the applied line.
+    """
+    me = threading.get_native_id()
+    moved = 0
+    for tid in thread_ids():
+        if tid == me:
+            continue
+        try:
+            if os.sched_getaffinity(tid) != cpus:
+                os.sched_setaffinity(tid, cpus)
+                moved += 1
+        except (ProcessLookupError, PermissionError):
+            continue
+    return f"{moved} other thread(s) allowed on CPUs {','.join(map(str, sorted(cpus)))}"
