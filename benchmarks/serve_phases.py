@@ -9,6 +9,8 @@ request reader's ``take`` (requests), ``ServedGroup.take_commands`` and ``before
 ``write`` (publish). Each wrapper adds ``perf_counter_ns`` start/end pairs into preallocated arrays (no
 allocation per call); at exit the ``--top`` longest steps are written to OUT.json with the time each phase
 took inside them and what is left ("other": the step's own code, or time the thread was not running),
+its start (``start_ns``, CLOCK_MONOTONIC: to line it up with ``perf record -k CLOCK_MONOTONIC``) and the
+(gap since the previous start, length) of the steps around it (``around_us``),
 plus the thread's involuntary context switches over the run (``/proc/thread-self/status``).
 """
 
@@ -96,6 +98,7 @@ class Trace:
                 "page_faults": int(self.faults[i]),
                 "kernel_us": int(self.sys_us[i]),
                 "index": int(i),
+                "start_ns": int(a),
             }
             inside = 0
             for p in PHASES[1:]:
@@ -108,6 +111,11 @@ class Trace:
                 row[f"{p}_us"] = round(spent / 1e3, 1)
                 inside += spent
             row["other_us"] = round((b - a - inside) / 1e3, 1)
+            lo, hi = max(0, int(i) - 6), min(len(steps), int(i) + 4)  # the steps around it: start gap, length
+            row["around_us"] = [
+                (round(int(steps[j, 0] - steps[j - 1, 0]) / 1e3) if j else 0, round(int(dur[j]) / 1e3))
+                for j in range(lo, hi)
+            ]
             out.append(row)
         q = np.percentile(dur, [50, 99, 99.9]) / 1e3
         n = len(steps)

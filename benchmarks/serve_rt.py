@@ -8,10 +8,13 @@ For each ``--spin-us`` value, side by side on the same load: ``fieldbus serve``
 every cycle through ``fieldbus.remote`` (each exchange waits for the state
 that applied it: about 1 kHz), and ``--burners`` processes spinning
 ``while 1: pass``. Reported per run, from serve's own report: the longest
-step (cycle_time_us max), overruns, the longest gap between two cycles'
-starts and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
+step (cycle_time_us max) and its p99, overruns, the longest gap between two cycles'
+starts, the gaps over 5 ms and the stalls (gaps of 20 periods or more, StallWatch), bus misses and
 safe stops; and serve's CPU use while it was commanded (all its threads, from
-/proc). ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
+/proc). ``--veth``: a real EtherCAT bus instead of the sim backend: pysoem's frames over a veth pair to the
+emulated drives in their own process (``sim_slaves.ethercat``, SCHED_FIFO 40 where allowed; needs root), so
+the served step no longer runs the drives' physics. ``--meter``: first, on the same load, ``cpu_meter.py`` (fixed Python work every millisecond at the same
+priority, without fieldbus): how steady the machine's CPU itself is. ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
 (requests, commands, exchange, publish, diagnostics, DDS writes) and reports the longest steps' breakdown. A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
 sched_rt_period_us is throttled for the rest of that period: the point of a
 short spin is to stay well below it. Wall-clock figures: they depend on the
@@ -21,6 +24,7 @@ machine and its load; the load average is printed with them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -45,22 +49,33 @@ def _cpu_s(pid: int) -> float:
 
 
 def _run(
-    net: Path, domain: int, seconds: float, priority: int, spin_us: int, trace: Path | None = None
+    net: Path,
+    domain: int,
+    seconds: float,
+    priority: int,
+    spin_us: int,
+    trace: Path | None = None,
+    backend: str | None = "sim",
+    extra: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
     serve = [sys.executable, "-m", "fieldbus", "serve"]
     if trace is not None:  # the same serve, its step's phases timed from outside the cycle (serve_phases.py)
         serve = [sys.executable, str(Path(__file__).with_name("serve_phases.py")), str(trace)]
-    cmd = [*serve, str(net), "--backend", "sim", "--domain", str(domain)]
+    cmd = [*serve, str(net), *(["--backend", backend] if backend else []), "--domain", str(domain)]
     cmd += ["--interface", "lo", "--json", "--hold-after", "5000", "--stop-after", "10000"]
-    cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us)]
+    cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us), *extra]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    refused = ""
     try:
         assert server.stdout is not None
         ready = json.loads(server.stdout.readline())
         with fieldbus.remote.connect("bench", domain=domain, interface="lo", client_id="bench") as op:
             op.claim("joints")
-            op.enable("joints")
+            try:
+                op.enable("joints")
+            except fieldbus.remote.RemoteError as exc:  # e.g. the bus latched its safe stop: say so, go on
+                refused = str(exc)
             cpu0, t0, n = _cpu_s(server.pid), time.monotonic(), 0
             while time.monotonic() - t0 < seconds:
                 op.exchange(deadline_s=0.05)
@@ -76,14 +91,21 @@ def _run(
         **({"phases": phases} if phases is not None else {}),
         "spin_us": spin_us,
         "realtime": ready["realtime"],
+        **({"enable_refused": refused} if refused else {}),
         "client_exchanges": n,
         "client_late": misses,
         "serve_cpu_percent": round(100 * cpu, 1),
         "longest_step_us": report["cycle_time_us"]["max"],
+        "step_p99_us": report["cycle_time_us"]["p99"],
         "overruns": report["overruns"],
         "longest_gap_us": report["stalls"]["longest_gap_us"],
+        "gaps_over_5ms": report["stalls"]["over_5ms"],
         "stalls_20ms": report["stalls"]["count"],
+        "other_threads": [a for a in ready["realtime"]["applied"] if "other thread" in a],
+        "bus": report["buses"][0]["type"],
         "bus_misses": report["missed"],
+        "bus_timeouts": report["buses"][0]["timeouts"],
+        "bus_short": report["buses"][0]["short"],
         "safe_stops": report["safe_stops"],
         "cycles": report["cycles"],
     }
@@ -96,16 +118,40 @@ def main() -> int:
     ap.add_argument("--burners", type=int, default=2)
     ap.add_argument("--spin-us", type=int, nargs="+", default=[30, 150])
     ap.add_argument(
+        "--veth",
+        action="store_true",
+        help="serve a real EtherCAT bus: pysoem over a veth pair to the emulator in its own process",
+    )
+    ap.add_argument("--cpu", type=int, help="serve's --cpu: pin the cycle thread to this CPU")
+    ap.add_argument("--lock-memory", action="store_true", help="serve's --lock-memory")
+    ap.add_argument("--receive-timeout-us", type=int, default=500, help="the network's receive_timeout_us")
+    ap.add_argument(
+        "--meter",
+        action="store_true",
+        help="first, beside the same burners: benchmarks/cpu_meter.py for --seconds at --rt-priority",
+    )
+    ap.add_argument(
         "--trace", action="store_true", help="time the served step's phases (benchmarks/serve_phases.py)"
     )
     args = ap.parse_args()
+    with contextlib.ExitStack() as stack:
+        iface = "sim"
+        if args.veth:  # the emulator in its own process (SCHED_FIFO 40 where allowed) on a veth pair
+            from sim_slaves.ethercat.veth import emulated_segment
+
+            iface = stack.enter_context(emulated_segment([DEMO_JOINT], count=3)).iface
+        return _bench(args, iface)
+
+
+def _bench(args: argparse.Namespace, iface: str) -> int:
     burners = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.burners)]
     try:
         with tempfile.TemporaryDirectory() as tmp:
             net = Path(tmp) / "bench.yaml"
             net.write_text(
-                "name: bench\ncycle_time_us: 1000\nreceive_timeout_us: 500\nbuses:\n  - name: joints\n"
-                "    type: ethercat\n    interface: sim\n"
+                f"name: bench\ncycle_time_us: 1000\nreceive_timeout_us: {args.receive_timeout_us}\nbuses:\n"
+                "  - name: joints\n"
+                f"    type: ethercat\n    interface: {iface}\n"
                 f"    slaves: [{{name: 'j{{i}}', map: {json.dumps(str(DEMO_JOINT))}, count: 3}}]\n"
             )
             load = os.getloadavg()
@@ -113,10 +159,19 @@ def main() -> int:
             print(
                 json.dumps({"loadavg": load, "cpus": os.cpu_count(), "sched_rt_runtime_us": rt}), flush=True
             )
+            if args.meter:  # the machine's own steadiness, in the same load, just before serve
+                meter = [sys.executable, str(Path(__file__).with_name("cpu_meter.py"))]
+                meter += ["--seconds", str(args.seconds), "--rt-priority", str(args.rt_priority)]
+                out = subprocess.run(meter, capture_output=True, text=True, check=True).stdout
+                print(json.dumps({"cpu_meter": json.loads(out)}), flush=True)
             for i, spin in enumerate(args.spin_us):
                 domain = 1 + (os.getpid() * 3 + i) % 200
                 trace = Path(tmp) / f"phases-{i}.json" if args.trace else None
-                print(json.dumps(_run(net, domain, args.seconds, args.rt_priority, spin, trace)), flush=True)
+                backend = None if args.veth else "sim"
+                extra = (*(["--cpu", str(args.cpu)] if args.cpu is not None else []),)
+                extra += ("--lock-memory",) if args.lock_memory else ()
+                res = _run(net, domain, args.seconds, args.rt_priority, spin, trace, backend, extra)
+                print(json.dumps(res), flush=True)
             print(json.dumps({"loadavg_after": os.getloadavg()}), flush=True)
     finally:
         for b in burners:

@@ -13,6 +13,7 @@ report rather than only "working counter short".
 from __future__ import annotations
 
 STALL_PERIODS = 20  # a gap of this many cycle periods between two cycles' starts is a stall
+OVER_NS = 5_000_000  # gaps longer than this are counted too (``over_5ms``): the served cycle's goal, 5 ms
 NOTE_WITHIN_CYCLES = 200  # a safe stop latched this many cycles after a stall is put down to it
 
 
@@ -24,6 +25,7 @@ class StallWatch:
         self.count = 0  # stalls seen
         self.longest_ns = 0
         self.longest_gap_ns = 0  # the longest gap between two cycles' starts, stall or not
+        self.over_5ms = 0  # gaps longer than OVER_NS, stall or not
         self.last_cycle = -1  # the cycle that started after the newest stall (-1: none yet)
         self.last_ns = 0  # that stall's gap
         self.note = ""  # why the newest latched safe stop came, when a stall explains it
@@ -36,6 +38,8 @@ class StallWatch:
             gap = now_ns - self._prev_ns
             if gap > self.longest_gap_ns:
                 self.longest_gap_ns = gap
+            if gap > OVER_NS:
+                self.over_5ms += 1
             if gap >= STALL_PERIODS * self.period_ns:
                 self.count += 1
                 self.longest_ns = max(self.longest_ns, gap)

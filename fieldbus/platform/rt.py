@@ -9,7 +9,11 @@ limit it needs (or, with ``strict``, an :class:`RtError`); the others still
 apply.
 
 Scheduling and affinity apply to the calling thread (Linux: ``pid 0``);
-``mlockall`` to the whole process. Prefaulting touches ``prefault_heap_mb`` of
+``mlockall`` to the whole process. Threads the cycle thread starts afterwards
+(Cyclone DDS's receive and event threads, a recorder's writer) inherit its
+SCHED_FIFO priority; :func:`rank_below` then puts every other thread of the
+process one priority under the cycle, so that the cycle preempts them when it
+wakes while they still preempt normal work. Prefaulting touches ``prefault_heap_mb`` of
 heap once, so the allocator's pages are mapped and locked before the cycle
 needs them (Python 3.11 keeps its frames on the heap; the thread's C stack is
 locked as it stands by ``MCL_CURRENT`` and as it grows by ``MCL_FUTURE``).
@@ -21,6 +25,7 @@ import ctypes
 import errno
 import os
 import resource
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -57,6 +62,8 @@ class RtState:
 
     applied: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
+    fifo: int | None = None  # the SCHED_FIFO priority the calling thread was given (None: none)
+    cpus_before: set[int] | None = None  # the CPUs it was allowed before it was pinned (None: not pinned)
 
     def to_json(self) -> dict[str, list[str]]:
         return {"applied": self.applied, "refused": self.refused}
@@ -103,6 +110,7 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
                 try:
                     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.priority))
                     state.applied.append(f"SCHED_FIFO priority {cfg.priority}")
+                    state.fifo = cfg.priority
                 except PermissionError:
                     refuse(
                         f"SCHED_FIFO priority {cfg.priority} refused (EPERM): needs CAP_SYS_NICE (root) or an "
@@ -116,6 +124,7 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
                 try:
                     os.sched_setaffinity(0, {cfg.cpu})
                     state.applied.append(f"pinned to CPU {cfg.cpu}")
+                    state.cpus_before = set(old_cpus)
                 except OSError as exc:
                     refuse(
                         f"pinning to CPU {cfg.cpu} refused ({exc.strerror}): is it in this process's cpuset?"
@@ -142,3 +151,59 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
             os.sched_setaffinity(0, old_cpus)
         if os.sched_getscheduler(0) != old_policy or os.sched_getparam(0) != old_param:
             os.sched_setscheduler(0, old_policy, old_param)
+
+
+def thread_ids() -> list[int]:
+    """The native ids of this process's threads (Linux: ``/proc/self/task``)."""
+    return sorted(int(t) for t in os.listdir("/proc/self/task"))
+
+
+def rank_below(priority: int) -> str:
+    """Every other thread of this process at real-time priority ``priority`` or above to one below it.
+
+    The calling thread (the cycle, at SCHED_FIFO ``priority``) keeps its own. A thread at ``priority``
+    cannot preempt a thread of the same priority that is running (SCHED_FIFO runs it until it blocks); one
+    below, the cycle preempts it at once when its deadline comes, and it still preempts normal work.
+    Priority 1 has nothing below it in SCHED_FIFO: the others then go to SCHED_OTHER. Threads at a lower
+    real-time priority or at normal priority stay as they are. Returns the line for :attr:`RtState.applied`.
+    """
+    me = threading.get_native_id()
+    policy, param = (os.SCHED_FIFO, priority - 1) if priority > 1 else (os.SCHED_OTHER, 0)
+    moved, refused = 0, 0
+    for tid in thread_ids():
+        if tid == me:
+            continue
+        try:
+            if os.sched_getscheduler(tid) not in (os.SCHED_FIFO, os.SCHED_RR):
+                continue
+            if os.sched_getparam(tid).sched_priority < priority:
+                continue
+            os.sched_setscheduler(tid, policy, os.sched_param(param))
+            moved += 1
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+        except PermissionError:
+            refused += 1
+    where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
+    left = f" ({refused} refused: EPERM)" if refused else ""
+    return f"{moved} other thread(s) below the cycle: {where}{left}"
+
+
+def unpin_others(cpus: set[int]) -> str:
+    """Every other thread of this process allowed on ``cpus`` again (the CPUs before the cycle was pinned).
+
+    Threads the pinned cycle thread started inherit its one CPU: every real-time thread of the process
+    would then share it with the cycle (and with its RT throttling budget). Returns the applied line.
+    """
+    me = threading.get_native_id()
+    moved = 0
+    for tid in thread_ids():
+        if tid == me:
+            continue
+        try:
+            if os.sched_getaffinity(tid) != cpus:
+                os.sched_setaffinity(tid, cpus)
+                moved += 1
+        except (ProcessLookupError, PermissionError):
+            continue
+    return f"{moved} other thread(s) allowed on CPUs {','.join(map(str, sorted(cpus)))}"

@@ -581,3 +581,50 @@ def test_an_owner_killed_with_sigkill_leaves_the_group_claimable_on_the_deadline
     last = int(res["last_command_cycle"])
     assert res["refused"] and all(before < last + STOP_AFTER for before, _ in res["refused"]), res
     assert all("commanded by client 'commander'" in why for _, why in res["refused"])
+
+
+def _policies(pid: int) -> dict[int, tuple[int, int]]:
+    """Every thread of process ``pid``: (scheduling policy, real-time priority), by thread id."""
+    out = {}
+    for tid in (int(t) for t in os.listdir(f"/proc/{pid}/task")):
+        with contextlib.suppress(ProcessLookupError):
+            out[tid] = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+    return out
+
+
+@pytest.mark.parametrize("pinned", [False, True], ids=["unpinned", "cpu"])
+def test_at_rt_priority_the_cycle_thread_alone_has_it_and_the_dds_threads_are_one_below(
+    tmp_path: Path, env: dict[str, str], pinned: bool
+) -> None:
+    """Cyclone's receive and event threads start after the switch to SCHED_FIFO and inherit the cycle's
+    priority (and, with --cpu, its one CPU); at the same priority a running one is not preempted by the
+    cycle when its deadline comes. Served and commanded, the cycle thread (serve's main thread) is the only
+    one at ``--rt-priority``; Cyclone's threads are one below (still above normal work, so commands are in
+    the reader in time), and with ``--cpu`` only the cycle thread is pinned."""
+    if why := fifo_refused(RT_PRIORITY):
+        pytest.skip(f"this machine refuses: {why}")
+    allowed = os.sched_getaffinity(0)
+    if pinned and len(allowed) < 2:
+        pytest.skip("one CPU: a pinned thread and an unpinned one cannot be told apart")
+    cpu = max(allowed)
+    domain = _domain(91 + pinned)
+    net = _network(tmp_path / "robot.yaml", "sim", 500)
+    extra = ["--cpu", str(cpu)] if pinned else []
+    with (
+        _serve(net, domain, env, "--backend", "sim", *extra, **NO_DEADLINE) as proc,
+        fieldbus.remote.connect("robot", domain=domain, interface="lo", client_id="rt") as op,
+    ):
+        op.claim("joints")
+        op.enable("joints")
+        for _ in range(50):  # commanded: any thread made while serving exists now
+            op.exchange(deadline_s=1.0)
+        policies = _policies(proc.pid)
+        cpus = {t: os.sched_getaffinity(t) for t in policies}
+    assert policies.pop(proc.pid) == (os.SCHED_FIFO, RT_PRIORITY)
+    realtime = {os.SCHED_FIFO, os.SCHED_RR}
+    at_or_above = {t: p for t, p in policies.items() if p[0] in realtime and p[1] >= RT_PRIORITY}
+    assert at_or_above == {}, f"threads at the cycle's priority or above: {at_or_above}"
+    below = [t for t, p in policies.items() if p == (os.SCHED_FIFO, RT_PRIORITY - 1)]
+    assert len(below) >= 3, policies  # Cyclone's receive, event and delivery threads
+    assert cpus.pop(proc.pid) == ({cpu} if pinned else allowed)
+    assert all(c == allowed for c in cpus.values()), cpus  # serve's other threads on every CPU

@@ -58,6 +58,61 @@ def test_settings_apply_inside_and_are_restored_after() -> None:
         assert next(int(line.split()[1]) for line in f if line.startswith("VmLck:")) == 0
 
 
+_RANK_CHILD = """
+import json, os, sys, threading
+from fieldbus.platform.rt import rank_below
+p = int(sys.argv[1])
+go = threading.Event()
+ids = {}
+def wait(role, up):
+    ids[role] = threading.get_native_id()
+    up.set()
+    go.wait()
+def start(role):
+    up = threading.Event()
+    t = threading.Thread(target=wait, args=(role, up))
+    t.start()
+    up.wait()  # blocks (no spin: a spinning SCHED_FIFO thread could keep the new one off a single CPU)
+    return t
+threads = [start("normal")]  # made before the switch: SCHED_OTHER
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(p))
+threads += [start("inherited-1"), start("inherited-2"), start("lower")]  # made after it: SCHED_FIFO p
+os.sched_setscheduler(ids["lower"], os.SCHED_FIFO, os.sched_param(max(1, p - 5)))
+line = rank_below(p)
+ids["cycle"] = threading.get_native_id()
+out = {r: [os.sched_getscheduler(t), os.sched_getparam(t).sched_priority] for r, t in ids.items()}
+go.set()
+for t in threads:
+    t.join()
+print(json.dumps({"line": line, "threads": out}))
+"""
+
+
+@pytest.mark.parametrize("priority", [20, 1])
+def test_rank_below_puts_every_other_thread_at_the_cycles_priority_one_below_it(priority: int) -> None:
+    """Threads started after the switch inherit the cycle's SCHED_FIFO priority; rank_below moves them one
+    under it (SCHED_OTHER under priority 1) and leaves the cycle, normal threads and lower ones as they are."""
+    if why := capabilities.fifo_refused(20):
+        pytest.skip(f"this machine refuses: {why}")
+    run = subprocess.run(
+        [sys.executable, "-c", _RANK_CHILD, str(priority)], capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    fifo, other = os.SCHED_FIFO, os.SCHED_OTHER
+    below = [fifo, priority - 1] if priority > 1 else [other, 0]
+    assert out["threads"] == {
+        "cycle": [fifo, priority],
+        "normal": [other, 0],
+        "inherited-1": below,
+        "inherited-2": below,
+        "lower": [fifo, max(1, priority - 5)] if priority > 1 else below,
+    }
+    where = f"SCHED_FIFO priority {priority - 1}" if priority > 1 else "SCHED_OTHER"
+    moved = 2 if priority > 1 else 3
+    assert out["line"] == f"{moved} other thread(s) below the cycle: {where}"
+
+
 def test_a_cpu_that_does_not_exist_is_named_and_strict_makes_it_an_error() -> None:
     lines: list[str] = []
     with realtime(RtConfig(cpu=4096), warn=lines.append) as state:
