@@ -14,6 +14,7 @@ any option is passed through) and ``can_bus`` (bool, default False).
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
 
@@ -60,9 +61,22 @@ BUILT_IN: dict[str, BusType] = {
 }
 
 
+_found: tuple[object, tuple[str, ...], dict[str, EntryPoint]] | None = None
+
+
 def registered() -> dict[str, EntryPoint]:
-    """The entry points of the group, by bus type (a built-in name is not taken over)."""
-    return {ep.name: ep for ep in entry_points(group=GROUP) if ep.name not in BUILT_IN}
+    """The entry points of the group, by bus type (a built-in name is not taken over).
+
+    Looked up once per import path: finding them reads the metadata of every installed
+    distribution (milliseconds), and every bus of every network file loaded asks. A changed
+    ``sys.path`` (or ``entry_points`` itself replaced) looks again.
+    """
+    global _found
+    key = (entry_points, tuple(sys.path))
+    if _found is None or _found[0] is not key[0] or _found[1] != key[1]:
+        eps = {ep.name: ep for ep in entry_points(group=GROUP) if ep.name not in BUILT_IN}
+        _found = (key[0], key[1], eps)
+    return dict(_found[2])
 
 
 def bus_type_names() -> tuple[str, ...]:

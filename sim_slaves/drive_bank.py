@@ -807,6 +807,11 @@ class DriveBank:
         dry = self.any_coulomb
         any_ramp = bool(ramp.any())
         vmax = self.vmax[sl]
+        # the same every substep: the bounds' negatives, the CSV reference and the CST torque
+        # (np.minimum(np.maximum(x, lo), hi) is np.clip without its per-call overhead)
+        nvmax, ntmax = -vmax, -tmax
+        v_csv = np.where(csv_loop, target_v, 0.0)
+        tau_direct = np.where(direct, target_tau, 0.0)
         for k in range(1, steps + 1):
             if any_ramp:
                 ramp_v = np.where(ramp, _ramp_to_zero(ramp_v, dv), ramp_v)
@@ -814,13 +819,13 @@ class DriveBank:
             measured = (np.floor(pos * epr + 0.5) + noise) * rpe
             v_pos = vff + kp * (ref - measured)
             if speed_limited:
-                v_pos = np.clip(v_pos, -vmax, vmax)
-            v_ref = np.where(ramp, ramp_v, np.where(csp_loop, v_pos, np.where(csv_loop, target_v, 0.0)))
+                v_pos = np.minimum(np.maximum(v_pos, nvmax), vmax)
+            v_ref = np.where(ramp, ramp_v, np.where(csp_loop, v_pos, v_csv))
             ev = v_ref - vel
-            integ = np.where(pi, np.clip(integ + ki * ev * h, -tmax, tmax), integ)
-            tau = np.where(pi, kv * ev + integ + ff, np.where(direct, target_tau, 0.0))
+            integ = np.where(pi, np.minimum(np.maximum(integ + ki * ev * h, ntmax), tmax), integ)
+            tau = np.where(pi, kv * ev + integ + ff, tau_direct)
             limit |= powered & (np.abs(tau) > tmax)
-            tau = np.where(powered, np.clip(tau, -tmax, tmax), 0.0)
+            tau = np.where(powered, np.minimum(np.maximum(tau, ntmax), tmax), 0.0)
             te = te + (tau - te) * alpha if lag else tau
             applied = te * kt_ratio - load
             pos, vel = _rotor_substep(pos, vel, applied, (e_, f_, g_, hh_), fc if dry else None)

@@ -38,8 +38,13 @@ def arm(request: pytest.FixtureRequest, fieldbus_emulation) -> tuple[Emulation, 
     else:
         emu = fieldbus_emulation(HERE / "arm.yaml")
     controller = ArmController(emu.op)
+
+    def until_following(k: int) -> bool:  # returning True ends emu.run early
+        controller.step(k)
+        return controller.following
+
     for _ in range(3):  # over veth on a busy machine a stall can stop the arm while it enables: reset
-        emu.run(controller.step, cycles=1500)
+        emu.run(until_following, cycles=1500)
         if controller.following:
             break
         controller.resume()

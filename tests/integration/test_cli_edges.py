@@ -3,6 +3,13 @@
 Every error is an exit code and one line on stderr, never a traceback: a reader that closes stdout
 early (141, quiet), output paths checked before anything runs (1), numbers refused by argparse (2),
 Ctrl-C (130, drives stopped), ``--json`` errors as JSON, exit codes in every ``--help``.
+
+What is decided before a command runs (numbers argparse refuses, ``--help`` texts, output paths
+checked first) is checked in this process through ``fieldbus.cli.main`` (:func:`in_process`: the
+same exit code, stdout and stderr, without a subprocess that imports everything again). A real
+``fieldbus`` process still proves each path reaches the shell: ``--json`` errors (argparse's 2, a
+:class:`~fieldbus.errors.FieldbusError`'s 1), a refused plot format (1), the limits of dc-sim and
+the CAN demo (2).
 """
 
 from __future__ import annotations
@@ -18,10 +25,11 @@ from collections.abc import Iterator
 from contextlib import suppress
 from pathlib import Path
 from typing import Any
+from unittest.mock import patch
 
 import pytest
 
-from fieldbus.cli import build_parser
+from fieldbus.cli import build_parser, main
 
 REPO = Path(__file__).resolve().parents[2]
 MAPS = sorted((REPO / "pdo_maps").glob("*.yaml"))
@@ -44,6 +52,23 @@ def fieldbus(*args: str | Path, stdout: Any = subprocess.PIPE) -> subprocess.Com
     """``fieldbus ARGS`` in a subprocess (stdout and stderr captured, or stdout to ``stdout``)."""
     cmd = [sys.executable, "-m", "fieldbus", *map(str, args)]
     return subprocess.run(cmd, stdout=stdout, stderr=subprocess.PIPE, text=True, env=_env(), timeout=300)
+
+
+def in_process(capsys: pytest.CaptureFixture[str], *args: str | Path) -> subprocess.CompletedProcess[str]:
+    """``fieldbus ARGS`` through ``fieldbus.cli.main`` in this process, as :func:`fieldbus` reports it:
+    the exit code (``main``'s return or its ``SystemExit``), stdout and stderr. For command lines
+    refused before the command does anything."""
+    capsys.readouterr()
+    argv = list(map(str, args))
+    # help as wide as a subprocess writing to a pipe formats it (80 columns unless COLUMNS says)
+    columns = os.environ.get("COLUMNS", "80")
+    try:
+        with patch.dict(os.environ, {"COLUMNS": columns}):
+            code = main(argv)
+    except SystemExit as exc:  # argparse: --help, a refused command line
+        code = 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(["fieldbus", *argv], code, out.out, out.err)
 
 
 def one_line_error(res: subprocess.CompletedProcess[str], code: int, *needles: str) -> str:
@@ -139,7 +164,7 @@ BAD_OUTPUTS = {
     ["bandwidth --plot", "dc-sim --plot", "demo --plot", "run --plot", "plot -o", "import esi -o"],
 )
 def test_an_output_that_cannot_be_written_is_refused_before_the_run(
-    command: str, kind: str, tmp_path: Path, recording: Path
+    command: str, kind: str, tmp_path: Path, recording: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = BAD_OUTPUTS[kind](tmp_path)
     if command.startswith("import"):
@@ -153,22 +178,25 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_run(
         "plot -o": ["plot", recording],
         "import esi -o": ["import", "esi", EASYCAT, "--device", "0xDEFEDE64"],
     }
-    res = fieldbus(*argv[command], flag, out)
+    res = in_process(capsys, *argv[command], flag, out)
     one_line_error(res, 1, f"{flag} {out}")
 
 
 @pytest.mark.parametrize("bus", ["ethercat", "canopen"])
 @pytest.mark.parametrize("kind", ["a file", "/proc"])
-def test_scan_write_maps_checks_its_folder_before_scanning(bus: str, kind: str, tmp_path: Path) -> None:
+def test_scan_write_maps_checks_its_folder_before_scanning(
+    bus: str, kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     target = tmp_path / "maps.txt" if kind == "a file" else Path("/proc/fieldbus-cli-edges")
     if kind == "a file":
         target.write_text("not a folder\n")
     where = ["fieldbus-no-such-nic"] if bus == "ethercat" else ["no-such-channel", "--interface", "virtual"]
-    res = fieldbus("scan", bus, *where, "--write-maps", target)
+    res = in_process(capsys, "scan", bus, *where, "--write-maps", target)
     one_line_error(res, 1, f"--write-maps {target}")
 
 
 def test_a_plot_format_matplotlib_cannot_write_is_refused(tmp_path: Path) -> None:
+    """In a real ``fieldbus`` process: a refused output path exits 1 there too."""
     res = fieldbus("dc-sim", "--plot", tmp_path / "spread.xyz")
     one_line_error(res, 1, "--plot", "cannot write .xyz files", ".png")
 
@@ -194,9 +222,11 @@ def test_a_plot_format_matplotlib_cannot_write_is_refused(tmp_path: Path) -> Non
     ],
     ids=lambda argv: " ".join(a.name if isinstance(a, Path) else a for a in argv),
 )
-def test_meaningless_numbers_are_refused_by_argparse(argv: list[str]) -> None:
+def test_meaningless_numbers_are_refused_by_argparse(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
     flag = next(a for a in reversed(argv) if str(a).startswith("--"))
-    one_line_error(fieldbus(*argv), 2, f"argument {flag}", f"'{argv[-1]}'")
+    one_line_error(in_process(capsys, *argv), 2, f"argument {flag}", f"'{argv[-1]}'")
 
 
 def test_dc_sim_refuses_a_run_larger_than_its_limit_naming_it() -> None:
@@ -315,21 +345,21 @@ def test_every_help_lists_exit_codes_and_explains_every_option(command: str) -> 
 
 
 @pytest.mark.parametrize("command", ["scan", "sdo", "run", "latency"])
-def test_help_starts_with_a_sentence(command: str) -> None:
-    res = fieldbus(command, "--help")
+def test_help_starts_with_a_sentence(command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    res = in_process(capsys, command, "--help")
     assert res.returncode == 0
     description = res.stdout.split("\n\n")[1]
     assert "`" not in description and description.startswith(f"fieldbus {command} "), description
 
 
-def test_top_level_help_speaks_to_users() -> None:
-    res = fieldbus("--help")
+def test_top_level_help_speaks_to_users(capsys: pytest.CaptureFixture[str]) -> None:
+    res = in_process(capsys, "--help")
     assert res.returncode == 0 and "exit codes:" in res.stdout
     assert "module" not in res.stdout and "fieldbus.commands" not in res.stdout
 
 
-def test_soak_explains_cycles_and_seed() -> None:
-    text = " ".join(fieldbus("soak", "--help").stdout.split())
+def test_soak_explains_cycles_and_seed(capsys: pytest.CaptureFixture[str]) -> None:
+    text = " ".join(in_process(capsys, "soak", "--help").stdout.split())
     assert "--cycles CYCLES cycles to run under the fault plan" in text
     assert "--seed SEED seed of the fault plan" in text
 
