@@ -31,7 +31,7 @@ rounds (max: over all rounds), counts summed over rounds, and the ratio
 udp_multicast / fieldbus_udp of the p50s taken within each round (median).
 
     python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000]
-        [--emulators one|per-bus] [--families mit,damiao] [--json]
+        [--emulators one|per-bus] [--families mit,damiao] [--transports udp_multicast,fieldbus_udp] [--json]
 """
 
 from __future__ import annotations
@@ -185,12 +185,21 @@ def main() -> int:
         default="mit,damiao",
         help="actuator families, comma-separated: mit (CubeMars AK80-9), damiao (DM-J4310); default both",
     )
+    p.add_argument(
+        "--transports",
+        default=",".join(TRANSPORTS),
+        help="comma-separated: udp_multicast, fieldbus_udp (default both; the ratios between them need both)",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = p.parse_args()
+    transports = [t.strip() for t in args.transports.split(",") if t.strip()]
+    if not transports or any(t not in TRANSPORTS for t in transports):
+        p.error(f"--transports: a comma-separated list of {', '.join(TRANSPORTS)}")
     families = [f.strip() for f in args.families.split(",") if f.strip()]
     if not families or any(f not in FAMILIES for f in families):
         p.error(f"--families: a comma-separated list of {', '.join(FAMILIES)}")
-    who_all = [_who(f, t) for f in families for t in TRANSPORTS]
+    who_all = [_who(f, t) for f in families for t in TRANSPORTS if t in transports]
+    both = len(set(transports)) == len(TRANSPORTS)  # the transport ratios need both
     rounds: list[dict[str, dict[str, Any]]] = []
     frame_us = {f: emulator_frame_us(f) for f in families}  # before any emulator process runs
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
@@ -198,6 +207,8 @@ def main() -> int:
         for f_no, family in enumerate(families):
             drive_map = FAMILIES[family]
             for t, transport in enumerate(TRANSPORTS):
+                if transport not in transports:
+                    continue
                 who = _who(family, transport)
                 buses = [udp_bus(20 * f_no + 10 * t + i, interface=transport) for i in range(BUSES)]
                 groups = [buses] if args.emulators == "one" else [[b] for b in buses]
@@ -238,6 +249,7 @@ def main() -> int:
         "ratio_p50": {
             s: _ratio(rounds, _who(families[0], "udp_multicast"), _who(families[0], "fieldbus_udp"), s)
             for s in ("back_to_back", "paced")
+            if both
         },
         "ratio_transport_p50": {
             family: {
@@ -245,6 +257,7 @@ def main() -> int:
                 for s in ("back_to_back", "paced")
             }
             for family in families
+            if both
         },
         # the other families against the first (damiao / mit), per transport
         "ratio_family_p50": {
@@ -253,7 +266,7 @@ def main() -> int:
                     s: _ratio(rounds, _who(family, t), _who(families[0], t), s)
                     for s in ("back_to_back", "paced")
                 }
-                for t in TRANSPORTS
+                for t in transports
             }
             for family in families[1:]
         },
@@ -264,7 +277,7 @@ def main() -> int:
                     s: _ratio(rounds, _who(family, t), _who(families[0], t), s, "p99_us")
                     for s in ("back_to_back", "paced")
                 }
-                for t in TRANSPORTS
+                for t in transports
             }
             for family in families[1:]
         },
@@ -273,7 +286,7 @@ def main() -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print(f"# CAN between processes: udp_multicast vs fieldbus_udp ({machine_note()})\n")
+    print(f"# CAN between processes: {' vs '.join(transports)} ({machine_note()})\n")
     s = result["summary"]
     print(
         f"(a) 1 bus x {MOTORS} motors, exchange() back to back, {args.exchanges} per round, {args.rounds} rounds\n"

@@ -197,6 +197,50 @@ def test_rules_vectorise_over_every_scaled_channel_of_a_rawcan_map() -> None:
     assert np.isfinite(out["position"]).all()
 
 
+def test_side_by_side_raw_floats_are_one_block_with_each_columns_own_rules() -> None:
+    """Damiao's four float32 mode channels (bytes 8..23 of the row) are one block of the rules (one ufunc
+    per rule for all four, not four blocks); each column keeps its own window, NaN and inf handling,
+    counts and events, and a network file's narrowing of one row."""
+    from fieldbus import PDO_MAPS
+    from fieldbus.core.output_rules import ChannelLimit
+    from fieldbus.platform.allocs import net_blocks
+
+    drive = drive_map_from_text((PDO_MAPS / "damiao_dm_j4310.yaml").read_text(), "dm.yaml")
+    img = ProcessImage(layout(drive), 3)
+    lay = img.layout.outputs
+    lims = channel_limits(drive, lay, 0.001)
+    row2 = [*lims, ChannelLimit("velocity.velocity", -1.0, 1.0, source="network")]
+    rules = OutputRules("g", img.outputs, lims, rows={2: tuple(row2)})
+    floats = ["position_velocity.position", "position_velocity.velocity", "velocity.velocity",
+              "position_force.position"]  # fmt: skip
+    blocks = [b.names for b in rules.blocks]
+    assert floats in blocks and sum(len(b) for b in blocks if b == floats) == 4, blocks
+    out = img.outputs
+    out["velocity.velocity"][:] = [2.0, 3.0, 0.5]
+    out["position_force.position"][:] = [1.0, 1.0, 1.0]
+    assert not rules.apply()
+    assert net_blocks(rules.apply, cycles=2000) <= 2  # the clean cycle of the grouped block allocates nothing
+    out["velocity.velocity"][:] = [math.nan, math.inf, 5.0]
+    out["position_velocity.position"][:] = [100.0, 0.25, -math.inf]
+    assert rules.apply()
+    assert out["velocity.velocity"].tolist() == [2.0, 30.0, 1.0]  # held, VMAX, the row's own window
+    assert out["position_velocity.position"].tolist() == [12.5, 0.25, -12.5]  # PMAX both ways
+    assert out["position_force.position"].tolist() == [1.0, 1.0, 1.0]  # untouched
+    assert rules.counts[:, Reason.NAN].tolist() == [1, 0, 0]
+    assert rules.counts[:, Reason.INF].tolist() == [0, 1, 1]
+    assert rules.counts[:, Reason.RANGE].tolist() == [1, 0, 1]
+    got = {(e.axis, e.channel, e.reason) for e in rules.events(7)}
+    assert got == {
+        (0, "velocity.velocity", Reason.NAN),
+        (1, "velocity.velocity", Reason.INF),
+        (2, "velocity.velocity", Reason.RANGE),
+        (0, "position_velocity.position", Reason.RANGE),
+        (2, "position_velocity.position", Reason.INF),
+    }
+    img.outputs.to_wire()  # the wire carries what the rules left (float32 little-endian at byte 16)
+    assert [struct.unpack_from("<f", bytes(img.outputs.wire[i]), 16)[0] for i in range(3)] == [2.0, 30.0, 1.0]
+
+
 def test_a_transition_hold_seeds_the_row_and_the_rules_restart_from_it() -> None:
     """S12 on raw CAN (fieldbus.core.hold): position <- the one read, speed and torque 0, gains kept; a
     NaN afterwards keeps the seed and a step limit ramps from it, not from what was sent before."""
