@@ -25,6 +25,7 @@ so a speed is reached without steady-state error.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -46,6 +47,7 @@ ENABLED, DISABLED = 0x1, 0x0
 FLOAT_REGISTERS = frozenset({0, 1, 2, 3, 4, 5, 6, 11, 12, 17, 18, 19, 20, *range(21, 35)})
 READ_ONLY = frozenset({11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 36})
 ROTOR_FIELDS = ("position", "velocity", "torque")  # the status reply's fields that change every frame
+TIMEOUT_MARGIN_S = 1e-6  # the timeout check looks this much early (the bound's rounding, never late)
 FRAMES_KEPT = 1000  # frames a motor keeps (DamiaoState.frames): a long run's memory stays bounded
 
 
@@ -123,6 +125,7 @@ class DamiaoSimulator(MitMotorSimulator):
         }
         # node -> (TIMEOUT in s, MST_ID, CTRL_MODE): decoded when written, not per frame
         self._fixed: dict[int, tuple[float, int, int]] = {}
+        self._timeout_due = -math.inf  # clock time before which no motor's TIMEOUT can have elapsed
         for node in self.state:
             self._refresh(node)
         # the status reply per node: its frame, the rotor's fields (every reply) and the others (error
@@ -169,16 +172,28 @@ class DamiaoSimulator(MitMotorSimulator):
         ds, regs = self.state[node], self._proto[node][0].registers
         timeout, mst, mode = (int(ds.reg(r)) for r in (regs.timeout, regs.master_id, regs.ctrl_mode))
         self._fixed[node] = (timeout * 50e-6, mst, mode)
+        self._timeout_due = -math.inf  # a TIMEOUT written: the next tick looks at every motor
 
     def check_timeouts(self) -> None:
-        """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off."""
+        """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off.
+
+        Before ``_timeout_due`` (the earliest such time seen at the last look, a little early) none can
+        have elapsed: commands only move a motor's time later; enabling a motor or writing TIMEOUT makes
+        the next tick look again."""
         now = self.clock()
+        if now < self._timeout_due:
+            return
+        due = math.inf
         for node, ds in self.state.items():
             limit = self._fixed[node][0]
             last = ds.last_command_t
-            if limit and ds.error == ENABLED and last is not None and now - last > limit:
-                ds.error = COMM_LOST
-                self.motor(node).enabled = False
+            if limit and ds.error == ENABLED and last is not None:
+                if now - last > limit:
+                    ds.error = COMM_LOST
+                    self._motors[node].enabled = False
+                else:
+                    due = min(due, last + limit - TIMEOUT_MARGIN_S)
+        self._timeout_due = due
 
     # -- serving -----------------------------------------------------------------------------------
     def serve(self, timeout: float) -> bool:
@@ -271,6 +286,7 @@ class DamiaoSimulator(MitMotorSimulator):
                         st.law = None  # enabling starts no motion: no torque until a command comes
                     ds.error, st.enabled = ENABLED, True
                     ds.last_command_t = now
+                    self._timeout_due = -math.inf  # an enabled motor more to watch
             elif data == cfg.exit:
                 if ds.error == ENABLED:
                     ds.error = DISABLED
