@@ -31,13 +31,17 @@ rounds (max: over all rounds), counts summed over rounds, and the ratio
 udp_multicast / fieldbus_udp of the p50s taken within each round (median).
 
     python benchmarks/can_transport.py [--rounds 4] [--exchanges 1000] [--cycles 2000]
-        [--emulators one|per-bus] [--families mit,damiao] [--json]
+        [--emulators one|per-bus] [--families mit,damiao] [--transports udp_multicast,fieldbus_udp]
+        [--rt-priority N] [--json]
+
+The header (and ``--json``) names the machine and its load average at the start and at the end.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -57,6 +61,7 @@ from fieldbus.core.pdo import load_drive_map
 from fieldbus.network import open_network
 from fieldbus.operations.report import run_report
 from fieldbus.platform.loop import gc_held, run_cycles
+from fieldbus.platform.rt import RtConfig, realtime
 from fieldbus.platform.timing import CycleTimer
 from sim_slaves.can_process import CanChannel, can_emulator_process, udp_bus
 from sim_slaves.damiao import DamiaoSimulator
@@ -132,8 +137,9 @@ def paced(net_file: Path, cycles: int) -> dict[str, float]:
 
 
 def emulator_frame_us(family: str = "mit", frames: int = 500, batches: int = 5) -> float:
-    """An emulator's own work per MIT command frame (µs, median of ``batches``), here on a virtual bus
-    (``family`` damiao: the Damiao emulator, its motors enabled first)."""
+    """An emulator's own work per MIT command frame (µs of this thread's CPU time, so a busy machine's
+    preemptions do not count; median of ``batches``), here on a virtual bus (``family`` damiao: the
+    Damiao emulator, its motors enabled first)."""
     drive = load_drive_map(FAMILIES[family])
     kind = DamiaoSimulator if family == "damiao" else MitMotorSimulator
     with can.Bus(interface="virtual", channel=f"frame-cost-{time.monotonic_ns()}") as bus:
@@ -144,10 +150,10 @@ def emulator_frame_us(family: str = "mit", frames: int = 500, batches: int = 5) 
             sim.deliver(msg)
         per_batch = []
         for _ in range(batches):
-            t0 = time.perf_counter()
+            t0 = time.thread_time()
             for _ in range(frames):
                 sim.deliver(msg)  # 1 ms of physics (dt_s: the frame clock) and the reply
-            per_batch.append((time.perf_counter() - t0) / frames * 1e6)
+            per_batch.append((time.thread_time() - t0) / frames * 1e6)
         return statistics.median(per_batch)
 
 
@@ -185,19 +191,40 @@ def main() -> int:
         default="mit,damiao",
         help="actuator families, comma-separated: mit (CubeMars AK80-9), damiao (DM-J4310); default both",
     )
+    p.add_argument(
+        "--transports",
+        default=",".join(TRANSPORTS),
+        help="comma-separated: udp_multicast, fieldbus_udp (default both; the ratios between them need both)",
+    )
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        help="SCHED_FIFO priority of this process, set first: the emulator processes it starts inherit it",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = p.parse_args()
+    transports = [t.strip() for t in args.transports.split(",") if t.strip()]
+    if not transports or any(t not in TRANSPORTS for t in transports):
+        p.error(f"--transports: a comma-separated list of {', '.join(TRANSPORTS)}")
     families = [f.strip() for f in args.families.split(",") if f.strip()]
     if not families or any(f not in FAMILIES for f in families):
         p.error(f"--families: a comma-separated list of {', '.join(FAMILIES)}")
-    who_all = [_who(f, t) for f in families for t in TRANSPORTS]
+    who_all = [_who(f, t) for f in families for t in TRANSPORTS if t in transports]
+    both = len(set(transports)) == len(TRANSPORTS)  # the transport ratios need both
     rounds: list[dict[str, dict[str, Any]]] = []
     frame_us = {f: emulator_frame_us(f) for f in families}  # before any emulator process runs
+    load = [os.getloadavg()[0]]  # the machine's 1-minute load average, at the start and at the end
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
+        if args.rt_priority is not None:  # first: the emulator processes started from here on inherit it
+            stack.enter_context(
+                realtime(RtConfig(priority=args.rt_priority), warn=lambda line: print(line, file=sys.stderr))
+            )
         files: dict[str, tuple[Path, Path]] = {}
         for f_no, family in enumerate(families):
             drive_map = FAMILIES[family]
             for t, transport in enumerate(TRANSPORTS):
+                if transport not in transports:
+                    continue
                 who = _who(family, transport)
                 buses = [udp_bus(20 * f_no + 10 * t + i, interface=transport) for i in range(BUSES)]
                 groups = [buses] if args.emulators == "one" else [[b] for b in buses]
@@ -224,8 +251,11 @@ def main() -> int:
                 got[who]["paced"] = paced(files[who][1], args.cycles)
             rounds.append(got)
             shown.step()
+    load.append(os.getloadavg()[0])
     result = {
         "machine": machine_note(),
+        "load_average": load,
+        "rt_priority": args.rt_priority,
         "rounds": args.rounds,
         "exchanges": args.exchanges,
         "cycles": args.cycles,
@@ -238,6 +268,7 @@ def main() -> int:
         "ratio_p50": {
             s: _ratio(rounds, _who(families[0], "udp_multicast"), _who(families[0], "fieldbus_udp"), s)
             for s in ("back_to_back", "paced")
+            if both
         },
         "ratio_transport_p50": {
             family: {
@@ -245,6 +276,7 @@ def main() -> int:
                 for s in ("back_to_back", "paced")
             }
             for family in families
+            if both
         },
         # the other families against the first (damiao / mit), per transport
         "ratio_family_p50": {
@@ -253,7 +285,7 @@ def main() -> int:
                     s: _ratio(rounds, _who(family, t), _who(families[0], t), s)
                     for s in ("back_to_back", "paced")
                 }
-                for t in TRANSPORTS
+                for t in transports
             }
             for family in families[1:]
         },
@@ -264,7 +296,7 @@ def main() -> int:
                     s: _ratio(rounds, _who(family, t), _who(families[0], t), s, "p99_us")
                     for s in ("back_to_back", "paced")
                 }
-                for t in TRANSPORTS
+                for t in transports
             }
             for family in families[1:]
         },
@@ -273,7 +305,10 @@ def main() -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print(f"# CAN between processes: udp_multicast vs fieldbus_udp ({machine_note()})\n")
+    print(
+        f"# CAN between processes: {' vs '.join(transports)} ({machine_note()}; load average "
+        f"{load[0]:.1f} at the start, {load[1]:.1f} at the end; rt priority {args.rt_priority})\n"
+    )
     s = result["summary"]
     print(
         f"(a) 1 bus x {MOTORS} motors, exchange() back to back, {args.exchanges} per round, {args.rounds} rounds\n"

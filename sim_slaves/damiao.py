@@ -25,6 +25,8 @@ so a speed is reached without steady-state error.
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +46,9 @@ ENABLED, DISABLED = 0x1, 0x0
 # registers held as floats (the others are uint32): UV, KT, OT, OC, ACC, DEC, MAX_SPD, limits, loop gains...
 FLOAT_REGISTERS = frozenset({0, 1, 2, 3, 4, 5, 6, 11, 12, 17, 18, 19, 20, *range(21, 35)})
 READ_ONLY = frozenset({11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 36})
+ROTOR_FIELDS = ("position", "velocity", "torque")  # the status reply's fields that change every frame
+TIMEOUT_MARGIN_S = 1e-6  # the timeout check looks this much early (the bound's rounding, never late)
+FRAMES_KEPT = 1000  # frames a motor keeps (DamiaoState.frames): a long run's memory stays bounded
 
 
 @dataclass
@@ -57,7 +62,8 @@ class DamiaoState:
     t_mos: float = 30.0  # °C
     t_rotor: float = 32.0
     saves: int = 0
-    frames: list[tuple[int, bytes]] = field(default_factory=list)  # (CAN id, data) of every frame received
+    # (CAN id, data) of the frames received, the last FRAMES_KEPT
+    frames: deque[tuple[int, bytes]] = field(default_factory=lambda: deque(maxlen=FRAMES_KEPT))
 
     def reg(self, number: int) -> float:
         return damiao.unpack_register(self.registers[number], number in FLOAT_REGISTERS)
@@ -106,6 +112,8 @@ class DamiaoSimulator(MitMotorSimulator):
             self._proto[node] = (proto, cfg)
         self._boot = {n: dict(ds.registers) for n, ds in self.state.items()}  # registers at power-up
         # a command's CAN id -> (node, mode): one look-up per frame, not a search over nodes and modes
+        self._register_id = next(iter(self._proto.values()))[0].registers.can_id  # 0x7FF, every motor's
+        self._motors = {node: self.motor(node) for node in self.state}  # node -> its rotor, per frame
         self._commands = {
             node + mode.id_offset: (node, mode)
             for node, (proto, _) in self._proto.items()
@@ -115,9 +123,20 @@ class DamiaoSimulator(MitMotorSimulator):
             node: next(f.max for f in cfg.command if f.name == "torque")
             for node, (_, cfg) in self._proto.items()
         }
-        self._fixed: dict[int, tuple[float, int]] = {}  # node -> (TIMEOUT in s, MST_ID): kept as written
+        # node -> (TIMEOUT in s, MST_ID, CTRL_MODE): decoded when written, not per frame
+        self._fixed: dict[int, tuple[float, int, int]] = {}
+        self._timeout_due = -math.inf  # clock time before which no motor's TIMEOUT can have elapsed
         for node in self.state:
             self._refresh(node)
+        # the status reply per node: its frame, the rotor's fields (every reply) and the others (error
+        # field name, fields: encoded once per change of the error code or a temperature)
+        self._status_frame: dict[int, tuple[MitFrame, Any, tuple[str, Any]]] = {}
+        for node, (proto, cfg) in self._proto.items():
+            frame = self._by_id[node + cfg.command_id][1][1]
+            rotor = [f for f in frame.fields if f[0] in ROTOR_FIELDS]
+            rest = [f for f in frame.fields if f[0] not in ROTOR_FIELDS]
+            self._status_frame[node] = (frame, rotor, (proto.error_field, rest))
+        self._status_rest: dict[int, tuple[tuple[int, float, float], int]] = {}
         self._maxima = {
             node: {f.name: f.max for f in cfg.command if f.max is not None}
             for node, (_, cfg) in self._proto.items()
@@ -149,19 +168,32 @@ class DamiaoSimulator(MitMotorSimulator):
         self.check_timeouts()
 
     def _refresh(self, node: int) -> None:
-        """The registers every frame reads (TIMEOUT, MST_ID), decoded once after each write."""
-        ds = self.state[node]
-        self._fixed[node] = (int(ds.reg(self._proto[node][0].registers.timeout)) * 50e-6, int(ds.reg(7)))
+        """The registers every frame reads (TIMEOUT, MST_ID, CTRL_MODE), decoded once after each write."""
+        ds, regs = self.state[node], self._proto[node][0].registers
+        timeout, mst, mode = (int(ds.reg(r)) for r in (regs.timeout, regs.master_id, regs.ctrl_mode))
+        self._fixed[node] = (timeout * 50e-6, mst, mode)
+        self._timeout_due = -math.inf  # a TIMEOUT written: the next tick looks at every motor
 
     def check_timeouts(self) -> None:
-        """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off."""
+        """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off.
+
+        Before ``_timeout_due`` (the earliest such time seen at the last look, a little early) none can
+        have elapsed: commands only move a motor's time later; enabling a motor or writing TIMEOUT makes
+        the next tick look again."""
         now = self.clock()
+        if now < self._timeout_due:
+            return
+        due = math.inf
         for node, ds in self.state.items():
             limit = self._fixed[node][0]
             last = ds.last_command_t
-            if limit and ds.error == ENABLED and last is not None and now - last > limit:
-                ds.error = COMM_LOST
-                self.motor(node).enabled = False
+            if limit and ds.error == ENABLED and last is not None:
+                if now - last > limit:
+                    ds.error = COMM_LOST
+                    self._motors[node].enabled = False
+                else:
+                    due = min(due, last + limit - TIMEOUT_MARGIN_S)
+        self._timeout_due = due
 
     # -- serving -----------------------------------------------------------------------------------
     def serve(self, timeout: float) -> bool:
@@ -181,8 +213,7 @@ class DamiaoSimulator(MitMotorSimulator):
         """One frame: a register request, a special frame or a command of some mode; returns the reply sent."""
         can_id, data = msg.arbitration_id, bytes(msg.data)
         self._fd = (bool(msg.is_fd), bool(msg.bitrate_switch))  # a CAN FD variant answers in FD
-        any_proto = next(iter(self._proto.values()))[0]
-        if can_id == any_proto.registers.can_id:
+        if can_id == self._register_id:
             return self._register(data)
         found = self._commands.get(can_id)
         if found is None:
@@ -201,24 +232,22 @@ class DamiaoSimulator(MitMotorSimulator):
         return reply
 
     def _status(self, node: int) -> can.Message | None:
-        st, ds = self.motor(node), self.state[node]
+        st, ds = self._motors[node], self.state[node]
         if st.drop:
             st.drop -= 1
             return None
         if st.silent:
             return None
-        _, cfg = self._proto[node]
-        frame = self._by_id[node + cfg.command_id][1][1]
-        values = {
-            "position": st.position,
-            "velocity": st.velocity,
-            "torque": st.torque,
-            "t_mos": ds.t_mos,
-            "t_rotor": ds.t_rotor,
-            "motor_id": node & 0xF,
-            self._proto[node][0].error_field: ds.error,
-        }
-        return self._reply(node, frame.encode(values))
+        frame, rotor, rest = self._status_frame[node]
+        key = (ds.error, ds.t_mos, ds.t_rotor)
+        cached = self._status_rest.get(node)
+        if cached is None or cached[0] != key:  # error code, temperatures, id: encoded when they change
+            values = {"t_mos": ds.t_mos, "t_rotor": ds.t_rotor, "motor_id": node & 0xF, rest[0]: ds.error}
+            cached = self._status_rest[node] = (key, frame.bits(values, rest[1]))
+        x = cached[1] | frame.bits(
+            {"position": st.position, "velocity": st.velocity, "torque": st.torque}, rotor
+        )
+        return self._reply(node, x.to_bytes(frame.size, "big"))
 
     def _register(self, data: bytes) -> can.Message | None:
         if len(data) != 8:
@@ -248,7 +277,7 @@ class DamiaoSimulator(MitMotorSimulator):
     def _command(
         self, node: int, proto: damiao.DamiaoProtocol, cfg: Any, mode: damiao.Mode, data: bytes
     ) -> can.Message | None:
-        st, ds = self.motor(node), self.state[node]
+        st, ds = self._motors[node], self.state[node]
         now = self.clock()
         if mode.mit and len(data) == 8 and data[:7] == b"\xff" * 7:
             if data == cfg.enter:
@@ -257,6 +286,7 @@ class DamiaoSimulator(MitMotorSimulator):
                         st.law = None  # enabling starts no motion: no torque until a command comes
                     ds.error, st.enabled = ENABLED, True
                     ds.last_command_t = now
+                    self._timeout_due = -math.inf  # an enabled motor more to watch
             elif data == cfg.exit:
                 if ds.error == ENABLED:
                     ds.error = DISABLED
@@ -267,7 +297,7 @@ class DamiaoSimulator(MitMotorSimulator):
             elif data == proto.clear and ds.error not in (ENABLED, DISABLED):
                 ds.error = DISABLED
             return self._status(node)
-        if int(ds.reg(proto.registers.ctrl_mode)) != mode.ctrl_mode:
+        if self._fixed[node][2] != mode.ctrl_mode:
             return None  # not the mode the motor is in: ignored
         ds.last_command_t = now
         st.commands += 1

@@ -71,12 +71,19 @@ class MitFrame:
 
     def encode(self, values: dict[str, float]) -> bytes:
         """The frame for ``values`` (a missing field is 0; out-of-range values saturate)."""
+        return self.bits(values).to_bytes(self.size, "big")
+
+    def bits(
+        self, values: dict[str, float], fields: list[tuple[str, int, int, float | None, float]] | None = None
+    ) -> int:
+        """The frame as an integer, of ``fields`` (default: all; a subset of :attr:`fields` leaves the
+        others' bits 0) from ``values``, as :meth:`encode`."""
         x = 0
-        for name, shift, mask, lo, per_raw in self.fields:
+        for name, shift, mask, lo, per_raw in self.fields if fields is None else fields:
             v = values.get(name, 0.0)
             raw = int(v) if lo is None else round((v - lo) / per_raw)
-            x |= min(mask, max(0, raw)) << shift
-        return x.to_bytes(self.size, "big")
+            x |= (0 if raw < 0 else mask if raw > mask else raw) << shift
+        return x
 
 
 STEP_S = 1e-4  # s: the physics' fixed step (semi-implicit Euler; stiff MIT gains stay stable)

@@ -4,7 +4,8 @@ The map section is the classic ``rawcan:`` one with its ``damiao:`` part (:mod:`
 Every mode's command fields are channels of the process image, so the image's ``to_wire`` is their only
 encoder (NaN keeps the value sent last, out of range saturates, S11): the MIT frame's fields under their
 own names (``position``, ``velocity``, ``kp``, ``kd``, ``torque``), then each other mode's fields as
-``<mode>.<field>``, little-endian in frame order, e.g. ``position_velocity.position`` (float32, rad),
+``<mode>.<field>`` (float64 engineering values in the image, as the MIT frame's; on the wire
+little-endian in frame order), e.g. ``position_velocity.position`` (float32, rad),
 ``position_velocity.velocity`` (float32, rad/s, the speed limit), ``velocity.velocity`` (float32, rad/s),
 ``position_force.position`` / ``.velocity`` (uint16, x 100) / ``.torque`` (uint16, per unit of TMAX x
 10000). A uint16 field is a magnitude (a limit): its window is 0..max. Each takes its unit, its window
@@ -73,10 +74,11 @@ def _mode_channels(cfg: RawCanConfig) -> tuple[Channel, ...]:
             kind, bits = {"float32": ("float32", 32), "uint16": ("uint", 16), "int16": ("int", 16)}[f.type]
             sub += 1
             name = mode_channel(mode.name, f.source)
-            scaled = kind != "float32" or factor != 1.0
+            # every one scaled, float32 too (factor 1): the image holds them as float64 engineering values
+            # beside the MIT frame's, so the output rules see one block and the C codec writes the wire
             out.append(
                 field_channel(
-                    COMMAND_OBJECT, sub, name, kind, bits, True, factor, 0.0, src.unit, scaled, src.safe_value
+                    COMMAND_OBJECT, sub, name, kind, bits, True, factor, 0.0, src.unit, True, src.safe_value
                 )
             )
     return tuple(out)
@@ -127,6 +129,7 @@ class DamiaoFamily(MitFamily):
         self._mode: dict[int, _ModeWire] = {}
         self._frame_of: dict[int, DamiaoFrame] = {}
         self._error_at: dict[int, tuple[int, int, int]] = {}
+        self._fault_names: dict[int, dict[int, str]] = {}  # per motor: the map's error codes by name
         self._cycle: list[tuple[DamiaoFrame, Any]] = []  # per motor: frame, its mode (kept current)
         for m in motors:
             cfg: RawCanConfig = m.config
@@ -155,6 +158,7 @@ class DamiaoFamily(MitFamily):
             self._frame_of[m.index] = frame
             self._frames.append(frame)  # type: ignore[arg-type]
             self._error_at[m.index] = field_place(cfg, proto.error_field)
+            self._fault_names[m.index] = dict(proto.errors)
             self._select(m.index, proto.mode)
 
     # -- the map ---------------------------------------------------------------------------------
@@ -223,7 +227,10 @@ class DamiaoFamily(MitFamily):
         byte, shift, mask = self._error_at[motor]
         code = (int(self._replies[motor][byte]) >> shift) & mask
         proto = self.motors[motor].config.damiao
-        return code, (None if code in proto.ok_codes else proto.error_name(code))
+        if code in proto.ok_codes:
+            return code, None
+        name = self._fault_names[motor].get(code)  # every cycle while a motor is in fault: no dict built
+        return code, (name if name is not None else proto.error_name(code))
 
     # -- transitions -----------------------------------------------------------------------------
     def commands(self, which: str, motor: int | None = None) -> list[Frame]:

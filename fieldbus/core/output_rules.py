@@ -199,6 +199,33 @@ def widenings(
     return out
 
 
+def _float_runs(values: npt.NDArray[Any], names: Sequence[str]) -> list[list[str]]:
+    """The float columns among ``names`` (wire order) in runs of one dtype lying side by side in the
+    row (each starts where the one before ends): one block each, one ufunc per rule for the run."""
+    fields = values.dtype.fields
+    assert fields is not None
+    runs: list[list[str]] = []
+    end = -1
+    for name in names:
+        dt, at = fields[name][:2]
+        if dt.kind != "f":
+            continue
+        if runs and at == end and fields[runs[-1][0]][0] == dt:
+            runs[-1].append(name)
+        else:
+            runs.append([name])
+        end = at + dt.itemsize
+    return runs
+
+
+def _run_view(values: npt.NDArray[Any], names: list[str]) -> npt.NDArray[Any]:
+    """(N, len(names)) writable view of a run of :func:`_float_runs` in the image's rows."""
+    first = values[names[0]]
+    return np.lib.stride_tricks.as_strided(
+        first, shape=(len(values), len(names)), strides=(values.strides[0], first.dtype.itemsize)
+    )
+
+
 def slave_limits(
     slaves: Sequence[Any], lay: DirectionLayout, cycle_s: float
 ) -> dict[int, tuple[ChannelLimit, ...]]:
@@ -391,14 +418,14 @@ class OutputRules:
             self.blocks.append(_Block(image._scaled, scaled, per_row(scaled)))
         values = image.values
         limited = {*by_name, *(c for d in by_row.values() for c in d)}
+        raw = [e.name for e in image.layout.channels if not e.channel.scaled]
+        for names in _float_runs(values, raw):  # unscaled floats on the wire (raw-CAN float32 fields)
+            self.blocks.append(_Block(_run_view(values, names), names, per_row(names)))
         for e in image.layout.channels:
             if e.channel.scaled:
                 continue
             col = values[e.name]
-            if col.dtype.kind == "f":  # an unscaled float on the wire (raw-CAN float32 fields)
-                view = col.reshape(n, 1)
-                self.blocks.append(_Block(view, [e.name], per_row([e.name])))
-            elif e.name in limited and col.dtype.kind in "iu":  # an integer channel with limits
+            if e.name in limited and col.dtype.kind in "iu":  # an integer channel with limits
                 work = np.array(col, dtype=np.float64).reshape(n, 1)
                 self.blocks.append(_Block(work, [e.name], per_row([e.name]), src=col))
         self.counts = np.zeros((n, len(Reason)), dtype=np.int64)

@@ -225,3 +225,48 @@ def _fresh_or_held(res: object) -> bool:
     """Fresh, or a miss the policy held (the threaded virtual bus can stall past a cycle's time-out on a
     loaded host): never a safe stop, which takes safe_stop_after misses in a row."""
     return bool(res.fresh) or not res.safe_stop  # type: ignore[attr-defined]
+
+
+def test_each_motors_timeout_runs_from_its_own_last_command_and_enable() -> None:
+    """The emulator's TIMEOUT per motor on a virtual clock, frame by frame (no master): a motor enabled
+    later, with a shorter TIMEOUT, or commanded again, lets go at its own time, not at a time the
+    emulator worked out before (it looks at every motor only when one may be due)."""
+    drive = load_drive_map(MAP)
+    clock = VirtualClock()
+    channel = f"dm-timeout-{next(_channels)}"
+    with (
+        can.Bus(interface="virtual", channel=channel) as bus,
+        can.Bus(interface="virtual", channel=channel) as tx,
+    ):
+        sim = DamiaoSimulator(bus, [(drive, n) for n in NODES], clock=clock)  # served here, no thread
+        regs = drive.rawcan.damiao.registers  # type: ignore[union-attr]
+
+        def frame(can_id: int, data: bytes) -> None:  # one frame, served as the testing kit serves it
+            tx.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+            assert sim.serve(0.0)
+
+        def write(node: int, register: int, value: int) -> None:
+            frame(regs.can_id, bytes([node, 0, regs.write, register]) + value.to_bytes(4, "little"))
+
+        enable, command = bytes([0xFF] * 7 + [0xFC]), bytes(8)
+        for n, units in zip(NODES, (1000, 1000, 200), strict=True):
+            write(n, regs.timeout, units)  # 50, 50 and 10 ms (50 us units)
+        frame(1, enable)
+        clock.t = 0.030
+        frame(2, enable)  # enabled 30 ms after motor 1
+        frame(1, command)  # motor 1 commanded at 30 ms: due at 80 ms
+        clock.t = 0.060
+        frame(3, enable)  # due at 70 ms
+        clock.t = 0.0699
+        sim.idle()
+        assert [sim.state[n].error for n in NODES] == [1, 1, 1]
+        clock.t = 0.0701
+        sim.idle()
+        assert [sim.state[n].error for n in NODES] == [1, 1, 0xD]
+        clock.t = 0.0799
+        sim.idle()
+        assert [sim.state[n].error for n in NODES] == [1, 1, 0xD]
+        clock.t = 0.0801  # motor 2 (enabled at 30 ms) and motor 1 (commanded at 30 ms) both let go
+        sim.idle()
+        assert [sim.state[n].error for n in NODES] == [0xD, 0xD, 0xD]
+        assert not any(sim.motor(n).enabled for n in NODES)

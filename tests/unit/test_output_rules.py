@@ -197,6 +197,89 @@ def test_rules_vectorise_over_every_scaled_channel_of_a_rawcan_map() -> None:
     assert np.isfinite(out["position"]).all()
 
 
+def test_damiaos_mode_channels_share_the_mit_frames_block_each_with_its_own_rules() -> None:
+    """Damiao's mode channels (float32 ones too) are scaled image channels beside the MIT frame's: the
+    rules are one block for all eleven (as MIT's five), each column with its own window, NaN and inf
+    handling, counts and events, and a network file's narrowing of one row; the wire gets float32."""
+    from fieldbus import PDO_MAPS
+    from fieldbus.core.output_rules import ChannelLimit
+    from fieldbus.platform.allocs import net_blocks
+
+    drive = drive_map_from_text((PDO_MAPS / "damiao_dm_j4310.yaml").read_text(), "dm.yaml")
+    img = ProcessImage(layout(drive), 3)
+    lay = img.layout.outputs
+    lims = channel_limits(drive, lay, 0.001)
+    row2 = [*lims, ChannelLimit("velocity.velocity", -1.0, 1.0, source="network")]
+    rules = OutputRules("g", img.outputs, lims, rows={2: tuple(row2)})
+    assert [sorted(b.names) for b in rules.blocks] == [sorted(img.outputs.names)]
+    out = img.outputs
+    out["velocity.velocity"][:] = [2.0, 3.0, 0.5]
+    out["position_force.position"][:] = [1.0, 1.0, 1.0]
+    assert not rules.apply()
+    assert net_blocks(rules.apply, cycles=2000) <= 2  # the clean cycle allocates nothing
+    out["velocity.velocity"][:] = [math.nan, math.inf, 5.0]
+    out["position_velocity.position"][:] = [100.0, 0.25, -math.inf]
+    assert rules.apply()
+    assert out["velocity.velocity"].tolist() == [2.0, 30.0, 1.0]  # held, VMAX, the row's own window
+    assert out["position_velocity.position"].tolist() == [12.5, 0.25, -12.5]  # PMAX both ways
+    assert out["position_force.position"].tolist() == [1.0, 1.0, 1.0]  # untouched
+    assert rules.counts[:, Reason.NAN].tolist() == [1, 0, 0]
+    assert rules.counts[:, Reason.INF].tolist() == [0, 1, 1]
+    assert rules.counts[:, Reason.RANGE].tolist() == [1, 0, 1]
+    got = {(e.axis, e.channel, e.reason) for e in rules.events(7)}
+    assert got == {
+        (0, "velocity.velocity", Reason.NAN),
+        (1, "velocity.velocity", Reason.INF),
+        (2, "velocity.velocity", Reason.RANGE),
+        (0, "position_velocity.position", Reason.RANGE),
+        (2, "position_velocity.position", Reason.INF),
+    }
+    out["velocity.velocity"][1] = 0.1
+    img.outputs.to_wire()  # float32 little-endian at byte 16, as the value rounds to float32
+    sent = [struct.unpack_from("<f", bytes(img.outputs.wire[i]), 16)[0] for i in range(3)]
+    assert sent == [2.0, float(np.float32(0.1)), 1.0]
+
+
+RAW_FLOATS = """
+name: floats
+vendor_id: 1
+product_id: 2
+rpdo:
+  - index: 0x1600
+    channels:
+      - {index: 0x2000, sub_index: 1, type: float, name: a}
+      - {index: 0x2000, sub_index: 2, type: float, name: b}
+      - {index: 0x2000, sub_index: 3, type: int16, name: gap}
+      - {index: 0x2000, sub_index: 4, type: float, name: c}
+      - {index: 0x2000, sub_index: 5, type: double, name: d}
+limits:
+  a: {min: -1.0, max: 1.0}
+  b: {min: 0.0, max: 10.0}
+  c: {min: -5.0, max: 5.0}
+tpdo: []
+"""
+
+
+def test_side_by_side_raw_floats_are_one_block_with_each_columns_own_rules() -> None:
+    """Unscaled floats lying side by side in the row, of one dtype, are one block (a, b); a float after
+    another column (c) or of another dtype (d) starts its own. Each column keeps its own rules."""
+    drive = drive_map_from_text(RAW_FLOATS, "floats.yaml")
+    img = ProcessImage(layout(drive), 2)
+    rules = OutputRules("g", img.outputs, channel_limits(drive, img.layout.outputs, 0.001))
+    assert [b.names for b in rules.blocks] == [["a", "b"], ["c"], ["d"]]
+    out = img.outputs
+    out["a"][:], out["b"][:], out["c"][:], out["d"][:] = [0.5, -0.5], [2.0, 3.0], [1.0, 1.0], [7.0, 8.0]
+    assert not rules.apply()
+    out["a"][:], out["b"][:] = [math.nan, 4.0], [20.0, -math.inf]
+    out["d"][:] = [math.nan, math.inf]
+    assert rules.apply()
+    assert out["a"].tolist() == [0.5, 1.0] and out["b"].tolist() == [10.0, 0.0]
+    assert out["d"].tolist() == [7.0, 8.0]  # no limit: NaN and inf keep the value sent last
+    assert rules.counts[:, Reason.NAN].tolist() == [2, 0] and rules.counts[:, Reason.INF].tolist() == [0, 2]
+    img.outputs.to_wire()
+    assert struct.unpack_from("<ff", bytes(img.outputs.wire[0]), 0) == (0.5, 10.0)
+
+
 def test_a_transition_hold_seeds_the_row_and_the_rules_restart_from_it() -> None:
     """S12 on raw CAN (fieldbus.core.hold): position <- the one read, speed and torque 0, gains kept; a
     NaN afterwards keeps the seed and a step limit ramps from it, not from what was sent before."""

@@ -233,6 +233,38 @@ class _BitWord:
             bf.store(bf.stage)
 
 
+class _ByteBits:
+    """An unsigned, unscaled bit-level entry inside one byte of the row (a CAN reply's error nibble),
+    decoded from that byte alone: a shift and / or a mask, no gather of its 8-byte word."""
+
+    def __init__(self, e: EntryLayout, wire: U8, dst: npt.NDArray[np.uint8]) -> None:
+        self.col = wire[:, e.byte_offset]
+        self.dst = dst
+        self.shift = np.uint8(e.shift)
+        self.mask = np.uint8((1 << e.bits) - 1)
+        self.masked = e.shift + e.bits < 8  # bits above the entry to clear after the shift
+
+    @staticmethod
+    def fits(e: EntryLayout, dst: npt.NDArray[Any]) -> bool:
+        """Whether ``e`` (its values column ``dst``) decodes this way."""
+        dt = e.channel.type
+        return (
+            not e.channel.scaled
+            and dt.name != "bool"
+            and not dt.signed
+            and e.shift + e.bits <= 8
+            and dst.dtype == np.uint8
+        )
+
+    def from_wire(self) -> None:
+        if not self.shift:
+            np.bitwise_and(self.col, self.mask, out=self.dst)
+            return
+        np.right_shift(self.col, self.shift, out=self.dst)
+        if self.masked:
+            np.bitwise_and(self.dst, self.mask, out=self.dst)
+
+
 def _bit_words(
     entries: list[tuple[EntryLayout, _BitField]], wire: U8, n: int
 ) -> tuple[list[_BitWord], list[_BitField]]:
@@ -457,6 +489,11 @@ class DirectionImage:
             bit_entries.append((e, _BitField(e, self.wire, src, n_axes)))
         words, alone = _bit_words(bit_entries, self.wire, n_axes)
         self._bits: list[_BitWord | _BitField] = [*words, *alone]
+        # decoding: an unsigned entry inside one byte straight from that byte, the others by word
+        small = [_ByteBits(e, self.wire, bf.src) for e, bf in bit_entries if _ByteBits.fits(e, bf.src)]
+        rest = [(e, bf) for e, bf in bit_entries if not _ByteBits.fits(e, bf.src)]
+        words, alone = _bit_words(rest, self.wire, n_axes)
+        self._decode: list[_BitWord | _BitField | _ByteBits] = [*words, *alone, *small]
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -525,7 +562,7 @@ class DirectionImage:
 
     def from_wire(self) -> None:
         """Decode ``wire`` into ``values`` (all axes)."""
-        for bf in self._bits:
+        for bf in self._decode:
             bf.from_wire()
         if not self._k:
             return
