@@ -387,8 +387,10 @@ class InProcessMaster:
         reaches it (:meth:`receive_processdata`, another frame or the next send), at this send's time."""
         if self.iomap is None:
             return 0
-        self._deliver()  # the last cycle's frames if never received: processed, their reply dropped
-        for f in self._frames:
+        if self._in_flight_ns is not None:
+            self._deliver()  # the last cycle's frames if never received: processed, their reply dropped
+        frames = self._frames
+        for f in frames:
             if f.iomap_part is not None:
                 np.copyto(f.data, f.iomap_part)
             f.clear_wkc()
@@ -397,7 +399,7 @@ class InProcessMaster:
             self._hold_cycles -= 1
             self._held_s = self._hold_s
         self._in_flight_ns = self.clock()
-        return len(self._frames)
+        return len(frames)
 
     def _deliver(self) -> None:
         """The frames sent and not yet processed go through the chain now (as they would have on the wire
@@ -407,9 +409,12 @@ class InProcessMaster:
             return
         self._in_flight_ns = None
         wkc = 0
+        chain = self.chain
         for f in self._frames:
-            got = self.chain.process_into(f.buf, f.size, now)
-            self._held_s = max(self._held_s, self.chain.take_delay())
+            got = chain.process_into(f.buf, f.size, now)
+            held = chain.take_delay()
+            if held > self._held_s:
+                self._held_s = held
             if got == 0:
                 self._wkc = NO_FRAME
                 return
@@ -428,7 +433,8 @@ class InProcessMaster:
     def receive_processdata(self, timeout: int = 2000, *, release_gil: Any = None) -> int:
         """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost or held back
         longer than ``timeout`` (µs); on a virtual clock the wait passes there."""
-        self._deliver()
+        if self._in_flight_ns is not None:
+            self._deliver()
         wkc, self._wkc = self._wkc, NO_FRAME
         held, self._held_s = self._held_s, 0.0
         late = wkc == NO_FRAME or held > timeout / 1e6

@@ -269,13 +269,8 @@ class _Block:
         # lo/hi/step as built here: limits are fixed for the block's life (a change means a new OutputRules)
         self.quick = src is None and not self.stepped
         self.windowed = bool(np.any(self.lo > -big) or np.any(self.hi < big))
-        self.size = n * m
         # the clean cycle's test and its copy into ``last`` as one call (core.kernels)
-        self.clean = (
-            kernels.window(self.view, self.last, *((self.lo, self.hi) if self.windowed else ()))
-            if self.quick
-            else None
-        )
+        self.clean = kernels.window(self.view, self.last, *((self.lo, self.hi) if self.windowed else ()))
 
     def apply(self, engaged: Callable[[], npt.NDArray[np.bool_]] | None) -> bool:
         """The rules on this block; True when a value was refused (the flags then say which).
@@ -284,7 +279,7 @@ class _Block:
         """
         x, last, w, ok = self.x, self.last, self.work, self.ok
         # the clean cycle (every value in its window, or finite without one): none is refused nor changed
-        if self.clean is not None and not self.hit and self.clean():
+        if self.quick and not self.hit and self.clean():
             self.started = True
             return False
         if self.src is not None:

@@ -24,7 +24,7 @@ from fieldbus.core.hold import TransitionHold
 from fieldbus.core.output_rules import OutputRules, channel_limits, slave_limits
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import STATUSWORD
-from fieldbus.core.safety import SafetyPolicy, Verdict
+from fieldbus.core.safety import OK, SafetyPolicy, Verdict
 from fieldbus.cycle.status import BusEvent, BusFault, BusStatus, CycleEvent, FaultKind, missed, raised, reason
 from fieldbus.platform import phases as ph
 
@@ -136,8 +136,9 @@ class BusCycle:
                 raised(st, FaultKind.RECEIVE_ERROR, exc)
         if pt is not None:
             pt.mark(ph.WAIT)
-        off = int(b.bus_off)
+        off = b.bus_off
         if off != self._bus_off:  # a CAN controller that reported bus-off: a bus error (S1)
+            off = int(off)
             if off > self._bus_off and st.error is None:
                 st.error = f"bus-off reported by the CAN controller ({off} since bring-up)"
                 st.fault = BusFault(st.name, FaultKind.BUS_OFF, st.expected_wkc, wkc, st.error)
@@ -150,7 +151,7 @@ class BusCycle:
         st.release_pending = policy.clear_requested
         st.dc_time_ns = b.dc_time_ns
         st.dc_sync_error_ns = b.dc_sync_error_ns
-        if verdict is not Verdict.OK:
+        if verdict is not OK:
             if st.fault is None:
                 st.fault = missed(st, verdict, policy.last_wkc)
             st.last_fault = st.fault
@@ -164,10 +165,8 @@ class BusCycle:
             events.append(BusEvent(cycle, st.name, "released"))
         if pt is not None:
             pt.mark(ph.JUDGE)
-        if verdict is Verdict.OK or (arrived is not None and policy.fresh.any()):
-            b.accept_inputs(
-                policy.fresh, verdict is Verdict.OK
-            )  # stale rows keep their last accepted bytes (S2)
+        if verdict is OK or (arrived is not None and policy.fresh.any()):
+            b.accept_inputs(policy.fresh, verdict is OK)  # stale rows keep their last accepted bytes (S2)
             for watch, rows in self.watches:
                 for fault in watch.step(rows, cycle):
                     events.append(fault)
@@ -181,7 +180,7 @@ class BusCycle:
     def recover(self) -> None:
         """One bounded recovery step after a miss and while the backend recovers (its only caller)."""
         b, st = self.backend, self.status
-        if st.error is None and (st.verdict is not Verdict.OK or b.recovering):
+        if st.error is None and (st.verdict is not OK or b.recovering):
             try:
                 b.recover_step()
             except Exception as exc:  # recover_step never raises by contract; a backend bug is a miss reason
