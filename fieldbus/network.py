@@ -513,7 +513,8 @@ class Operational(_Phase):
         Never raises (S1)."""
         bc, events, pt = self._cycles[k], self.result.events, self.phases
         bc.receive(cycle, events, pt)
-        self._motor.pump(k, cycle, events)  # raw-CAN motor faults (Damiao error codes, ODrive axis errors)
+        if self._motor.reporting[k]:  # raw-CAN motor faults (Damiao error codes, ODrive axis errors)
+            self._motor.pump(k, cycle, events)
         if pt is not None:
             pt.mark(ph.ACCEPT)
         bc.recover()

@@ -471,7 +471,8 @@ class Backend(abc.ABC):
 
     def diag_step(self) -> list[CounterRise | LinkChange]:
         """One bounded diagnostic read per cycle in OP (EtherCAT: ESC error counters); what changed.
-        Called after the SDO step, never while recovering. Default: none."""
+        Called after the SDO step, never while recovering, and only while :attr:`error_watch` is set.
+        Default: none."""
         return []
 
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:

@@ -393,7 +393,10 @@ class InProcessMaster:
         for f in frames:
             if f.iomap_part is not None:
                 np.copyto(f.data, f.iomap_part)
-            f.clear_wkc()
+            buf, at = f.buf, f.wkc_at  # its working counters zeroed (LRW, and the FRMW's)
+            buf[at] = buf[at + 1] = 0
+            if f.frmw_at:
+                buf[f.frmw_at + 8] = buf[f.frmw_at + 9] = 0
         self._held_s = 0.0
         if self._hold_cycles:
             self._hold_cycles -= 1
@@ -422,7 +425,8 @@ class InProcessMaster:
                 self.dc_time = int.from_bytes(f.buf[f.frmw_at : f.frmw_at + 8], "little")
             if f.iomap_part is not None and f.in_lo < f.hi:  # its inputs into the IO map (outputs stay)
                 np.copyto(f.iomap_part[f.in_lo - f.lo :], f.data[f.in_lo - f.lo :])
-            wkc += f.wkc()
+            buf, at = f.buf, f.wkc_at
+            wkc += buf[at] | buf[at + 1] << 8
         self._wkc = wkc
 
     def hold_processdata(self, seconds: float, cycles: int) -> None:
@@ -470,15 +474,6 @@ class _LrwFrame:
         self.data[:] = data
         self.size = len(frame)
         self.frmw_at = self.wkc_at + _WKC + DATAGRAM_HEADER_SIZE if dc_station is not None else 0
-
-    def clear_wkc(self) -> None:
-        buf, at = self.buf, self.wkc_at
-        buf[at] = buf[at + 1] = 0
-        if self.frmw_at:
-            buf[self.frmw_at + 8] = buf[self.frmw_at + 9] = 0
-
-    def wkc(self) -> int:
-        return self.buf[self.wkc_at] | self.buf[self.wkc_at + 1] << 8
 
 
 def _lrw_frames(blocks: Sequence[tuple[int, int]], out_bytes: int) -> list[_LrwFrame]:

@@ -653,7 +653,8 @@ class EthercatBackend(Backend):
         if self._exact_timeout:
             self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
         self._frame_sent = False
-        self._sent_ns = time.perf_counter_ns()
+        if not self.in_process:  # in-process the transport judges lateness on its own clock (receive)
+            self._sent_ns = time.perf_counter_ns()
         self.master.send_processdata(release_gil=True)
 
     def receive(self) -> int | None:

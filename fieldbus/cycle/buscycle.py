@@ -41,7 +41,8 @@ class BusCycle:
         self.backend = b = backend
         self.policy = policy
         self.every = every
-        self.status = BusStatus(b.bus.name, b.expected_wkc, policy.fresh)
+        self.status = st = BusStatus(b.bus.name, b.expected_wkc, policy.fresh)
+        st.recovering, st.recoveries, st.recovery_error = b.recovering, b.recoveries, b.last_recovery_error
         # the one output path: every group's command values pass the rules before any codec (output_rules)
         self.encoders: list[tuple[OutputRules, ProcessImage]] = []
         self.holds: dict[str, TransitionHold] = {}  # raw-CAN groups: their hold command (fieldbus.core.hold)
@@ -69,6 +70,8 @@ class BusCycle:
         # a drive fault whose code (0x603F) or history (0x10F3) is to be read acyclically; None: not read
         self.on_drive_fault: Callable[[DriveFault], None] | None = None
         self._bus_off = int(b.bus_off)  # CAN bus-off reports so far (0 elsewhere)
+        # the bus can tell per-slave arrival (it overrides Backend.arrived); else the cycle does not ask
+        self._arrives = type(b).arrived is not Backend.arrived or "arrived" in vars(b)
 
     @property
     def name(self) -> str:
@@ -131,7 +134,8 @@ class BusCycle:
         if st.error is None:
             try:
                 wkc = b.receive()
-                arrived = b.arrived()
+                if self._arrives:
+                    arrived = b.arrived()
             except Exception as exc:
                 raised(st, FaultKind.RECEIVE_ERROR, exc)
         if pt is not None:
@@ -180,7 +184,10 @@ class BusCycle:
     def recover(self) -> None:
         """One bounded recovery step after a miss and while the backend recovers (its only caller)."""
         b, st = self.backend, self.status
-        if st.error is None and (st.verdict is not OK or b.recovering):
+        recovering = b.recovering
+        if st.verdict is OK and st.error is None and not recovering and not st.recovering:
+            return  # a clean cycle: no step due; what a step changes (recoveries, its error) is as last copied
+        if st.error is None and (st.verdict is not OK or recovering):
             try:
                 b.recover_step()
             except Exception as exc:  # recover_step never raises by contract; a backend bug is a miss reason
