@@ -517,10 +517,14 @@ class Operational(_Phase):
             self._motor.pump(k, cycle, events)
         if pt is not None:
             pt.mark(ph.ACCEPT)
-        bc.recover()
+        st, b, ac = bc.status, bc.backend, self._acyclic
+        # the clean cycle (fresh, not recovering) has no recovery step due and no recovery status to copy
+        if st.verdict is not OK or st.error is not None or st.recovering or b.recovering:
+            bc.recover()
         if pt is not None:
             pt.mark(ph.CONTRACT)
-        self._acyclic.step(k, bc.status, cycle, events)
+        if ac.current[k] is not None or ac.pending[k] or b.error_watch is not None:
+            ac.step(k, st, cycle, events)  # an SDO transfer to serve, or a diagnostic read (diag_step)
         if pt is not None:
             pt.mark(ph.ACYCLIC)
 

@@ -191,6 +191,9 @@ class EthercatBackend(Backend):
         self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         # the same copies bound once (core.kernels: one C call each where it is built)
         self._out_run: list[Callable[[], object]] = []
+        # called after each reply's inputs arrived in the receive rows (the sim backend's fault hooks); None:
+        # nothing (no call on the cycle's path)
+        self.on_inputs: Callable[[], None] | None = None
         self._in_run: list[Callable[[], object]] = []
         self.iomap: npt.NDArray[np.uint8] | None = None  # SOEM's IO map, when soem_iomap proved where
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
@@ -686,6 +689,8 @@ class EthercatBackend(Backend):
         else:
             for s, mv in self._in_views:
                 mv[:] = s.input
+        if self.on_inputs is not None:
+            self.on_inputs()
         return wkc
 
     def slaves_answered(self, wkc: int | None) -> npt.NDArray[np.bool_] | None:

@@ -182,12 +182,11 @@ class BusCycle:
         return verdict
 
     def recover(self) -> None:
-        """One bounded recovery step after a miss and while the backend recovers (its only caller)."""
+        """One bounded recovery step after a miss and while the backend recovers (its only caller), and the
+        recovery's status copied. The network skips it on a clean cycle (fresh, no error, not recovering):
+        no step is due then, and recoveries and their errors change only in a step."""
         b, st = self.backend, self.status
-        recovering = b.recovering
-        if st.verdict is OK and st.error is None and not recovering and not st.recovering:
-            return  # a clean cycle: no step due; what a step changes (recoveries, its error) is as last copied
-        if st.error is None and (st.verdict is not OK or recovering):
+        if st.error is None and (st.verdict is not OK or b.recovering):
             try:
                 b.recover_step()
             except Exception as exc:  # recover_step never raises by contract; a backend bug is a miss reason
