@@ -251,19 +251,236 @@ static PyTypeObject ScaledCodecType = {
     .tp_methods = codec_methods,
 };
 
+/* -- small-array kernels of the cycle: one C call where numpy takes several (fieldbus.platform.kernels) --
+ * Each holds its buffers from construction (as ScaledCodec), 1-D or 2-D with any strides. */
+
+typedef struct {
+    char *p;
+    Py_ssize_t n0, n1, s0, s1, itemsize;
+} Grid;
+
+/* ``obj``'s buffer as a grid of at most 2 dimensions (1-D: n1 = 1); 0, or -1 with an exception. */
+static int grid_of(PyObject *obj, Py_buffer *view, Grid *g, int writable, Py_ssize_t itemsize) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_RECORDS_RO | (writable ? PyBUF_WRITABLE : 0)) < 0) return -1;
+    if (view->ndim < 1 || view->ndim > 2 || view->itemsize != itemsize) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_ValueError, "a 1-D or 2-D buffer of %zd-byte items is needed", itemsize);
+        return -1;
+    }
+    g->p = (char *)view->buf;
+    g->itemsize = itemsize;
+    g->n0 = view->shape[0];
+    g->s0 = view->strides[0];
+    g->n1 = view->ndim == 2 ? view->shape[1] : 1;
+    g->s1 = view->ndim == 2 ? view->strides[1] : itemsize;
+    return 0;
+}
+
+static int same_shape(const Grid *a, const Grid *b) {
+    if (a->n0 != b->n0 || a->n1 != b->n1) {
+        PyErr_SetString(PyExc_ValueError, "buffers of different shapes");
+        return 0;
+    }
+    return 1;
+}
+
+#define AT(g, i, j) ((g).p + (i) * (g).s0 + (j) * (g).s1)
+
+/* Window(values, last, lo, hi): clean() is True when every float64 value lies in [lo, hi] (lo / hi
+ * None: is finite; NaN never lies in a window), and then copies the values into ``last``; False leaves
+ * ``last`` as it was. As numpy's minimum / maximum / not_equal (or isfinite) and copyto. */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer v[4];
+    int held;
+    Grid x, last, lo, hi;
+} Window;
+
+static void window_dealloc(Window *self) {
+    for (int k = 0; k < self->held; k++) PyBuffer_Release(&self->v[k]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int window_init(Window *self, PyObject *args, PyObject *kwds) {
+    PyObject *x, *last, *lo, *hi;
+    if (!PyArg_ParseTuple(args, "OOOO", &x, &last, &lo, &hi)) return -1;
+    if ((lo == Py_None) != (hi == Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "lo and hi: both or neither");
+        return -1;
+    }
+    PyObject *objs[4] = {x, last, lo, hi};
+    Grid *grids[4] = {&self->x, &self->last, &self->lo, &self->hi};
+    int n = lo == Py_None ? 2 : 4;
+    for (int k = 0; k < n; k++) {
+        if (grid_of(objs[k], &self->v[k], grids[k], k == 1, 8) < 0) return -1;
+        self->held = k + 1;
+        if (k && !same_shape(&self->x, grids[k])) return -1;
+    }
+    if (n == 2) self->lo.p = self->hi.p = NULL;
+    return 0;
+}
+
+static PyObject *window_clean(Window *self, PyObject *Py_UNUSED(ignored)) {
+    const Grid x = self->x, lo = self->lo, hi = self->hi;
+    for (Py_ssize_t i = 0; i < x.n0; i++) {
+        for (Py_ssize_t j = 0; j < x.n1; j++) {
+            double v;
+            memcpy(&v, AT(x, i, j), 8);
+            if (lo.p) {
+                double a, b;
+                memcpy(&a, AT(lo, i, j), 8);
+                memcpy(&b, AT(hi, i, j), 8);
+                if (!(v >= a && v <= b)) Py_RETURN_FALSE;
+            } else if (!isfinite(v)) {
+                Py_RETURN_FALSE;
+            }
+        }
+    }
+    const Grid last = self->last;
+    for (Py_ssize_t i = 0; i < x.n0; i++)
+        for (Py_ssize_t j = 0; j < x.n1; j++) memcpy(AT(last, i, j), AT(x, i, j), 8);
+    Py_RETURN_TRUE;
+}
+
+static PyMethodDef window_methods[] = {
+    {"clean", (PyCFunction)window_clean, METH_NOARGS, "every value in its window: copied to last, True"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject WindowType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "fieldbus._codec.Window",
+    .tp_basicsize = sizeof(Window),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Window(values, last, lo, hi): float64 values checked against a window, copied when clean",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)window_init,
+    .tp_dealloc = (destructor)window_dealloc,
+    .tp_methods = window_methods,
+};
+
+/* AnyBits(words, mask): any() is True when a uint16 word has a bit of ``mask`` set. */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer v;
+    int held;
+    Grid w;
+    uint16_t mask;
+} AnyBits;
+
+static void anybits_dealloc(AnyBits *self) {
+    if (self->held) PyBuffer_Release(&self->v);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int anybits_init(AnyBits *self, PyObject *args, PyObject *kwds) {
+    PyObject *w;
+    unsigned short mask;
+    if (!PyArg_ParseTuple(args, "OH", &w, &mask)) return -1;
+    if (grid_of(w, &self->v, &self->w, 0, 2) < 0) return -1;
+    self->held = 1;
+    self->mask = mask;
+    return 0;
+}
+
+static PyObject *anybits_any(AnyBits *self, PyObject *Py_UNUSED(ignored)) {
+    const Grid w = self->w;
+    for (Py_ssize_t i = 0; i < w.n0; i++) {
+        for (Py_ssize_t j = 0; j < w.n1; j++) {
+            uint16_t u;
+            memcpy(&u, AT(w, i, j), 2);
+            if (u & self->mask) Py_RETURN_TRUE;
+        }
+    }
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef anybits_methods[] = {
+    {"any", (PyCFunction)anybits_any, METH_NOARGS, "a word has a bit of the mask set"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject AnyBitsType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "fieldbus._codec.AnyBits",
+    .tp_basicsize = sizeof(AnyBits),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "AnyBits(words, mask): whether a uint16 word has a bit of mask set",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)anybits_init,
+    .tp_dealloc = (destructor)anybits_dealloc,
+    .tp_methods = anybits_methods,
+};
+
+/* Copy(dst, src): run() copies the bytes of ``src`` into ``dst`` (uint8, the same shape), as np.copyto. */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer v[2];
+    int held;
+    Grid dst, src;
+} Copy;
+
+static void copy_dealloc(Copy *self) {
+    for (int k = 0; k < self->held; k++) PyBuffer_Release(&self->v[k]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int copy_init(Copy *self, PyObject *args, PyObject *kwds) {
+    PyObject *dst, *src;
+    if (!PyArg_ParseTuple(args, "OO", &dst, &src)) return -1;
+    if (grid_of(dst, &self->v[0], &self->dst, 1, 1) < 0) return -1;
+    self->held = 1;
+    if (grid_of(src, &self->v[1], &self->src, 0, 1) < 0) return -1;
+    self->held = 2;
+    return same_shape(&self->dst, &self->src) ? 0 : -1;
+}
+
+static PyObject *copy_run(Copy *self, PyObject *Py_UNUSED(ignored)) {
+    const Grid d = self->dst, s = self->src;
+    if (d.s1 == 1 && s.s1 == 1) {  /* rows of contiguous bytes (a process image's wire rows) */
+        for (Py_ssize_t i = 0; i < d.n0; i++) memmove(d.p + i * d.s0, s.p + i * s.s0, (size_t)d.n1);
+    } else {
+        for (Py_ssize_t i = 0; i < d.n0; i++)
+            for (Py_ssize_t j = 0; j < d.n1; j++) *AT(d, i, j) = *AT(s, i, j);
+    }
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef copy_methods[] = {
+    {"run", (PyCFunction)copy_run, METH_NOARGS, "src's bytes into dst"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject CopyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "fieldbus._codec.Copy",
+    .tp_basicsize = sizeof(Copy),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Copy(dst, src): src's bytes into dst (uint8 arrays of one shape, any strides)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)copy_init,
+    .tp_dealloc = (destructor)copy_dealloc,
+    .tp_methods = copy_methods,
+};
+
 static struct PyModuleDef codec_module = {
     PyModuleDef_HEAD_INIT, "fieldbus._codec", "C speed-up for process-image scaling", -1, NULL,
 };
 
 PyMODINIT_FUNC PyInit__codec(void) {
-    if (PyType_Ready(&ScaledCodecType) < 0) return NULL;
+    PyTypeObject *types[] = {&ScaledCodecType, &WindowType, &AnyBitsType, &CopyType};
+    const char *names[] = {"ScaledCodec", "Window", "AnyBits", "Copy"};
+    for (int k = 0; k < 4; k++)
+        if (PyType_Ready(types[k]) < 0) return NULL;
     PyObject *m = PyModule_Create(&codec_module);
     if (!m) return NULL;
-    Py_INCREF(&ScaledCodecType);
-    if (PyModule_AddObject(m, "ScaledCodec", (PyObject *)&ScaledCodecType) < 0) {
-        Py_DECREF(&ScaledCodecType);
-        Py_DECREF(m);
-        return NULL;
+    for (int k = 0; k < 4; k++) {
+        Py_INCREF(types[k]);
+        if (PyModule_AddObject(m, names[k], (PyObject *)types[k]) < 0) {
+            Py_DECREF(types[k]);
+            Py_DECREF(m);
+            return NULL;
+        }
     }
     return m;
 }

@@ -38,7 +38,7 @@ from fieldbus.core.hold import TransitionHold
 from fieldbus.core.output_rules import OutputRules
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.safestop import SafeStopWriter
-from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, PolicyConfig, SafetyPolicy, Verdict
+from fieldbus.core.safety import DEFAULT_RELEASE_AFTER, OK, PolicyConfig, SafetyPolicy
 from fieldbus.core.winddown import MAX_BUDGET_S, WindDownReport
 from fieldbus.cycle.acyclic import MAX_SDO_BYTES, AcyclicService
 from fieldbus.cycle.buscycle import MODES_DISPLAY, BusCycle
@@ -463,7 +463,8 @@ class Operational(_Phase):
         while the bus reports it is recovering. Raises only for caller errors
         (:class:`PhaseError` after close).
         """
-        self._check()
+        if self._net._phase is not self:
+            self._check()  # raises PhaseError
         t0 = time.perf_counter_ns()
         if self._acyclic.cycle_thread is None:
             self._acyclic.cycle_thread = threading.get_ident()
@@ -474,7 +475,8 @@ class Operational(_Phase):
             pt.start(t0)
         if res.events:
             res.events = []  # a new list only after a cycle that had events: the caller may keep the old one
-        self._stop.before_cycle()
+        if res.safe_stop:
+            self._stop.before_cycle()  # latched: the safe outputs over the controller's (S4)
         for bc in self._cycles:
             if bc.due(cycle):
                 bc.send(cycle, res.events, pt)
@@ -483,7 +485,7 @@ class Operational(_Phase):
         for k, bc in enumerate(self._cycles):
             if bc.status.ran:
                 self._receive(k, cycle)
-            all_fresh = all_fresh and bc.status.verdict is Verdict.OK
+            all_fresh = all_fresh and bc.status.verdict is OK
             any_stop = any_stop or bc.policy.safe_stop
         if self._acyclic.follow_ups:
             self._acyclic.collect(cycle, res.events)
@@ -511,13 +513,18 @@ class Operational(_Phase):
         Never raises (S1)."""
         bc, events, pt = self._cycles[k], self.result.events, self.phases
         bc.receive(cycle, events, pt)
-        self._motor.pump(k, cycle, events)  # raw-CAN motor faults (Damiao error codes, ODrive axis errors)
+        if self._motor.reporting[k]:  # raw-CAN motor faults (Damiao error codes, ODrive axis errors)
+            self._motor.pump(k, cycle, events)
         if pt is not None:
             pt.mark(ph.ACCEPT)
-        bc.recover()
+        st, b, ac = bc.status, bc.backend, self._acyclic
+        # the clean cycle (fresh, not recovering) has no recovery step due and no recovery status to copy
+        if st.verdict is not OK or st.error is not None or st.recovering or b.recovering:
+            bc.recover()
         if pt is not None:
             pt.mark(ph.CONTRACT)
-        self._acyclic.step(k, bc.status, cycle, events)
+        if ac.current[k] is not None or ac.pending[k] or b.error_watch is not None:
+            ac.step(k, st, cycle, events)  # an SDO transfer to serve, or a diagnostic read (diag_step)
         if pt is not None:
             pt.mark(ph.ACYCLIC)
 

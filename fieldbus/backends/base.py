@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core import kernels
 from fieldbus.core.drivefault import DriveFault
 from fieldbus.core.esc_errors import CounterRise, ErrorWatch, LinkChange
 from fieldbus.core.network import Bus, Slave
@@ -186,6 +187,7 @@ class Backend(abc.ABC):
             | None
         ) = None
         self._accept_src: npt.NDArray[np.bool_] | None = None
+        self._accept_all: list[tuple[DirectionImage, Callable[[], object]]] = []  # every slave fresh
         self._expected_wkc: int | None = None
 
     def out_row(self, i: int) -> npt.NDArray[np.uint8]:
@@ -225,10 +227,17 @@ class Backend(abc.ABC):
                 )
                 for k, g in enumerate(self.groups)
             ]
+            self._accept_all = [
+                (g.image.inputs, kernels.copier(g.image.inputs.wire, self.rx[k]))
+                for k, g in enumerate(self.groups)
+            ]
+        if every:  # one copy per group (core.kernels), then decode
+            for inputs, copy in self._accept_all:
+                copy()
+                inputs.from_wire()
+            return
         for inputs, wire, rx, rows in self._accept_plan:
-            if every:
-                np.copyto(wire, rx)
-            elif rows.any():
+            if rows.any():
                 np.copyto(wire, rx, where=rows)
             else:
                 continue
@@ -462,7 +471,8 @@ class Backend(abc.ABC):
 
     def diag_step(self) -> list[CounterRise | LinkChange]:
         """One bounded diagnostic read per cycle in OP (EtherCAT: ESC error counters); what changed.
-        Called after the SDO step, never while recovering. Default: none."""
+        Called after the SDO step, never while recovering, and only while :attr:`error_watch` is set.
+        Default: none."""
         return []
 
     def sdo_read(self, slave: int, index: int, sub_index: int) -> bytes:

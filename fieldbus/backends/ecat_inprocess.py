@@ -387,17 +387,22 @@ class InProcessMaster:
         reaches it (:meth:`receive_processdata`, another frame or the next send), at this send's time."""
         if self.iomap is None:
             return 0
-        self._deliver()  # the last cycle's frames if never received: processed, their reply dropped
-        for f in self._frames:
+        if self._in_flight_ns is not None:
+            self._deliver()  # the last cycle's frames if never received: processed, their reply dropped
+        frames = self._frames
+        for f in frames:
             if f.iomap_part is not None:
                 np.copyto(f.data, f.iomap_part)
-            f.clear_wkc()
+            buf, at = f.buf, f.wkc_at  # its working counters zeroed (LRW, and the FRMW's)
+            buf[at] = buf[at + 1] = 0
+            if f.frmw_at:
+                buf[f.frmw_at + 8] = buf[f.frmw_at + 9] = 0
         self._held_s = 0.0
         if self._hold_cycles:
             self._hold_cycles -= 1
             self._held_s = self._hold_s
         self._in_flight_ns = self.clock()
-        return len(self._frames)
+        return len(frames)
 
     def _deliver(self) -> None:
         """The frames sent and not yet processed go through the chain now (as they would have on the wire
@@ -407,9 +412,12 @@ class InProcessMaster:
             return
         self._in_flight_ns = None
         wkc = 0
+        chain = self.chain
         for f in self._frames:
-            got = self.chain.process_into(f.buf, f.size, now)
-            self._held_s = max(self._held_s, self.chain.take_delay())
+            got = chain.process_into(f.buf, f.size, now)
+            held = chain.take_delay()
+            if held > self._held_s:
+                self._held_s = held
             if got == 0:
                 self._wkc = NO_FRAME
                 return
@@ -417,7 +425,8 @@ class InProcessMaster:
                 self.dc_time = int.from_bytes(f.buf[f.frmw_at : f.frmw_at + 8], "little")
             if f.iomap_part is not None and f.in_lo < f.hi:  # its inputs into the IO map (outputs stay)
                 np.copyto(f.iomap_part[f.in_lo - f.lo :], f.data[f.in_lo - f.lo :])
-            wkc += f.wkc()
+            buf, at = f.buf, f.wkc_at
+            wkc += buf[at] | buf[at + 1] << 8
         self._wkc = wkc
 
     def hold_processdata(self, seconds: float, cycles: int) -> None:
@@ -428,7 +437,8 @@ class InProcessMaster:
     def receive_processdata(self, timeout: int = 2000, *, release_gil: Any = None) -> int:
         """The working counter of the last send, -1 (EC_NOFRAME) when its reply was lost or held back
         longer than ``timeout`` (µs); on a virtual clock the wait passes there."""
-        self._deliver()
+        if self._in_flight_ns is not None:
+            self._deliver()
         wkc, self._wkc = self._wkc, NO_FRAME
         held, self._held_s = self._held_s, 0.0
         late = wkc == NO_FRAME or held > timeout / 1e6
@@ -464,15 +474,6 @@ class _LrwFrame:
         self.data[:] = data
         self.size = len(frame)
         self.frmw_at = self.wkc_at + _WKC + DATAGRAM_HEADER_SIZE if dc_station is not None else 0
-
-    def clear_wkc(self) -> None:
-        buf, at = self.buf, self.wkc_at
-        buf[at] = buf[at + 1] = 0
-        if self.frmw_at:
-            buf[self.frmw_at + 8] = buf[self.frmw_at + 9] = 0
-
-    def wkc(self) -> int:
-        return self.buf[self.wkc_at] | self.buf[self.wkc_at + 1] << 8
 
 
 def _lrw_frames(blocks: Sequence[tuple[int, int]], out_bytes: int) -> list[_LrwFrame]:

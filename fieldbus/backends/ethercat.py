@@ -32,7 +32,7 @@ import functools
 import struct
 import time
 from collections import deque
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from typing import Any
 
 import numpy as np
@@ -56,6 +56,7 @@ from fieldbus.backends.ecat_master import (  # raises BackendUnavailableError wi
 )
 from fieldbus.backends.ecat_raw import RawDatagrams
 from fieldbus.backends.sdo_exec import apply_plan
+from fieldbus.core import kernels
 from fieldbus.core.al import AL_ACK, AL_ERROR, AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP, state_name
 from fieldbus.core.coe_mailbox import SdoTransfer
 from fieldbus.core.dc.master import HostSync, HostSyncConfig
@@ -188,6 +189,12 @@ class EthercatBackend(Backend):
         self._iomap_view = iomap == "view"
         self._out_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
         self._in_copies: list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]] = []
+        # the same copies bound once (core.kernels: one C call each where it is built)
+        self._out_run: list[Callable[[], object]] = []
+        # called after each reply's inputs arrived in the receive rows (the sim backend's fault hooks); None:
+        # nothing (no call on the cycle's path)
+        self.on_inputs: Callable[[], None] | None = None
+        self._in_run: list[Callable[[], object]] = []
         self.iomap: npt.NDArray[np.uint8] | None = None  # SOEM's IO map, when soem_iomap proved where
         # exact receive timeout: SOEM's socket non-blocking (option exact_timeout, default on)
         self._exact_timeout = bool(options.get("exact_timeout", True)) and not self.in_process  # no socket
@@ -344,6 +351,7 @@ class EthercatBackend(Backend):
         """One copy per axis group and direction between the images and SOEM's IO map, when
         :func:`.soem_iomap.locate` proves where it is; otherwise the per-slave ``bytes`` path stays."""
         self.iomap, self._out_copies, self._in_copies = None, [], []
+        self._out_run, self._in_run = [], []
         if not self._iomap_view:
             return
         sizes = [(a.out_size, a.in_size) for a in self.areas]
@@ -366,6 +374,8 @@ class EthercatBackend(Backend):
             o_at += n * o
             i_at += n * i
         self._out_copies, self._in_copies = out_copies, in_copies
+        self._out_run = [kernels.copier(d, s) for d, s in out_copies]
+        self._in_run = [kernels.copier(d, s) for d, s in in_copies]
         self.iomap = view
 
     def _prime_mailboxes(self) -> None:
@@ -638,15 +648,16 @@ class EthercatBackend(Backend):
     def send(self) -> None:
         """Outputs into SOEM's IO map, frames still queued from earlier cycles discarded, the LRW sent."""
         if self.iomap is not None:
-            for dst, src in self._out_copies:
-                np.copyto(dst, src)
+            for copy in self._out_run:
+                copy()
         else:
             for s, mv in self._out_views:
                 s.output = bytes(mv)
         if self._exact_timeout:
             self.stale_frames += soem_socket.drain(self.sockets, self._drain_buf)
         self._frame_sent = False
-        self._sent_ns = time.perf_counter_ns()
+        if not self.in_process:  # in-process the transport judges lateness on its own clock (receive)
+            self._sent_ns = time.perf_counter_ns()
         self.master.send_processdata(release_gil=True)
 
     def receive(self) -> int | None:
@@ -673,11 +684,13 @@ class EthercatBackend(Backend):
         if wkc < 0:
             return None
         if self.iomap is not None:
-            for dst, src in self._in_copies:
-                np.copyto(dst, src)
+            for copy in self._in_run:
+                copy()
         else:
             for s, mv in self._in_views:
                 mv[:] = s.input
+        if self.on_inputs is not None:
+            self.on_inputs()
         return wkc
 
     def slaves_answered(self, wkc: int | None) -> npt.NDArray[np.bool_] | None:
@@ -856,6 +869,7 @@ class EthercatBackend(Backend):
             if self._open:
                 self._open = False
                 self.iomap, self._out_copies, self._in_copies = None, [], []  # not past the master's life
+                self._out_run, self._in_run = [], []
                 self.master.close()
         finally:
             try:

@@ -88,6 +88,7 @@ class SimBackend(EthercatBackend):
         """Slave ``slave``'s inputs (0-based on this bus) arrive with every bit inverted for ``cycles``
         process-data cycles, with a good working counter: fresh, wrong data."""
         self._corrupt[slave] = self._corrupt.get(slave, 0) + cycles
+        self.on_inputs = self._invert_inputs
 
     def delay_cycles(self, seconds: float, cycles: int = 1) -> None:
         """The process-data replies of the next ``cycles`` cycles come back ``seconds`` late (recovery
@@ -97,16 +98,17 @@ class SimBackend(EthercatBackend):
     def clear_injections(self) -> None:
         """Undo :meth:`corrupt_inputs` and :meth:`delay_cycles` (the chain's own: ``chain.clear_faults()``)."""
         self._corrupt.clear()
+        self.on_inputs = None
         self.master.hold_processdata(0.0, 0)
 
-    def receive(self) -> int | None:
-        wkc = super().receive()
-        if wkc is not None and self._corrupt:
-            for slave, left in list(self._corrupt.items()):
-                row = self.in_row(slave)
-                np.bitwise_xor(row, 0xFF, out=row)
-                if left <= 1:
-                    del self._corrupt[slave]
-                else:
-                    self._corrupt[slave] = left - 1
-        return wkc
+    def _invert_inputs(self) -> None:
+        """After a reply's inputs arrived (``on_inputs``): the slaves of :meth:`corrupt_inputs` inverted."""
+        for slave, left in list(self._corrupt.items()):
+            row = self.in_row(slave)
+            np.bitwise_xor(row, 0xFF, out=row)
+            if left <= 1:
+                del self._corrupt[slave]
+            else:
+                self._corrupt[slave] = left - 1
+        if not self._corrupt:
+            self.on_inputs = None

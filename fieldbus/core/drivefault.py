@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core import kernels
 from fieldbus.core.diagnosis import DiagMessage, DiagnosisReader
 from fieldbus.core.emcy import emcy_name
 from fieldbus.core.pdo.image import ProcessImage
@@ -82,14 +83,16 @@ class DriveFaultWatch:
         self._now = np.zeros(n, dtype=bool)
         self._edge = np.zeros(n, dtype=bool)
         self._bits = np.zeros(n, dtype=np.uint16)
+        # the clean cycle's test, one call (core.kernels): a fault bit set anywhere
+        self._fault_bit = kernels.any_bits(self._sw, FAULT_BIT) if self._sw is not None else None
 
     def step(self, fresh: npt.NDArray[np.bool_], cycle: int) -> tuple[DriveFault, ...]:
         """Judge the fresh rows of this cycle; the faults that began now (allocation-free when none)."""
-        if self._sw is None:
+        if self._sw is None or self._fault_bit is None:
             return _NONE
-        np.bitwise_and(self._sw, FAULT_BIT, out=self._bits)
-        if not self._faulted and not np.count_nonzero(self._bits):
+        if not self._faulted and not self._fault_bit():
             return _NONE  # no fault bit anywhere and no axis in fault: nothing can change (the clean cycle)
+        np.bitwise_and(self._sw, FAULT_BIT, out=self._bits)
         if self.axes > 1:  # ``fresh`` per slave: each of its axes' rows
             np.copyto(self._fresh.reshape(-1, self.axes), fresh.reshape(-1, 1))
             fresh = self._fresh

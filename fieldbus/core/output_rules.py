@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from fieldbus.core import kernels
 from fieldbus.core.canfamily import families
 from fieldbus.core.command_guard import UnsafeOutputError as UnsafeOutputError
 from fieldbus.core.command_guard import finite as finite
@@ -295,7 +296,8 @@ class _Block:
         # lo/hi/step as built here: limits are fixed for the block's life (a change means a new OutputRules)
         self.quick = src is None and not self.stepped
         self.windowed = bool(np.any(self.lo > -big) or np.any(self.hi < big))
-        self.size = n * m
+        # the clean cycle's test and its copy into ``last`` as one call (core.kernels)
+        self.clean = kernels.window(self.view, self.last, *((self.lo, self.hi) if self.windowed else ()))
 
     def apply(self, engaged: Callable[[], npt.NDArray[np.bool_]] | None) -> bool:
         """The rules on this block; True when a value was refused (the flags then say which).
@@ -303,20 +305,10 @@ class _Block:
         ``engaged()``: (N, 1) per axis, the step rule applies (None: every axis, after the first cycle).
         """
         x, last, w, ok = self.x, self.last, self.work, self.ok
-        if self.quick and not self.hit:  # the clean cycle: no value can be refused, none is changed
-            view = self.view
-            if self.windowed:
-                np.minimum(view, self.hi, out=w)
-                np.maximum(w, self.lo, out=w)
-                np.not_equal(w, view, out=ok)
-                clean = not np.count_nonzero(ok)
-            else:  # no window: only NaN and infinities can be refused
-                np.isfinite(view, out=ok)
-                clean = np.count_nonzero(ok) == self.size
-            if clean:
-                np.copyto(last, view)
-                self.started = True
-                return False
+        # the clean cycle (every value in its window, or finite without one): none is refused nor changed
+        if self.quick and not self.hit and self.clean():
+            self.started = True
+            return False
         if self.src is not None:
             np.copyto(self.col, self.src, casting="unsafe")
         else:

@@ -124,6 +124,8 @@ class AcyclicService:
                     req.finish(error=FieldbusError(f"SDO transfer failed in the cycle: {text}"))
                 st.last_error = text
                 events.append(BusEvent(cycle, st.name, "acyclic_error", text))
+        if b.error_watch is None:
+            return  # nothing watched: no diagnostic read (Backend.diag_step)
         try:
             changes = b.diag_step()  # one diagnostic datagram at most, in a cycle nothing else used
         except Exception as exc:  # diag_step never raises by contract; a backend bug is a reason

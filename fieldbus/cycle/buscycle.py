@@ -24,7 +24,7 @@ from fieldbus.core.hold import TransitionHold
 from fieldbus.core.output_rules import OutputRules, channel_limits, slave_limits
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.names import STATUSWORD
-from fieldbus.core.safety import SafetyPolicy, Verdict
+from fieldbus.core.safety import OK, SafetyPolicy, Verdict
 from fieldbus.cycle.status import BusEvent, BusFault, BusStatus, CycleEvent, FaultKind, missed, raised, reason
 from fieldbus.platform import phases as ph
 
@@ -41,7 +41,8 @@ class BusCycle:
         self.backend = b = backend
         self.policy = policy
         self.every = every
-        self.status = BusStatus(b.bus.name, b.expected_wkc, policy.fresh)
+        self.status = st = BusStatus(b.bus.name, b.expected_wkc, policy.fresh)
+        st.recovering, st.recoveries, st.recovery_error = b.recovering, b.recoveries, b.last_recovery_error
         # the one output path: every group's command values pass the rules before any codec (output_rules)
         self.encoders: list[tuple[OutputRules, ProcessImage]] = []
         self.holds: dict[str, TransitionHold] = {}  # raw-CAN groups: their hold command (fieldbus.core.hold)
@@ -69,6 +70,8 @@ class BusCycle:
         # a drive fault whose code (0x603F) or history (0x10F3) is to be read acyclically; None: not read
         self.on_drive_fault: Callable[[DriveFault], None] | None = None
         self._bus_off = int(b.bus_off)  # CAN bus-off reports so far (0 elsewhere)
+        # the bus can tell per-slave arrival (it overrides Backend.arrived); else the cycle does not ask
+        self._arrives = type(b).arrived is not Backend.arrived or "arrived" in vars(b)
 
     @property
     def name(self) -> str:
@@ -131,13 +134,15 @@ class BusCycle:
         if st.error is None:
             try:
                 wkc = b.receive()
-                arrived = b.arrived()
+                if self._arrives:
+                    arrived = b.arrived()
             except Exception as exc:
                 raised(st, FaultKind.RECEIVE_ERROR, exc)
         if pt is not None:
             pt.mark(ph.WAIT)
-        off = int(b.bus_off)
+        off = b.bus_off
         if off != self._bus_off:  # a CAN controller that reported bus-off: a bus error (S1)
+            off = int(off)
             if off > self._bus_off and st.error is None:
                 st.error = f"bus-off reported by the CAN controller ({off} since bring-up)"
                 st.fault = BusFault(st.name, FaultKind.BUS_OFF, st.expected_wkc, wkc, st.error)
@@ -150,7 +155,7 @@ class BusCycle:
         st.release_pending = policy.clear_requested
         st.dc_time_ns = b.dc_time_ns
         st.dc_sync_error_ns = b.dc_sync_error_ns
-        if verdict is not Verdict.OK:
+        if verdict is not OK:
             if st.fault is None:
                 st.fault = missed(st, verdict, policy.last_wkc)
             st.last_fault = st.fault
@@ -164,10 +169,8 @@ class BusCycle:
             events.append(BusEvent(cycle, st.name, "released"))
         if pt is not None:
             pt.mark(ph.JUDGE)
-        if verdict is Verdict.OK or (arrived is not None and policy.fresh.any()):
-            b.accept_inputs(
-                policy.fresh, verdict is Verdict.OK
-            )  # stale rows keep their last accepted bytes (S2)
+        if verdict is OK or (arrived is not None and policy.fresh.any()):
+            b.accept_inputs(policy.fresh, verdict is OK)  # stale rows keep their last accepted bytes (S2)
             for watch, rows in self.watches:
                 for fault in watch.step(rows, cycle):
                     events.append(fault)
@@ -179,9 +182,11 @@ class BusCycle:
         return verdict
 
     def recover(self) -> None:
-        """One bounded recovery step after a miss and while the backend recovers (its only caller)."""
+        """One bounded recovery step after a miss and while the backend recovers (its only caller), and the
+        recovery's status copied. The network skips it on a clean cycle (fresh, no error, not recovering):
+        no step is due then, and recoveries and their errors change only in a step."""
         b, st = self.backend, self.status
-        if st.error is None and (st.verdict is not Verdict.OK or b.recovering):
+        if st.error is None and (st.verdict is not OK or b.recovering):
             try:
                 b.recover_step()
             except Exception as exc:  # recover_step never raises by contract; a backend bug is a miss reason

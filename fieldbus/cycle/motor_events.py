@@ -23,9 +23,16 @@ class MotorEventPump:
     def __init__(self, backends: Sequence[Backend]) -> None:
         self.backends = list(backends)
         self.pumped = [0] * len(self.backends)  # events moved per bus since bring-up
+        # per bus: its motors can report faults (the backend overrides take_motor_events); else none to pump
+        self.reporting = [
+            type(b).take_motor_events is not Backend.take_motor_events or "take_motor_events" in vars(b)
+            for b in self.backends
+        ]
 
     def pump(self, k: int, cycle: int, events: list[CycleEvent]) -> int:
         """Bus ``k``'s faults reported since the last call, as events of ``cycle``; how many."""
+        if not self.reporting[k]:
+            return 0
         got = self.backends[k].take_motor_events(cycle)
         if got:
             events.extend(got)

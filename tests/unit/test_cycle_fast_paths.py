@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from fieldbus.core import kernels
 from fieldbus.core.drivefault import DriveFaultWatch
 from fieldbus.core.output_rules import OutputRules, channel_limits
 from fieldbus.core.pdo import drive_map_from_text
@@ -69,7 +70,13 @@ def _command(rng: np.random.Generator) -> float:
     [("", True), ("limits: off\n", True), ("limits:\n  target_position: {max_rate: 200.0}\n", False)],
     ids=["window", "no-window", "step"],
 )
-def test_output_rules_fast_path_decides_as_the_full_path(extra: str, quick_on: bool) -> None:
+@pytest.mark.parametrize("native", [True, False], ids=["c-kernel", "numpy"])
+def test_output_rules_fast_path_decides_as_the_full_path(
+    extra: str, quick_on: bool, native: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if native and not kernels.native:
+        pytest.skip("fieldbus._codec is not built (numpy path only)")
+    monkeypatch.setattr(kernels, "native", native)  # the clean cycle's test: C kernel or numpy
     fast_img, fast = _rules(MAP + extra, quick=True)
     full_img, full = _rules(MAP + extra, quick=False)
     assert [b.quick for b in fast.blocks] == [quick_on]  # the shortcut is (not) taken on this map
@@ -100,8 +107,14 @@ def test_output_rules_fast_path_decides_as_the_full_path(extra: str, quick_on: b
     assert 500 < clean_runs < 3000  # both paths were exercised
 
 
-def test_drive_fault_watch_fast_path_reports_as_a_plain_model() -> None:
+@pytest.mark.parametrize("native", [True, False], ids=["c-kernel", "numpy"])
+def test_drive_fault_watch_fast_path_reports_as_a_plain_model(
+    native: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Oracle: a per-row Python model of the watch (an edge is a fresh row whose fault bit rose)."""
+    if native and not kernels.native:
+        pytest.skip("fieldbus._codec is not built (numpy path only)")
+    monkeypatch.setattr(kernels, "native", native)  # the clean cycle's fault-bit test: C kernel or numpy
     img = ProcessImage(layout(drive_map_from_text(MAP, "joint.yaml")), N)
     watch = DriveFaultWatch("g", img, tuple(f"j{i}" for i in range(N)))
     in_fault = [False] * N
