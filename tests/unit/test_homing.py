@@ -78,3 +78,26 @@ def test_a_second_homing_does_not_believe_the_bits_left_from_the_first() -> None
     ctrl.step(stale, cw)
     homing.step(stale, cw)
     assert homing.phase[0] == HomingPhase.DONE
+
+
+def test_a_drive_that_leaves_operation_enabled_while_homing_has_failed_at_once() -> None:
+    """A fault (here a bus dropout's 0x8100) mid-search interrupts the drive's homing: after the fault
+    reset the drive waits for a new bit-4 edge, so the axis is FAILED when the fault is seen, not
+    RUNNING until its timeout (30 s by default; a loaded machine's veth test waited that long)."""
+    ctrl = Cia402Controller(2, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl)
+    homing.start()
+    enabled = np.array([0x0237, 0x0237], dtype=np.uint16)  # OPERATION ENABLED, searching
+    mode6 = np.array([Mode.HOMING, Mode.HOMING], dtype=np.int8)
+    cw = np.zeros(2, dtype=np.uint16)
+    mo = np.zeros(2, dtype=np.int8)
+    for _ in range(10):
+        ctrl.step(enabled, cw, mode6, mo)
+        homing.step(enabled, cw)
+    assert list(homing.phase) == [HomingPhase.RUNNING] * 2 and (cw & 0x10).all()
+    faulted = np.array([0x0237, 0x0218], dtype=np.uint16)  # axis 1 in FAULT
+    ctrl.step(faulted, cw, mode6, mo)
+    homing.step(faulted, cw)
+    assert list(homing.phase) == [HomingPhase.RUNNING, HomingPhase.FAILED]
+    assert cw[1] & 0x10 == 0 and cw[0] & 0x10  # bit 4 dropped on the failed axis only
