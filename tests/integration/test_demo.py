@@ -39,6 +39,7 @@ def _accounted(
     axes: int,
     min_tracked: int,
     state: str = "OPERATION_ENABLED",
+    sync_lag: bool = False,
 ) -> None:
     """A run on the wall clock: every axis enabled, every miss counted, a safe stop only when earned, the
     exit code saying which, and at least ``min_tracked`` cycles tracked within bounds."""
@@ -55,7 +56,11 @@ def _accounted(
     # the sine's time runs on while cycles are missed: after a run of n misses the next target is n cycles
     # further on, so the bound grows by what the sine moves in those cycles
     step_rad = PEAK_RAD_S * r["period_us"] / 1e6
-    assert e["max_rad"] < 10e-3 + bus["longest_streak"] * step_rad, (e, bus["longest_streak"])
+    # ``sync_lag`` (CANopen): a node that fell behind answers the SYNC of a missed cycle during the next
+    # cycle's receive; a TPDO carries no SYNC counter (CiA 301 0x1019 is optional, neither side has it),
+    # so that answer passes for the next cycle's: one more cycle of the sine after any miss
+    lag = 1 if sync_lag and bus["longest_streak"] else 0
+    assert e["max_rad"] < 10e-3 + (bus["longest_streak"] + lag) * step_rad, (e, bus["longest_streak"])
     assert e["rms_rad"] < 3e-3, e
 
 
@@ -123,7 +128,7 @@ def test_demo_on_canopen_nodes_over_the_virtual_can_bus(capsys: pytest.CaptureFi
     # python-can's virtual bus is threads on the wall clock: a loaded machine may delay a TPDO past the
     # receive timeout (a counted miss); the CANopen cycle on virtual time is tested strictly in
     # test_cyclic_api.py and test_testing_kit.py
-    _accounted(code, r, 4, min_tracked=100)
+    _accounted(code, r, 4, min_tracked=100, sync_lag=True)
 
 
 def test_demo_help_documents_its_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
