@@ -149,7 +149,13 @@ def test_demo_real_time_flags_latency_histograms_and_plot(
     cpu = min(os.sched_getaffinity(0))  # one this process may run on (a container's cpuset may leave out 0)
     args = ["--axes", "2", "--cycles", "400", "--cpu", str(cpu), "--lock-memory", "--plot", str(png)]
     code, r = _demo(capsys, *args)
-    assert code == 0
+    # pinned to one CPU on the wall clock: a loaded machine can stall the loop past safe_stop_after cycles
+    # (and the emulated slaves' 100 ms watchdog); then the demo latches the stop it earned and exits 3
+    (bus,) = r["buses"]
+    assert r["safe_stops"] == bus["safe_stops"] <= 1, bus
+    if r["safe_stops"]:
+        assert bus["longest_streak"] >= SAFE_STOP_AFTER, bus  # never before safe_stop_after in a row
+    assert code == (3 if r["safe_stops"] else 0), (code, r["safe_stops"])
     for kind in ("wakeup", "exchange"):
         s = r["latency_us"][kind]
         assert s["cycles"] == 400 and 0 < s["p50"] <= s["p99"] <= s["p99.9"] <= s["max"] + 1, s
