@@ -101,3 +101,32 @@ def test_a_drive_that_leaves_operation_enabled_while_homing_has_failed_at_once()
     homing.step(faulted, cw)
     assert list(homing.phase) == [HomingPhase.RUNNING, HomingPhase.FAILED]
     assert cw[1] & 0x10 == 0 and cw[0] & 0x10  # bit 4 dropped on the failed axis only
+
+
+def test_a_dropout_that_takes_the_start_edge_fails_the_homing_instead_of_waiting_for_ever() -> None:
+    """Over a bus, the frame carrying the bit-4 edge can be lost to a dropout (the slave's watchdog):
+    the emulated drive faults 0x8100 without having started, and after the fault reset it is OPERATION
+    ENABLED in mode 6 with bit 4 already high: no edge, no homing. The axis must not stay RUNNING."""
+    drive, od = _drive(17, 100_000)
+    ctrl = Cia402Controller(1, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl, timeout_cycles=20_000)
+    sw, cw = np.zeros(1, dtype=np.uint16), np.zeros(1, dtype=np.uint16)
+    md, mo = np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int8)
+    homing.start()
+    lost = None
+    for k in range(2000):
+        if lost is None and homing.phase[0] == HomingPhase.RUNNING:
+            lost = k  # this cycle's outputs never reach the drive, which faults
+            drive.connection_lost()
+        else:
+            od.values[(Obj.CONTROLWORD, 0)] = int(cw[0])
+            od.values[(Obj.MODES_OF_OPERATION, 0)] = int(mo[0])
+        drive.step(od, 1e-3)
+        sw[0] = od.values[(Obj.STATUSWORD, 0)]
+        md[0] = od.values[(Obj.MODES_DISPLAY, 0)]
+        ctrl.step(sw, cw, md, mo)
+        homing.step(sw, cw)
+    assert lost is not None
+    assert homing.phase[0] == HomingPhase.FAILED and homing.done  # (was RUNNING until the timeout)
+    assert ctrl.all_reached and md[0] == Mode.CSP  # enabled again, back in its previous mode
