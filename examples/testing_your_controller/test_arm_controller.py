@@ -28,6 +28,38 @@ HERE = Path(__file__).parent
 SENSOR_FAULT = 0x7300  # CiA 402 error code: sensor
 
 
+def follow(emu: Emulation, controller: ArmController, cycles: int = 1500) -> None:
+    """Step the controller until the arm follows its sine again (all joints enabled), ``cycles`` at most.
+
+    On virtual time (sim, canopen) nothing stalls: that is one run. Over veth the emulated drives
+    run in a child process on the wall clock, and each has a 100 ms SyncManager watchdog: a machine
+    busy enough to deschedule this process longer than that takes a drive out of OP. The master then
+    sees the missed cycles and latches the safe stop, as it must; the arm stops. That stop is checked
+    here, not ignored, and then resumed as an operator would (at most twice).
+    """
+
+    def until_following(k: int) -> bool:  # returning True ends emu.run early
+        controller.step(k)
+        return controller.following
+
+    for _ in range(3):
+        if controller.stopped:
+            controller.resume()
+        since = emu.trace.mark()
+        emu.run(until_following, cycles=cycles)
+        if controller.following:
+            return
+        assert not emu.virtual, "the joints did not all enable"
+        assert_stalled(emu, controller, since)
+    pytest.fail("the joints did not all enable: stopped by a stall three times")
+
+
+def assert_stalled(emu: Emulation, controller: ArmController, since: int) -> None:
+    """The arm stopped since cycle ``since`` the way a stall stops it: missed cycles, then the latch."""
+    assert not emu.trace.fresh[since:].all(), "stopped, yet every cycle was fresh"
+    assert emu.trace.safe_stop[-1] and controller.stopped
+
+
 @pytest.fixture(params=["sim", "veth", "canopen"])
 def arm(request: pytest.FixtureRequest, fieldbus_emulation) -> tuple[Emulation, ArmController]:
     """The arm's network file as it is, on emulated drives; the controller enabled and following."""
@@ -38,17 +70,7 @@ def arm(request: pytest.FixtureRequest, fieldbus_emulation) -> tuple[Emulation, 
     else:
         emu = fieldbus_emulation(HERE / "arm.yaml")
     controller = ArmController(emu.op)
-
-    def until_following(k: int) -> bool:  # returning True ends emu.run early
-        controller.step(k)
-        return controller.following
-
-    for _ in range(3):  # over veth on a busy machine a stall can stop the arm while it enables: reset
-        emu.run(until_following, cycles=1500)
-        if controller.following:
-            break
-        controller.resume()
-    assert controller.following, "the joints did not all enable"
+    follow(emu, controller)
     return emu, controller
 
 
@@ -60,9 +82,9 @@ def test_tracks_the_sine(arm: tuple[Emulation, ArmController]) -> None:
         if emu.virtual or not controller.stopped:
             break
         # over veth a busy machine can stall the emulator longer than safe_stop_after cycles:
-        # the arm stops (as it must); reset and track again
-        controller.resume()
-        emu.run(controller.step, cycles=1500)
+        # the arm stops (as it must); check that stop, resume, and track again
+        assert_stalled(emu, controller, since)
+        follow(emu, controller)
     assert_all_enabled(emu.op)
     if emu.virtual:  # over veth a late reply is possible on a loaded machine: not the controller's doing
         assert_no_miss(emu.trace, since=since)
@@ -81,7 +103,7 @@ def test_a_burst_of_lost_frames_latches_the_safe_stop(arm: tuple[Emulation, ArmC
     # the drives themselves left OPERATION ENABLED (quick stop), not just the controller
     assert all(s is not None and s.name != "OPERATION_ENABLED" for s in emu.drive_states("arm"))
     controller.resume()
-    emu.run(controller.step, cycles=1500)
+    follow(emu, controller)
     assert controller.following and not controller.stopped
     assert_all_enabled(emu.op)
 
@@ -91,7 +113,7 @@ def test_a_drive_fault_reaches_the_controller_with_its_code(arm: tuple[Emulation
     emu.drive_fault("arm", "elbow", SENSOR_FAULT)
     emu.run(controller.step, cycles=100)
     assert controller.fault_codes == {1: SENSOR_FAULT}
-    emu.run(controller.step, cycles=1500)  # the controller resets the fault and enables again
+    follow(emu, controller)  # the controller resets the fault and enables again
     assert controller.following
     assert_all_enabled(emu.op)
 
@@ -111,6 +133,6 @@ def test_a_power_cycled_drive_stops_the_arm_comes_back_and_is_enabled_again(
     # ...and the master brings the slave back to OP by itself
     assert status.recoveries > before and not status.recovering
     controller.resume()  # what an operator does once the cause is known
-    emu.run(controller.step, cycles=1500)
+    follow(emu, controller)
     assert controller.following
     assert_all_enabled(emu.op)

@@ -887,7 +887,8 @@ class Homing:
     :meth:`start` switches the axes to HOMING (mode 6); each :meth:`step`, called
     right after the controller's step with the same arrays, gives each axis's
     controlword bit 4 a rising edge once the axis is OPERATION ENABLED in mode 6,
-    then follows statusword bits 12 (attained, with 10) and 13 (error). When an
+    then follows statusword bits 12 (attained, with 10) and 13 (error); an axis
+    that leaves OPERATION ENABLED in mode 6 while homing has failed too. When an
     axis is done, failed or took more than ``timeout_cycles`` cycles, bit 4 drops
     and the axis goes back to the mode it had before :meth:`start`. The homing
     parameters (0x6098 method, 0x607C offset, 0x6099 speeds, 0x609A acceleration)
@@ -969,7 +970,10 @@ class Homing:
         # drive sees it, its answer comes back (bits 10/12/13 of an earlier homing are stale until then)
         judged = running & (self._running > SETTLE_CYCLES)
         attained = judged & ((self._sw & (HOMING_ATTAINED | StatusBit.TARGET_REACHED)) == 0x1400)
-        failed = judged & ((self._sw & HOMING_ERROR) != 0)
+        # a drive that left OPERATION ENABLED in mode 6 (a fault, a bus dropout, a quick stop) has
+        # interrupted its homing (CiA 402: it runs only there); after a fault reset it waits for a new
+        # bit-4 edge, so waiting for bits 12/13 would only end at the timeout
+        failed = (judged & ((self._sw & HOMING_ERROR) != 0)) | (running & ~self.ctrl.reached)
         late = active & (self.cycles > self.timeout_cycles)
         if attained.any() or failed.any() or late.any():  # rare path: an axis finishes
             self._finish(attained, failed & ~attained, late & ~attained & ~failed, controlword_out)

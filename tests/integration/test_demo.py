@@ -39,6 +39,7 @@ def _accounted(
     axes: int,
     min_tracked: int,
     state: str = "OPERATION_ENABLED",
+    sync_lag: bool = False,
 ) -> None:
     """A run on the wall clock: every axis enabled, every miss counted, a safe stop only when earned, the
     exit code saying which, and at least ``min_tracked`` cycles tracked within bounds."""
@@ -55,7 +56,11 @@ def _accounted(
     # the sine's time runs on while cycles are missed: after a run of n misses the next target is n cycles
     # further on, so the bound grows by what the sine moves in those cycles
     step_rad = PEAK_RAD_S * r["period_us"] / 1e6
-    assert e["max_rad"] < 10e-3 + bus["longest_streak"] * step_rad, (e, bus["longest_streak"])
+    # ``sync_lag`` (CANopen): a node that fell behind answers the SYNC of a missed cycle during the next
+    # cycle's receive; a TPDO carries no SYNC counter (CiA 301 0x1019 is optional, neither side has it),
+    # so that answer passes for the next cycle's: one more cycle of the sine after any miss
+    lag = 1 if sync_lag and bus["longest_streak"] else 0
+    assert e["max_rad"] < 10e-3 + (bus["longest_streak"] + lag) * step_rad, (e, bus["longest_streak"])
     assert e["rms_rad"] < 3e-3, e
 
 
@@ -123,7 +128,7 @@ def test_demo_on_canopen_nodes_over_the_virtual_can_bus(capsys: pytest.CaptureFi
     # python-can's virtual bus is threads on the wall clock: a loaded machine may delay a TPDO past the
     # receive timeout (a counted miss); the CANopen cycle on virtual time is tested strictly in
     # test_cyclic_api.py and test_testing_kit.py
-    _accounted(code, r, 4, min_tracked=100)
+    _accounted(code, r, 4, min_tracked=100, sync_lag=True)
 
 
 def test_demo_help_documents_its_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
@@ -144,7 +149,13 @@ def test_demo_real_time_flags_latency_histograms_and_plot(
     cpu = min(os.sched_getaffinity(0))  # one this process may run on (a container's cpuset may leave out 0)
     args = ["--axes", "2", "--cycles", "400", "--cpu", str(cpu), "--lock-memory", "--plot", str(png)]
     code, r = _demo(capsys, *args)
-    assert code == 0
+    # pinned to one CPU on the wall clock: a loaded machine can stall the loop past safe_stop_after cycles
+    # (and the emulated slaves' 100 ms watchdog); then the demo latches the stop it earned and exits 3
+    (bus,) = r["buses"]
+    assert r["safe_stops"] == bus["safe_stops"] <= 1, bus
+    if r["safe_stops"]:
+        assert bus["longest_streak"] >= SAFE_STOP_AFTER, bus  # never before safe_stop_after in a row
+    assert code == (3 if r["safe_stops"] else 0), (code, r["safe_stops"])
     for kind in ("wakeup", "exchange"):
         s = r["latency_us"][kind]
         assert s["cycles"] == 400 and 0 < s["p50"] <= s["p99"] <= s["p99.9"] <= s["max"] + 1, s

@@ -259,6 +259,10 @@ def bring_up(port: RawPort, n: int = N) -> Bus:
     maps, out_bytes, in_bytes = layout_image(sizes)
     for info, m in zip(infos, maps, strict=True):
         master.map_process_data(info, m)
+        # the process-data watchdog (0x0420, in units of the default 100 us divider) at its longest, 6.5 s,
+        # as a master may configure it: these tests judge the wire, and a loaded machine that stalls this
+        # process or the emulator past the default 100 ms would take the slaves to SAFE-OP mid-test
+        assert master.fpwr(info.station, 0x0420, struct.pack("<H", 0xFFFF)) == 1
     _go(master, stations, AL_SAFEOP)
     for st, (o, i) in zip(stations, sizes, strict=True):  # what the ESCs took as SM2/SM3 lengths
         assert master.fprd(st, 0x0812, 2) == (struct.pack("<H", o), 1)

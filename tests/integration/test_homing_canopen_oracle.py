@@ -66,6 +66,10 @@ def _home_with_canopen(map_file: Path) -> int:
         try:
             node = BaseNode402(5, to_canopen_od(sim.node(5).od))
             network.add_node(node)
+            # canopen's SDO client waits 0.3 s for a reply by default; our simulator answers from a
+            # thread on the wall clock, which a loaded machine can deschedule for longer. The oracle's
+            # own patience is its configuration (CiA 301 sets no SDO timeout), not what is judged.
+            node.sdo.RESPONSE_TIMEOUT = 5.0
             node.nmt.state = "PRE-OPERATIONAL"
             for sdo in drive.sdo:  # the start-up writes, as canopen's user would make them
                 node.sdo.download(sdo.index, sdo.sub_index, sdo.data)

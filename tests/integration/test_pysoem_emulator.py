@@ -256,6 +256,17 @@ def _answered(op: Any, backend: Any) -> None:
     pytest.fail(f"no reply in 500 cycles: {op.result.buses[0]}")
 
 
+def _watchdog_count(emu: Any, expected: int, got: int) -> bool:
+    """``got`` is a count short by 2 for each slave the emulator reports in SAFE-OP with AL status code
+    0x001B (sync manager watchdog): a stall of the master, not a count from somewhere else."""
+    status = emu.command(cmd="status")
+    tripped = [
+        c == 0x001B and s & 0x0F == 0x4
+        for s, c in zip(status["states"], status["al_status_codes"], strict=True)
+    ]
+    return any(tripped) and got == expected - 2 * sum(tripped)
+
+
 RT_TIMEOUT_US = 5000  # the receive timeout of the two tests below (bring-up needs a reply within it)
 
 
@@ -336,11 +347,18 @@ def test_a_redundant_port_gets_its_own_nonblocking_socket_and_the_timeout_holds(
             # scheduler's doing) is judged late, a miss, its WKC kept in late_wkc. Either way the
             # process data came back through the first port with every slave's count, never another.
             # How many come back in time is the machine's load (measured quiet: 2 % lost, 2 % late).
+            # A loaded machine that stalls this process past the slaves' 100 ms SyncManager watchdog takes
+            # them to SAFE-OP: each then counts its read only (LRW: +1 read, +2 write), 2 less per slave.
+            # That count is the watchdog's, checked against the emulator's own AL status, not ignored.
             replies = 0
             for _ in range(100):
                 res = op.exchange()
-                assert res.buses[0].verdict in (Verdict.OK, Verdict.TIMEOUT), res.buses[0]
-                assert backend.late_wkc in (None, backend.expected_wkc), backend.late_wkc
+                st = res.buses[0]
+                got = backend.late_wkc if st.verdict is Verdict.TIMEOUT else st.wkc
+                if got not in (None, backend.expected_wkc):
+                    assert _watchdog_count(emu, backend.expected_wkc, got), (st, got)
+                    continue
+                assert st.verdict in (Verdict.OK, Verdict.TIMEOUT), st
                 replies += res.fresh or backend.late_wkc == backend.expected_wkc
             assert replies >= 10, f"{replies} of 100 cycles got their reply"
             lost: list[Wait] = []

@@ -15,6 +15,7 @@ import pytest
 from fieldbus.core.pdo import load_drive_map
 from fieldbus.core.pdo.image import ProcessImage
 from fieldbus.core.pdo.layout import layout
+from fieldbus.core.safety import Verdict
 from fieldbus.network import open_network
 from sim_slaves.mit_motor import MitMotorSimulator
 
@@ -96,12 +97,34 @@ def test_motors_follow_commands_through_the_network_api(network: tuple[Path, str
         out["kp"][:] = 40.0
         out["kd"][:] = 1.5
         target = np.array([0.5, -0.5, 1.0, 0.0])
-        errors = []
-        for k in range(300):
-            out["position"][:] = target * min(1.0, k / 100)
+        errors: list[float] = []
+        misses = 0
+        for k in range(
+            600
+        ):  # 300 fresh cycles; the motors' physics advance per command (dt_s), not wall time
+            if len(errors) == 300:
+                break
+            out["position"][:] = target * min(1.0, len(errors) / 100)
+            before = inp["position"].copy()
             res = op.exchange()
-            assert res.fresh, (k, res.buses[0])
-            errors.append(np.abs(inp["position"] - out["position"]).max())
+            st = res.bus("legs")
+            if not res.fresh:
+                # the simulator answers from a thread on the wall clock: a loaded machine can deschedule it past
+                # receive_timeout_us. That is a miss, and the contract's verdict for it is what we check: named,
+                # the late motors' inputs held (stale never reads fresh), no safe stop below safe_stop_after (4)
+                misses += 1
+                assert st.verdict is not Verdict.OK and st.fault is not None, (k, st)
+                late = ~st.fresh
+                assert np.array_equal(inp["position"][late], before[late]), (k, st)
+                assert res.safe_stop == (st.consecutive_misses >= 4), (k, st)
+                assert not res.safe_stop, (
+                    k,
+                    st,
+                )  # 4 misses in a row: the simulator starved for 80 ms or more
+                continue
+            assert st.verdict is Verdict.OK and st.consecutive_misses == 0
+            errors.append(float(np.abs(inp["position"] - out["position"]).max()))
+        assert len(errors) == 300, (misses, st)  # at most as many misses as fresh cycles
         assert max(errors[-50:]) < 0.02, max(errors[-50:])  # rad, after the ramp settles
         assert list(inp["motor_id"]) == [1, 2, 3, 4]
         assert not sim.errors

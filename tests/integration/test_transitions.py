@@ -13,6 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 import fieldbus
@@ -251,7 +252,19 @@ def test_a_power_cycle_under_acyclic_modes_then_clear_starts_no_motion_on_canope
         sim.power_cycle(5)
         assert run(400, lambda: op.result.safe_stop)
         assert run(3000, lambda: net.backend("bus").recoveries > 0 and op.result.fresh)
-        assert run(3000, lambda: op.clear_safe_stop())
+
+        def clear() -> bool:
+            # the emulator answers from a thread on the wall clock: on a loaded machine a reply can come
+            # later than receive_timeout_us, a miss. A clear then is refused (docs/safety.md S4) and the
+            # latch holds; the operator asks again once the bus is fresh
+            if not op.result.fresh:
+                with pytest.raises(fieldbus.SafeStopClearError):
+                    op.clear_safe_stop()
+                assert op.result.safe_stop
+                return False
+            return op.clear_safe_stop()
+
+        assert run(3000, clear)
         drive = sim.node(5).app  # the drive after its restart
         watch = Watch([drive])
         run(600, watch=watch)

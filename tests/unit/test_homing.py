@@ -78,3 +78,55 @@ def test_a_second_homing_does_not_believe_the_bits_left_from_the_first() -> None
     ctrl.step(stale, cw)
     homing.step(stale, cw)
     assert homing.phase[0] == HomingPhase.DONE
+
+
+def test_a_drive_that_leaves_operation_enabled_while_homing_has_failed_at_once() -> None:
+    """A fault (here a bus dropout's 0x8100) mid-search interrupts the drive's homing: after the fault
+    reset the drive waits for a new bit-4 edge, so the axis is FAILED when the fault is seen, not
+    RUNNING until its timeout (30 s by default; a loaded machine's veth test waited that long)."""
+    ctrl = Cia402Controller(2, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl)
+    homing.start()
+    enabled = np.array([0x0237, 0x0237], dtype=np.uint16)  # OPERATION ENABLED, searching
+    mode6 = np.array([Mode.HOMING, Mode.HOMING], dtype=np.int8)
+    cw = np.zeros(2, dtype=np.uint16)
+    mo = np.zeros(2, dtype=np.int8)
+    for _ in range(10):
+        ctrl.step(enabled, cw, mode6, mo)
+        homing.step(enabled, cw)
+    assert list(homing.phase) == [HomingPhase.RUNNING] * 2 and (cw & 0x10).all()
+    faulted = np.array([0x0237, 0x0218], dtype=np.uint16)  # axis 1 in FAULT
+    ctrl.step(faulted, cw, mode6, mo)
+    homing.step(faulted, cw)
+    assert list(homing.phase) == [HomingPhase.RUNNING, HomingPhase.FAILED]
+    assert cw[1] & 0x10 == 0 and cw[0] & 0x10  # bit 4 dropped on the failed axis only
+
+
+def test_a_dropout_that_takes_the_start_edge_fails_the_homing_instead_of_waiting_for_ever() -> None:
+    """Over a bus, the frame carrying the bit-4 edge can be lost to a dropout (the slave's watchdog):
+    the emulated drive faults 0x8100 without having started, and after the fault reset it is OPERATION
+    ENABLED in mode 6 with bit 4 already high: no edge, no homing. The axis must not stay RUNNING."""
+    drive, od = _drive(17, 100_000)
+    ctrl = Cia402Controller(1, mode=Mode.CSP)
+    ctrl.set_goal(Goal.ENABLE)
+    homing = Homing(ctrl, timeout_cycles=20_000)
+    sw, cw = np.zeros(1, dtype=np.uint16), np.zeros(1, dtype=np.uint16)
+    md, mo = np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int8)
+    homing.start()
+    lost = None
+    for k in range(2000):
+        if lost is None and homing.phase[0] == HomingPhase.RUNNING:
+            lost = k  # this cycle's outputs never reach the drive, which faults
+            drive.connection_lost()
+        else:
+            od.values[(Obj.CONTROLWORD, 0)] = int(cw[0])
+            od.values[(Obj.MODES_OF_OPERATION, 0)] = int(mo[0])
+        drive.step(od, 1e-3)
+        sw[0] = od.values[(Obj.STATUSWORD, 0)]
+        md[0] = od.values[(Obj.MODES_DISPLAY, 0)]
+        ctrl.step(sw, cw, md, mo)
+        homing.step(sw, cw)
+    assert lost is not None
+    assert homing.phase[0] == HomingPhase.FAILED and homing.done  # (was RUNNING until the timeout)
+    assert ctrl.all_reached and md[0] == Mode.CSP  # enabled again, back in its previous mode
