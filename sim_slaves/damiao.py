@@ -37,7 +37,7 @@ import can
 from fieldbus.core import damiao
 from fieldbus.core.pdo.model import DriveMap
 from fieldbus.platform.clock import Clock
-from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator
+from sim_slaves.mit_motor import Law, MitFrame, MitMotorSimulator, MotorState
 
 POSITION_GAIN = 20.0  # 1/s: speed command per rad of position error (position modes)
 VELOCITY_GAIN = 0.5  # N·m·s/rad: torque per rad/s of speed error (velocity loop of the non-MIT modes)
@@ -48,6 +48,7 @@ FLOAT_REGISTERS = frozenset({0, 1, 2, 3, 4, 5, 6, 11, 12, 17, 18, 19, 20, *range
 READ_ONLY = frozenset({11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 36})
 ROTOR_FIELDS = ("position", "velocity", "torque")  # the status reply's fields that change every frame
 TIMEOUT_MARGIN_S = 1e-6  # the timeout check looks this much early (the bound's rounding, never late)
+SPECIAL_PREFIX = b"\xff" * 7  # enable / disable / zero / clear: seven 0xFF, then the code
 FRAMES_KEPT = 1000  # frames a motor keeps (DamiaoState.frames): a long run's memory stays bounded
 
 
@@ -67,6 +68,10 @@ class DamiaoState:
 
     def reg(self, number: int) -> float:
         return damiao.unpack_register(self.registers[number], number in FLOAT_REGISTERS)
+
+
+# a command CAN id's node, mode, protocol, rawcan section, rotor, state and MIT command layout
+Route = tuple[int, damiao.Mode, damiao.DamiaoProtocol, Any, MotorState, DamiaoState, MitFrame]
 
 
 class DamiaoSimulator(MitMotorSimulator):
@@ -119,6 +124,7 @@ class DamiaoSimulator(MitMotorSimulator):
             for node, (proto, _) in self._proto.items()
             for mode in proto.modes
         }
+        self._mit = {node: self._by_id[node + cfg.command_id][1][0] for node, (_, cfg) in self._proto.items()}
         self._tmax = {  # the MIT frame's torque range per node: a position-force frame's current limit base
             node: next(f.max for f in cfg.command if f.name == "torque")
             for node, (_, cfg) in self._proto.items()
@@ -133,7 +139,7 @@ class DamiaoSimulator(MitMotorSimulator):
         self._status_frame: dict[int, tuple[MitFrame, Any, tuple[str, Any]]] = {}
         for node, (proto, cfg) in self._proto.items():
             frame = self._by_id[node + cfg.command_id][1][1]
-            rotor = [f for f in frame.fields if f[0] in ROTOR_FIELDS]
+            rotor = [next(f for f in frame.fields if f[0] == name) for name in ROTOR_FIELDS]  # in order
             rest = [f for f in frame.fields if f[0] not in ROTOR_FIELDS]
             self._status_frame[node] = (frame, rotor, (proto.error_field, rest))
         self._status_rest: dict[int, tuple[tuple[int, float, float], int]] = {}
@@ -141,6 +147,14 @@ class DamiaoSimulator(MitMotorSimulator):
             node: {f.name: f.max for f in cfg.command if f.max is not None}
             for node, (_, cfg) in self._proto.items()
         }
+        # a command's CAN id -> what its frame needs: node, mode, protocol, rawcan section, rotor, state
+        # and the MIT command's layout (one look-up per frame)
+        self._routes: dict[int, Route] = {
+            can_id: (node, mode, *self._proto[node], self._motors[node], self.state[node], self._mit[node])
+            for can_id, (node, mode) in self._commands.items()
+        }
+        self._fd = (False, False)  # the last frame's (CAN FD, bit-rate switch): its reply's
+        self._tick_s = -math.inf  # the clock at the last tick (s): a command's arrival time
 
     # -- fault hooks -------------------------------------------------------------------------------
     def inject_error(self, node_id: int, code: int) -> None:
@@ -164,8 +178,11 @@ class DamiaoSimulator(MitMotorSimulator):
             st.t_mos, st.t_rotor = mos, rotor
 
     def _tick(self) -> None:
-        super()._tick()
-        self.check_timeouts()
+        """The physics and the CAN timeouts up to now, on one reading of the clock."""
+        now = self._tick_s = self.clock()
+        self.advance(now if self.dt_s is None else self._physics_now())
+        if now >= self._timeout_due:
+            self.check_timeouts(now)
 
     def _refresh(self, node: int) -> None:
         """The registers every frame reads (TIMEOUT, MST_ID, CTRL_MODE), decoded once after each write."""
@@ -174,13 +191,13 @@ class DamiaoSimulator(MitMotorSimulator):
         self._fixed[node] = (timeout * 50e-6, mst, mode)
         self._timeout_due = -math.inf  # a TIMEOUT written: the next tick looks at every motor
 
-    def check_timeouts(self) -> None:
+    def check_timeouts(self, now: float | None = None) -> None:
         """Every enabled motor whose TIMEOUT elapsed since its last command: error 0xD, torque off.
 
         Before ``_timeout_due`` (the earliest such time seen at the last look, a little early) none can
         have elapsed: commands only move a motor's time later; enabling a motor or writing TIMEOUT makes
-        the next tick look again."""
-        now = self.clock()
+        the next tick look again. ``now``: the clock's time (s; default: read it)."""
+        now = self.clock() if now is None else now
         if now < self._timeout_due:
             return
         due = math.inf
@@ -210,21 +227,18 @@ class DamiaoSimulator(MitMotorSimulator):
         return True
 
     def handle(self, msg: can.Message) -> can.Message | None:
-        """One frame: a register request, a special frame or a command of some mode; returns the reply sent."""
+        """One frame: a register request, a special frame or a command of some mode; returns the reply sent.
+        The caller ticks first (:meth:`serve`, :meth:`deliver`): a command arrives at that tick's time."""
         can_id, data = msg.arbitration_id, bytes(msg.data)
         self._fd = (bool(msg.is_fd), bool(msg.bitrate_switch))  # a CAN FD variant answers in FD
-        if can_id == self._register_id:
-            return self._register(data)
-        found = self._commands.get(can_id)
-        if found is None:
-            return None
-        node, mode = found
-        proto, cfg = self._proto[node]
-        self.state[node].frames.append((can_id, data))
-        return self._command(node, proto, cfg, mode, data)
+        route = self._routes.get(can_id)
+        if route is None:
+            return self._register(data) if can_id == self._register_id else None
+        route[5].frames.append((can_id, data))
+        return self._command(route, data)
 
     def _reply(self, node: int, data: bytes) -> can.Message:
-        fd, brs = getattr(self, "_fd", (False, False))
+        fd, brs = self._fd
         reply = can.Message(
             arbitration_id=self._fixed[node][1], data=data, is_extended_id=False, is_fd=fd, bitrate_switch=brs
         )
@@ -232,7 +246,10 @@ class DamiaoSimulator(MitMotorSimulator):
         return reply
 
     def _status(self, node: int) -> can.Message | None:
-        st, ds = self._motors[node], self.state[node]
+        return self._status_of(node, self._motors[node], self.state[node])
+
+    def _status_of(self, node: int, st: MotorState, ds: DamiaoState) -> can.Message | None:
+        """Motor ``node``'s status reply (rotor ``st``, state ``ds``), sent unless dropped or silenced."""
         if st.drop:
             st.drop -= 1
             return None
@@ -244,9 +261,7 @@ class DamiaoSimulator(MitMotorSimulator):
         if cached is None or cached[0] != key:  # error code, temperatures, id: encoded when they change
             values = {"t_mos": ds.t_mos, "t_rotor": ds.t_rotor, "motor_id": node & 0xF, rest[0]: ds.error}
             cached = self._status_rest[node] = (key, frame.bits(values, rest[1]))
-        x = cached[1] | frame.bits(
-            {"position": st.position, "velocity": st.velocity, "torque": st.torque}, rotor
-        )
+        x = cached[1] | frame.pack((st.position, st.velocity, st.torque), rotor)
         return self._reply(node, x.to_bytes(frame.size, "big"))
 
     def _register(self, data: bytes) -> can.Message | None:
@@ -274,12 +289,10 @@ class DamiaoSimulator(MitMotorSimulator):
             return self._reply(node, data[:4] + ds.registers[number])
         return None
 
-    def _command(
-        self, node: int, proto: damiao.DamiaoProtocol, cfg: Any, mode: damiao.Mode, data: bytes
-    ) -> can.Message | None:
-        st, ds = self._motors[node], self.state[node]
-        now = self.clock()
-        if mode.mit and len(data) == 8 and data[:7] == b"\xff" * 7:
+    def _command(self, route: Route, data: bytes) -> can.Message | None:
+        node, mode, proto, cfg, st, ds, frame = route
+        now = self._tick_s  # the frame's arrival: the tick before it
+        if mode.mit and data[:7] == SPECIAL_PREFIX and len(data) == 8:
             if data == cfg.enter:
                 if ds.error in (ENABLED, DISABLED):
                     if not st.enabled:
@@ -296,22 +309,21 @@ class DamiaoSimulator(MitMotorSimulator):
                 st.position = 0.0
             elif data == proto.clear and ds.error not in (ENABLED, DISABLED):
                 ds.error = DISABLED
-            return self._status(node)
+            return self._status_of(node, st, ds)
         if self._fixed[node][2] != mode.ctrl_mode:
             return None  # not the mode the motor is in: ignored
         ds.last_command_t = now
         st.commands += 1
         tmax = self._tmax[node]
         if mode.mit:
-            frame: MitFrame = self._by_id[node + cfg.command_id][1][0]
             v = frame.decode(data)
             st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
-            reply = self._status(node)
+            reply = self._status_of(node, st, ds)
             st.law = Law(*st.command)
             return reply
         v = damiao.decode_mode(mode, data, self._maxima[node])
         ds.mode_command = (mode.name, v)
-        reply = self._status(node)
+        reply = self._status_of(node, st, ds)
         limit = v.get("torque", tmax) if mode.fields[-1].per_unit else None  # position-force: its share
         if "position" in v:  # position loop under the speed limit
             vmax = abs(v.get("velocity", 0.0))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,6 +81,14 @@ class MitFrame:
         x = 0
         for name, shift, mask, lo, per_raw in self.fields if fields is None else fields:
             v = values.get(name, 0.0)
+            raw = int(v) if lo is None else round((v - lo) / per_raw)
+            x |= (0 if raw < 0 else mask if raw > mask else raw) << shift
+        return x
+
+    def pack(self, values: Sequence[float], fields: list[tuple[str, int, int, float | None, float]]) -> int:
+        """As :meth:`bits`, ``values`` given in the order of ``fields`` (no dict per frame)."""
+        x = 0
+        for v, (_, shift, mask, lo, per_raw) in zip(values, fields, strict=True):
             raw = int(v) if lo is None else round((v - lo) / per_raw)
             x |= (0 if raw < 0 else mask if raw > mask else raw) << shift
         return x
