@@ -314,7 +314,6 @@ class DamiaoSimulator(MitMotorSimulator):
             return None  # not the mode the motor is in: ignored
         ds.last_command_t = now
         st.commands += 1
-        tmax = self._tmax[node]
         if mode.mit:
             v = frame.decode(data)
             st.command = (v["position"], v["velocity"], v["kp"], v["kd"], v["torque"])
@@ -324,7 +323,9 @@ class DamiaoSimulator(MitMotorSimulator):
         v = damiao.decode_mode(mode, data, self._maxima[node])
         ds.mode_command = (mode.name, v)
         reply = self._status_of(node, st, ds)
-        limit = v.get("torque", tmax) if mode.fields[-1].per_unit else None  # position-force: its share
+        limit = (
+            v.get("torque", self._tmax[node]) if mode.fields[-1].per_unit else None
+        )  # position-force: its share
         if "position" in v:  # position loop under the speed limit
             vmax = abs(v.get("velocity", 0.0))
             st.law = Law(
