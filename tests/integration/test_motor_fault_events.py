@@ -105,6 +105,28 @@ def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> No
     ]
 
 
+def test_damiao_unnamed_code_is_named_by_number_at_each_onset(tmp_path: Path) -> None:
+    """A code the map does not name (0x5) is a fault named by its number; the same code again after a
+    clear is a new onset with the same name (the family keeps each code's verdict once seen)."""
+    net, channel = _net(tmp_path, "arm", "j", "damiao_dm_j4310.yaml")
+    drive = load_drive_map(Path(PDO_MAPS) / "damiao_dm_j4310.yaml")
+    clock = VirtualClock()
+    with (
+        can.Bus(interface="virtual", channel=channel) as sim_bus,
+        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock) as sim,
+        open_network(net) as network,
+    ):
+        op = network.bring_up()
+        clock.freeze()
+        got = []
+        for _ in range(2):
+            sim.inject_error(2, 0x5)
+            got += [f for _ in range(WITHIN + 10) for f in _faults(op.exchange().events)]
+            assert network.backends[0].clear_errors() == []
+            assert [f for _ in range(5) for f in _faults(op.exchange().events)] == []
+    assert [(f.slave, f.code, f.name) for f in got] == [("j1", 0x5, "unknown error 0x5")] * 2
+
+
 @pytest.mark.parametrize("map_name", ["odrive_s1.yaml", "odrive_3_6.yaml"])
 def test_odrive_axis_error_is_one_named_event(tmp_path: Path, map_name: str) -> None:
     net, channel = _net(tmp_path, "legs", "a", map_name)
