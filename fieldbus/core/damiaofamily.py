@@ -129,9 +129,7 @@ class DamiaoFamily(MitFamily):
         self._mode: dict[int, _ModeWire] = {}
         self._frame_of: dict[int, DamiaoFrame] = {}
         self._error_at: dict[int, tuple[int, int, int]] = {}
-        # per motor: code -> what error() returns for it (ok codes unnamed, faults by name), built once
-        # per code seen (at most 2**bits of the error field): a cycle reads it without building anything
-        self._verdicts: dict[int, dict[int, tuple[int, str | None]]] = {}
+        self._fault_names: dict[int, dict[int, str]] = {}  # per motor: the map's error codes by name
         self._cycle: list[tuple[DamiaoFrame, Any]] = []  # per motor: frame, its mode (kept current)
         for m in motors:
             cfg: RawCanConfig = m.config
@@ -160,7 +158,7 @@ class DamiaoFamily(MitFamily):
             self._frame_of[m.index] = frame
             self._frames.append(frame)  # type: ignore[arg-type]
             self._error_at[m.index] = field_place(cfg, proto.error_field)
-            self._verdicts[m.index] = {}
+            self._fault_names[m.index] = dict(proto.errors)
             self._select(m.index, proto.mode)
 
     # -- the map ---------------------------------------------------------------------------------
@@ -228,12 +226,11 @@ class DamiaoFamily(MitFamily):
     def error(self, motor: int) -> tuple[int, str | None] | None:
         byte, shift, mask = self._error_at[motor]
         code = (int(self._replies[motor][byte]) >> shift) & mask
-        verdicts = self._verdicts[motor]
-        got = verdicts.get(code)
-        if got is None:  # the first time this motor shows this code
-            proto = self.motors[motor].config.damiao
-            got = verdicts[code] = (code, None if code in proto.ok_codes else proto.error_name(code))
-        return got
+        proto = self.motors[motor].config.damiao
+        if code in proto.ok_codes:
+            return code, None
+        name = self._fault_names[motor].get(code)  # every cycle while a motor is in fault: no dict built
+        return code, (name if name is not None else proto.error_name(code))
 
     # -- transitions -----------------------------------------------------------------------------
     def commands(self, which: str, motor: int | None = None) -> list[Frame]:
