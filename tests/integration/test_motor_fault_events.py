@@ -107,7 +107,7 @@ def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> No
 
 def test_damiao_unnamed_code_is_named_by_number_at_each_onset(tmp_path: Path) -> None:
     """A code the map does not name (0x5) is a fault named by its number; the same code again after a
-    clear is a new onset with the same name (the family keeps each code's verdict once seen)."""
+    clear is a new onset with the same name."""
     net, channel = _net(tmp_path, "arm", "j", "damiao_dm_j4310.yaml")
     drive = load_drive_map(Path(PDO_MAPS) / "damiao_dm_j4310.yaml")
     clock = VirtualClock()
