@@ -212,7 +212,13 @@ def main() -> int:
     who_all = [_who(f, t) for f in families for t in TRANSPORTS if t in transports]
     both = len(set(transports)) == len(TRANSPORTS)  # the transport ratios need both
     rounds: list[dict[str, dict[str, Any]]] = []
-    frame_us = {f: emulator_frame_us(f) for f in families}  # before any emulator process runs
+    # before any emulator process runs; the families' batches alternated, so a change of the machine's
+    # load between them does not read as a difference of the emulators
+    batches: dict[str, list[float]] = {f: [] for f in families}
+    for _ in range(5):
+        for f in families:
+            batches[f].append(emulator_frame_us(f, batches=1))
+    frame_us = {f: statistics.median(us) for f, us in batches.items()}
     load = [os.getloadavg()[0]]  # the machine's 1-minute load average, at the start and at the end
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
         if args.rt_priority is not None:  # first: the emulator processes started from here on inherit it
