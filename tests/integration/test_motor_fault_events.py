@@ -10,6 +10,8 @@ from __future__ import annotations
 import itertools
 import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -64,9 +66,10 @@ def _faults(events: list[Any]) -> list[DriveFault]:
     return [e for e in events if isinstance(e, DriveFault)]
 
 
-def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> None:
-    from fieldbus.recording import load
-
+@contextmanager
+def _damiao_arm(tmp_path: Path) -> Iterator[tuple[DamiaoSimulator, Any, Any]]:
+    """Damiao motors on a virtual bus, brought up; their clock frozen (the motors' 50 ms TIMEOUT runs
+    on it: never reached here). Yields (emulator, network, operational)."""
     net, channel = _net(tmp_path, "arm", "j", "damiao_dm_j4310.yaml")
     drive = load_drive_map(Path(PDO_MAPS) / "damiao_dm_j4310.yaml")
     clock = VirtualClock()
@@ -76,7 +79,14 @@ def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> No
         open_network(net) as network,
     ):
         op = network.bring_up()
-        clock.freeze()  # the motors' TIMEOUT (50 ms) runs on it: never reached here
+        clock.freeze()
+        yield sim, network, op
+
+
+def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> None:
+    from fieldbus.recording import load
+
+    with _damiao_arm(tmp_path) as (sim, network, op):
         rec = op.record(tmp_path / "run.mcap")
         for _ in range(10):
             assert _faults(op.exchange().events) == []
@@ -108,16 +118,7 @@ def test_damiao_error_code_is_one_named_event_and_recorded(tmp_path: Path) -> No
 def test_damiao_unnamed_code_is_named_by_number_at_each_onset(tmp_path: Path) -> None:
     """A code the map does not name (0x5) is a fault named by its number; the same code again after a
     clear is a new onset with the same name."""
-    net, channel = _net(tmp_path, "arm", "j", "damiao_dm_j4310.yaml")
-    drive = load_drive_map(Path(PDO_MAPS) / "damiao_dm_j4310.yaml")
-    clock = VirtualClock()
-    with (
-        can.Bus(interface="virtual", channel=channel) as sim_bus,
-        DamiaoSimulator(sim_bus, [(drive, n) for n in NODES], dt_s=0.001, clock=clock) as sim,
-        open_network(net) as network,
-    ):
-        op = network.bring_up()
-        clock.freeze()
+    with _damiao_arm(tmp_path) as (sim, network, op):
         got = []
         for _ in range(2):
             sim.inject_error(2, 0x5)
