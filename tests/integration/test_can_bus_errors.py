@@ -27,7 +27,7 @@ from fieldbus.commands.demo import DEMO_MAP  # noqa: E402
 from fieldbus.core.network import load_network  # noqa: E402
 from fieldbus.core.pdo import load_drive_map  # noqa: E402
 from fieldbus.errors import BusIoError  # noqa: E402
-from fieldbus.network import open_network  # noqa: E402
+from fieldbus.network import Operational, open_network  # noqa: E402
 from sim_slaves.canopen import CanopenSimulator  # noqa: E402
 from sim_slaves.mit_motor import MitMotorSimulator  # noqa: E402
 
@@ -95,6 +95,12 @@ def motors(channel: str) -> Iterator[MitMotorSimulator]:
     ):
         yield sim
     assert not sim.errors
+
+
+def _fresh_within(op: Operational, cycles: int) -> bool:
+    """Whether an exchange within ``cycles`` came back fresh: the emulator thread answers within the
+    receive timeout on a quiet machine, not always on one loaded with four CPU burners."""
+    return any(op.exchange().fresh for _ in range(cycles))
 
 
 def _backend(kind: str, net_file: Path, **options: Any) -> Any:
@@ -178,7 +184,7 @@ def test_close_keeps_a_failing_shutdown_in_last_error(
     monkeypatch.undo()
     port.shutdown()
     with open_network(net_file) as again:  # the channel is free for the next master
-        assert again.bring_up().exchange().fresh
+        assert _fresh_within(again.bring_up(), 20)
 
 
 def test_rawcan_counts_bus_off_and_never_takes_an_error_frame_for_a_reply(
@@ -192,8 +198,7 @@ def test_rawcan_counts_bus_off_and_never_takes_an_error_frame_for_a_reply(
     ):
         op = net.bring_up()
         backend = net.backends[0]
-        for _ in range(3):
-            assert op.exchange().fresh
+        assert _fresh_within(op, 20)
         motors.silence(2)
         injector.send(
             can.Message(arbitration_id=0x040, is_error_frame=True, is_extended_id=False, data=bytes(8))
