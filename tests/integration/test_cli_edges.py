@@ -419,7 +419,10 @@ def test_scripts_test_says_it_installs_with_apt_and_can_be_told_not_to(tmp_path:
         bin_dir / "id": "echo 0",
         bin_dir / "apt-get": f'echo "apt-get $*" >> {log}; echo "APT-GET-RAN" >&2',
         bin_dir / "debconf-set-selections": "while read -r _; do :; done",
-        **{venv / tool: f'echo "{tool}" >> {log}' for tool in ("fieldbus", "python", "ruff", "mypy", "pytest")},
+        **{
+            venv / tool: f'echo "{tool}" >> {log}'
+            for tool in ("fieldbus", "python", "ruff", "mypy", "pytest")
+        },
     }
     for path, body in stubs.items():
         path.write_text(f"#!/bin/sh\n{body}\n")
