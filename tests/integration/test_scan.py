@@ -156,6 +156,17 @@ def test_ethercat_scan_table(ethercat_emulator: Any, capsys: pytest.CaptureFixtu
     assert "parent 0" in out and "open ports 0\n" in out
 
 
+def test_a_lost_broadcast_while_counting_the_slaves_is_not_an_empty_segment(
+    ethercat_emulator: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The emulator loses the first 6 frames: SOEM's 5 resets and the broadcast read that counts the
+    slaves (a single config_init then finds nobody and returns -1). The scan is made again and finds both."""
+    emu = ethercat_emulator([GENERIC, IO16])
+    emu.command(cmd="drop", count=6)
+    assert main(["scan", "ethercat", emu.iface]) == 0, capsys.readouterr().err
+    assert capsys.readouterr().out.startswith(f"2 slaves on {emu.iface}\n")
+
+
 def test_scan_of_an_interface_without_slaves_names_it(capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("pysoem")
     assert main(["scan", "ethercat", "fieldbus-no-such-nic"]) == 1

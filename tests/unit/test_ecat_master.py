@@ -161,3 +161,30 @@ def test_sdo_information_of_chosen_objects_only() -> None:
     slave = _Slave([_Object(0x1000, ["a"]), _Object(0x6000, Exception("not read"))], queued=0)
     assert [(o.index, e) for o, e in ecat_master.object_dictionary(slave, {0x1000})] == [(0x1000, ["a"])]
     assert slave.receives == 1
+
+
+class _Scanning:
+    """A master whose first ``config_init`` calls find nobody (SOEM returns -1 when its broadcast is lost)."""
+
+    def __init__(self, empty_scans: int) -> None:
+        self.empty_scans = empty_scans
+        self.scans = 0
+        self.slaves: list[str] = []
+
+    def config_init(self) -> int:
+        self.scans += 1
+        self.slaves = [] if self.scans <= self.empty_scans else ["a", "b"]
+        return -1 if self.scans <= self.empty_scans else 2
+
+
+@pytest.mark.parametrize("empty_scans", [0, 1, ecat_master.SCAN_TRIES - 1])
+def test_a_scan_that_finds_nobody_is_made_again(empty_scans: int) -> None:
+    master = _Scanning(empty_scans)
+    assert ecat_master.find_slaves(master) == ["a", "b"]
+    assert master.scans == empty_scans + 1
+
+
+def test_a_segment_is_empty_after_every_scan_found_nobody() -> None:
+    master = _Scanning(empty_scans=99)
+    assert ecat_master.find_slaves(master) == []
+    assert master.scans == ecat_master.SCAN_TRIES
