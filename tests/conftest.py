@@ -23,10 +23,11 @@ def interop_dir() -> Path:
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
     """``-n auto`` (scripts/test): one worker per CPU this process may use, at most two.
 
-    The suite is mostly single-threaded Python, so a second worker halves it on two CPUs (7.5 min
-    instead of 14 on a quiet 2-CPU VM); more workers than CPUs would only be more load for the tests
-    that run real emulator processes, veth pairs and DDS participants. ``PYTEST_XDIST_AUTO_NUM_WORKERS``
-    still decides when set (None: pytest-xdist's own hook reads it).
+    The suite is mostly single-threaded Python, so a second worker halves it on two CPUs (7 min
+    instead of 14 on a quiet 2-CPU VM). Two is what the suite is kept green at beside four CPU
+    burners: each more worker is more load for the tests that run real emulator processes, veth
+    pairs and DDS participants on the wall clock. ``PYTEST_XDIST_AUTO_NUM_WORKERS`` still decides
+    when set (None: pytest-xdist's own hook reads it).
     """
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return None
