@@ -248,8 +248,9 @@ def interrupted() -> Iterator[Any]:
 
     def run(argv: list[str | Path], record: Path) -> tuple[int, str]:
         cmd = [sys.executable, "-m", "fieldbus", *map(str, argv), "--record", str(record)]
+        env = {**_env(), "PYTHONFAULTHANDLER": "1"}  # SIGABRT then prints every thread's stack
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
         )
         procs.append(proc)
         deadline = time.monotonic() + 240  # a safety net for a broken bring-up, not a timing bound
@@ -259,7 +260,12 @@ def interrupted() -> Iterator[Any]:
             time.sleep(0.05)
         time.sleep(1.0)  # let it cycle a while (drives enabled, faults injected); nothing depends on how long
         os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=240)
+        try:
+            _, err = proc.communicate(timeout=240)
+        except subprocess.TimeoutExpired:  # not stopped: where each of its threads is, before it is killed
+            os.kill(proc.pid, signal.SIGABRT)
+            _, err = proc.communicate(timeout=60)
+            pytest.fail(f"still running 240 s after SIGINT; its threads at SIGABRT:\n{err[-8000:]}")
         return proc.returncode, err
 
     yield run
