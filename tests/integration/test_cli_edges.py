@@ -250,7 +250,13 @@ def interrupted() -> Iterator[Any]:
         cmd = [sys.executable, "-m", "fieldbus", *map(str, argv), "--record", str(record)]
         env = {**_env(), "PYTHONFAULTHANDLER": "1"}  # SIGABRT then prints every thread's stack
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            start_new_session=True,
+            preexec_fn=_sigint_by_default,
         )
         procs.append(proc)
         deadline = time.monotonic() + 240  # a safety net for a broken bring-up, not a timing bound
@@ -275,6 +281,16 @@ def interrupted() -> Iterator[Any]:
                 with suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
             proc.wait()
+
+
+def _sigint_by_default() -> None:
+    """In the child before it runs fieldbus: SIGINT to its default, as for a terminal's foreground job.
+
+    A suite started in the background by a non-interactive shell (``cmd &``, ``nohup cmd &``) has SIGINT
+    ignored, every process below it inherits that, and Python keeps an inherited SIG_IGN: the command
+    would never see the Ctrl-C this fixture sends (beside two burners, started with ``nohup``, both soak
+    tests waited 240 s)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _descendants(pid: int) -> list[int]:
