@@ -26,13 +26,13 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.core.diffdrive import DiffDriveParams, Limited, quaternion_z
 from fieldbus.dds import messages as m
 from fieldbus.dds import ros_types as r
+from fieldbus.dds.cdr import PlainWriter
 from fieldbus.dds.participant import COMMANDS, RELIABLE
 from fieldbus.dds.topic_claim import TopicClaim
 from fieldbus.errors import FieldbusError
@@ -93,10 +93,10 @@ class BaseService:
             self.stamped = DataReader(dp, Topic(dp, t["cmd_vel"], r.TwistStamped), qos=COMMANDS)
         except Exception as exc:
             raise FieldbusError(f"cannot read TwistStamped on {t['cmd_vel']}: {exc}") from None
-        self.odom_writer = DataWriter(dp, Topic(dp, t["odom"], r.Odometry), qos=RELIABLE)
-        self.tf_writer = DataWriter(dp, Topic(dp, t["tf"], r.TFMessage), qos=RELIABLE)
-        self.js_writer = DataWriter(dp, Topic(dp, t["joint_states"], m.JointState), qos=RELIABLE)
-        self.diag_writer = DataWriter(dp, Topic(dp, t["diagnostics"], m.DiagnosticArray), qos=RELIABLE)
+        self.odom_writer = PlainWriter(dp, Topic(dp, t["odom"], r.Odometry), qos=RELIABLE)
+        self.tf_writer = PlainWriter(dp, Topic(dp, t["tf"], r.TFMessage), qos=RELIABLE)
+        self.js_writer = PlainWriter(dp, Topic(dp, t["joint_states"], m.JointState), qos=RELIABLE)
+        self.diag_writer = PlainWriter(dp, Topic(dp, t["diagnostics"], m.DiagnosticArray), qos=RELIABLE)
         self.claim = TopicClaim("cmd_vel", server.callers)
         self.base: WheeledBase | None = None
         self.leaving = False  # the owner left: ramping to rest, then the wheels are let go

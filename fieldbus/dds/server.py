@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
@@ -41,6 +40,7 @@ from fieldbus.dds import messages as m
 from fieldbus.dds.base_service import BaseService
 from fieldbus.dds.bus_values import bus_values
 from fieldbus.dds.callers import Caller, Callers, publication_handle
+from fieldbus.dds.cdr import PlainWriter
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
     COMMANDS,
@@ -53,6 +53,7 @@ from fieldbus.dds.participant import (
 )
 from fieldbus.dds.service_host import ServiceHost
 from fieldbus.dds.stalls import StallWatch
+from fieldbus.dds.state_bytes import AxisStateBytes, JointStateBytes
 from fieldbus.dds.topic_control import TopicControl
 from fieldbus.errors import FieldbusError
 from fieldbus.network import CycleResult, Network, Operational
@@ -162,10 +163,15 @@ class ServedGroup:
         self._scratch = np.zeros(self.n, dtype=np.intp)
         topics = topic_names(server.options.namespace, name)
         dp = server.participant.dp
-        self.js_writer = DataWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
-        self.st_writer = DataWriter(dp, Topic(dp, topics["axis_state"], m.AxisState), qos=REALTIME)
+        self.js_writer = PlainWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
+        self.st_writer = PlainWriter(dp, Topic(dp, topics["axis_state"], m.AxisState), qos=REALTIME)
         self.cmd_reader = DataReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=COMMANDS)
         self.topics = topics
+        # the per-cycle messages encoded in place, where the writers take bytes (cyclonedds's serializer
+        # otherwise: 0.1-0.2 ms of every served step)
+        fast = self.js_writer.fast and self.st_writer.fast
+        self._js_bytes = JointStateBytes(list(axes), list(self.in_roles)) if fast else None
+        self._st_bytes = AxisStateBytes(self.n, len(self.input_names)) if fast else None
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -277,29 +283,53 @@ class ServedGroup:
 
     # -- after exchange() --
     def publish(self, res: CycleResult, stamp_ns: int) -> None:
+        """JointState and AxisState of this cycle, stamped ``stamp_ns`` (ns since the Unix epoch)."""
         inp = self.image.inputs.values
         if self.slave_fresh is not None and self.fresh is not self.slave_fresh:  # each slave's, per axis
             self.fresh[:] = np.repeat(self.slave_fresh, self.rows_per_slave)
+        for j, name in enumerate(self.input_names):
+            self._inputs[:, j] = inp[name]
+        g = self.gate
+        drive_state = self.ctrl.state if self.ctrl is not None else self.no_state
+        owner = g.label if g.owner is not None else ""
+        if self._js_bytes is not None and self._st_bytes is not None:  # encoded in place (state_bytes)
+            self.js_writer.write_encoded(
+                self._js_bytes.encode(stamp_ns, {r: inp[c] for r, c in self.in_roles.items()})
+            )
+            self.st_writer.write_encoded(
+                self._st_bytes.encode(
+                    stamp_ns,
+                    cycle=res.cycle,
+                    fresh=self.fresh,
+                    drive_state=drive_state,
+                    inputs=self._inputs,
+                    safe_stop=res.safe_stop or g.latched,
+                    gate=int(g.state),
+                    command_sequence=g.applied_sequence,
+                    command_age=g.age,
+                    owner=owner,
+                    dropped_sequences=g.dropped,
+                    refused_commands=g.refused,
+                )
+            )
+            return
         header = m.Header(stamp=m.Time.of_ns(stamp_ns), frame_id="")
         js = m.JointState(header=header, name=list(self.axes))
         for field_name, chan in self.in_roles.items():
             setattr(js, field_name, inp[chan].astype(np.float64).tolist())
         self.js_writer.write(js)
-        for j, name in enumerate(self.input_names):
-            self._inputs[:, j] = inp[name]
-        g = self.gate
         st = m.AxisState(
             header=header,
             cycle=res.cycle,
             fresh=self.fresh.tolist(),
-            drive_state=(self.ctrl.state if self.ctrl is not None else self.no_state).tolist(),
+            drive_state=drive_state.tolist(),
             inputs=self._inputs.ravel().tolist(),
             all_fresh=bool(self.fresh.all()),
             safe_stop=res.safe_stop or g.latched,
             gate=int(g.state),
             command_sequence=g.applied_sequence,
             command_age=g.age,
-            owner=g.label if g.owner is not None else "",
+            owner=owner,
             dropped_sequences=g.dropped,
             refused_commands=g.refused,
         )
@@ -340,8 +370,10 @@ class BusServer:
         dp = participant.dp
         names = service_names(options.namespace)
         self.req_reader = DataReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
-        self.reply_writer = DataWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
-        self.diag_writer = DataWriter(dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=DIAGNOSTICS)
+        self.reply_writer = PlainWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
+        self.diag_writer = PlainWriter(
+            dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=DIAGNOSTICS
+        )
         self.requests = 0
         self.services = ServiceHost(
             participant, options.namespace, list(self.groups), self._answer, self.callers
