@@ -29,14 +29,13 @@ import numpy.typing as npt
 
 from fieldbus.core.cia402 import State402
 from fieldbus.dds import require
+from fieldbus.dds.cdr import PlainReader, PlainWriter
 from fieldbus.dds.gate import ClaimError, GateState
 from fieldbus.errors import BusTimeoutError, FieldbusError
 
 require()
 
 from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: E402
-from cyclonedds.pub import DataWriter  # noqa: E402
-from cyclonedds.sub import DataReader  # noqa: E402
 from cyclonedds.topic import Topic  # noqa: E402
 
 from fieldbus.dds import messages as m  # noqa: E402
@@ -118,8 +117,8 @@ class _Link:
     """A group's topics: its state reader and command writer."""
 
     def __init__(self, dp: Any, group: RemoteGroup, ws: WaitSet) -> None:
-        self.reader = DataReader(dp, Topic(dp, group.topics["axis_state"], m.AxisState), qos=REALTIME)
-        self.writer = DataWriter(dp, Topic(dp, group.topics["command"], m.JointCommand), qos=REALTIME)
+        self.reader = PlainReader(dp, Topic(dp, group.topics["axis_state"], m.AxisState), qos=REALTIME)
+        self.writer = PlainWriter(dp, Topic(dp, group.topics["command"], m.JointCommand), qos=REALTIME)
         self.cond = ReadCondition(self.reader, NEW)
         ws.attach(self.cond)
 
@@ -144,8 +143,8 @@ class Remote:
         self.participant = Participant(domain, interface, peers)
         dp = self.participant.dp
         names = service_names(self.namespace)
-        self._req = DataWriter(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
-        self._rep = DataReader(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
+        self._req = PlainWriter(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
+        self._rep = PlainReader(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
         self._rep_ws = WaitSet(dp)
         self._rep_ws.attach(ReadCondition(self._rep, NEW))
         self._request_id = 0

@@ -26,13 +26,12 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.core.diffdrive import DiffDriveParams, Limited, quaternion_z
 from fieldbus.dds import messages as m
 from fieldbus.dds import ros_types as r
-from fieldbus.dds.cdr import PlainWriter
+from fieldbus.dds.cdr import PlainReader, PlainWriter
 from fieldbus.dds.participant import COMMANDS, RELIABLE
 from fieldbus.dds.topic_claim import TopicClaim
 from fieldbus.errors import FieldbusError
@@ -87,10 +86,10 @@ class BaseService:
         self.groups = self._wheel_groups(server, params)
         dp = server.participant.dp
         t = self.topics
-        self.twist = DataReader(dp, Topic(dp, t["cmd_vel"], r.Twist), qos=COMMANDS)
-        self.stamped: DataReader[Any] | None = None
+        self.twist = PlainReader(dp, Topic(dp, t["cmd_vel"], r.Twist), qos=COMMANDS)
+        self.stamped: PlainReader | None = None
         try:  # the same topic name, the other type (Kilted's Nav2): DDS matches writers by type
-            self.stamped = DataReader(dp, Topic(dp, t["cmd_vel"], r.TwistStamped), qos=COMMANDS)
+            self.stamped = PlainReader(dp, Topic(dp, t["cmd_vel"], r.TwistStamped), qos=COMMANDS)
         except Exception as exc:
             raise FieldbusError(f"cannot read TwistStamped on {t['cmd_vel']}: {exc}") from None
         self.odom_writer = PlainWriter(dp, Topic(dp, t["odom"], r.Odometry), qos=RELIABLE)

@@ -8,8 +8,8 @@ to the C writer. :func:`plan` compiles a keyless, final IDL struct of
 primitives, strings, nested structs, arrays of primitives and unbounded sequences of those into a
 list of field operations once; :func:`encode` then writes a sample's bytes
 with ``struct`` (a few us). :class:`PlainWriter` is a ``DataWriter`` that
-uses it when it can and cyclonedds's own serializer otherwise (keyed types,
-XCDR2 representation, any other type).
+uses it when it can and cyclonedds's own serializer otherwise (XCDR2
+representation, any other type); :class:`PlainReader` decodes the same way.
 
 The layout is OMG DDS-XTYPES 1.3, 7.4.1 (XCDR version 1): a 4-byte
 encapsulation header (``00 01 00 00``: CDR, little-endian), each primitive
@@ -31,15 +31,17 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, InstanceState, SampleState, ViewState
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import array, sequence
+from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
 
-try:  # the C call DataWriter.write ends with; absent in another binding version: no fast path
-    from cyclonedds._clayer import ddspy_write  # type: ignore[import-not-found]
+try:  # the C calls DataWriter.write and DataReader.take end with; absent in another binding: no fast path
+    from cyclonedds._clayer import ddspy_take, ddspy_write  # type: ignore[import-not-found]
 except ImportError:  # pragma: no cover - depends on the installed cyclonedds
-    ddspy_write = None
+    ddspy_take = ddspy_write = None
 
 HEADER = b"\x00\x01\x00\x00"  # CDR_LE encapsulation, options 0
 _PRIMITIVES = {  # IDL name: struct code (size = alignment in XCDR1)
@@ -59,15 +61,17 @@ _U32 = struct.Struct("<I")
 
 # one field: (kind, attribute, code or sub-plan); kinds: "p" primitive, "s" string, "t" nested struct,
 # "ps" sequence of primitives, "ss" sequence of strings, "ts" sequence of structs, "pa" array of primitives
-# (its length in the plan: (code, length))
+# (its length in the plan: (code, length)); a struct's plan: (its class, its ops)
 Op = tuple[str, str, Any]
 # where a primitive (count 0) or a primitive sequence's values (count n) sit: path -> (offset, code, count)
 Slots = dict[str, tuple[int, str, int]]
+_ANY_STATE = SampleState.Any | ViewState.Any | InstanceState.Any  # what DataReader.take takes by default
 
 
 def plan(cls: type) -> list[Op] | None:
     """The field operations that encode ``cls``, or None when this module cannot encode it exactly
-    (keyed, not final, or a member type it does not know: a union, an array, a bounded string...)."""
+    (not final, or a member type it does not know: a union, a bounded string...). Keys do not change
+    a sample's bytes: the C writer derives the key from them, as it does for cyclonedds's own."""
     if not (isinstance(cls, type) and issubclass(cls, IdlStruct)):
         return None
     idl = cls.__idl__
@@ -76,10 +80,11 @@ def plan(cls: type) -> list[Op] | None:
         hints = typing.get_type_hints(cls, include_extras=True)
     except (TypeError, NameError):  # a type cyclonedds cannot resolve either: its own write will say so
         return None
-    if not idl.keyless or getattr(cls, "__idl_annotations__", {}).get("extensibility", "final") != "final":
+    if getattr(cls, "__idl_annotations__", {}).get("extensibility", "final") != "final":
         return None
-    if any(getattr(cls, "__idl_field_annotations__", {}).values()):  # optional, external, explicit ids...
-        return None
+    for notes in getattr(cls, "__idl_field_annotations__", {}).values():  # optional, external, ids...
+        if any(k != "key" for k in notes):
+            return None
     ops: list[Op] = []
     for name, hint in hints.items():
         op = _member(name, hint)
@@ -106,7 +111,8 @@ def _member(name: str, hint: Any) -> Op | None:
 
 
 def _scalar(hint: Any) -> tuple[str, Any] | None:
-    """("p", code) for a primitive, ("s", None) for an unbounded string, ("t", plan) for a struct."""
+    """("p", code) for a primitive, ("s", None) for an unbounded string, ("t", (class, plan)) for a
+    struct."""
     if hint in _PY:
         code = _PY[hint]
         return ("s", None) if code == "str" else ("p", code)
@@ -114,7 +120,7 @@ def _scalar(hint: Any) -> tuple[str, Any] | None:
     if len(meta) == 1 and isinstance(meta[0], str) and meta[0] in _PRIMITIVES:
         return ("p", _PRIMITIVES[meta[0]])
     sub = plan(hint) if isinstance(hint, type) else None
-    return ("t", sub) if sub is not None else None
+    return ("t", (hint, sub)) if sub is not None else None
 
 
 def encode(ops: list[Op], sample: Any) -> bytes:
@@ -145,7 +151,7 @@ def _struct(buf: bytearray, ops: list[Op], sample: Any, slots: Slots | None = No
         elif kind == "s":
             _string(buf, value)
         elif kind == "t":
-            _struct(buf, arg, value, slots, f"{path}{name}.")
+            _struct(buf, arg[1], value, slots, f"{path}{name}.")
         elif kind == "ps":
             _align(buf, 4)
             buf += _U32.pack(len(value))
@@ -169,7 +175,7 @@ def _struct(buf: bytearray, ops: list[Op], sample: Any, slots: Slots | None = No
                 if kind == "ss":
                     _string(buf, v)
                 else:
-                    _struct(buf, arg, v)
+                    _struct(buf, arg[1], v)
 
 
 def _string(buf: bytearray, value: str) -> None:
@@ -178,6 +184,79 @@ def _string(buf: bytearray, value: str) -> None:
     buf += _U32.pack(len(raw) + 1)
     buf += raw
     buf += b"\x00"
+
+
+def decode(cls: type, ops: list[Op], data: bytes) -> Any:
+    """The ``cls`` sample in ``data`` (XCDR1 little-endian, encapsulation header first); a
+    ``ValueError`` for any other encoding or a message that ends early or has bytes to spare
+    beyond the padding."""
+    if data[:2] != HEADER[:2]:
+        raise ValueError(f"not little-endian plain CDR: encapsulation {data[:2].hex()}")
+    sample, end = _read(cls, ops, data, 4)
+    if len(data) - end > 3:
+        raise ValueError(f"{len(data) - end} bytes after the sample")
+    return sample
+
+
+def _read(cls: type, ops: list[Op], data: bytes, pos: int) -> tuple[Any, int]:
+    unpack = struct.unpack_from
+    values: dict[str, Any] = {}
+    try:
+        for kind, name, arg in ops:
+            if kind == "p":
+                size = struct.calcsize(arg)
+                pos += -(pos - 4) % size
+                values[name] = unpack("<" + arg, data, pos)[0]
+                pos += size
+            elif kind == "s":
+                values[name], pos = _read_string(data, pos)
+            elif kind == "t":
+                values[name], pos = _read(arg[0], arg[1], data, pos)
+            elif kind == "pa":
+                code, count = arg
+                pos += -(pos - 4) % struct.calcsize(code)
+                values[name] = list(unpack(f"<{count}{code}", data, pos))
+                pos += count * struct.calcsize(code)
+            else:
+                pos += -(pos - 4) % 4
+                count = unpack("<I", data, pos)[0]
+                pos += 4
+                if count > len(data):  # every element takes a byte at least
+                    raise ValueError(f"{name}: {count} elements in {len(data)} bytes")
+                if kind == "ps":
+                    if count:
+                        size = struct.calcsize(arg)
+                        pos += -(pos - 4) % size
+                        values[name] = list(unpack(f"<{count}{arg}", data, pos))
+                        pos += count * size
+                    else:
+                        values[name] = []
+                elif kind == "ss":
+                    items = []
+                    for _ in range(count):
+                        item, pos = _read_string(data, pos)
+                        items.append(item)
+                    values[name] = items
+                else:
+                    structs = []
+                    for _ in range(count):
+                        item, pos = _read(arg[0], arg[1], data, pos)
+                        structs.append(item)
+                    values[name] = structs
+    except (struct.error, UnicodeDecodeError) as exc:
+        raise ValueError(f"{cls.__name__}.{name}: {exc}") from None
+    if pos > len(data):
+        raise ValueError(f"{cls.__name__}: ends {pos - len(data)} bytes early")
+    return cls(**values), pos
+
+
+def _read_string(data: bytes, pos: int) -> tuple[str, int]:
+    pos += -(pos - 4) % 4
+    n = struct.unpack_from("<I", data, pos)[0]
+    pos += 4
+    if n < 1 or pos + n > len(data) or data[pos + n - 1] != 0:
+        raise ValueError(f"a string of {n} bytes at {pos} is not NUL-terminated inside the message")
+    return data[pos : pos + n - 1].decode("utf-8"), pos + n
 
 
 class Layout:
@@ -224,6 +303,39 @@ class Layout:
     def bytes(self) -> bytes:
         """The message as it stands."""
         return bytes(self.buf)
+
+
+class PlainReader(DataReader[Any]):
+    """A ``DataReader`` whose ``take`` decodes with :func:`decode` when the type allows it (keys do not
+    matter to a reader) and with cyclonedds's deserializer otherwise, or when a sample does not
+    decode here (another encoding: cyclonedds says what is wrong with it)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        cls = self._topic.data_type
+        self._cls = cls
+        self._ops = plan(cls) if ddspy_take is not None else None
+
+    def take(self, N: int = 1, condition: Any = None, instance_handle: Any = None) -> list[Any]:
+        ops = self._ops
+        if ops is None or condition is not None or instance_handle is not None:
+            return super().take(N=N, condition=condition, instance_handle=instance_handle)
+        ret = ddspy_take(self._ref, _ANY_STATE, N)
+        if isinstance(ret, int):
+            raise DDSException(ret, f"Occurred while taking data in {self!r}")
+        samples: list[Any] = []
+        cls = self._cls
+        for data, info in ret:
+            if info.valid_data:
+                try:
+                    sample = decode(cls, ops, data)
+                except ValueError:
+                    sample = cls.deserialize(data)
+                sample.sample_info = info
+                samples.append(sample)
+            else:
+                samples.append(InvalidSample(cls.deserialize_key(data), info))
+        return samples
 
 
 class PlainWriter(DataWriter[Any]):

@@ -19,7 +19,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.core.cia402 import (
@@ -40,7 +39,7 @@ from fieldbus.dds import messages as m
 from fieldbus.dds.base_service import BaseService
 from fieldbus.dds.bus_values import bus_values
 from fieldbus.dds.callers import Caller, Callers, publication_handle
-from fieldbus.dds.cdr import PlainWriter
+from fieldbus.dds.cdr import PlainReader, PlainWriter
 from fieldbus.dds.gate import VERBS, ClaimError, CommandGate, Deadline, GateState
 from fieldbus.dds.participant import (
     COMMANDS,
@@ -165,7 +164,7 @@ class ServedGroup:
         dp = server.participant.dp
         self.js_writer = PlainWriter(dp, Topic(dp, topics["joint_states"], m.JointState), qos=REALTIME)
         self.st_writer = PlainWriter(dp, Topic(dp, topics["axis_state"], m.AxisState), qos=REALTIME)
-        self.cmd_reader = DataReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=COMMANDS)
+        self.cmd_reader = PlainReader(dp, Topic(dp, topics["command"], m.JointCommand), qos=COMMANDS)
         self.topics = topics
         # the per-cycle messages encoded in place, where the writers take bytes (cyclonedds's serializer
         # otherwise: 0.1-0.2 ms of every served step)
@@ -369,7 +368,7 @@ class BusServer:
         self._answered: dict[str, tuple[int, m.Reply]] = {}  # per client its newest reply (a resend)
         dp = participant.dp
         names = service_names(options.namespace)
-        self.req_reader = DataReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
+        self.req_reader = PlainReader(dp, Topic(dp, names["request"], m.Request), qos=RELIABLE)
         self.reply_writer = PlainWriter(dp, Topic(dp, names["reply"], m.Reply), qos=RELIABLE)
         self.diag_writer = PlainWriter(
             dp, Topic(dp, names["diagnostics"], m.DiagnosticArray), qos=DIAGNOSTICS

@@ -12,12 +12,11 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.dds import messages as m
 from fieldbus.dds.callers import Caller, Callers
-from fieldbus.dds.cdr import PlainWriter
+from fieldbus.dds.cdr import PlainReader, PlainWriter
 from fieldbus.dds.participant import RELIABLE, Participant
 from fieldbus.dds.services import SERVICES, Service, service_topics
 from fieldbus.errors import FieldbusError
@@ -33,7 +32,7 @@ class _Endpoint:
         self.group = group
         self.service = service
         rq, rr = service_topics(namespace, group, service.name)
-        self.reader = DataReader(dp, Topic(dp, rq, service.request), qos=RELIABLE)
+        self.reader = PlainReader(dp, Topic(dp, rq, service.request), qos=RELIABLE)
         self.writer = PlainWriter(dp, Topic(dp, rr, service.response), qos=RELIABLE)
 
 

@@ -20,11 +20,10 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
-from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from fieldbus.dds import messages as m
-from fieldbus.dds.cdr import PlainWriter
+from fieldbus.dds.cdr import PlainReader, PlainWriter
 from fieldbus.dds.participant import COMMANDS, REALTIME
 from fieldbus.dds.topic_claim import TopicClaim
 
@@ -54,7 +53,7 @@ class TopicControl:
         self.server = server
         dp = server.participant.dp
         self.topics = {"commands": dds_topic(commands_topic), "states": dds_topic(states_topic)}
-        self.reader = DataReader(dp, Topic(dp, self.topics["commands"], m.JointState), qos=COMMANDS)
+        self.reader = PlainReader(dp, Topic(dp, self.topics["commands"], m.JointState), qos=COMMANDS)
         self.writer = PlainWriter(dp, Topic(dp, self.topics["states"], m.JointState), qos=REALTIME)
         # every served joint (except the base's wheels) -> (its group, its row)
         self.joints: dict[str, tuple[ServedGroup, int]] = {

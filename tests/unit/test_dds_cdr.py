@@ -2,6 +2,7 @@
 type the served bus writes, on random samples, and a fallback for what it cannot encode."""
 
 # no ``from __future__ import annotations``: cyclonedds resolves the test types' annotations at run time
+import contextlib
 import dataclasses
 import math
 import os
@@ -19,6 +20,8 @@ from cyclonedds.idl import IdlStruct
 from cyclonedds.idl import types as t
 from cyclonedds.idl.annotations import appendable
 from cyclonedds.idl.types import array, sequence
+from cyclonedds.internal import InvalidSample
+from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
@@ -91,10 +94,6 @@ def test_random_samples_encode_to_exactly_cyclonedds_bytes(cls: type) -> None:
         assert ours == theirs.ljust((len(theirs) + 3) & ~3, b"\x00"), sample
 
 
-def test_a_keyed_type_is_left_to_cyclonedds() -> None:
-    assert cdr.plan(m.JointCommand) is None  # key("client_id"): cyclonedds derives the key from the sample
-
-
 @dataclasses.dataclass
 class Bounded(IdlStruct, typename="test::Bounded"):
     name: t.bounded_str[8] = ""
@@ -119,7 +118,17 @@ def test_a_wrong_array_length_is_an_error_not_a_short_message() -> None:
         cdr.encode(ops, r.PoseWithCovariance(covariance=[0.0] * 35))
 
 
-def test_a_plain_writer_delivers_what_a_reader_reads_and_falls_back_for_keyed_types() -> None:
+def _take(reader: Any, cls: type, want: int) -> list[Any]:
+    got: list[Any] = []
+    for _ in range(400):  # delivery inside one participant: normally at once
+        got += reader.take(N=16)
+        if len(got) >= want:
+            break
+        time.sleep(0.005)
+    return got
+
+
+def test_plain_writers_and_readers_interwork_with_cyclonedds_ones_keys_included() -> None:
     dp = DomainParticipant(1 + (os.getpid() * 13 + 3) % 200)
     try:
         tp = Topic(dp, "fieldbus_test_cdr_axis_state", m.AxisState)
@@ -130,15 +139,64 @@ def test_a_plain_writer_delivers_what_a_reader_reads_and_falls_back_for_keyed_ty
         sent.inputs = [0.5, -1.25]  # NaN would not compare equal below
         sent.header.frame_id = "base"
         writer.write(sent)
-        got: list[Any] = []
-        for _ in range(200):
-            got = [s for s in reader.take(N=4) if isinstance(s, m.AxisState)]
-            if got:
-                break
-            time.sleep(0.005)  # delivery inside one participant: normally at once
-        assert got == [sent]
-        keyed = cdr.PlainWriter(dp, Topic(dp, "fieldbus_test_cdr_command", m.JointCommand))
-        assert not keyed.fast
-        keyed.write(m.JointCommand(client_id="a", sequence=1, position=[1.0]))  # cyclonedds's own path
+        assert _take(reader, m.AxisState, 1) == [sent]
+
+        # a keyed type: the C writer derives the key from our bytes as from cyclonedds's
+        cmd = Topic(dp, "fieldbus_test_cdr_command", m.JointCommand)
+        theirs, ours = DataWriter(dp, cmd), cdr.PlainWriter(dp, cmd)
+        plain_reader, their_reader = cdr.PlainReader(dp, cmd), DataReader(dp, cmd)
+        assert ours.fast
+        ours.write(m.JointCommand(client_id="a", sequence=1, position=[1.0]))
+        theirs.write(m.JointCommand(client_id="a", sequence=2, position=[2.0]))
+        ours.write(m.JointCommand(client_id="b", sequence=3, velocity=[3.0, 4.0]))
+        for rd in (plain_reader, their_reader):  # history keep-last 1 per instance (the default)
+            got = _take(rd, m.JointCommand, 2)
+            # "a" 1 (our bytes) was replaced by "a" 2 (cyclonedds's): one instance per client_id
+            assert [(c.client_id, c.sequence, c.position, c.velocity) for c in got] == [
+                ("a", 2, [2.0], []),
+                ("b", 3, [], [3.0, 4.0]),
+            ]
+            assert got[0].sample_info.instance_handle != got[1].sample_info.instance_handle
+        ours.dispose(m.JointCommand(client_id="b"))
+        gone = _take(plain_reader, m.JointCommand, 1)
+        assert len(gone) == 1 and isinstance(gone[0], InvalidSample) and gone[0].key_sample.client_id == "b"
     finally:
         del dp
+
+
+DECODABLE = [c for c in _types(m) + _types(r) if cdr.plan(c) is not None]
+
+
+def test_a_reader_decodes_the_keyed_command_too() -> None:
+    assert m.JointCommand in DECODABLE and m.JointState in DECODABLE
+
+
+@pytest.mark.parametrize("cls", DECODABLE, ids=lambda c: c.__name__)
+def test_cyclonedds_bytes_decode_to_the_sample_they_came_from(cls: type) -> None:
+    rng = random.Random("decode " + cls.__name__)
+    ops = cdr.plan(cls)
+    assert ops is not None
+    for _ in range(200):
+        raw = _sample(cls, rng).serialize(use_version_2=False)
+        got = cdr.decode(cls, ops, raw)
+        assert type(got) is cls
+        assert got.serialize(use_version_2=False) == raw  # NaN-proof equality: the same bytes again
+
+
+@pytest.mark.parametrize("cls", [m.JointCommand, m.AxisState, m.DiagnosticArray], ids=lambda c: c.__name__)
+def test_a_cut_or_damaged_message_is_a_value_error_never_another_exception(cls: type) -> None:
+    rng = random.Random("damage " + cls.__name__)
+    ops = cdr.plan(cls)
+    assert ops is not None
+    for _ in range(30):
+        raw = _sample(cls, rng).serialize(use_version_2=False)
+        for cut in range(len(raw) - 4):  # every shorter message
+            with pytest.raises(ValueError):
+                cdr.decode(cls, ops, raw[:cut])
+        for _ in range(50):  # a damaged byte: the sample it makes, or a ValueError
+            bad = bytearray(raw)
+            bad[rng.randrange(4, len(raw))] = rng.randrange(256)
+            with contextlib.suppress(ValueError):
+                cdr.decode(cls, ops, bytes(bad))
+    with pytest.raises(ValueError, match="not little-endian plain CDR"):
+        cdr.decode(cls, ops, b"\x00\x00\x00\x00" + raw[4:])  # big-endian CDR: cyclonedds's own path
