@@ -211,11 +211,12 @@ class ServedGroup:
         for cmd in self.cmd_reader.take(N=64):
             if not isinstance(cmd, m.JointCommand):
                 continue  # an instance disposed by a departed writer
-            if any(len(getattr(cmd, r)) not in (0, self.n) for r in OUTPUT_ROLES):
-                lengths = {r: len(getattr(cmd, r)) for r in OUTPUT_ROLES if getattr(cmd, r)}
+            given = [(r, v) for r in OUTPUT_ROLES if (v := getattr(cmd, r))]
+            if any(len(v) != self.n for _, v in given):
+                lengths = {r: len(v) for r, v in given}
                 self.refuse("wrong_length", f"sequence {cmd.sequence}: lengths {lengths}, want 0 or {self.n}")
                 continue
-            if not all(np.isfinite(getattr(cmd, r)).all() for r in OUTPUT_ROLES if getattr(cmd, r)):
+            if not all(math.isfinite(x) for _, v in given for x in v):
                 self.refuse("not_finite", f"sequence {cmd.sequence}: a value is NaN or infinite")
                 continue
             who = self.callers.of(self.cmd_reader, cmd)
