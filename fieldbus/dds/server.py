@@ -67,6 +67,7 @@ INPUT_ROLES = {
 }
 MODES_OUT, MODES_DISPLAY = 0x6060, 0x6061
 ENABLE_TIMEOUT_CYCLES = 3000
+DIAGNOSTICS_DEFER_MAX = 100  # cycles a due DiagnosticArray waits for a cycle with half its period left
 SERVICE_POLL_EVERY = 10  # cycles between looks at the ROS 2 service requests (10 ms at 1 kHz)
 Respond = Callable[["dict[str, Any] | FieldbusError | None"], None]  # a service call's answer
 Check = Callable[[], "dict[str, Any] | None"]  # a request under way: its detail once it has ended
@@ -350,6 +351,10 @@ class BusServer:
     ) -> None:
         self._op: Operational | None = None
         self._clock = clock  # when each cycle starts (ns): the gaps between cycles, for the stall watch
+        # the cycle whose DiagnosticArray (0.1-0.2 ms of Python) is due, -1: none; it goes out in the first
+        # cycle since then whose own work took less than half the period (a slow spell of the CPU does not
+        # get it on top), at the latest DIAGNOSTICS_DEFER_MAX cycles late
+        self._diagnostics_due = -1
         self.stalls = StallWatch(1_000_000)
         self.participant = participant
         self.options = options
@@ -459,7 +464,13 @@ class BusServer:
                 g.publish(res, now)
             if self.topic_control is not None:
                 self.topic_control.publish(now)
-        if k % o.diagnostics_every == 0:
+        if k % o.diagnostics_every == 0 and self._diagnostics_due < 0:
+            self._diagnostics_due = k
+        if self._diagnostics_due >= 0 and (
+            self._clock() - start_ns < self.op.cycle_time_us * 500  # this cycle has half its period left
+            or k - self._diagnostics_due >= DIAGNOSTICS_DEFER_MAX
+        ):
+            self._diagnostics_due = -1
             self.diag_writer.write(self.diagnostics())
         return False
 

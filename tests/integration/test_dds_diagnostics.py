@@ -120,3 +120,45 @@ def test_esc_error_counters_and_the_suspect_cable_are_in_the_bus_diagnostics(tmp
     assert values["suspect_link"].startswith("cable between slave 1 (j1) port 1 and slave 2 (j2) port 0")
     assert values["j2/esc_errors"].startswith("p0 ")
     assert level in (1, b"\x01")  # WARN
+
+
+def test_the_diagnostics_wait_for_a_cycle_with_time_left_and_go_out_at_most_100_cycles_late(
+    tmp_path: Path,
+) -> None:
+    """The 1 Hz DiagnosticArray is 0.1-0.2 ms of Python: it goes out in the first cycle since it was due
+    whose own work took under half the period, not on top of a slow one; never more than 100 cycles late.
+    The cycle's work is timed on a clock this test moves: 0.2 ms (fast) or 0.8 ms (slow) per exchange."""
+    now = [0]
+    with emulate(_net(tmp_path), bring_up=False) as emu:
+        server = BusServer(emu.network, Participant(231, "lo"), ServeOptions("robot"), clock=lambda: now[0])
+        op = emu.bring_up()
+        server.attach(op)
+        work_ns = [200_000]
+        exchange = op.exchange
+
+        def timed_exchange() -> Any:
+            now[0] += work_ns[0]
+            return exchange()
+
+        op.exchange = timed_exchange  # type: ignore[method-assign]
+        sent: list[int] = []
+        write = server.diag_writer.write
+        server.diag_writer.write = lambda msg, *a: (sent.append(k), write(msg, *a))  # type: ignore[method-assign]
+        k = 0
+
+        def cycles(n: int) -> None:
+            nonlocal k
+            for _ in range(n):
+                k += 1
+                now[0] += 1_000_000 - work_ns[0]
+                server.step(k)
+
+        cycles(1500)
+        assert sent == [1000]  # on time while the cycles are fast
+        work_ns[0] = 800_000
+        cycles(1050)  # due at 2000, every cycle slow: out at the latest, 100 cycles late
+        assert sent == [1000, 2100]
+        cycles(3040 - k)  # due at 3000: slow until 3040, then fast
+        work_ns[0] = 200_000
+        cycles(10)
+        assert sent == [1000, 2100, 3041]
