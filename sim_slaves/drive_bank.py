@@ -90,6 +90,20 @@ _X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
 _X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
 
 
+def _c_kernel() -> Callable[..., bool] | None:
+    """``sim_slaves._motion.csp`` if it is built (``pip install -e .`` / ``setup.py build_ext``), else None."""
+    try:
+        from sim_slaves import _motion
+    except ImportError:
+        return None
+    return _motion.csp
+
+
+#: :meth:`DriveBank._csp_motion`'s substeps in C (``sim_slaves/_motion.c``), or None where it is not built
+#: (then numpy: :meth:`DriveBank._csp_substeps`, the reference it matches bit for bit)
+csp_kernel = _c_kernel()
+
+
 def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
     """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
 
@@ -578,17 +592,74 @@ class DriveBank:
 
     def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
         """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and
-        whether any drive hit its torque limit."""
+        whether any drive hit its torque limit. In C (:data:`csp_kernel`) where it is built, else numpy
+        (:meth:`_csp_substeps`): the same operations in the same order, the same bits."""
         sl = slice(a, b)
-        rpc = self.rpc[sl]
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
         speed_limited, position_limited = self._limits(a, b)
         if position_limited:
             tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
+        target = tp * self.rpc[sl]
+        coefficients = self._coefficients(a, b, dt / steps)
+        noise = None
+        if not self.ideal_encoder:
+            sd = self.noise_sd[sl]
+            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
+            self.noise[sl] = noise
+        kernel = csp_kernel
+        if kernel is None:
+            return target, self._csp_substeps(sl, dt, steps, target, noise, coefficients, speed_limited)
+        e_, f_, g_, hh_, ki_h = coefficients
+        limited = kernel(
+            self.pos,
+            self.vel,
+            self.integ,
+            self.prev_target,
+            self.prev_vff,
+            self.tau,
+            self.tau_eff,
+            self.shaft,
+            self.limit,
+            self.vff_gain,
+            self.tff_gain,
+            self.kv,
+            self.kp,
+            self.tmax,
+            self.load,
+            self.epr,
+            self.rpe,
+            self.vmax,
+            target,
+            noise,
+            e_,
+            f_,
+            g_,
+            hh_,
+            ki_h,
+            a,
+            b,
+            dt,
+            steps,
+            speed_limited,
+        )
+        return target, limited
+
+    def _csp_substeps(
+        self,
+        sl: slice,
+        dt: float,
+        steps: int,
+        target: F64,
+        noise: F64 | None,
+        coefficients: tuple[F64 | float, ...],
+        speed_limited: bool,
+    ) -> bool:
+        """:meth:`_csp_motion`'s feed-forward and substeps as numpy operations on the run's arrays (the
+        reference of ``sim_slaves._motion``, and the path without it); returns whether any drive hit its
+        torque limit."""
         vmax = self.vmax[sl]
-        target = tp * rpc
         prev_t = self.prev_target[sl]
-        e_, f_, g_, hh_, ki_h = self._coefficients(a, b, dt / steps)
+        e_, f_, g_, hh_, ki_h = coefficients
         kv, kp = self.kv[sl], self.kp[sl]
         tmax = self.tmax[sl]
         ntmax = -tmax
@@ -599,11 +670,6 @@ class DriveBank:
         vff *= self.vff_gain[sl]
         aff *= self.tff_gain[sl]
         epr, rpe = self.epr[sl], self.rpe[sl]
-        noisy = not self.ideal_encoder
-        if noisy:
-            sd = self.noise_sd[sl]
-            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
-            self.noise[sl] = noise
         pos, vel, integ = self.pos[sl], self.vel[sl], self.integ[sl]
         step = target - prev_t
         limited = False
@@ -611,7 +677,7 @@ class DriveBank:
         tau = vel
         for k in range(1, steps + 1):
             measured = np.floor(pos * epr + 0.5)
-            if noisy:
+            if noise is not None:
                 measured += noise
             measured *= rpe
             ev = prev_t + step * (k / steps)
@@ -641,7 +707,7 @@ class DriveBank:
         self.tau[sl] = tau
         self.shaft[sl] = tau
         self.limit[sl] = limited and limit is not None and limit
-        return target, limited
+        return limited
 
     def _csp_outputs(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
         """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives."""

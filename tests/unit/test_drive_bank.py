@@ -241,7 +241,8 @@ def test_a_drive_alone_is_a_bank_of_one_and_moves_exactly_as_in_a_bank() -> None
 
 
 def test_the_bank_reaches_no_private_attribute_of_a_drive() -> None:
-    """drive_bank uses the drive's public interface: no ``x._name`` but on ``self``, no private imports."""
+    """drive_bank uses the drive's public interface: no ``x._name`` but on ``self``, no private imports
+    (but its own optional C substeps, ``sim_slaves._motion``)."""
     import ast
     import inspect
 
@@ -261,6 +262,6 @@ def test_the_bank_reaches_no_private_attribute_of_a_drive() -> None:
         for node in ast.walk(tree)
         if isinstance(node, ast.ImportFrom)
         for alias in node.names
-        if alias.name.startswith("_")
+        if alias.name.startswith("_") and not (node.module == "sim_slaves" and alias.name == "_motion")
     ]
     assert reached == [] and imported == []
