@@ -1,20 +1,25 @@
-/* sim_slaves._motion: the plain-CSP cascade of a run of drives, every substep of a step in one call.
+/* sim_slaves._motion: a step of the drive bank's plain-CSP path for a run of drives in two calls.
  *
- * Optional speed-up for sim_slaves.drive_bank.DriveBank._csp_motion; without it
- * the bank runs the same substeps as numpy operations on the run's arrays (the
- * reference). csp(...) takes the bank's arrays whole (float64, C-contiguous;
- * the limit mask bool) and the run a..b-1, and does, drive by drive, what the
- * numpy path does array by array, with the same operations in the same order
- * (each product and sum rounded on its own: no fused multiply-add; numpy's
- * NaN-propagating maximum / minimum / clip): the velocity and torque
- * feed-forward, then `steps` substeps of encoder, position P, speed limit,
- * velocity PI, torque limit and rotor. The drives do not interact, so the
- * results are the numpy path's bits (tests/unit/test_drive_bank_kernel.py
- * runs both side by side).
+ * Optional speed-up for sim_slaves.drive_bank.DriveBank._csp_motion and
+ * _csp_outputs; without it the bank does the same as numpy operations on the
+ * run's arrays (the reference). Both functions take the bank's arrays whole
+ * (C-contiguous float64 / int64 / bool) and the run a..b-1, and do, drive by
+ * drive, what the numpy path does array by array, with the same operations in
+ * the same order (each product and sum rounded on its own: no fused
+ * multiply-add; numpy's NaN-propagating maximum / minimum / clip). The drives
+ * do not interact, so the results are the numpy path's bits
+ * (tests/unit/test_drive_bank_kernel.py runs both side by side).
+ *
+ * csp(...): the velocity and torque feed-forward, then `steps` substeps of
+ * encoder, position P, speed limit, velocity PI, torque limit and rotor.
+ * csp_outputs(...): statusword, following error, actual values; it declines
+ * (returns False, leaves fe_time alone) when a drive's following error is
+ * beyond its window or a value does not fit int64 (NaN): numpy then does it.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 /* every product and sum rounds on its own, as in numpy: no fused multiply-add */
@@ -46,25 +51,32 @@ enum {
 };
 #define N_BANK (VMAX + 1)
 
+#define MAX_BUFFERS 32
+
 typedef struct {
-    Py_buffer view[KI_H + 1];
-    int held[KI_H + 1];
+    Py_buffer view[MAX_BUFFERS];
+    int held[MAX_BUFFERS];
 } Buffers;
 
 static void release(Buffers *bufs) {
-    for (int i = 0; i <= KI_H; i++)
+    for (int i = 0; i < MAX_BUFFERS; i++)
         if (bufs->held[i]) PyBuffer_Release(&bufs->view[i]);
 }
 
-/* argument i as a C-contiguous buffer of at least `count` items of format `fmt` ("d" or "?") */
-static int take(Buffers *bufs, PyObject *const *args, int i, Py_ssize_t count, const char *fmt, int writable) {
+/* argument i as a C-contiguous buffer of at least `count` items of kind `kind`: 'd' float64, 'q' int64,
+ * '?' bool */
+static int take(Buffers *bufs, PyObject *const *args, int i, Py_ssize_t count, char kind, int writable) {
     Py_buffer *v = &bufs->view[i];
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(args[i], v, flags) < 0) return -1;
     bufs->held[i] = 1;
-    Py_ssize_t size = fmt[0] == 'd' ? (Py_ssize_t)sizeof(double) : 1;
-    if (v->itemsize != size || v->format == NULL || strcmp(v->format, fmt) != 0 || v->len < count * size) {
-        PyErr_Format(PyExc_ValueError, "csp: argument %d is not %zd items of format '%s'", i, count, fmt);
+    const char *f = v->format ? v->format : "B";
+    Py_ssize_t size = kind == '?' ? 1 : 8;
+    int ok = kind == 'd'   ? strcmp(f, "d") == 0
+             : kind == '?' ? strcmp(f, "?") == 0
+                           : (strcmp(f, "q") == 0 || (strcmp(f, "l") == 0 && sizeof(long) == 8));
+    if (!ok || v->itemsize != size || v->len < count * size) {
+        PyErr_Format(PyExc_ValueError, "argument %d is not %zd items of kind '%c'", i, count, kind);
         return -1;
     }
     return 0;
@@ -79,13 +91,14 @@ static int factor(Buffers *bufs, PyObject *const *args, int i, Py_ssize_t count,
         *stride = 0;
         return 0;
     }
-    if (take(bufs, args, i, count, "d", 0) < 0) return -1;
+    if (take(bufs, args, i, count, 'd', 0) < 0) return -1;
     *p = (const double *)bufs->view[i].buf;
     *stride = 1;
     return 0;
 }
 
 static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
     if (nargs != NARGS) {
         PyErr_Format(PyExc_TypeError, "csp: %d arguments, got %zd", NARGS, nargs);
         return NULL;
@@ -108,9 +121,9 @@ static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     Py_ssize_t cs[5];
     double scalars[5];
     for (int i = 0; i < N_BANK; i++)
-        if (take(&bufs, args, i, b, i == LIMIT ? "?" : "d", i <= LIMIT) < 0) goto done;
-    if (take(&bufs, args, TARGET, n, "d", 0) < 0) goto done;
-    if (args[NOISE] != Py_None && take(&bufs, args, NOISE, n, "d", 0) < 0) goto done;
+        if (take(&bufs, args, i, b, i == LIMIT ? '?' : 'd', i <= LIMIT) < 0) goto done;
+    if (take(&bufs, args, TARGET, n, 'd', 0) < 0) goto done;
+    if (args[NOISE] != Py_None && take(&bufs, args, NOISE, n, 'd', 0) < 0) goto done;
     for (int j = 0; j < 5; j++)
         if (factor(&bufs, args, CE + j, n, &c[j], &cs[j], &scalars[j]) < 0) goto done;
 
@@ -174,10 +187,105 @@ done:
     return result;
 }
 
+/* the arguments of csp_outputs, in order */
+enum {
+    /* bank arrays written: int64 ..., and float64 */
+    O_STATUSWORD, O_FOLLOWING_ERROR, O_POSITION_COUNTS, O_VELOCITY_COUNTS, O_TORQUE_PERMILLE, O_FE_TIME,
+    /* bank arrays read: float64 ... */
+    O_POS, O_VEL, O_TAU, O_CPR, O_EPR, O_ENC_TO_COUNTS, O_VPR, O_RATED,
+    /* ... int64 ... */
+    O_NOISE, O_FE_WINDOW, O_POSITION_WINDOW,
+    /* ... and bool */
+    O_LIMIT,
+    /* the run's target [rad] (float64) */
+    O_TARGET,
+    /* a, b, ideal encoder, limited; statusword: following, following and target reached, limit bit */
+    O_A, O_B, O_IDEAL, O_LIMITED, O_SW_CSP, O_SW_REACHED, O_SW_LIMIT,
+    O_NARGS
+};
+
+/* a float that is a whole number, as int64 the way numpy casts it; 0 where it does not fit (NaN, too big) */
+static inline int fits(double x) { return x >= -9223372036854775808.0 && x < 9223372036854775808.0; }
+
+static PyObject *csp_outputs(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != O_NARGS) {
+        PyErr_Format(PyExc_TypeError, "csp_outputs: %d arguments, got %zd", O_NARGS, nargs);
+        return NULL;
+    }
+    Py_ssize_t a = PyLong_AsSsize_t(args[O_A]), b = PyLong_AsSsize_t(args[O_B]);
+    int ideal = PyObject_IsTrue(args[O_IDEAL]), limited = PyObject_IsTrue(args[O_LIMITED]);
+    long long sw_csp = PyLong_AsLongLong(args[O_SW_CSP]), sw_reached = PyLong_AsLongLong(args[O_SW_REACHED]);
+    long long sw_limit = PyLong_AsLongLong(args[O_SW_LIMIT]);
+    if (PyErr_Occurred() || ideal < 0 || limited < 0) return NULL;
+    if (a < 0 || b < a) {
+        PyErr_Format(PyExc_ValueError, "csp_outputs: need 0 <= a <= b, got a=%zd b=%zd", a, b);
+        return NULL;
+    }
+    Py_ssize_t n = b - a;
+    Buffers bufs;
+    memset(bufs.held, 0, sizeof(bufs.held));
+    PyObject *result = NULL;
+    for (int i = 0; i <= O_LIMIT; i++) {
+        char kind = i == O_LIMIT ? '?' : (i < O_FE_TIME || (i >= O_NOISE && i < O_LIMIT)) ? 'q' : 'd';
+        if (take(&bufs, args, i, b, kind, i <= O_FE_TIME) < 0) goto done;
+    }
+    if (take(&bufs, args, O_TARGET, n, 'd', 0) < 0) goto done;
+
+#define F(i) ((double *)bufs.view[i].buf + a)
+#define Q(i) ((int64_t *)bufs.view[i].buf + a)
+    int64_t *statusword = Q(O_STATUSWORD), *following_error = Q(O_FOLLOWING_ERROR);
+    int64_t *position_counts = Q(O_POSITION_COUNTS), *velocity_counts = Q(O_VELOCITY_COUNTS);
+    int64_t *torque_permille = Q(O_TORQUE_PERMILLE);
+    double *fe_time = F(O_FE_TIME);
+    const double *pos = F(O_POS), *vel = F(O_VEL), *tau = F(O_TAU), *cpr = F(O_CPR), *epr = F(O_EPR);
+    const double *enc_to_counts = F(O_ENC_TO_COUNTS), *vpr = F(O_VPR), *rated = F(O_RATED);
+    const int64_t *noise = Q(O_NOISE), *fe_window = Q(O_FE_WINDOW), *position_window = Q(O_POSITION_WINDOW);
+#undef F
+#undef Q
+    const char *limit = (const char *)bufs.view[O_LIMIT].buf + a;
+    const double *target = (const double *)bufs.view[O_TARGET].buf;
+    int done_all = 1;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double pos_counts;
+        if (!ideal) {
+            double enc = floor(pos[i] * epr[i] + 0.5) + (double)noise[i];
+            pos_counts = floor(enc * enc_to_counts[i] + 0.5);
+        } else {
+            pos_counts = floor(pos[i] * cpr[i] + 0.5);
+        }
+        double fe = floor(target[i] * cpr[i] + 0.5) - pos_counts;
+        double afe = fabs(fe);
+        double v = floor(vel[i] * vpr[i] + 0.5);
+        double t = floor(tau[i] * 1000.0 / rated[i] + 0.5);
+        if (afe > (double)fe_window[i] || !fits(fe) || !fits(pos_counts) || !fits(v) || !fits(t)) {
+            done_all = 0; /* numpy does the run: the following-error timer, the fault, NaN */
+            break;
+        }
+        long long sw = afe <= (double)position_window[i] ? sw_reached : sw_csp;
+        if (limited && limit[i]) sw |= sw_limit;
+        statusword[i] = (int64_t)sw;
+        following_error[i] = (int64_t)fe;
+        position_counts[i] = (int64_t)pos_counts;
+        velocity_counts[i] = (int64_t)v;
+        torque_permille[i] = (int64_t)t;
+    }
+    if (done_all)
+        for (Py_ssize_t i = 0; i < n; i++) fe_time[i] = 0.0;
+    result = PyBool_FromLong(done_all);
+done:
+    release(&bufs);
+    return result;
+}
+
 static PyMethodDef motion_methods[] = {
     {"csp", (PyCFunction)(void (*)(void))csp, METH_FASTCALL,
      "csp(pos, vel, integ, prev_target, prev_vff, tau, tau_eff, shaft, limit, vff_gain, tff_gain, kv, kp, tmax, "
      "load, epr, rpe, vmax, target, noise, e, f, g, hh, ki_h, a, b, dt, steps, speed_limited) -> limited"},
+    {"csp_outputs", (PyCFunction)(void (*)(void))csp_outputs, METH_FASTCALL,
+     "csp_outputs(statusword, following_error, position_counts, velocity_counts, torque_permille, fe_time, pos, "
+     "vel, tau, cpr, epr, enc_to_counts, vpr, rated, noise, fe_window, position_window, limit, target, a, b, "
+     "ideal_encoder, limited, sw_csp, sw_reached, sw_limit) -> done (False: numpy's turn)"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -4,6 +4,7 @@ import numpy as np
 import numpy.typing as npt
 
 _F64 = npt.NDArray[np.float64]
+_I64 = npt.NDArray[np.int64]
 
 def csp(
     pos: _F64,
@@ -39,3 +40,34 @@ def csp(
     /,
 ) -> bool:
     """The plain-CSP substeps of drives a..b-1 (the bank's arrays whole); whether any hit its torque limit."""
+
+def csp_outputs(
+    statusword: _I64,
+    following_error: _I64,
+    position_counts: _I64,
+    velocity_counts: _I64,
+    torque_permille: _I64,
+    fe_time: _F64,
+    pos: _F64,
+    vel: _F64,
+    tau: _F64,
+    cpr: _F64,
+    epr: _F64,
+    enc_to_counts: _F64,
+    vpr: _F64,
+    rated: _F64,
+    noise: _I64,
+    fe_window: _I64,
+    position_window: _I64,
+    limit: npt.NDArray[np.bool_],
+    target: _F64,
+    a: int,
+    b: int,
+    ideal_encoder: bool,
+    limited: bool,
+    sw_csp: int,
+    sw_reached: int,
+    sw_limit: int,
+    /,
+) -> bool:
+    """Statusword, following error, actual values of drives a..b-1; False (nothing settled): numpy's turn."""

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -90,18 +91,25 @@ _X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
 _X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
 
 
-def _c_kernel() -> Callable[..., bool] | None:
-    """``sim_slaves._motion.csp`` if it is built (``pip install -e .`` / ``setup.py build_ext``), else None."""
+class MotionKernel(Protocol):
+    """``sim_slaves._motion`` (``sim_slaves/_motion.c``): the plain CSP path's step in C, the numpy path's
+    bits (:meth:`DriveBank._csp_substeps`, :meth:`DriveBank._csp_outputs_numpy`)."""
+
+    csp: Callable[..., bool]
+    csp_outputs: Callable[..., bool]
+
+
+def _c_kernel() -> MotionKernel | None:
+    """``sim_slaves._motion`` if it is built (``pip install -e .`` / ``setup.py build_ext``), else None."""
     try:
         from sim_slaves import _motion
     except ImportError:
         return None
-    return _motion.csp
+    return _motion
 
 
-#: :meth:`DriveBank._csp_motion`'s substeps in C (``sim_slaves/_motion.c``), or None where it is not built
-#: (then numpy: :meth:`DriveBank._csp_substeps`, the reference it matches bit for bit)
-csp_kernel = _c_kernel()
+#: the plain CSP path's step in C, or None where ``sim_slaves._motion`` is not built (then numpy)
+motion_kernel = _c_kernel()
 
 
 def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
@@ -592,7 +600,7 @@ class DriveBank:
 
     def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
         """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and
-        whether any drive hit its torque limit. In C (:data:`csp_kernel`) where it is built, else numpy
+        whether any drive hit its torque limit. In C (:data:`motion_kernel`) where it is built, else numpy
         (:meth:`_csp_substeps`): the same operations in the same order, the same bits."""
         sl = slice(a, b)
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
@@ -606,11 +614,11 @@ class DriveBank:
             sd = self.noise_sd[sl]
             noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
             self.noise[sl] = noise
-        kernel = csp_kernel
+        kernel = motion_kernel
         if kernel is None:
             return target, self._csp_substeps(sl, dt, steps, target, noise, coefficients, speed_limited)
         e_, f_, g_, hh_, ki_h = coefficients
-        limited = kernel(
+        limited = kernel.csp(
             self.pos,
             self.vel,
             self.integ,
@@ -710,7 +718,42 @@ class DriveBank:
         return limited
 
     def _csp_outputs(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
-        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives."""
+        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives: in C
+        (:data:`motion_kernel`) while every following error is within its window, else numpy."""
+        kernel = motion_kernel
+        if kernel is not None and kernel.csp_outputs(
+            self.statusword,
+            self.following_error,
+            self.position_counts,
+            self.velocity_counts,
+            self.torque_permille,
+            self.fe_time,
+            self.pos,
+            self.vel,
+            self.tau,
+            self.cpr,
+            self.epr,
+            self.enc_to_counts,
+            self.vpr,
+            self.rated,
+            self.noise,
+            self.fe_window,
+            self.position_window,
+            self.limit,
+            target,
+            sl.start,
+            sl.stop,
+            self.ideal_encoder,
+            limited,
+            _SW_CSP,
+            _SW_CSP_REACHED,
+            _SW_LIMIT,
+        ):
+            return
+        self._csp_outputs_numpy(sl, dt, target, limited)
+
+    def _csp_outputs_numpy(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
+        """:meth:`_csp_outputs` as numpy operations (the reference of ``sim_slaves._motion``)."""
         cpr = self.cpr[sl]
         pos, vel, tau = self.pos[sl], self.vel[sl], self.tau[sl]
         if not self.ideal_encoder:

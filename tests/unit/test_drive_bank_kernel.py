@@ -1,7 +1,7 @@
 """The C substeps of the plain CSP path (sim_slaves._motion) against numpy's: the same bits, step after step.
 
 Two banks built alike take the same commands; one steps with the C kernel,
-the other with ``drive_bank.csp_kernel`` set to None (the numpy reference).
+the other with ``drive_bank.motion_kernel`` set to None (the numpy reference).
 Every state and output array must hold the same bits after every step (float
 arrays compared as their bit patterns, so a different rounding anywhere, a
 fused multiply-add or another order of operations, fails). Both sides are our
@@ -12,7 +12,6 @@ against drives alone); here the reference is the numpy path.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -59,8 +58,12 @@ def _case(p: DriveParams, case: str, rng: np.random.Generator) -> DriveParams:
         return replace(p, software_position_limit=(-int(lo), int(hi)))
     if case == "torque":
         return replace(p, max_torque_permille=int(rng.integers(5, 60)))
+    if case == "following":  # a narrow window, a timeout beyond the run: over it now and then, no fault
+        return replace(
+            p, following_error_window_counts=int(rng.integers(50, 400)), following_error_timeout_ms=60_000
+        )
     if case == "mixed":
-        return _case(p, str(rng.choice(["plain", "noise", "speed", "position", "torque"])), rng)
+        return _case(p, str(rng.choice(["plain", "noise", "speed", "position", "torque", "following"])), rng)
     return p
 
 
@@ -84,26 +87,36 @@ def _assert_same(c: DriveBank, ref: DriveBank, k: int) -> None:
     assert np.array_equal(c.state, ref.state), k
 
 
-def _counting(kernel: Callable[..., bool]) -> tuple[Callable[..., bool], list[int]]:
-    calls = [0]
+class _Counted:
+    """A kernel whose calls are counted: substep calls, and output calls that C settled / left to numpy."""
 
-    def counted(*args: Any) -> bool:
-        calls[0] += 1
-        return kernel(*args)
+    def __init__(self, kernel: drive_bank.MotionKernel) -> None:
+        self.kernel = kernel
+        self.substeps = 0
+        self.settled = 0
+        self.declined = 0
 
-    return counted, calls
+    def csp(self, *args: Any) -> bool:
+        self.substeps += 1
+        return self.kernel.csp(*args)
+
+    def csp_outputs(self, *args: Any) -> bool:
+        done = self.kernel.csp_outputs(*args)
+        self.settled += done
+        self.declined += not done
+        return done
 
 
 def _step_both(
     c: DriveBank,
     ref: DriveBank,
-    kernel: Callable[..., bool],
+    kernel: drive_bank.MotionKernel,
     monkeypatch: pytest.MonkeyPatch,
     cw: int,
     targets: npt.NDArray[np.int64],
 ) -> None:
     for bank, k in ((c, kernel), (ref, None)):
-        monkeypatch.setattr(drive_bank, "csp_kernel", k)
+        monkeypatch.setattr(drive_bank, "motion_kernel", k)
         bank.controlword[:] = cw
         bank.target_position[:] = targets
         bank.step(0, bank.n, DT)
@@ -118,13 +131,15 @@ def _targets(rng: np.random.Generator, n: int, k: int, cpr: npt.NDArray[np.float
 
 def test_the_kernel_is_built() -> None:
     """CI builds the extension (pip install -e '.[all]'): its absence is a failure, not a quiet numpy path."""
-    assert drive_bank.csp_kernel is not None, (
+    assert drive_bank.motion_kernel is not None, (
         "sim_slaves._motion is not built (python setup.py build_ext --inplace)"
     )
 
 
 @pytest.mark.parametrize("n", [1, 3, 17])
-@pytest.mark.parametrize("case", ["plain", "noise", "speed", "position", "torque", "mixed", "alike"])
+@pytest.mark.parametrize(
+    "case", ["plain", "noise", "speed", "position", "torque", "following", "mixed", "alike"]
+)
 def test_the_c_substeps_give_the_numpy_paths_bits(n: int, case: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Random banks in CSP at 1 kHz, 600 steps: every array bit for bit as the numpy path's.
 
@@ -132,9 +147,9 @@ def test_the_c_substeps_give_the_numpy_paths_bits(n: int, case: str, monkeypatch
     each drive's mechanics and gains (arrays) and the bank's control rate (3 or 5 substeps); ``mixed``
     draws the case per drive too.
     """
-    kernel = drive_bank.csp_kernel
+    kernel = drive_bank.motion_kernel
     assert kernel is not None, "sim_slaves._motion is not built"
-    counted, calls = _counting(kernel)
+    counted = _Counted(kernel)
     rng = np.random.default_rng([n, len(case)])
     if case == "alike":
         params = [replace(DriveParams(), following_error_window_counts=WIDE, max_torque_permille=400)] * n
@@ -146,8 +161,8 @@ def test_the_c_substeps_give_the_numpy_paths_bits(n: int, case: str, monkeypatch
     for cw in (0x00, 0x06, 0x07, 0x0F):
         _step_both(c, ref, counted, monkeypatch, cw, np.zeros(n, dtype=np.int64))
     assert (c.state == State402.OPERATION_ENABLED).all()
-    before = calls[0]
-    limited = held = 0
+    before = counted.substeps
+    limited = held = timed = 0
     peak_speed = np.zeros(n)
     for k in range(600):
         _step_both(c, ref, counted, monkeypatch, 0x0F, _targets(rng, n, k, cpr))
@@ -155,7 +170,12 @@ def test_the_c_substeps_give_the_numpy_paths_bits(n: int, case: str, monkeypatch
         limited += int(c.limit.any())
         held += int(((c.target_position < c.pmin) | (c.target_position > c.pmax)).any())
         peak_speed = np.maximum(peak_speed, np.abs(c.vel))
-    assert calls[0] - before == 600  # the C kernel stepped every cycle (the plain CSP path)
+        timed += int(c.fe_time.any())
+    assert counted.substeps - before == 600  # the C kernel stepped every cycle (the plain CSP path)
+    if case == "following":  # numpy's turn while beyond the window (the timer), C's the rest
+        assert counted.declined > 0 and counted.settled > 0 and timed > 0
+    elif case != "mixed":
+        assert counted.declined == 0 and counted.settled == counted.substeps
     assert c._uniform[(0, n)] == "csp"
     if case == "torque":
         assert limited > 0  # the torque limit was hit
@@ -167,7 +187,7 @@ def test_the_c_substeps_give_the_numpy_paths_bits(n: int, case: str, monkeypatch
 
 def test_nan_in_the_state_spreads_the_same_way(monkeypatch: pytest.MonkeyPatch) -> None:
     """A NaN target, torque limit, speed limit or load (a poisoned array): numpy's NaN rules in C too."""
-    kernel = drive_bank.csp_kernel
+    kernel = drive_bank.motion_kernel
     assert kernel is not None, "sim_slaves._motion is not built"
     params = [replace(DriveParams(), following_error_window_counts=WIDE, max_motor_speed_rpm=300.0)] * 5
     c, ref = _bank(params), _bank(params)
@@ -191,3 +211,52 @@ def test_nan_in_the_state_spreads_the_same_way(monkeypatch: pytest.MonkeyPatch) 
                     assert np.array_equal(_bits(x)[ok], _bits(y)[ok]), (k, name)
     assert np.isnan(c.pos[:4]).all() and np.isfinite(c.pos[4])  # it spread in drives 0-3 alone
     assert c.limit[:4].all()  # NaN != NaN: numpy counts the drive as torque-limited, so does C
+
+
+def _near_half(rng: np.random.Generator, per_unit: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Values that ``per_unit`` turns into whole numbers and a half, give or take a few units in the last
+    place: where floor(x + 0.5) tells one rounding order from another."""
+    n = len(per_unit)
+    half = (rng.integers(-30_000, 30_000, n) + 0.5) / per_unit
+    return np.asarray(half * (1.0 + rng.integers(-4, 5, n) * 2.0**-52), dtype=np.float64)
+
+
+@pytest.mark.parametrize("encoder", ["ideal", "coarse"])
+def test_the_outputs_round_at_half_counts_as_numpy_does(
+    encoder: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Positions, speeds, torques and targets a hair from half a count: counts, following error, speed
+    and torque actual values as the numpy path gives them (another order of operations rounds some of
+    them the other way)."""
+    kernel = drive_bank.motion_kernel
+    assert kernel is not None, "sim_slaves._motion is not built"
+    counted = _Counted(kernel)
+    rng = np.random.default_rng(17)
+    n = 64
+    params = [
+        replace(
+            DriveParams(),
+            counts_per_rev=int(rng.choice([4096, 1 << 17, 1 << 20])),
+            rated_torque_nm=float(rng.uniform(0.1, 3.0)),
+            velocity_units_per_count_s=float(rng.choice([1.0, 0.1, 0.37])),
+            encoder_counts_per_rev=int(rng.choice([1000, 1 << 14])) if encoder == "coarse" else 0,
+            following_error_window_counts=WIDE,
+        )
+        for _ in range(n)
+    ]
+    c, ref = _bank(params), _bank(params)
+    for cw in (0x00, 0x06, 0x07, 0x0F):
+        _step_both(c, ref, counted, monkeypatch, cw, np.zeros(n, dtype=np.int64))
+    assert c.ideal_encoder is (encoder == "ideal")
+    run = slice(0, n)
+    before = counted.settled
+    for k in range(64):
+        pos = _near_half(rng, c.cpr if c.ideal_encoder else c.epr)
+        vel, tau = _near_half(rng, c.vpr), _near_half(rng, 1000.0 / c.rated)
+        target = _near_half(rng, c.cpr)
+        for bank, kern in ((c, counted), (ref, None)):
+            monkeypatch.setattr(drive_bank, "motion_kernel", kern)
+            bank.pos[:], bank.vel[:], bank.tau[:] = pos, vel, tau
+            bank._csp_outputs(run, DT, target, False)
+        _assert_same(c, ref, k)
+    assert counted.settled - before == 64 and counted.declined == 0
