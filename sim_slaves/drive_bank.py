@@ -307,7 +307,8 @@ class DriveBank:
             float(rate[0]) if self.n and (rate == rate[0]).all() else None
         )  # one control rate for all
         self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
-        self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
+        # run -> the one inertia, friction, ki of its drives (None: they differ)
+        self._same_mechanics: dict[tuple[int, int], tuple[float, float, float] | None] = {}
         self._limited: dict[tuple[int, int], tuple[bool, bool]] = {}  # run -> (speed limit, position limits)
 
     # -- per-drive bookkeeping --
@@ -556,21 +557,27 @@ class DriveBank:
         does; others arrays.
         """
         cached = self._coeffs.get((a, b))
-        if cached is None or cached[0] != h:
-            sl = slice(a, b)
-            j, fb, ki = self.inertia[sl], self.friction[sl], self.ki[sl]
-            same = self._same_mechanics.get((a, b))
-            if same is None:
-                same = self._same_mechanics[(a, b)] = bool(
-                    (j == j[0]).all() and (fb == fb[0]).all() and (ki == ki[0]).all()
-                )
+        if cached is None or cached[0] != h:  # (the served cycle's step, and so h, changes every cycle)
+            if (a, b) not in self._same_mechanics:
+                self._same_mechanics[(a, b)] = self._one_mechanics(a, b)
+            one = self._same_mechanics[(a, b)]
             coeffs: tuple[F64 | float, ...]
-            if same:
-                coeffs = (*integration_coefficients(float(j[0]), float(fb[0]), h), float(ki[0]) * h)
+            if one is not None:
+                j, fb, ki = one
+                coeffs = (*integration_coefficients(j, fb, h), ki * h)
             else:
-                coeffs = (*_rotor_coefficients(j, fb, h), ki * h)
+                sl = slice(a, b)
+                coeffs = (*_rotor_coefficients(self.inertia[sl], self.friction[sl], h), self.ki[sl] * h)
             cached = self._coeffs[(a, b)] = (h, coeffs)
         return cached[1]
+
+    def _one_mechanics(self, a: int, b: int) -> tuple[float, float, float] | None:
+        """The inertia, friction and ki that every drive of the run has, or None where they differ."""
+        sl = slice(a, b)
+        j, fb, ki = self.inertia[sl], self.friction[sl], self.ki[sl]
+        if (j == j[0]).all() and (fb == fb[0]).all() and (ki == ki[0]).all():
+            return float(j[0]), float(fb[0]), float(ki[0])
+        return None
 
     def _idle(self, a: int, b: int, dt: float, steps: int) -> None:
         """No drive of the run powered (and no thermal model, dry friction, current lag): rotors coast."""
