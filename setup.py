@@ -10,5 +10,11 @@ setup(
         Extension(
             "sim_slaves._dcloop", sources=["sim_slaves/_dcloop.c"], optional=True, extra_compile_args=["-O2"]
         ),
+        Extension(
+            "sim_slaves._motion",
+            sources=["sim_slaves/_motion.c"],
+            optional=True,
+            extra_compile_args=["-O2", "-ffp-contract=off"],
+        ),
     ]
 )

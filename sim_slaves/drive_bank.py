@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -88,6 +89,27 @@ _X_TARGET_POSITION = int(Obj.TARGET_POSITION)
 _X_TARGET_VELOCITY = int(Obj.TARGET_VELOCITY)
 _X_TARGET_TORQUE = int(Obj.TARGET_TORQUE)
 _X_FOLLOWING_ERROR = int(Obj.FOLLOWING_ERROR_ACTUAL)
+
+
+class MotionKernel(Protocol):
+    """``sim_slaves._motion`` (``sim_slaves/_motion.c``): the plain CSP path's step in C, the numpy path's
+    bits (:meth:`DriveBank._csp_substeps`, :meth:`DriveBank._csp_outputs_numpy`)."""
+
+    csp: Callable[..., bool]
+    csp_outputs: Callable[..., bool]
+
+
+def _c_kernel() -> MotionKernel | None:
+    """``sim_slaves._motion`` if it is built (``pip install -e .`` / ``setup.py build_ext``), else None."""
+    try:
+        from sim_slaves import _motion
+    except ImportError:
+        return None
+    return _motion
+
+
+#: the plain CSP path's step in C, or None where ``sim_slaves._motion`` is not built (then numpy)
+motion_kernel = _c_kernel()
 
 
 def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
@@ -285,7 +307,8 @@ class DriveBank:
             float(rate[0]) if self.n and (rate == rate[0]).all() else None
         )  # one control rate for all
         self._coeffs: dict[tuple[int, int], tuple[float, tuple[F64 | float, ...]]] = {}
-        self._same_mechanics: dict[tuple[int, int], bool] = {}  # run -> one inertia, friction, ki
+        # run -> the one inertia, friction, ki of its drives (None: they differ)
+        self._same_mechanics: dict[tuple[int, int], tuple[float, float, float] | None] = {}
         self._limited: dict[tuple[int, int], tuple[bool, bool]] = {}  # run -> (speed limit, position limits)
 
     # -- per-drive bookkeeping --
@@ -399,6 +422,17 @@ class DriveBank:
 
     def _state_machines(self, a: int, b: int) -> None:
         sl = slice(a, b)
+        if (a, b) in self._calm:
+            # steady operation, said in few calls (a numpy call costs ~1-2 us, whatever the run's size):
+            # the controlwords and mode requests as before, and no drive homing
+            display = self.mode_display[sl]
+            if (
+                self.controlword[sl].tobytes() == self.prev_cw[sl].tobytes()
+                and self.mode_request[sl].tobytes() == display.tobytes()
+                and _HM not in display.tolist()
+                and not self.home_phase[sl].tobytes().strip(b"\0")
+            ):
+                return
         cw = self.controlword[sl]
         mode_req = self.mode_request[sl]
         new_cw = cw != self.prev_cw[sl]
@@ -523,21 +557,27 @@ class DriveBank:
         does; others arrays.
         """
         cached = self._coeffs.get((a, b))
-        if cached is None or cached[0] != h:
-            sl = slice(a, b)
-            j, fb, ki = self.inertia[sl], self.friction[sl], self.ki[sl]
-            same = self._same_mechanics.get((a, b))
-            if same is None:
-                same = self._same_mechanics[(a, b)] = bool(
-                    (j == j[0]).all() and (fb == fb[0]).all() and (ki == ki[0]).all()
-                )
+        if cached is None or cached[0] != h:  # (the served cycle's step, and so h, changes every cycle)
+            if (a, b) not in self._same_mechanics:
+                self._same_mechanics[(a, b)] = self._one_mechanics(a, b)
+            one = self._same_mechanics[(a, b)]
             coeffs: tuple[F64 | float, ...]
-            if same:
-                coeffs = (*integration_coefficients(float(j[0]), float(fb[0]), h), float(ki[0]) * h)
+            if one is not None:
+                j, fb, ki = one
+                coeffs = (*integration_coefficients(j, fb, h), ki * h)
             else:
-                coeffs = (*_rotor_coefficients(j, fb, h), ki * h)
+                sl = slice(a, b)
+                coeffs = (*_rotor_coefficients(self.inertia[sl], self.friction[sl], h), self.ki[sl] * h)
             cached = self._coeffs[(a, b)] = (h, coeffs)
         return cached[1]
+
+    def _one_mechanics(self, a: int, b: int) -> tuple[float, float, float] | None:
+        """The inertia, friction and ki that every drive of the run has, or None where they differ."""
+        sl = slice(a, b)
+        j, fb, ki = self.inertia[sl], self.friction[sl], self.ki[sl]
+        if (j == j[0]).all() and (fb == fb[0]).all() and (ki == ki[0]).all():
+            return float(j[0]), float(fb[0]), float(ki[0])
+        return None
 
     def _idle(self, a: int, b: int, dt: float, steps: int) -> None:
         """No drive of the run powered (and no thermal model, dry friction, current lag): rotors coast."""
@@ -578,17 +618,74 @@ class DriveBank:
 
     def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
         """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and
-        whether any drive hit its torque limit."""
+        whether any drive hit its torque limit. In C (:data:`motion_kernel`) where it is built, else numpy
+        (:meth:`_csp_substeps`): the same operations in the same order, the same bits."""
         sl = slice(a, b)
-        rpc = self.rpc[sl]
         tp = self._delayed(a, b)[0] if self.any_delay else self.target_position[sl]
         speed_limited, position_limited = self._limits(a, b)
         if position_limited:
             tp = np.clip(tp, self.pmin[sl], self.pmax[sl])
+        target = tp * self.rpc[sl]
+        coefficients = self._coefficients(a, b, dt / steps)
+        noise = None
+        if not self.ideal_encoder:
+            sd = self.noise_sd[sl]
+            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
+            self.noise[sl] = noise
+        kernel = motion_kernel
+        if kernel is None:
+            return target, self._csp_substeps(sl, dt, steps, target, noise, coefficients, speed_limited)
+        e_, f_, g_, hh_, ki_h = coefficients
+        limited = kernel.csp(
+            self.pos,
+            self.vel,
+            self.integ,
+            self.prev_target,
+            self.prev_vff,
+            self.tau,
+            self.tau_eff,
+            self.shaft,
+            self.limit,
+            self.vff_gain,
+            self.tff_gain,
+            self.kv,
+            self.kp,
+            self.tmax,
+            self.load,
+            self.epr,
+            self.rpe,
+            self.vmax,
+            target,
+            noise,
+            e_,
+            f_,
+            g_,
+            hh_,
+            ki_h,
+            a,
+            b,
+            dt,
+            steps,
+            speed_limited,
+        )
+        return target, limited
+
+    def _csp_substeps(
+        self,
+        sl: slice,
+        dt: float,
+        steps: int,
+        target: F64,
+        noise: F64 | None,
+        coefficients: tuple[F64 | float, ...],
+        speed_limited: bool,
+    ) -> bool:
+        """:meth:`_csp_motion`'s feed-forward and substeps as numpy operations on the run's arrays (the
+        reference of ``sim_slaves._motion``, and the path without it); returns whether any drive hit its
+        torque limit."""
         vmax = self.vmax[sl]
-        target = tp * rpc
         prev_t = self.prev_target[sl]
-        e_, f_, g_, hh_, ki_h = self._coefficients(a, b, dt / steps)
+        e_, f_, g_, hh_, ki_h = coefficients
         kv, kp = self.kv[sl], self.kp[sl]
         tmax = self.tmax[sl]
         ntmax = -tmax
@@ -599,11 +696,6 @@ class DriveBank:
         vff *= self.vff_gain[sl]
         aff *= self.tff_gain[sl]
         epr, rpe = self.epr[sl], self.rpe[sl]
-        noisy = not self.ideal_encoder
-        if noisy:
-            sd = self.noise_sd[sl]
-            noise = np.where(sd > 0.0, np.rint(self.rng.standard_normal(b - a) * sd), 0.0)
-            self.noise[sl] = noise
         pos, vel, integ = self.pos[sl], self.vel[sl], self.integ[sl]
         step = target - prev_t
         limited = False
@@ -611,7 +703,7 @@ class DriveBank:
         tau = vel
         for k in range(1, steps + 1):
             measured = np.floor(pos * epr + 0.5)
-            if noisy:
+            if noise is not None:
                 measured += noise
             measured *= rpe
             ev = prev_t + step * (k / steps)
@@ -641,10 +733,45 @@ class DriveBank:
         self.tau[sl] = tau
         self.shaft[sl] = tau
         self.limit[sl] = limited and limit is not None and limit
-        return target, limited
+        return limited
 
     def _csp_outputs(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
-        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives."""
+        """Statusword, following error (and its fault), actual values of :meth:`_csp`'s drives: in C
+        (:data:`motion_kernel`) while every following error is within its window, else numpy."""
+        kernel = motion_kernel
+        if kernel is not None and kernel.csp_outputs(
+            self.statusword,
+            self.following_error,
+            self.position_counts,
+            self.velocity_counts,
+            self.torque_permille,
+            self.fe_time,
+            self.pos,
+            self.vel,
+            self.tau,
+            self.cpr,
+            self.epr,
+            self.enc_to_counts,
+            self.vpr,
+            self.rated,
+            self.noise,
+            self.fe_window,
+            self.position_window,
+            self.limit,
+            target,
+            sl.start,
+            sl.stop,
+            self.ideal_encoder,
+            limited,
+            _SW_CSP,
+            _SW_CSP_REACHED,
+            _SW_LIMIT,
+        ):
+            return
+        self._csp_outputs_numpy(sl, dt, target, limited)
+
+    def _csp_outputs_numpy(self, sl: slice, dt: float, target: F64, limited: bool) -> None:
+        """:meth:`_csp_outputs` as numpy operations (the reference of ``sim_slaves._motion``)."""
         cpr = self.cpr[sl]
         pos, vel, tau = self.pos[sl], self.vel[sl], self.tau[sl]
         if not self.ideal_encoder:
