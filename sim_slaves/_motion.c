@@ -18,6 +18,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
@@ -174,8 +175,8 @@ static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
             p = p_new;
         }
         pos[i] = p;
-        vel[i] = v;
-        integ[i] = in;
+        vel[i] = fabs(v) < DBL_MIN ? 0.0 : v; /* a subnormal: 0 (drive_bank._flush_subnormal) */
+        integ[i] = fabs(in) < DBL_MIN ? 0.0 : in;
         prev_target[i] = tgt;
         tau_out[i] = tau_eff[i] = shaft[i] = tau;
         limit[i] = hit;

@@ -112,6 +112,16 @@ def _c_kernel() -> MotionKernel | None:
 motion_kernel = _c_kernel()
 
 
+_TINY = float(np.finfo(np.float64).tiny)  # the smallest normal float64, 2.2e-308
+
+
+def _flush_subnormal(x: F64) -> F64:
+    """``x`` with its subnormal values set to 0: a rotor holding still decays its speed and integrator
+    into them within seconds, and x86 computes with them some 100 times slower (a bank of 64 drives went
+    from 27 to 111 us per step after 4 s of hold). A NaN stays NaN (the C kernel does the same)."""
+    return np.where(np.abs(x) < _TINY, 0.0, x)
+
+
 def integration_coefficients(j: float, b: float, h: float) -> tuple[float, float, float, float]:
     """Exact integration of a rotor (inertia ``j`` kg m², viscous friction ``b`` N m s/rad) over ``h`` s.
 
@@ -590,6 +600,7 @@ class DriveBank:
         for _ in range(steps):
             pos = pos + vel * g_ + net * hh_
             vel = vel * e_ + net * f_
+        vel = _flush_subnormal(vel)
         self.pos[sl], self.vel[sl] = pos, vel
         self.prev_target[sl] = pos
         self.tau[sl] = self.tau_eff[sl] = self.shaft[sl] = 0.0
@@ -727,7 +738,7 @@ class DriveBank:
             net = tau - load
             pos = pos + vel * g_ + net * hh_
             vel = vel * e_ + net * f_
-        self.pos[sl], self.vel[sl], self.integ[sl] = pos, vel, integ
+        self.pos[sl], self.vel[sl], self.integ[sl] = pos, _flush_subnormal(vel), _flush_subnormal(integ)
         self.prev_target[sl] = target
         self.tau_eff[sl] = tau
         self.tau[sl] = tau

@@ -260,3 +260,31 @@ def test_the_outputs_round_at_half_counts_as_numpy_does(
             bank._csp_outputs(run, DT, target, False)
         _assert_same(c, ref, k)
     assert counted.settled - before == 64 and counted.declined == 0
+
+
+@pytest.mark.parametrize("powered", [True, False], ids=["holding", "coasting"])
+def test_a_rotor_at_rest_settles_to_zero_not_to_subnormals_on_both_paths(
+    powered: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Held still (CSP, a constant target) or coasting unpowered, a rotor's speed and integrator decay
+    geometrically: within 4 s they would be subnormal (below 2.2e-308), where x86 arithmetic is some
+    100 times slower. They become 0 instead, in C as in numpy, bit for bit, and stay there."""
+    kernel = drive_bank.motion_kernel
+    assert kernel is not None, "sim_slaves._motion is not built"
+    friction = DriveParams().friction_nm_s_per_rad if powered else 0.05  # coasting: stops within 0.1 s
+    params = [replace(DriveParams(), following_error_window_counts=WIDE, friction_nm_s_per_rad=friction)] * 3
+    c, ref = _bank(params), _bank(params)
+    enable = (0x00, 0x06, 0x07, 0x0F) if powered else (0x00,)
+    for cw in enable:
+        _step_both(c, ref, kernel, monkeypatch, cw, np.zeros(3, dtype=np.int64))
+    if not powered:
+        c.vel[:] = ref.vel[:] = [3.0, -2.0, 0.5]  # spinning when the power went
+    target = np.array([1000, -700, 5], dtype=np.int64)
+    tiny = np.finfo(np.float64).tiny
+    for k in range(6000):
+        _step_both(c, ref, kernel, monkeypatch, 0x0F if powered else 0x00, target)
+        _assert_same(c, ref, k)
+        for x in (c.vel, c.integ):
+            assert not ((x != 0.0) & (np.abs(x) < tiny)).any(), (k, x)
+    assert (c.vel == 0.0).all()  # settled exactly
+    assert (c.state == (State402.OPERATION_ENABLED if powered else State402.SWITCH_ON_DISABLED)).all()
