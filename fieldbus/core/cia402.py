@@ -622,6 +622,8 @@ class Cia402Controller:
         self._enabled_code = np.int8(State402.OPERATION_ENABLED)
         # the steady cycle (:meth:`step`'s fast path): what the last full step read, when it was a fixed point
         self._steady: tuple[Any, ...] | None = None
+        self._words_of: npt.NDArray[Any] | None = None  # the statusword array of the steady cycle
+        self._words = b""  # its bytes when last seen steady: the state array holds their decode
         self._cw_written = b""  # the controlword's bytes as the last step left them
         self._modes_written = b""  # modes_of_operation's bytes as the last step left them
         self._fast = False  # the last step took the fast path
@@ -684,14 +686,19 @@ class Cia402Controller:
         states from the statuswords and reads the same goals, mode requests and
         displays through the same arrays, the full step would change nothing but
         the cycle count and write what it wrote then. Then only the outputs the
-        caller changed since are written again (same words), nothing else runs.
+        caller changed since are written again (same words), nothing else runs;
+        the same statuswords as then are not even decoded again.
         The result arrays (:attr:`reached`, :attr:`cycles`, ...) are read only for
         the caller; the goal and the mode request change through their methods or
         in place, both seen.
         """
         state = self.state
-        decode_states(statusword, state, self._idx)
         key = self._steady
+        # the statuswords of the steady cycle again: the state array holds their decode (checked below)
+        words = statusword.tobytes()
+        same_words = key is not None and statusword is self._words_of and words == self._words
+        if not same_words:
+            decode_states(statusword, state, self._idx)
         if (
             key is not None
             and self.fast_path
@@ -707,6 +714,7 @@ class Cia402Controller:
             # the full step's fixed point: no pulse, no progress to count, the same words
             self._cycle += 1
             self._fast = True
+            self._words_of, self._words = statusword, words  # other bits changed (target reached ...)
             if modes_out is not None and modes_out.tobytes() != self._modes_written:
                 np.copyto(modes_out, self.mode_request, casting="unsafe")
                 self._modes_written = modes_out.tobytes()
@@ -715,6 +723,8 @@ class Cia402Controller:
                 np.bitwise_or(controlword_out, self._sm, out=controlword_out)
                 self._cw_written = controlword_out.tobytes()
             return
+        if same_words:  # but someone wrote the state array (the DDS server decodes into it while stopped)
+            decode_states(statusword, state, self._idx)
         self._fast = False
         self._image_quiet = False
         idx, sm = self._idx, self._sm
@@ -771,6 +781,7 @@ class Cia402Controller:
                 None if modes_display is None else modes_display.tobytes(),
                 self.timeout_cycles,
             )
+            self._words_of, self._words = statusword, words
             self._cw_written = controlword_out.tobytes()
             self._modes_written = b"" if modes_out is None else modes_out.tobytes()
         else:

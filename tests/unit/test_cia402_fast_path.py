@@ -186,6 +186,7 @@ def _run(seed: int, how: str, n: int = 3, cycles: int = 2500) -> int:
         axes: Any = rng.choice((slice(None), rng.randrange(n)))
         goal = rng.choice(list(Goal)) if k % 3 else Goal.ENABLE
         timeout, mode = rng.choice((-1, 3, 40)), rng.choice((Mode.CSP, Mode.CSV))
+        code = rng.choice([*State402, UNKNOWN_STATE])
         for c, img in zip((fast, full), imgs, strict=True):
             out = img.outputs
             if e < 0.012:
@@ -204,6 +205,8 @@ def _run(seed: int, how: str, n: int = 3, cycles: int = 2500) -> int:
                 c.timeout_cycles = timeout  # -1: stuck at once, even at the goal
             elif e < 0.028:
                 c.mode_request[axes] = mode  # in place, no restart
+            elif e < 0.031:
+                c.state[axes] = code  # someone wrote the state array (the server decodes into it)
         r2 = rng.random()
         for img in imgs:
             out = img.outputs
@@ -306,9 +309,9 @@ def test_a_steady_step_makes_a_handful_of_numpy_calls(n: int, numpy_calls: _Coun
     for _ in range(3):
         ctrl.step(sw, cw, md, mo)
     assert ctrl.all_reached
-    assert _per_call(numpy_calls, lambda: ctrl.step(sw, cw, md, mo), 50) == 2  # decode; before: 40
+    assert _per_call(numpy_calls, lambda: ctrl.step(sw, cw, md, mo), 50) == 0  # before: 40
     cw |= 0x0100  # the caller's halt bit: the state-machine bits are written again, the halt kept
-    assert _per_call(numpy_calls, lambda: ctrl.step(sw, cw, md, mo), 1) == 4
+    assert _per_call(numpy_calls, lambda: ctrl.step(sw, cw, md, mo), 1) == 2
     assert int(cw[0]) == 0x010F
     ctrl.fast_path = False
     assert _per_call(numpy_calls, lambda: ctrl.step(sw, cw, md, mo), 50) >= 20  # the full step, for scale
@@ -334,7 +337,7 @@ def sim_op(tmp_path: Path) -> Iterator[Any]:
 
 def test_steady_cycles_on_a_sim_network_skip_the_table_step(sim_op: Any, numpy_calls: _CountingNumpy) -> None:
     """Three demo joints enabled on the sim backend: once they hold OPERATION ENABLED, a cycle's
-    step_image skips the table step (two numpy calls: the decode) and the targets stay the caller's."""
+    step_image makes no numpy call and the targets stay the caller's."""
     op = sim_op
     img = op["bus"]
     ctrl = Cia402Controller(3)
@@ -347,8 +350,8 @@ def test_steady_cycles_on_a_sim_network_skip_the_table_step(sim_op: Any, numpy_c
     moved = target + 0.01
 
     def cycle() -> None:
-        target[:] = moved  # the caller's command, written after step_image as a loop does
         ctrl.step_image(img)
+        target[:] = moved  # the caller's command, written after step_image as a loop does
         assert op.exchange().fresh
 
     steps = [0]
@@ -363,5 +366,5 @@ def test_steady_cycles_on_a_sim_network_skip_the_table_step(sim_op: Any, numpy_c
         cycle()
     assert steps[0] == 0  # before: the full table step every cycle (50)
     assert not ctrl.seeded.any() and np.array_equal(target, moved)
-    assert _per_call(numpy_calls, cycle, 20) == 2  # before: 49
+    assert _per_call(numpy_calls, cycle, 20) == 0  # before: 49
     assert int(img.outputs["controlword"][0]) & 0x8F == 0x0F
