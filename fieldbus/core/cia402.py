@@ -620,6 +620,10 @@ class Cia402Controller:
         self._old_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
         self._enabled_code = np.int8(State402.OPERATION_ENABLED)
+        self._forget_steady()
+
+    def _forget_steady(self) -> None:
+        """The fast paths' bookkeeping, none known yet."""
         # the steady cycle (:meth:`step`'s fast path): what the last full step read, when it was a fixed point
         self._steady: tuple[Any, ...] | None = None
         self._words_of: npt.NDArray[Any] | None = None  # the statusword array of the steady cycle
@@ -693,41 +697,86 @@ class Cia402Controller:
         in place, both seen.
         """
         state = self.state
-        key = self._steady
         # the statuswords of the steady cycle again: the state array holds their decode (checked below)
         words = statusword.tobytes()
-        same_words = key is not None and statusword is self._words_of and words == self._words
+        same_words = self._steady is not None and statusword is self._words_of and words == self._words
         if not same_words:
             decode_states(statusword, state, self._idx)
+        if self._steady_again(controlword_out, modes_display, modes_out):
+            self._words_of, self._words = statusword, words  # other bits changed (target reached ...)
+            self._repeat_steady(controlword_out, modes_out)
+            return
+        if same_words:  # but someone wrote the state array (the DDS server decodes into it while stopped)
+            decode_states(statusword, state, self._idx)
+        self._table_step(controlword_out, modes_display, modes_out, hold_reset)
+        # every axis at its goal and none changed state (so no pulse, and progress counts stand still):
+        # the next step with the same states, goals and modes is this one again
         if (
+            self.fast_path
+            and np.count_nonzero(self.reached) == self.n_axes
+            and not np.count_nonzero(self._changed)
+        ):
+            self._steady = (
+                controlword_out,
+                modes_display,
+                modes_out,
+                state.tobytes(),
+                self.goal.tobytes(),
+                self.mode_request.tobytes(),
+                None if modes_display is None else modes_display.tobytes(),
+                self.timeout_cycles,
+            )
+            self._words_of, self._words = statusword, words
+            self._cw_written = controlword_out.tobytes()
+            self._modes_written = b"" if modes_out is None else modes_out.tobytes()
+        else:
+            self._steady = None
+
+    def _steady_again(
+        self,
+        controlword_out: npt.NDArray[Any],
+        modes_display: npt.NDArray[Any] | None,
+        modes_out: npt.NDArray[Any] | None,
+    ) -> bool:
+        """The last full step was steady and this one has its states, goals, modes and arrays."""
+        key = self._steady
+        return (
             key is not None
             and self.fast_path
             and controlword_out is key[0]
             and modes_display is key[1]
             and modes_out is key[2]
-            and state.tobytes() == key[3]
+            and self.state.tobytes() == key[3]
             and self.goal.tobytes() == key[4]
             and self.mode_request.tobytes() == key[5]
             and (modes_display is None or modes_display.tobytes() == key[6])
             and self.timeout_cycles == key[7]
-        ):
-            # the full step's fixed point: no pulse, no progress to count, the same words
-            self._cycle += 1
-            self._fast = True
-            self._words_of, self._words = statusword, words  # other bits changed (target reached ...)
-            if modes_out is not None and modes_out.tobytes() != self._modes_written:
-                np.copyto(modes_out, self.mode_request, casting="unsafe")
-                self._modes_written = modes_out.tobytes()
-            if controlword_out.tobytes() != self._cw_written:  # the caller wrote it: (cw & keep) | sm again
-                np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
-                np.bitwise_or(controlword_out, self._sm, out=controlword_out)
-                self._cw_written = controlword_out.tobytes()
-            return
-        if same_words:  # but someone wrote the state array (the DDS server decodes into it while stopped)
-            decode_states(statusword, state, self._idx)
+        )
+
+    def _repeat_steady(self, controlword_out: npt.NDArray[Any], modes_out: npt.NDArray[Any] | None) -> None:
+        """The full step's fixed point: no pulse, no progress to count; the words written again only
+        where the caller changed them since (master outputs, the same values as then)."""
+        self._cycle += 1
+        self._fast = True
+        if modes_out is not None and modes_out.tobytes() != self._modes_written:
+            np.copyto(modes_out, self.mode_request, casting="unsafe")
+            self._modes_written = modes_out.tobytes()
+        if controlword_out.tobytes() != self._cw_written:  # the caller wrote it: (cw & keep) | sm again
+            np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
+            np.bitwise_or(controlword_out, self._sm, out=controlword_out)
+            self._cw_written = controlword_out.tobytes()
+
+    def _table_step(
+        self,
+        controlword_out: npt.NDArray[Any],
+        modes_display: npt.NDArray[Any] | None,
+        modes_out: npt.NDArray[Any] | None,
+        hold_reset: npt.NDArray[np.bool_] | None,
+    ) -> None:
+        """The full step on the decoded :attr:`state`: table, modes, fault reset, controlword, progress."""
         self._fast = False
         self._image_quiet = False
-        idx, sm = self._idx, self._sm
+        state, idx, sm = self.state, self._idx, self._sm
         np.not_equal(state, self._prev_state, out=self._changed)
         np.add(self.transitions, self._changed, out=self.transitions)
         np.copyto(self._prev_state, state)
@@ -763,29 +812,6 @@ class Cia402Controller:
         np.copyto(self.since_progress, self._zero_i32, where=self._b1)
         np.greater(self.since_progress, self.timeout_cycles, out=self.stuck)
         self._cycle += 1
-
-        # every axis at its goal and none changed state (so no pulse, and progress counts stand still):
-        # the next step with the same states, goals and modes is this one again
-        if (
-            self.fast_path
-            and np.count_nonzero(self.reached) == self.n_axes
-            and not np.count_nonzero(self._changed)
-        ):
-            self._steady = (
-                controlword_out,
-                modes_display,
-                modes_out,
-                state.tobytes(),
-                self.goal.tobytes(),
-                self.mode_request.tobytes(),
-                None if modes_display is None else modes_display.tobytes(),
-                self.timeout_cycles,
-            )
-            self._words_of, self._words = statusword, words
-            self._cw_written = controlword_out.tobytes()
-            self._modes_written = b"" if modes_out is None else modes_out.tobytes()
-        else:
-            self._steady = None
 
     def _gate_enable_on_mode(self, modes_display: npt.NDArray[Any]) -> None:
         """Modes: compare the display with the request; an ENABLE goal waits in SWITCHED_ON for a match."""
