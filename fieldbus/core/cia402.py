@@ -12,7 +12,9 @@ from the drive (TxPDO). **modes_of_operation** (0x6060) is an output.
 
 Pure: no clock, no I/O. Time is counted in cycles (calls of
 :meth:`Cia402Controller.step`). The per-cycle path allocates nothing that
-outlives the call: every array is preallocated and ufuncs write with ``out=``.
+outlives the call: every array is preallocated and ufuncs write with ``out=``
+(a steady cycle compares byte copies of a few arrays: short-lived ``bytes``,
+which the garbage collector does not track).
 """
 
 from __future__ import annotations
@@ -703,7 +705,8 @@ class Cia402Controller:
         if not same_words:
             decode_states(statusword, state, self._idx)
         if self._steady_again(controlword_out, modes_display, modes_out):
-            self._words_of, self._words = statusword, words  # other bits changed (target reached ...)
+            if not same_words:  # other bits changed (target reached ...): these are the words now
+                self._words_of, self._words = statusword, words
             self._repeat_steady(controlword_out, modes_out)
             return
         if same_words:  # but someone wrote the state array (the DDS server decodes into it while stopped)
