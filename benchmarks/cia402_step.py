@@ -8,8 +8,8 @@ goal. Contenders, each a :class:`~fieldbus.core.cia402.Cia402Controller` with ``
 progress counts, as before the fast path) or on (``fast``):
 
 - ``3 axes`` and ``12 axes``: :meth:`~fieldbus.core.cia402.Cia402Controller.step` alone, with a mode
-  display and modes_of_operation (the DDS server's call, ``fieldbus/dds/server.py``), statuswords of
-  enabled drives (target reached, following the target);
+  display and modes_of_operation (the DDS server's call, ``fieldbus/dds/server.py``: channel views of
+  the process image's rows), statuswords of enabled drives (target reached, following the target);
 - ``3 joints, sim``: one 1 kHz cycle of a user loop on the sim backend (``open_network(...,
   backend="sim")``, 3 drives of ``fieldbus/data/demo_joint.yaml``, virtual clock, one bus cycle per
   exchange): ``step_image``, a new CSP target, ``exchange()``; the emulated chain's time included.
@@ -44,8 +44,11 @@ def controller_step(n: int, fast: bool) -> Callable[[], None]:
     ctrl = Cia402Controller(n)
     ctrl.fast_path = fast
     ctrl.set_goal(Goal.ENABLE)
-    sw = np.full(n, ENABLED, dtype=np.uint16)
-    cw, md, mo = np.zeros(n, np.uint16), np.full(n, int(Mode.CSP), np.int8), np.zeros(n, np.int8)
+    # channel views of a process image's rows (strided fields), as the DDS server passes them
+    inp = np.zeros(n, dtype=[("statusword", "<u2"), ("position_actual_value", "<i4"), ("display", "i1")])
+    out = np.zeros(n, dtype=[("controlword", "<u2"), ("target_position", "<i4"), ("modes", "i1")])
+    inp["statusword"], inp["display"] = ENABLED, int(Mode.CSP)
+    sw, cw, md, mo = inp["statusword"], out["controlword"], inp["display"], out["modes"]
     for _ in range(3):
         ctrl.step(sw, cw, md, mo)
     assert ctrl.all_reached, "the axes are not at their goal"
