@@ -622,10 +622,10 @@ class Cia402Controller:
         self._old_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
         self._enabled_code = np.int8(State402.OPERATION_ENABLED)
-        self._forget_steady()
+        self._init_fast_paths()
 
-    def _forget_steady(self) -> None:
-        """The fast paths' bookkeeping, none known yet."""
+    def _init_fast_paths(self) -> None:
+        """The fast paths' bookkeeping: nothing known yet, the next step runs in full."""
         # the steady cycle (:meth:`step`'s fast path): what the last full step read, when it was a fixed point
         self._steady: tuple[Any, ...] | None = None
         self._words_of: npt.NDArray[Any] | None = None  # the statusword array of the steady cycle
