@@ -12,7 +12,9 @@ from the drive (TxPDO). **modes_of_operation** (0x6060) is an output.
 
 Pure: no clock, no I/O. Time is counted in cycles (calls of
 :meth:`Cia402Controller.step`). The per-cycle path allocates nothing that
-outlives the call: every array is preallocated and ufuncs write with ``out=``.
+outlives the call: every array is preallocated and ufuncs write with ``out=``
+(a steady cycle compares byte copies of a few arrays: short-lived ``bytes``,
+which the garbage collector does not track).
 """
 
 from __future__ import annotations
@@ -620,6 +622,19 @@ class Cia402Controller:
         self._old_state = np.full(n, UNKNOWN_STATE, dtype=np.int8)
         self._switching = np.zeros(n, dtype=bool)  # mode switch requested, display not yet following
         self._enabled_code = np.int8(State402.OPERATION_ENABLED)
+        self._init_fast_paths()
+
+    def _init_fast_paths(self) -> None:
+        """The fast paths' bookkeeping: nothing known yet, the next step runs in full."""
+        # the steady cycle (:meth:`step`'s fast path): what the last full step read, when it was a fixed point
+        self._steady: tuple[Any, ...] | None = None
+        self._words_of: npt.NDArray[Any] | None = None  # the statusword array of the steady cycle
+        self._words = b""  # its bytes when last seen steady: the state array holds their decode
+        self._cw_written = b""  # the controlword's bytes as the last step left them
+        self._modes_written = b""  # modes_of_operation's bytes as the last step left them
+        self._fast = False  # the last step took the fast path
+        self._pulse_idle = True  # no pulse last cycle: held and phase are all 0
+        self._image_quiet = False  # the last full step_image seeded nothing and no mode switch was pending
 
     # -- goals (not in the cycle's hot path, but allocation-free too) --
 
@@ -639,6 +654,7 @@ class Cia402Controller:
         self._restart(axes)
 
     def _restart(self, axes: Any) -> None:
+        self._steady = None
         self.transitions[axes] = 0
         self.cycles[axes] = 0
         self.since_progress[axes] = 0
@@ -648,6 +664,10 @@ class Cia402Controller:
         np.logical_not(self._goal_enable, out=self._goal_not_enable)
 
     # -- the cycle --
+
+    #: False: every :meth:`step` runs the whole table step, each part of it, as before the fast paths
+    #: (tests and benchmarks compare both)
+    fast_path = True
 
     def step(
         self,
@@ -666,9 +686,100 @@ class Cia402Controller:
         an axis whose fault's error code is still being read acyclically gets no
         fault reset yet (a reset clears 0x603F in the drive), for at most
         :attr:`max_reset_hold_cycles` cycles per fault; a held reset is not counted.
+
+        A steady cycle is cheap (:attr:`fast_path`): when the last full step left
+        every axis at its goal with no state change, and this one decodes the same
+        states from the statuswords and reads the same goals, mode requests and
+        displays through the same arrays, the full step would change nothing but
+        the cycle count and write what it wrote then. Then only the outputs the
+        caller changed since are written again (same words), nothing else runs;
+        the same statuswords as then are not even decoded again.
+        The result arrays (:attr:`reached`, :attr:`cycles`, ...) are read only for
+        the caller; the goal and the mode request change through their methods or
+        in place, both seen.
         """
+        state = self.state
+        # the statuswords of the steady cycle again: the state array holds their decode (checked below)
+        words = statusword.tobytes()
+        same_words = self._steady is not None and statusword is self._words_of and words == self._words
+        if not same_words:
+            decode_states(statusword, state, self._idx)
+        if self._steady_again(controlword_out, modes_display, modes_out):
+            if not same_words:  # other bits changed (target reached ...): these are the words now
+                self._words_of, self._words = statusword, words
+            self._repeat_steady(controlword_out, modes_out)
+            return
+        if same_words:  # but someone wrote the state array (the DDS server decodes into it while stopped)
+            decode_states(statusword, state, self._idx)
+        self._table_step(controlword_out, modes_display, modes_out, hold_reset)
+        # every axis at its goal and none changed state (so no pulse, and progress counts stand still):
+        # the next step with the same states, goals and modes is this one again
+        if (
+            self.fast_path
+            and np.count_nonzero(self.reached) == self.n_axes
+            and not np.count_nonzero(self._changed)
+        ):
+            self._steady = (
+                controlword_out,
+                modes_display,
+                modes_out,
+                state.tobytes(),
+                self.goal.tobytes(),
+                self.mode_request.tobytes(),
+                None if modes_display is None else modes_display.tobytes(),
+                self.timeout_cycles,
+            )
+            self._words_of, self._words = statusword, words
+            self._cw_written = controlword_out.tobytes()
+            self._modes_written = b"" if modes_out is None else modes_out.tobytes()
+        else:
+            self._steady = None
+
+    def _steady_again(
+        self,
+        controlword_out: npt.NDArray[Any],
+        modes_display: npt.NDArray[Any] | None,
+        modes_out: npt.NDArray[Any] | None,
+    ) -> bool:
+        """The last full step was steady and this one has its states, goals, modes and arrays."""
+        key = self._steady
+        return (
+            key is not None
+            and self.fast_path
+            and controlword_out is key[0]
+            and modes_display is key[1]
+            and modes_out is key[2]
+            and self.state.tobytes() == key[3]
+            and self.goal.tobytes() == key[4]
+            and self.mode_request.tobytes() == key[5]
+            and (modes_display is None or modes_display.tobytes() == key[6])
+            and self.timeout_cycles == key[7]
+        )
+
+    def _repeat_steady(self, controlword_out: npt.NDArray[Any], modes_out: npt.NDArray[Any] | None) -> None:
+        """The full step's fixed point: no pulse, no progress to count; the words written again only
+        where the caller changed them since (master outputs, the same values as then)."""
+        self._cycle += 1
+        self._fast = True
+        if modes_out is not None and modes_out.tobytes() != self._modes_written:
+            np.copyto(modes_out, self.mode_request, casting="unsafe")
+            self._modes_written = modes_out.tobytes()
+        if controlword_out.tobytes() != self._cw_written:  # the caller wrote it: (cw & keep) | sm again
+            np.bitwise_and(controlword_out, self._keep_mask, out=controlword_out)
+            np.bitwise_or(controlword_out, self._sm, out=controlword_out)
+            self._cw_written = controlword_out.tobytes()
+
+    def _table_step(
+        self,
+        controlword_out: npt.NDArray[Any],
+        modes_display: npt.NDArray[Any] | None,
+        modes_out: npt.NDArray[Any] | None,
+        hold_reset: npt.NDArray[np.bool_] | None,
+    ) -> None:
+        """The full step on the decoded :attr:`state`: table, modes, fault reset, controlword, progress."""
+        self._fast = False
+        self._image_quiet = False
         state, idx, sm = self.state, self._idx, self._sm
-        decode_states(statusword, state, idx)
         np.not_equal(state, self._prev_state, out=self._changed)
         np.add(self.transitions, self._changed, out=self.transitions)
         np.copyto(self._prev_state, state)
@@ -709,6 +820,8 @@ class Cia402Controller:
         """Modes: compare the display with the request; an ENABLE goal waits in SWITCHED_ON for a match."""
         sm = self._sm
         np.equal(modes_display, self.mode_request, out=self.mode_ok)
+        if np.count_nonzero(self.mode_ok) == self.n_axes and self.fast_path:  # every display follows
+            return
         np.equal(self.state, np.int8(State402.SWITCHED_ON), out=self._b1)
         np.logical_and(self._b1, self._goal_enable, out=self._b1)
         np.logical_not(self.mode_ok, out=self._b2)
@@ -719,6 +832,9 @@ class Cia402Controller:
 
     def _fault_reset_pulse(self, hold_reset: npt.NDArray[np.bool_] | None) -> None:
         """Fault-reset pulse: N cycles with bit 7 high (rising edge), N low, repeat; bounded per axis."""
+        pulsing = np.count_nonzero(self._pulse)
+        if not pulsing and self._pulse_idle and self.fast_path:  # no reset now or last cycle: all stay 0
+            return
         sm, phase = self._sm, self._phase
         np.greater(self._pulse, self.gave_up, out=self._pulse)  # an axis that gave up gets no pulse
         np.multiply(self._held, self._pulse, out=self._held)  # out of fault: the next fault may wait again
@@ -738,6 +854,7 @@ class Cia402Controller:
         np.logical_and(self._b1, self._pulse, out=self._b1)
         np.bitwise_or(sm, self._bit7, out=sm, where=self._b1)
         np.add(phase, self._pulse, out=phase)
+        self._pulse_idle = not pulsing  # no pulse now: held and phase were set to 0
 
     def _count_resets(self, starting: npt.NDArray[np.bool_]) -> None:
         """Axes whose reset pulse begins this cycle: count it, or give up past the budget (rare path)."""
@@ -823,7 +940,7 @@ class Cia402Controller:
             assert modes is not None
             display, out = modes.display, modes.request
             modes.forget_recovered()  # before the controller compares it: after a recovery it is unknown
-        np.copyto(self._old_state, self.state)
+            np.copyto(self._old_state, self.state)
         self.step(b.statusword, b.controlword, display, out, hold_reset)
         if acyclic:
             assert modes is not None
@@ -834,6 +951,8 @@ class Cia402Controller:
             if left.any():
                 modes.forget(left)
             modes.step()
+        if self._fast and self._image_quiet:  # the same enabled states as then: nothing to seed, no switch
+            return
         seed = self.seeded
         np.not_equal(self.state, self._enabled_code, out=seed)
         np.logical_or(seed, self._changed, out=seed)  # the cycle it is first seen enabled
@@ -846,6 +965,7 @@ class Cia402Controller:
         np.greater(self._switching, self._b1, out=self._switching)  # done once the display follows
         for target, actual in b.seeds:
             np.copyto(target, b.zero if actual is None else actual, where=seed, casting="unsafe")
+        self._image_quiet = not np.count_nonzero(seed) and not np.count_nonzero(self._switching)
 
     @property
     def all_reached(self) -> bool:
