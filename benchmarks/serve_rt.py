@@ -14,7 +14,9 @@ safe stops; and serve's CPU use while it was commanded (all its threads, from
 /proc). ``--veth``: a real EtherCAT bus instead of the sim backend: pysoem's frames over a veth pair to the
 emulated drives in their own process (``sim_slaves.ethercat``, SCHED_FIFO 40 where allowed; needs root), so
 the served step no longer runs the drives' physics. ``--meter``: first, on the same load, ``cpu_meter.py`` (fixed Python work every millisecond at the same
-priority, without fieldbus): how steady the machine's CPU itself is. ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
+priority, without fieldbus): how steady the machine's CPU itself is. ``--witness``: beside serve, at its priority, ``wake_witness.py`` (a thread that wakes every millisecond,
+as ``cyclictest``, and does 20 µs of work), and for each gap over 5 ms whether the witness woke late or
+ran slowly by 1 ms or more during it. ``--trace``: serve runs under ``serve_phases.py``, which times each phase of the served step
 (requests, commands, exchange, publish, diagnostics, DDS writes) and reports the longest steps' breakdown. A SCHED_FIFO thread that uses more than sched_rt_runtime_us of every
 sched_rt_period_us is throttled for the rest of that period: the point of a
 short spin is to stay well below it. Wall-clock figures: they depend on the
@@ -57,6 +59,7 @@ def _run(
     trace: Path | None = None,
     backend: str | None = "sim",
     extra: tuple[str, ...] = (),
+    witness: Path | None = None,
 ) -> dict[str, Any]:
     env = {**os.environ, "CYCLONEDDS_URI": interface_config("lo") or ""}
     serve = [sys.executable, "-m", "fieldbus", "serve"]
@@ -66,6 +69,11 @@ def _run(
     cmd += ["--interface", "lo", "--json", "--hold-after", "5000", "--stop-after", "10000"]
     cmd += ["--rt-priority", str(priority), "--spin-us", str(spin_us), *extra]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    watcher = None
+    if witness is not None:  # beside serve, at its priority: the machine's own wake-ups, timed
+        wcmd = [sys.executable, str(Path(__file__).with_name("wake_witness.py")), str(witness)]
+        wcmd += ["--seconds", str(seconds + 60), "--rt-priority", str(priority)]
+        watcher = subprocess.Popen(wcmd)
     refused = ""
     try:
         assert server.stdout is not None
@@ -85,7 +93,11 @@ def _run(
     finally:
         server.send_signal(signal.SIGTERM)
         out, _ = server.communicate(timeout=60)
+        if watcher is not None:
+            watcher.send_signal(signal.SIGTERM)
+            watcher.wait(timeout=30)
     report = json.loads(out.strip().splitlines()[-1])
+    seen = _witnessed(report["stalls"].get("over_5ms_at", []), witness) if witness is not None else None
     phases = json.loads(trace.read_text()) if trace is not None and trace.exists() else None
     return {
         **({"phases": phases} if phases is not None else {}),
@@ -108,6 +120,28 @@ def _run(
         "bus_short": report["buses"][0]["short"],
         "safe_stops": report["safe_stops"],
         "cycles": report["cycles"],
+        **({"witness": seen} if seen is not None else {}),
+    }
+
+
+def _witnessed(gaps: list[list[int]], witness: Path) -> dict[str, Any]:
+    """The witness's figures and, for each of serve's gaps over 5 ms, the witness's worst round during it
+    (how late it woke plus how much longer its work took than usual, us; 0: under 1 ms throughout); a
+    gap is witnessed when that reached 1 ms."""
+    w = json.loads(witness.read_text())
+    late = [(d, d + us * 1000, us) for d, us in w["late"]]  # [deadline, done] ns, excess us
+    rows = []
+    for cycle, gap_us, at in gaps:
+        worst = max((us for d, woke, us in late if d < at and woke > at - gap_us * 1000), default=0)
+        rows.append([cycle, gap_us, worst])
+    return {
+        "late_max_us": w["late_max_us"],
+        "late_p99_us": w["late_p99_us"],
+        "work_median_us": w["work_median_us"],
+        "work_max_us": w["work_max_us"],
+        "rounds_1ms_late": len(late),
+        "gaps_over_5ms": rows,  # [cycle, gap us, the witness's worst round in it us]
+        "gaps_over_5ms_witnessed": sum(1 for r in rows if r[2] >= 1000),
     }
 
 
@@ -132,6 +166,12 @@ def main() -> int:
     )
     ap.add_argument(
         "--trace", action="store_true", help="time the served step's phases (benchmarks/serve_phases.py)"
+    )
+    ap.add_argument(
+        "--witness",
+        action="store_true",
+        help="beside serve, benchmarks/wake_witness.py at the same priority: which gaps over 5 ms the "
+        "machine also imposed on a thread with no work",
     )
     args = ap.parse_args()
     with contextlib.ExitStack() as stack:
@@ -170,7 +210,8 @@ def _bench(args: argparse.Namespace, iface: str) -> int:
                 backend = None if args.veth else "sim"
                 extra = (*(["--cpu", str(args.cpu)] if args.cpu is not None else []),)
                 extra += ("--lock-memory",) if args.lock_memory else ()
-                res = _run(net, domain, args.seconds, args.rt_priority, spin, trace, backend, extra)
+                seen = Path(tmp) / f"witness-{i}.json" if args.witness else None
+                res = _run(net, domain, args.seconds, args.rt_priority, spin, trace, backend, extra, seen)
                 print(json.dumps(res), flush=True)
             print(json.dumps({"loadavg_after": os.getloadavg()}), flush=True)
     finally:

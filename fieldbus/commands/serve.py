@@ -243,6 +243,8 @@ def _served(server: BusServer) -> dict[str, Any]:
             "longest_us": w.longest_ns // 1000,
             "longest_gap_us": w.longest_gap_ns // 1000,  # between two cycles' starts: period + lateness
             "over_5ms": w.over_5ms,  # gaps between two cycles' starts longer than 5 ms
+            # the newest 64 of them: [cycle started late, gap us, its start: CLOCK_MONOTONIC ns]
+            "over_5ms_at": [[c, g // 1000, t] for c, g, t in w.over_5ms_at],
             "note": w.note,
         },
     }

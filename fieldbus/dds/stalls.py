@@ -15,6 +15,7 @@ from __future__ import annotations
 STALL_PERIODS = 20  # a gap of this many cycle periods between two cycles' starts is a stall
 OVER_NS = 5_000_000  # gaps longer than this are counted too (``over_5ms``): the served cycle's goal, 5 ms
 NOTE_WITHIN_CYCLES = 200  # a safe stop latched this many cycles after a stall is put down to it
+KEEP_OVER = 64  # the newest gaps over OVER_NS kept with their times (``over_5ms_at``)
 
 
 class StallWatch:
@@ -26,6 +27,9 @@ class StallWatch:
         self.longest_ns = 0
         self.longest_gap_ns = 0  # the longest gap between two cycles' starts, stall or not
         self.over_5ms = 0  # gaps longer than OVER_NS, stall or not
+        # the newest KEEP_OVER of them: (the cycle that started late, the gap [ns], when it started [ns,
+        # the tick's clock]), to line them up with another clock's record of the machine (a wake-up witness)
+        self.over_5ms_at: list[tuple[int, int, int]] = []
         self.last_cycle = -1  # the cycle that started after the newest stall (-1: none yet)
         self.last_ns = 0  # that stall's gap
         self.note = ""  # why the newest latched safe stop came, when a stall explains it
@@ -40,6 +44,9 @@ class StallWatch:
                 self.longest_gap_ns = gap
             if gap > OVER_NS:
                 self.over_5ms += 1
+                if len(self.over_5ms_at) == KEEP_OVER:
+                    del self.over_5ms_at[0]
+                self.over_5ms_at.append((cycle, gap, now_ns))
             if gap >= STALL_PERIODS * self.period_ns:
                 self.count += 1
                 self.longest_ns = max(self.longest_ns, gap)

@@ -16,3 +16,15 @@ def test_gaps_over_5ms_are_counted_and_those_of_20_periods_are_also_stalls() -> 
     assert w.over_5ms == 2
     assert w.count == 1 and w.longest_ns == 21 * MS + MS // 2
     assert w.longest_gap_ns == 21 * MS + MS // 2
+    # each with the cycle that started late, the gap and when it started (to line up with a witness)
+    assert w.over_5ms_at == [(3, 5 * MS + MS // 2, 7 * MS + MS // 2), (6, 21 * MS + MS // 2, 35 * MS)]
+
+
+def test_the_newest_64_gaps_over_5ms_are_kept_with_their_times() -> None:
+    w = StallWatch(MS)
+    t = 0
+    for cycle in range(100):
+        t += 6 * MS
+        w.tick(t, cycle)
+    assert w.over_5ms == 99 and len(w.over_5ms_at) == 64
+    assert w.over_5ms_at[0] == (36, 6 * MS, 37 * 6 * MS) and w.over_5ms_at[-1] == (99, 6 * MS, 100 * 6 * MS)
