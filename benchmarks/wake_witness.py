@@ -13,7 +13,10 @@ with its deadline (CLOCK_MONOTONIC ns, the served cycle's clock), so that
 time when the machine also paused or slowed a thread with no fieldbus in it.
 Ends after ``--seconds`` or on SIGTERM; writes one JSON object to OUT.json:
 rounds, the lateness median / p99 / longest (µs), the work's median and
-longest (µs) and the kept rounds ``[[deadline_ns, excess_us], ...]``.
+longest (µs), the kept rounds ``[[deadline_ns, excess_us], ...]`` and the
+rounds whose work took 5 times its median or more ``[[woke_ns, work_us], ...]``.
+``--cpu``: the witness on that CPU only (beside a served cycle pinned there:
+that CPU's own slow spells).
 """
 
 from __future__ import annotations
@@ -40,14 +43,20 @@ def main() -> int:
     ap.add_argument("--rt-priority", type=int, default=50)
     ap.add_argument("--late-us", type=int, default=1000, help="keep rounds at least this late (µs)")
     ap.add_argument("--chunk", type=int, default=10, help="array sums of work per round (as cpu_meter.py)")
+    ap.add_argument(
+        "--cpu", type=int, help="run on this CPU only (the served cycle's, to see its CPU's spells)"
+    )
     args = ap.parse_args()
     stop = [False]
     signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+    if args.cpu is not None:
+        os.sched_setaffinity(0, {args.cpu})
     if args.rt_priority > 0:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
     clock = DeadlineClock(spin_ns=0)
     a = np.ones(3)
     late: list[tuple[int, int]] = []
+    slow: list[tuple[int, int]] = []  # rounds whose work took 5 times its median or more: (deadline, work us)
     lateness: list[int] = []
     work: list[int] = []
     typical = 0  # the work's running median estimate, ns
@@ -67,6 +76,8 @@ def main() -> int:
         excess = (woke - deadline) + max(0, done - woke - typical)
         if typical and excess >= args.late_us * 1000:
             late.append((deadline, excess // 1000))
+        if typical and done - woke >= 5 * typical:
+            slow.append((woke, (done - woke) // 1000))
         deadline += PERIOD_NS
         if done > deadline:  # more than a period late: the next deadline a period from now
             deadline = done + PERIOD_NS
@@ -81,6 +92,7 @@ def main() -> int:
         "work_median_us": work[n // 2] // 1000 if n else 0,
         "work_max_us": work[-1] // 1000 if n else 0,
         "late": [list(x) for x in late],
+        "slow": [list(x) for x in slow],
     }
     args.out.write_text(json.dumps(report))
     return 0

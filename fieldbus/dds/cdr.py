@@ -68,10 +68,19 @@ Slots = dict[str, tuple[int, str, int]]
 _ANY_STATE = SampleState.Any | ViewState.Any | InstanceState.Any  # what DataReader.take takes by default
 
 
+_PLANS: dict[type, list[Op] | None] = {}  # made once per type (1 ms the first time: type hints, cyclonedds)
+
+
 def plan(cls: type) -> list[Op] | None:
     """The field operations that encode ``cls``, or None when this module cannot encode it exactly
     (not final, or a member type it does not know: a union, a bounded string...). Keys do not change
     a sample's bytes: the C writer derives the key from them, as it does for cyclonedds's own."""
+    if cls not in _PLANS:
+        _PLANS[cls] = _plan(cls)
+    return _PLANS[cls]
+
+
+def _plan(cls: type) -> list[Op] | None:
     if not (isinstance(cls, type) and issubclass(cls, IdlStruct)):
         return None
     idl = cls.__idl__

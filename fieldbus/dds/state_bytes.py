@@ -63,6 +63,7 @@ class AxisStateBytes:
     def __init__(self, n: int, channels: int) -> None:
         self.n, self.channels = n, channels
         self._layouts: dict[str, tuple[Layout, dict[str, npt.NDArray[Any]], Callable[..., None]]] = {}
+        self._for("")  # made here, not in the first served cycle
 
     def _for(self, owner: str) -> tuple[Layout, dict[str, npt.NDArray[Any]], Callable[..., None]]:
         got = self._layouts.get(owner)
