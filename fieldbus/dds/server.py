@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -102,6 +102,19 @@ def _unscaled(image: ProcessImage, direction: str, index: int) -> str | None:
 def _dtype_fields(values: npt.NDArray[Any]) -> list[list[str]]:
     fields: dict[str, Any] = dict(values.dtype.fields or {})
     return [[name, fields[name][0].str] for name in values.dtype.names or ()]
+
+
+class _AxisCounts(TypedDict):
+    """AxisState's fields after the arrays, as one served cycle leaves them."""
+
+    cycle: int
+    safe_stop: bool
+    gate: int
+    command_sequence: int
+    command_age: int
+    owner: str
+    dropped_sequences: int
+    refused_commands: int
 
 
 class ServedGroup:
@@ -292,25 +305,22 @@ class ServedGroup:
             self._inputs[:, j] = inp[name]
         g = self.gate
         drive_state = self.ctrl.state if self.ctrl is not None else self.no_state
-        owner = g.label if g.owner is not None else ""
+        counts: _AxisCounts = {
+            "cycle": res.cycle,
+            "safe_stop": res.safe_stop or g.latched,
+            "gate": int(g.state),
+            "command_sequence": g.applied_sequence,
+            "command_age": g.age,
+            "owner": g.label if g.owner is not None else "",
+            "dropped_sequences": g.dropped,
+            "refused_commands": g.refused,
+        }
         if self._js_bytes is not None and self._st_bytes is not None:  # encoded in place (state_bytes)
-            self.js_writer.write_encoded(
-                self._js_bytes.encode(stamp_ns, {r: inp[c] for r, c in self.in_roles.items()})
-            )
+            values = {r: inp[c] for r, c in self.in_roles.items()}
+            self.js_writer.write_encoded(self._js_bytes.encode(stamp_ns, values))
             self.st_writer.write_encoded(
                 self._st_bytes.encode(
-                    stamp_ns,
-                    cycle=res.cycle,
-                    fresh=self.fresh,
-                    drive_state=drive_state,
-                    inputs=self._inputs,
-                    safe_stop=res.safe_stop or g.latched,
-                    gate=int(g.state),
-                    command_sequence=g.applied_sequence,
-                    command_age=g.age,
-                    owner=owner,
-                    dropped_sequences=g.dropped,
-                    refused_commands=g.refused,
+                    stamp_ns, fresh=self.fresh, drive_state=drive_state, inputs=self._inputs, **counts
                 )
             )
             return
@@ -321,18 +331,11 @@ class ServedGroup:
         self.js_writer.write(js)
         st = m.AxisState(
             header=header,
-            cycle=res.cycle,
             fresh=self.fresh.tolist(),
             drive_state=drive_state.tolist(),
             inputs=self._inputs.ravel().tolist(),
             all_fresh=bool(self.fresh.all()),
-            safe_stop=res.safe_stop or g.latched,
-            gate=int(g.state),
-            command_sequence=g.applied_sequence,
-            command_age=g.age,
-            owner=owner,
-            dropped_sequences=g.dropped,
-            refused_commands=g.refused,
+            **counts,
         )
         self.st_writer.write(st)
 
