@@ -83,8 +83,9 @@ def test_two_ms_of_delay_with_the_default_gains_tracks_the_sine_worse() -> None:
     delayed = run_demo("sim", 4, 2000, 1000.0, delay_us=2000)
     assert ideal["enabled"] and delayed["enabled"] and ideal["missed"] == delayed["missed"] == 0
     e0, e2 = ideal["tracking_error"], delayed["tracking_error"]
+    # the rms over ~8,000 samples (3.5-3.7 times here); not the max: one sample, and on the wall clock a
+    # single late cycle sets it (the ideal run's max was 1.2-3.9 mrad from run to run, its rms 0.83-0.88)
     assert e2["rms_rad"] > 2.0 * e0["rms_rad"], (e0, e2)
-    assert e2["max_rad"] > 1.3 * e0["max_rad"], (e0, e2)
 
 
 @pytest.mark.veth
