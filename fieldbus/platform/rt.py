@@ -78,34 +78,11 @@ def _limit(res: int) -> str:
     return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
 
 
-# glibc's mallopt parameters (malloc.h): trim the heap above this many free bytes (-1: never); at most this
-# many allocations served by mmap (0: none, all from the heap)
-M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4
-_MALLOC_DEFAULTS = ((M_TRIM_THRESHOLD, 128 * 1024), (M_MMAP_MAX, 65536))
-
-
-def _prefault(cfg: RtConfig) -> bool:
-    """Touch ``prefault_heap_mb`` of heap once, so that later allocations reuse pages already there (and
-    locked). glibc would give a block this large its own mmap and unmap it on free, and shrink its heap
-    when the top is free: both are turned off first (mallopt), or the touched pages would be gone again.
-    Returns whether malloc's settings were changed (:func:`_malloc_defaults` puts them back)."""
-    libc = _libc()
-    tuned = hasattr(libc, "mallopt") and all(
-        libc.mallopt(param, value) == 1 for param, value in ((M_TRIM_THRESHOLD, -1), (M_MMAP_MAX, 0))
-    )
+def _prefault(cfg: RtConfig) -> None:
     heap = bytearray(cfg.prefault_heap_mb << 20)
-    for i in range(0, len(heap), PAGE):  # touch every page once; freed, they stay in the heap
+    for i in range(0, len(heap), PAGE):  # touch every page once; freed, they stay mapped for the allocator
         heap[i] = 1
     del heap
-    return tuned
-
-
-def _malloc_defaults() -> None:
-    """glibc's default trim threshold and mmap count again (its dynamic mmap threshold stays off)."""
-    libc = _libc()
-    if hasattr(libc, "mallopt"):
-        for param, value in _MALLOC_DEFAULTS:
-            libc.mallopt(param, value)
 
 
 @contextmanager
@@ -123,7 +100,7 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
     old_policy = os.sched_getscheduler(0)
     old_param = os.sched_getparam(0)
     old_cpus = os.sched_getaffinity(0)
-    locked = tuned = False
+    locked = False
     try:
         if cfg.priority is not None:
             lo, hi = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
@@ -162,7 +139,7 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
                 )
             else:
                 locked = True
-                tuned = _prefault(cfg)
+                _prefault(cfg)
                 state.applied.append(
                     f"memory locked (mlockall), {cfg.prefault_heap_mb} MiB of heap prefaulted"
                 )
@@ -170,8 +147,6 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
     finally:
         if locked:
             _libc().munlockall()
-        if tuned:
-            _malloc_defaults()
         if os.sched_getaffinity(0) != old_cpus:
             os.sched_setaffinity(0, old_cpus)
         if os.sched_getscheduler(0) != old_policy or os.sched_getparam(0) != old_param:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 
@@ -57,19 +56,6 @@ def test_settings_apply_inside_and_are_restored_after() -> None:
     assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0)) == before
     with open("/proc/self/status") as f:
         assert next(int(line.split()[1]) for line in f if line.startswith("VmLck:")) == 0
-
-
-def test_the_prefaulted_heap_stays_so_an_allocation_in_the_cycle_takes_no_page_fault() -> None:
-    """--lock-memory touches 16 MiB of heap: an 8 MiB buffer made afterwards reuses those pages (glibc
-    would have unmapped a block that large on free: 2,057 page faults for it before)."""
-    _rt_allowed(1)
-    with realtime(RtConfig(lock_memory=True, strict=True)):
-        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-        buf = bytearray(8 << 20)
-        buf[::4096] = b"\1" * len(buf[::4096])
-        faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
-        del buf
-    assert faults < 64, f"{faults} page faults for an 8 MiB buffer after the prefault"
 
 
 _RANK_CHILD = """
