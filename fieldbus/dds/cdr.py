@@ -4,7 +4,7 @@ per-field serializer.
 cyclonedds's Python serializer walks a sample field by field through its
 type machinery: 45-60 us for a 3-joint ``JointState`` and 85-140 us for an
 ``AxisState`` on the reference VM, against about 2 us for handing the bytes
-to the C writer. :func:`plan` compiles a keyless, final IDL struct of
+to the C writer. :func:`plan` compiles a final IDL struct (keyed or not) of
 primitives, strings, nested structs, arrays of primitives and unbounded sequences of those into a
 list of field operations once; :func:`encode` then writes a sample's bytes
 with ``struct`` (a few us). :class:`PlainWriter` is a ``DataWriter`` that
@@ -140,8 +140,13 @@ def encode(ops: list[Op], sample: Any) -> bytes:
     return bytes(buf + b"\x00" * pad) if pad else bytes(buf)
 
 
+def _aligned(pos: int, size: int) -> int:
+    """``pos`` moved up to the next multiple of ``size`` counted from the end of the 4-byte header."""
+    return pos + -(pos - 4) % size
+
+
 def _align(buf: bytearray, size: int) -> None:
-    pad = -(len(buf) - 4) % size
+    pad = _aligned(len(buf), size) - len(buf)
     if pad:
         buf += b"\x00" * pad
 
@@ -214,7 +219,7 @@ def _read(cls: type, ops: list[Op], data: bytes, pos: int) -> tuple[Any, int]:
         for kind, name, arg in ops:
             if kind == "p":
                 size = struct.calcsize(arg)
-                pos += -(pos - 4) % size
+                pos = _aligned(pos, size)
                 values[name] = unpack("<" + arg, data, pos)[0]
                 pos += size
             elif kind == "s":
@@ -223,11 +228,11 @@ def _read(cls: type, ops: list[Op], data: bytes, pos: int) -> tuple[Any, int]:
                 values[name], pos = _read(arg[0], arg[1], data, pos)
             elif kind == "pa":
                 code, count = arg
-                pos += -(pos - 4) % struct.calcsize(code)
+                pos = _aligned(pos, struct.calcsize(code))
                 values[name] = list(unpack(f"<{count}{code}", data, pos))
                 pos += count * struct.calcsize(code)
             else:
-                pos += -(pos - 4) % 4
+                pos = _aligned(pos, 4)
                 count = unpack("<I", data, pos)[0]
                 pos += 4
                 if count > len(data):  # every element takes a byte at least
@@ -235,7 +240,7 @@ def _read(cls: type, ops: list[Op], data: bytes, pos: int) -> tuple[Any, int]:
                 if kind == "ps":
                     if count:
                         size = struct.calcsize(arg)
-                        pos += -(pos - 4) % size
+                        pos = _aligned(pos, size)
                         values[name] = list(unpack(f"<{count}{arg}", data, pos))
                         pos += count * size
                     else:
@@ -260,7 +265,7 @@ def _read(cls: type, ops: list[Op], data: bytes, pos: int) -> tuple[Any, int]:
 
 
 def _read_string(data: bytes, pos: int) -> tuple[str, int]:
-    pos += -(pos - 4) % 4
+    pos = _aligned(pos, 4)
     n = struct.unpack_from("<I", data, pos)[0]
     pos += 4
     if n < 1 or pos + n > len(data) or data[pos + n - 1] != 0:
