@@ -59,7 +59,10 @@ def _accounted(
     # ``sync_lag`` (CANopen): a node that fell behind answers the SYNC of a missed cycle during the next
     # cycle's receive; a TPDO carries no SYNC counter (CiA 301 0x1019 is optional, neither side has it),
     # so that answer passes for the next cycle's: one more cycle of the sine after any miss
-    lag = 1 if sync_lag and bus["longest_streak"] else 0
+    # it also answers a cycle that started late (an overrun: the next SYNC follows at once) after only
+    # that short a time of its wall-clock physics, up to one more cycle of the sine behind (10.07 mrad
+    # beside four CPU burners with no miss); the rms below stays strict
+    lag = 1 if sync_lag and (bus["longest_streak"] or r["overruns"]) else 0
     assert e["max_rad"] < 10e-3 + (bus["longest_streak"] + lag) * step_rad, (e, bus["longest_streak"])
     assert e["rms_rad"] < 3e-3, e
 
