@@ -26,9 +26,23 @@ from typing import Any
 
 import numpy as np
 
-PHASES = ("step", "stall_tick", "requests", "commands", "exchange", "publish", "diagnostics", "write")
+PHASES = (
+    "step",
+    "stall_tick",
+    "requests",
+    "answer",
+    "services",
+    "pending",
+    "owners",
+    "commands",
+    "exchange",
+    "publish",
+    "diagnostics",
+    "write",
+)
 CAP = 2_000_000  # calls kept per phase (a 20 s run at 1 kHz makes at most a few per cycle)
 TOP = 10
+STARTUP = 300  # steps looked at one by one from the start
 
 
 class Trace:
@@ -88,35 +102,9 @@ class Trace:
             return {"steps": 0}
         dur = steps[:, 1] - steps[:, 0]
         order = np.argsort(dur)[::-1][:top]
-        out = []
-        for i in order:
-            a, b = steps[i]
-            row: dict[str, Any] = {
-                "step_us": round((b - a) / 1e3, 1),
-                "thread_cpu_us": round(int(self.cpu[i]) / 1e3, 1),
-                "preempted": int(self.preempted[i]),
-                "page_faults": int(self.faults[i]),
-                "kernel_us": int(self.sys_us[i]),
-                "index": int(i),
-                "start_ns": int(a),
-            }
-            inside = 0
-            for p in PHASES[1:]:
-                t = self.t[p][: self.n[p]]
-                sel = (t[:, 0] >= a) & (t[:, 1] <= b)
-                spent = int((t[sel, 1] - t[sel, 0]).sum())
-                if p == "write":  # writes inside publish/diagnostics are already counted there
-                    row["of_which_dds_write_us"] = round(spent / 1e3, 1)
-                    continue
-                row[f"{p}_us"] = round(spent / 1e3, 1)
-                inside += spent
-            row["other_us"] = round((b - a - inside) / 1e3, 1)
-            lo, hi = max(0, int(i) - 6), min(len(steps), int(i) + 4)  # the steps around it: start gap, length
-            row["around_us"] = [
-                (round(int(steps[j, 0] - steps[j - 1, 0]) / 1e3) if j else 0, round(int(dur[j]) / 1e3))
-                for j in range(lo, hi)
-            ]
-            out.append(row)
+        out = [self._row(int(i), steps, dur) for i in order]
+        # the start: the steps over 1 ms among the first STARTUP (the claim, the enable, first writes)
+        early = [self._row(i, steps, dur) for i in range(min(STARTUP, len(steps))) if dur[i] > 1_000_000]
         q = np.percentile(dur, [50, 99, 99.9]) / 1e3
         n = len(steps)
         return {
@@ -131,7 +119,38 @@ class Trace:
             "step_p99_us": round(float(q[1]), 1),
             "step_p999_us": round(float(q[2]), 1),
             "longest": out,
+            "startup_over_1ms": early,
         }
+
+    def _row(self, i: int, steps: Any, dur: Any) -> dict[str, Any]:
+        """Step ``i``: its length, CPU time, faults and the time each phase took inside it (µs)."""
+        a, b = steps[i]
+        row: dict[str, Any] = {
+            "step_us": round((b - a) / 1e3, 1),
+            "thread_cpu_us": round(int(self.cpu[i]) / 1e3, 1),
+            "preempted": int(self.preempted[i]),
+            "page_faults": int(self.faults[i]),
+            "kernel_us": int(self.sys_us[i]),
+            "index": int(i),
+            "start_ns": int(a),
+        }
+        inside = 0
+        for p in PHASES[1:]:
+            t = self.t[p][: self.n[p]]
+            sel = (t[:, 0] >= a) & (t[:, 1] <= b)
+            spent = int((t[sel, 1] - t[sel, 0]).sum())
+            if p == "write":  # writes inside publish/diagnostics are already counted there
+                row["of_which_dds_write_us"] = round(spent / 1e3, 1)
+                continue
+            row[f"{p}_us"] = round(spent / 1e3, 1)
+            inside += spent
+        row["other_us"] = round((b - a - inside) / 1e3, 1)
+        lo, hi = max(0, int(i) - 6), min(len(steps), int(i) + 4)  # the steps around it: start gap, length
+        row["around_us"] = [
+            (round(int(steps[j, 0] - steps[j - 1, 0]) / 1e3) if j else 0, round(int(dur[j]) / 1e3))
+            for j in range(lo, hi)
+        ]
+        return row
 
 
 def _switches() -> dict[str, int]:
@@ -163,12 +182,17 @@ def main() -> int:
 
     from fieldbus.cli import main as cli
     from fieldbus.dds import server
+    from fieldbus.dds.service_host import ServiceHost
     from fieldbus.dds.stalls import StallWatch
     from fieldbus.network import Operational
 
     tr = Trace()
     server.BusServer.step = tr.wrap_step(server.BusServer.step)  # type: ignore[method-assign]
     StallWatch.tick = tr.wrap("stall_tick", StallWatch.tick)  # type: ignore[method-assign]
+    server.BusServer._answer = tr.wrap("answer", server.BusServer._answer)  # type: ignore[method-assign]
+    server.BusServer._advance_pending = tr.wrap("pending", server.BusServer._advance_pending)  # type: ignore[method-assign]
+    server.BusServer._watch_owners = tr.wrap("owners", server.BusServer._watch_owners)  # type: ignore[method-assign]
+    ServiceHost.poll = tr.wrap("services", ServiceHost.poll)  # type: ignore[method-assign]
     server.ServedGroup.take_commands = tr.wrap("commands", server.ServedGroup.take_commands)  # type: ignore[method-assign]
     server.ServedGroup.before_exchange = tr.wrap("commands", server.ServedGroup.before_exchange)  # type: ignore[method-assign]
     Operational.exchange = tr.wrap("exchange", Operational.exchange)  # type: ignore[method-assign]
