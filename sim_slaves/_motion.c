@@ -15,6 +15,9 @@
  * csp_outputs(...): statusword, following error, actual values; it declines
  * (returns False, leaves fe_time alone) when a drive's following error is
  * beyond its window or a value does not fit int64 (NaN): numpy then does it.
+ * idle(...): DriveBank._idle's rotors coasting (no drive powered) through `steps` substeps, then its
+ * outputs (ideal encoder only); it declines the outputs (returns False, the motion done) when a value
+ * does not fit int64 or a state has no statusword bits in the table: numpy then does them.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -279,6 +282,104 @@ done:
     return result;
 }
 
+
+/* the arguments of idle, in order */
+enum {
+    /* bank arrays written: float64 ... */
+    I_POS, I_VEL, I_PREV_TARGET, I_TAU, I_TAU_EFF, I_SHAFT,
+    /* ... int64 ... */
+    I_STATUSWORD, I_FOLLOWING_ERROR, I_POSITION_COUNTS, I_VELOCITY_COUNTS, I_TORQUE_PERMILLE,
+    /* ... and bool */
+    I_LIMIT,
+    /* bank arrays read: int64 state, float64 load, cpr, vpr */
+    I_STATE, I_LOAD, I_CPR, I_VPR,
+    /* the statusword's state bits by state (int64, any length) */
+    I_SW_BY_STATE,
+    /* the exact-integration factors of a substep: a float, or float64 of the run */
+    I_CE, I_CF, I_CG, I_CHH,
+    /* a, b, steps; statusword: remote bit, voltage-enabled bit; the state NOT READY TO SWITCH ON */
+    I_A, I_B, I_STEPS, I_SW_REMOTE, I_SW_VOLTAGE, I_NR,
+    I_NARGS
+};
+
+static PyObject *idle(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != I_NARGS) {
+        PyErr_Format(PyExc_TypeError, "idle: %d arguments, got %zd", I_NARGS, nargs);
+        return NULL;
+    }
+    Py_ssize_t a = PyLong_AsSsize_t(args[I_A]), b = PyLong_AsSsize_t(args[I_B]);
+    long steps = PyLong_AsLong(args[I_STEPS]);
+    long long sw_remote = PyLong_AsLongLong(args[I_SW_REMOTE]), sw_voltage = PyLong_AsLongLong(args[I_SW_VOLTAGE]);
+    long long nr = PyLong_AsLongLong(args[I_NR]);
+    if (PyErr_Occurred()) return NULL;
+    if (a < 0 || b < a || steps < 1) {
+        PyErr_Format(PyExc_ValueError, "idle: need 0 <= a <= b and steps >= 1, got a=%zd b=%zd steps=%ld", a, b,
+                     steps);
+        return NULL;
+    }
+    Py_ssize_t n = b - a;
+    Buffers bufs;
+    memset(bufs.held, 0, sizeof(bufs.held));
+    PyObject *result = NULL;
+    const double *c[4];
+    Py_ssize_t cs[4];
+    double scalars[4];
+    for (int i = 0; i <= I_VPR; i++) {
+        char kind = i == I_LIMIT ? '?' : (i >= I_STATUSWORD && i < I_LIMIT) || i == I_STATE ? 'q' : 'd';
+        if (take(&bufs, args, i, b, kind, i <= I_LIMIT) < 0) goto done;
+    }
+    if (take(&bufs, args, I_SW_BY_STATE, 0, 'q', 0) < 0) goto done;
+    for (int j = 0; j < 4; j++)
+        if (factor(&bufs, args, I_CE + j, n, &c[j], &cs[j], &scalars[j]) < 0) goto done;
+
+#define F(i) ((double *)bufs.view[i].buf + a)
+#define Q(i) ((int64_t *)bufs.view[i].buf + a)
+    double *pos = F(I_POS), *vel = F(I_VEL), *prev_target = F(I_PREV_TARGET);
+    double *tau = F(I_TAU), *tau_eff = F(I_TAU_EFF), *shaft = F(I_SHAFT);
+    int64_t *statusword = Q(I_STATUSWORD), *following_error = Q(I_FOLLOWING_ERROR);
+    int64_t *position_counts = Q(I_POSITION_COUNTS), *velocity_counts = Q(I_VELOCITY_COUNTS);
+    int64_t *torque_permille = Q(I_TORQUE_PERMILLE);
+    const int64_t *state = Q(I_STATE);
+    const double *load = F(I_LOAD), *cpr = F(I_CPR), *vpr = F(I_VPR);
+#undef F
+#undef Q
+    char *limit = (char *)bufs.view[I_LIMIT].buf + a;
+    const int64_t *sw_by_state = (const int64_t *)bufs.view[I_SW_BY_STATE].buf;
+    Py_ssize_t n_states = bufs.view[I_SW_BY_STATE].len / 8;
+    int outputs = 1;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double e = c[0][i * cs[0]], f = c[1][i * cs[1]], g = c[2][i * cs[2]], hh = c[3][i * cs[3]];
+        double p = pos[i], v = vel[i], net = -load[i];
+        for (long k = 0; k < steps; k++) {
+            double p_new = p + v * g + net * hh;
+            v = v * e + net * f;
+            p = p_new;
+        }
+        v = fabs(v) < DBL_MIN ? 0.0 : v; /* a subnormal: 0 (drive_bank._flush_subnormal) */
+        pos[i] = p;
+        vel[i] = v;
+        prev_target[i] = p;
+        tau[i] = tau_eff[i] = shaft[i] = 0.0;
+        limit[i] = 0;
+        double counts = floor(p * cpr[i] + 0.5), speed = floor(v * vpr[i] + 0.5);
+        if (!fits(counts) || !fits(speed) || state[i] < 0 || state[i] >= n_states) outputs = 0;
+    }
+    if (outputs)
+        for (Py_ssize_t i = 0; i < n; i++) {
+            long long s = state[i];
+            statusword[i] = sw_by_state[s] | (s != nr ? sw_remote | sw_voltage : sw_remote);
+            following_error[i] = 0;
+            position_counts[i] = (int64_t)floor(pos[i] * cpr[i] + 0.5);
+            velocity_counts[i] = (int64_t)floor(vel[i] * vpr[i] + 0.5);
+            torque_permille[i] = 0;
+        }
+    result = PyBool_FromLong(outputs);
+done:
+    release(&bufs);
+    return result;
+}
+
 static PyMethodDef motion_methods[] = {
     {"csp", (PyCFunction)(void (*)(void))csp, METH_FASTCALL,
      "csp(pos, vel, integ, prev_target, prev_vff, tau, tau_eff, shaft, limit, vff_gain, tff_gain, kv, kp, tmax, "
@@ -287,6 +388,10 @@ static PyMethodDef motion_methods[] = {
      "csp_outputs(statusword, following_error, position_counts, velocity_counts, torque_permille, fe_time, pos, "
      "vel, tau, cpr, epr, enc_to_counts, vpr, rated, noise, fe_window, position_window, limit, target, a, b, "
      "ideal_encoder, limited, sw_csp, sw_reached, sw_limit) -> done (False: numpy's turn)"},
+    {"idle", (PyCFunction)(void (*)(void))idle, METH_FASTCALL,
+     "idle(pos, vel, prev_target, tau, tau_eff, shaft, statusword, following_error, position_counts, "
+     "velocity_counts, torque_permille, limit, state, load, cpr, vpr, sw_by_state, e, f, g, hh, a, b, steps, "
+     "sw_remote, sw_voltage, nr) -> outputs done (False: numpy's turn for them)"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -167,6 +167,8 @@ class DriveBank:
         n = len(params)
         self.n = n
         self.params = list(params)
+        #: the C kernel's idle path where built (:data:`motion_kernel`); False: numpy, the reference
+        self.lean = True
         self._state_arrays(n)
         self._io_arrays(n)
         self._controller_parameters(self.params)
@@ -595,6 +597,41 @@ class DriveBank:
         if self.any_delay:
             self._delayed(a, b)  # the delay line records targets in every state
         e_, f_, g_, hh_, _ = self._coefficients(a, b, dt / steps)
+        idle = getattr(motion_kernel, "idle", None)  # (None: not built, or built before it had idle)
+        if idle is not None and self.lean and self.ideal_encoder:
+            # in C (sim_slaves._motion.idle): the same operations in the same order, the same bits; it
+            # leaves the outputs to numpy when a value does not fit int64 (NaN)
+            if not idle(
+                self.pos,
+                self.vel,
+                self.prev_target,
+                self.tau,
+                self.tau_eff,
+                self.shaft,
+                self.statusword,
+                self.following_error,
+                self.position_counts,
+                self.velocity_counts,
+                self.torque_permille,
+                self.limit,
+                self.state,
+                self.load,
+                self.cpr,
+                self.vpr,
+                _SW_BY_STATE,
+                e_,
+                f_,
+                g_,
+                hh_,
+                a,
+                b,
+                steps,
+                _SW_REMOTE,
+                _SW_VOLTAGE,
+                _NR,
+            ):
+                self._idle_outputs(sl, self.pos[sl], self.vel[sl])
+            return
         pos, vel = self.pos[sl], self.vel[sl]
         net = -self.load[sl]
         for _ in range(steps):
@@ -605,6 +642,11 @@ class DriveBank:
         self.prev_target[sl] = pos
         self.tau[sl] = self.tau_eff[sl] = self.shaft[sl] = 0.0
         self.limit[sl] = False
+        self._idle_outputs(sl, pos, vel)
+
+    def _idle_outputs(self, sl: slice, pos: F64, vel: F64) -> None:
+        """:meth:`_idle`'s statusword and actual values from the rotors' position [rad] and speed [rad/s]."""
+        a, b = sl.start, sl.stop
         cpr = self.cpr[sl]
         if self.ideal_encoder:
             self.position_counts[sl] = np.floor(pos * cpr + 0.5)

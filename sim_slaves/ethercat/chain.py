@@ -97,6 +97,12 @@ class EscChain:
     master -> slave 0 and between neighbours (5 ns/m);
     ``dc_min_sample_interval_ns``: see :class:`~sim_slaves.ethercat.dc.DcLine`
     (0: every ARMW/FRMW feeds the loops).
+
+    ``lean`` (default): the per-frame work cached and said in fewer calls
+    (datagram offsets per frame layout, byte compares for the flags that
+    numpy reductions computed, slice copies, the drive bank's idle path in
+    C); False: the general path, the reference it must match bit for bit
+    (tests/unit/test_chain_lean.py). Settable at any time (:attr:`lean`).
     """
 
     def __init__(
@@ -106,7 +112,9 @@ class EscChain:
         dc_timing: EscTiming | None = None,
         cable_m: float = 1.0,
         dc_min_sample_interval_ns: int = DC_MIN_SAMPLE_INTERVAL_NS,
+        lean: bool = True,
     ) -> None:
+        self._lean = lean
         self.slaves = list(slaves)
         self.faults = Faults()
         self.frames = 0
@@ -133,6 +141,7 @@ class EscChain:
         warm_up()
         plain = [i for i, s in enumerate(self.slaves) if type(s.app) is Cia402Drive]
         self.bank = DriveBank([self.slaves[i].app.params for i in plain])  # type: ignore[union-attr]
+        self.bank.lean = self._lean
         self._slots = [-1] * n
         for slot, i in enumerate(plain):
             old = self.slaves[i].app
@@ -170,6 +179,20 @@ class EscChain:
         self._code_seen = self.bank.error_code.copy()
         self._code_changed = np.zeros(self.bank.n, dtype=np.bool_)
         self._slot_wire = {slot: i for i, slot in enumerate(self._slots) if slot >= 0}
+        self._no_pending = bytes(self.bank.n)  # ``_pending`` with no drive pending, as bytes
+        self._memory_bytes = self.memory.data  # (its bytes, for slice copies)
+        # lean: frame layouts seen, (length, headers) -> (checked byte positions, their bytes, offsets)
+        self._layouts: dict[tuple[int, bytes], tuple[tuple[int, ...], bytes, list[int]]] = {}
+        self._watchdog_min_ns = 0  # the shortest process-data watchdog of the chain [ns]
+
+    @property
+    def lean(self) -> bool:
+        """The lean per-frame path (True) or the general reference path (False); see the class."""
+        return self._lean
+
+    @lean.setter
+    def lean(self, value: bool) -> None:
+        self._lean = self.bank.lean = bool(value)
 
     def _invalidate(self) -> None:
         self._valid = False
@@ -298,19 +321,38 @@ class EscChain:
     def _step_pending(self) -> None:
         """Step the drives that exchanged data since their last step (together), outputs into memory."""
         pending = self._pending
-        if not pending.any():
+        lean = self._lean
+        if lean:
+            pending_bytes = pending.tobytes()
+            if pending_bytes == self._no_pending:
+                return
+        elif not pending.any():
             return
         if self._link_stale:
             self._rebuild_link()
         now = self._pending_ns
         link = self._link
-        link.gather(self.memory)
+        if lean:
+            link.gather_lean(self.memory)
+            usual = pending_bytes == self._link_mask.tobytes()
+        else:
+            link.gather(self.memory)
+            usual = bool((pending == self._link_mask).all())
         lockstep = self._lockstep_ns
-        if lockstep is not None and (pending == self._link_mask).all():  # the usual cycle: one dt for all
+        if lockstep is not None and usual:  # the usual cycle: one dt for all
             dt_s = min(max((now - lockstep) * 1e-9, 1e-6), 0.1) if lockstep >= 0 else DEFAULT_DT_S
             for a, b in self._link_runs:
                 self.bank.step(a, b, dt_s)
             self._lockstep_ns = now
+            if lean:  # pending is the link's mask: its runs
+                for a, b in self._link_runs:
+                    self._last_step_ns[a:b] = now
+                    self._stepped[a:b] = True
+                pending.fill(False)
+                link.scatter_lean(self.memory)
+                if self.bank.error_code.tobytes() != self._code_seen.tobytes():
+                    self._note_faults(now)
+                return
             self._last_step_ns[pending] = now
             self._stepped[pending] = True
             pending[:] = False
@@ -330,7 +372,7 @@ class EscChain:
         self._stepped[idx] = True
         pending[:] = False
         self._lockstep_ns = self._common_step_time()
-        link.scatter(self.memory)
+        (link.scatter_lean if lean else link.scatter)(self.memory)
         self._note_faults(now)
 
     def _note_faults(self, now_ns: int) -> None:
@@ -356,14 +398,28 @@ class EscChain:
                 self.slaves, [s.fast for s in self.slaves], self._slots, cmd, laddr, length, doff
             )
         touched = plan.fast_touched
-        if len(touched) and self._pending[touched].any():
-            self._step_pending()  # new outputs for a drive that has not used its last ones: a new cycle began
-        plan.apply(np.frombuffer(buf, dtype=np.uint8), self.memory)
-        if len(plan.fast_written):
-            self._last_out_ns[plan.fast_written] = now_ns
-        if len(touched):
-            self._pending[touched] = True
-            self._pending_ns = now_ns
+        if self._lean:
+            pending = self._pending
+            if plan.touched_runs and pending.tobytes() != self._no_pending and pending[touched].any():
+                self._step_pending()  # new outputs for a drive that has not used its last ones
+            with memoryview(buf) as frame:
+                plan.apply_spans(frame, self._memory_bytes)
+            last_out = self._last_out_ns
+            for a, b in plan.written_runs:
+                last_out[a:b] = now_ns
+            if plan.touched_runs:
+                for a, b in plan.touched_runs:
+                    pending[a:b] = True
+                self._pending_ns = now_ns
+        else:
+            if len(touched) and self._pending[touched].any():
+                self._step_pending()  # new outputs for a drive that has not used its last ones: a new cycle
+            plan.apply(np.frombuffer(buf, dtype=np.uint8), self.memory)
+            if len(plan.fast_written):
+                self._last_out_ns[plan.fast_written] = now_ns
+            if len(touched):
+                self._pending[touched] = True
+                self._pending_ns = now_ns
         for s, written in plan.slow:
             s.touched = True
             if written:
@@ -448,11 +504,7 @@ class EscChain:
         either way. A VLAN tag stays where it is. Raises
         :class:`~fieldbus.core.ecat.FrameError` for a malformed frame.
         """
-        if n >= 18 and buf[12] == ETHERTYPE_VLAN >> 8 and buf[13] == ETHERTYPE_VLAN & 0xFF:
-            # the codec reads the ethertype at byte 12: hand it the frame from 4 bytes on
-            offsets = [off + VLAN_TAG_SIZE for off in datagram_offsets(memoryview(buf)[VLAN_TAG_SIZE:n])]
-        else:
-            offsets = datagram_offsets(memoryview(buf)[:n])
+        offsets = self._frame_offsets(buf, n) if self._lean else _datagram_offsets(buf, n)
         self.frames += 1
         faults = self.faults
         slaves = self.slaves
@@ -517,6 +569,23 @@ class EscChain:
             self._lose_power()
         return n
 
+    def _frame_offsets(self, buf: bytearray, n: int) -> list[int]:
+        """:func:`_datagram_offsets`, kept per frame layout: what it reads (the length, the ethertype and
+        EtherCAT header, each datagram's command and length/flags bytes) the same, the same offsets."""
+        vlan = n >= 18 and buf[12] == ETHERTYPE_VLAN >> 8 and buf[13] == ETHERTYPE_VLAN & 0xFF
+        key = (n, bytes(buf[12 : 20 if vlan else 16]))
+        seen = self._layouts.get(key)
+        if seen is not None:
+            at, was, offsets = seen
+            if bytes(map(buf.__getitem__, at)) == was:
+                return offsets
+        offsets = _datagram_offsets(buf, n)
+        at = tuple(i for off in offsets for i in (off, off + 6, off + 7))
+        if len(self._layouts) >= 64:  # a master of many layouts: keep the cache bounded
+            self._layouts.clear()
+        self._layouts[key] = (at, bytes(map(buf.__getitem__, at)), offsets)
+        return offsets
+
     def _lost(self, faults: Faults, buf: bytearray, offsets: list[int]) -> bool:
         """The frame is lost to an injected fault: dropped, dropped for carrying process data, or
         corrupted on a link (each counts its frames down)."""
@@ -551,6 +620,13 @@ class EscChain:
                     s.cycle(now_ns)
             touched.clear()
         pending = self._pending
+        if self._lean:
+            pending_bytes = pending.tobytes()
+            if pending_bytes == self._no_pending:
+                return
+            if pending_bytes == self._link_mask.tobytes() and len(self._link.slots):
+                self._step_pending()
+                return
         if len(self._link.slots) and pending[self._link.slots].all():
             self._step_pending()
 
@@ -579,7 +655,12 @@ class EscChain:
                 * 40
             )
             self._watchdog_ns = time_ns
+            self._watchdog_min_ns = int(time_ns.min()) if len(time_ns) else 0
         last = self._last_out_ns
+        if self._lean:  # every slave's outputs written within the shortest watchdog: nothing to check
+            oldest = min(last.tolist(), default=0)
+            if oldest >= 0 and now_ns - oldest <= self._watchdog_min_ns:
+                return
         fine = (last >= 0) & (now_ns - last <= time_ns)
         if fine.all():
             return
@@ -867,6 +948,14 @@ class EscChain:
         for s in self.slaves:
             s.clear_faults()
             s.od.clear_aborts()
+
+
+def _datagram_offsets(buf: bytearray, n: int) -> list[int]:
+    """Offsets of the datagram headers in the first ``n`` bytes of ``buf`` (an 802.1Q tag skipped)."""
+    if n >= 18 and buf[12] == ETHERTYPE_VLAN >> 8 and buf[13] == ETHERTYPE_VLAN & 0xFF:
+        # the codec reads the ethertype at byte 12: hand it the frame from 4 bytes on
+        return [off + VLAN_TAG_SIZE for off in datagram_offsets(memoryview(buf)[VLAN_TAG_SIZE:n])]
+    return datagram_offsets(memoryview(buf)[:n])
 
 
 def _physical(s: Esc, cmd: int, buf: bytearray, doff: int, length: int, ado: int, now_ns: int) -> int:

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from fieldbus.core.pdo.layout import DirectionLayout
-from sim_slaves.drive_bank import DriveBank
+from sim_slaves.drive_bank import DriveBank, runs
 from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.esc import MEM_SIZE, Esc
 
@@ -53,6 +53,19 @@ class CopyPlan:
     fast_read: Index  # bank slots of fast drives whose inputs the datagram reads
     slow: list[tuple[Esc, bool]]  # (slave, outputs written) handled by Esc.cycle
     ordered: list[tuple[bool, int, int, int]] | None = None  # (write?, frame, memory, length) in wire order
+    spans: list[tuple[bool, int, int, int]] = field(default_factory=list)  # every copy, in wire order
+    written_runs: list[tuple[int, int]] = field(default_factory=list)  # ``fast_written`` as runs
+    touched_runs: list[tuple[int, int]] = field(default_factory=list)  # ``fast_touched`` as runs
+
+    def apply_spans(self, frame: memoryview, memory: memoryview) -> None:
+        """:meth:`apply` as slice copies in wire order (``frame``, ``memory``: byte views): the same bytes
+        move (copies of a plan that does not keep the order touch disjoint bytes), in fewer calls for the
+        few copies of a chain's cycle."""
+        for write, fo, mo, n in self.spans:
+            if write:
+                memory[mo : mo + n] = frame[fo : fo + n]
+            else:
+                frame[fo : fo + n] = memory[mo : mo + n]
 
     def apply(self, frame: npt.NDArray[np.uint8], memory: npt.NDArray[np.uint8]) -> None:
         """Do the copies between ``frame`` (the whole frame buffer) and the chain's memory."""
@@ -141,6 +154,9 @@ def build_copy_plan(
         fast_read=np.array(read, dtype=np.intp),
         slow=slow,
         ordered=ops if interacting else None,
+        spans=ops,
+        written_runs=runs(np.array(written, dtype=np.intp)),
+        touched_runs=runs(np.array(sorted(set(touched)), dtype=np.intp)),
     )
 
 
@@ -215,6 +231,10 @@ class _Group:
     index: Index
     dtype: np.dtype[np.void]
     buffer: npt.NDArray[np.void]  # scatter staging, preallocated
+    # the lean path's views, made on first use: (staging bytes, [(destination, source)] per object)
+    views: (
+        tuple[npt.NDArray[np.uint8], list[tuple[npt.NDArray[np.generic], npt.NDArray[np.generic]]]] | None
+    ) = None
 
 
 @dataclass
@@ -242,6 +262,56 @@ class DriveLink:
             for name, _ in g.fields:
                 buf[name] = getattr(bank, name)[g.rows]
             memory[g.index] = buf.view(np.uint8).reshape(g.index.shape)
+
+    def gather_lean(self, memory: npt.NDArray[np.uint8]) -> None:
+        """:meth:`gather` through views made once: one ``take`` into a staging buffer, one cast copy per
+        object into the bank's arrays (groups of consecutive slots; others as :meth:`gather`)."""
+        bank = self.bank
+        for g in self.inputs:
+            views = g.views
+            if views is None:
+                if not isinstance(g.rows, slice):
+                    self._gather_group(g, memory)
+                    continue
+                staging = np.zeros(g.index.shape, dtype=np.uint8)
+                rec = staging.view(g.dtype)[:, 0]
+                views = g.views = (
+                    staging,
+                    [(getattr(bank, name)[g.rows], rec[name]) for name, _ in g.fields],
+                )
+            np.take(memory, g.index, out=views[0])
+            for dst, src in views[1]:
+                np.copyto(dst, src, casting="unsafe")
+
+    def _gather_group(self, g: _Group, memory: npt.NDArray[np.uint8]) -> None:
+        rec = memory[g.index].view(g.dtype)[:, 0]
+        for name, _ in g.fields:
+            getattr(self.bank, name)[g.rows] = rec[name]
+
+    def scatter_lean(self, memory: npt.NDArray[np.uint8]) -> None:
+        """:meth:`scatter` through views made once (groups of consecutive slots; others as :meth:`scatter`)."""
+        bank = self.bank
+        for g in self.outputs:
+            views = g.views
+            if views is None:
+                if not isinstance(g.rows, slice):
+                    self._scatter_group(g, memory)
+                    continue
+                buf = g.buffer
+                staging = buf.view(np.uint8).reshape(g.index.shape)
+                views = g.views = (
+                    staging,
+                    [(buf[name], getattr(bank, name)[g.rows]) for name, _ in g.fields],
+                )
+            for dst, src in views[1]:
+                np.copyto(dst, src, casting="unsafe")
+            memory[g.index] = views[0]
+
+    def _scatter_group(self, g: _Group, memory: npt.NDArray[np.uint8]) -> None:
+        buf = g.buffer
+        for name, _ in g.fields:
+            buf[name] = getattr(self.bank, name)[g.rows]
+        memory[g.index] = buf.view(np.uint8).reshape(g.index.shape)
 
     def op_slots(self) -> set[int]:
         """Bank slots whose inputs come from memory."""
