@@ -11,6 +11,9 @@ setup(
             "sim_slaves._dcloop", sources=["sim_slaves/_dcloop.c"], optional=True, extra_compile_args=["-O2"]
         ),
         Extension(
+            "sim_slaves._pdlink", sources=["sim_slaves/_pdlink.c"], optional=True, extra_compile_args=["-O2"]
+        ),
+        Extension(
             "sim_slaves._motion",
             sources=["sim_slaves/_motion.c"],
             optional=True,

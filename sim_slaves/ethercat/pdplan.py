@@ -22,8 +22,9 @@ Memory is the chain's one array of ``slaves x MEM_SIZE`` bytes.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -34,6 +35,27 @@ from sim_slaves.ethercat.al import AlState
 from sim_slaves.ethercat.esc import MEM_SIZE, Esc
 
 Index = npt.NDArray[np.intp]
+#: a drive group as ``sim_slaves._pdlink`` takes it after the memory: addresses, slots, kinds, bank arrays
+CArgs = tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], bytes, tuple[npt.NDArray[np.int64], ...]]
+
+
+class _PdLink(Protocol):
+    """``sim_slaves._pdlink`` (``sim_slaves/_pdlink.c``)."""
+
+    gather: Callable[..., None]
+    scatter: Callable[..., None]
+
+
+def _c_link() -> _PdLink | None:
+    try:
+        from sim_slaves import _pdlink
+    except ImportError:
+        return None
+    return _pdlink
+
+
+#: the drive link's gather/scatter in C for the chain's lean path, or None where not built (then numpy)
+pdlink = _c_link()
 _LRD, _LWR = 10, 11
 
 
@@ -231,10 +253,8 @@ class _Group:
     index: Index
     dtype: np.dtype[np.void]
     buffer: npt.NDArray[np.void]  # scatter staging, preallocated
-    # the lean path's views, made on first use: (staging bytes, [(destination, source)] per object)
-    views: (
-        tuple[npt.NDArray[np.uint8], list[tuple[npt.NDArray[np.generic], npt.NDArray[np.generic]]]] | None
-    ) = None
+    # ``sim_slaves._pdlink``'s arguments after the memory, made on first use (see :func:`_c_args`)
+    c_args: CArgs | None = None
 
 
 @dataclass
@@ -264,54 +284,20 @@ class DriveLink:
             memory[g.index] = buf.view(np.uint8).reshape(g.index.shape)
 
     def gather_lean(self, memory: npt.NDArray[np.uint8]) -> None:
-        """:meth:`gather` through views made once: one ``take`` into a staging buffer, one cast copy per
-        object into the bank's arrays (groups of consecutive slots; others as :meth:`gather`)."""
-        bank = self.bank
+        """:meth:`gather` in one C call per group (``sim_slaves._pdlink`` where built, else :meth:`gather`)."""
+        if pdlink is None:
+            self.gather(memory)
+            return
         for g in self.inputs:
-            views = g.views
-            if views is None:
-                if not isinstance(g.rows, slice):
-                    self._gather_group(g, memory)
-                    continue
-                staging = np.zeros(g.index.shape, dtype=np.uint8)
-                rec = staging.view(g.dtype)[:, 0]
-                views = g.views = (
-                    staging,
-                    [(getattr(bank, name)[g.rows], rec[name]) for name, _ in g.fields],
-                )
-            np.take(memory, g.index, out=views[0])
-            for dst, src in views[1]:
-                np.copyto(dst, src, casting="unsafe")
-
-    def _gather_group(self, g: _Group, memory: npt.NDArray[np.uint8]) -> None:
-        rec = memory[g.index].view(g.dtype)[:, 0]
-        for name, _ in g.fields:
-            getattr(self.bank, name)[g.rows] = rec[name]
+            pdlink.gather(memory, *(g.c_args or _c_args(g, self.bank)))
 
     def scatter_lean(self, memory: npt.NDArray[np.uint8]) -> None:
-        """:meth:`scatter` through views made once (groups of consecutive slots; others as :meth:`scatter`)."""
-        bank = self.bank
+        """:meth:`scatter` in one C call per group (``sim_slaves._pdlink`` where built, else :meth:`scatter`)."""
+        if pdlink is None:
+            self.scatter(memory)
+            return
         for g in self.outputs:
-            views = g.views
-            if views is None:
-                if not isinstance(g.rows, slice):
-                    self._scatter_group(g, memory)
-                    continue
-                buf = g.buffer
-                staging = buf.view(np.uint8).reshape(g.index.shape)
-                views = g.views = (
-                    staging,
-                    [(buf[name], getattr(bank, name)[g.rows]) for name, _ in g.fields],
-                )
-            for dst, src in views[1]:
-                np.copyto(dst, src, casting="unsafe")
-            memory[g.index] = views[0]
-
-    def _scatter_group(self, g: _Group, memory: npt.NDArray[np.uint8]) -> None:
-        buf = g.buffer
-        for name, _ in g.fields:
-            buf[name] = getattr(self.bank, name)[g.rows]
-        memory[g.index] = buf.view(np.uint8).reshape(g.index.shape)
+            pdlink.scatter(memory, *(g.c_args or _c_args(g, self.bank)))
 
     def op_slots(self) -> set[int]:
         """Bank slots whose inputs come from memory."""
@@ -320,6 +306,24 @@ class DriveLink:
             rows = g.rows
             out.update(range(rows.start, rows.stop) if isinstance(rows, slice) else rows.tolist())
         return out
+
+
+_KIND = {"u1": b"B", "i1": b"b", "<u2": b"H", "<i2": b"h", "<i4": b"i"}  # numpy type -> _pdlink's kind
+
+
+def _c_args(g: _Group, bank: DriveBank) -> CArgs:
+    """A group as ``sim_slaves._pdlink`` takes it: each object's first memory byte per drive (drives x
+    objects), the drives' slots, the objects' kinds, the bank's arrays (kept in ``g.c_args``)."""
+    first = np.cumsum([0, *(np.dtype(t).itemsize for _, t in g.fields)])[:-1]
+    rows = g.rows
+    slots = np.arange(rows.start, rows.stop) if isinstance(rows, slice) else rows
+    g.c_args = (
+        np.ascontiguousarray(g.index[:, first], dtype=np.int64),
+        np.ascontiguousarray(slots, dtype=np.int64),
+        b"".join(_KIND[t] for _, t in g.fields),
+        tuple(getattr(bank, name) for name, _ in g.fields),
+    )
+    return g.c_args
 
 
 def _groups(
