@@ -220,8 +220,14 @@ def _fault(pair: Pair, k: int, rng: np.random.Generator) -> None:
         pair.both(lambda c: c.clear_faults())
 
 
-@pytest.mark.parametrize("axes", [3, 12])
-def test_the_lean_path_answers_every_frame_as_the_reference(axes: int) -> None:
+@pytest.mark.parametrize(("axes", "c_paths"), [(3, True), (12, True), (3, False)])
+def test_the_lean_path_answers_every_frame_as_the_reference(
+    axes: int, c_paths: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``c_paths`` False: the lean path where the C extensions are not built (their numpy fallbacks)."""
+    if not c_paths:
+        monkeypatch.setattr(drive_bank, "motion_kernel", None)
+        monkeypatch.setattr(pdplan, "pdlink", None)
     pair = Pair(axes)
     rng = np.random.default_rng(axes)
     lost = 0
