@@ -15,9 +15,11 @@
  * csp_outputs(...): statusword, following error, actual values; it declines
  * (returns False, leaves fe_time alone) when a drive's following error is
  * beyond its window or a value does not fit int64 (NaN): numpy then does it.
- * idle(...): DriveBank._idle's rotors coasting (no drive powered) through `steps` substeps, then its
- * outputs (ideal encoder only); it declines the outputs (returns False, the motion done) when a value
- * does not fit int64 or a state has no statusword bits in the table: numpy then does them.
+ * Bank(...): the kernel's hold on one bank's arrays, taken once, and two calls per cycle on it:
+ * csp_cycle (the target from the raw targets, csp, csp_outputs: the plain CSP path's cycle in one call) and
+ * idle_cycle (DriveBank._idle's rotors coasting, no drive powered, through `steps` substeps, then its
+ * outputs; it declines the outputs, returns False with the motion done, when a value does not fit int64 or
+ * a state has no statusword bits in the table: numpy then does them). Ideal encoders only.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -101,6 +103,9 @@ static int factor(Buffers *bufs, PyObject *const *args, int i, Py_ssize_t count,
     return 0;
 }
 
+static int csp_run(const Py_buffer *view, const double *target, const double *noise, const double *const *c,
+                   const Py_ssize_t *cs, Py_ssize_t a, Py_ssize_t b, double dt, long steps, int speed_limited);
+
 static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (nargs != NARGS) {
@@ -130,16 +135,26 @@ static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     if (args[NOISE] != Py_None && take(&bufs, args, NOISE, n, 'd', 0) < 0) goto done;
     for (int j = 0; j < 5; j++)
         if (factor(&bufs, args, CE + j, n, &c[j], &cs[j], &scalars[j]) < 0) goto done;
+    result = PyBool_FromLong(csp_run(bufs.view, (const double *)bufs.view[TARGET].buf,
+                                     bufs.held[NOISE] ? (const double *)bufs.view[NOISE].buf : NULL, c, cs, a, b, dt,
+                                     steps, speed_limited));
+done:
+    release(&bufs);
+    return result;
+}
 
-#define BANK(i) ((double *)bufs.view[i].buf + a)
+/* csp's substeps of drives a..b-1 on the bank arrays `view` (indexed as csp's arguments, checked); target and
+ * noise of the run (noise NULL: none), the factors with their strides (0: one for all); returns limited */
+static int csp_run(const Py_buffer *view, const double *target, const double *noise, const double *const *c,
+                   const Py_ssize_t *cs, Py_ssize_t a, Py_ssize_t b, double dt, long steps, int speed_limited) {
+    Py_ssize_t n = b - a;
+#define BANK(i) ((double *)view[i].buf + a)
     double *pos = BANK(POS), *vel = BANK(VEL), *integ = BANK(INTEG), *prev_target = BANK(PREV_TARGET);
     double *prev_vff = BANK(PREV_VFF), *tau_out = BANK(TAU), *tau_eff = BANK(TAU_EFF), *shaft = BANK(SHAFT);
-    char *limit = (char *)bufs.view[LIMIT].buf + a;
+    char *limit = (char *)view[LIMIT].buf + a;
     const double *vff_gain = BANK(VFF_GAIN), *tff_gain = BANK(TFF_GAIN), *kv = BANK(KV), *kp = BANK(KP);
     const double *tmax = BANK(TMAX), *load = BANK(LOAD), *epr = BANK(EPR), *rpe = BANK(RPE), *vmax = BANK(VMAX);
 #undef BANK
-    const double *target = (const double *)bufs.view[TARGET].buf;
-    const double *noise = bufs.held[NOISE] ? (const double *)bufs.view[NOISE].buf : NULL;
     int limited = 0;
     for (Py_ssize_t i = 0; i < n; i++) {
         double e = c[0][i * cs[0]], f = c[1][i * cs[1]], g = c[2][i * cs[2]], hh = c[3][i * cs[3]];
@@ -185,10 +200,7 @@ static PyObject *csp(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
         limit[i] = hit;
         limited |= hit;
     }
-    result = PyBool_FromLong(limited);
-done:
-    release(&bufs);
-    return result;
+    return limited;
 }
 
 /* the arguments of csp_outputs, in order */
@@ -210,6 +222,9 @@ enum {
 
 /* a float that is a whole number, as int64 the way numpy casts it; 0 where it does not fit (NaN, too big) */
 static inline int fits(double x) { return x >= -9223372036854775808.0 && x < 9223372036854775808.0; }
+
+static int csp_outputs_run(const Py_buffer *view, const double *target, Py_ssize_t a, Py_ssize_t b, int ideal,
+                           int limited, long long sw_csp, long long sw_reached, long long sw_limit);
 
 static PyObject *csp_outputs(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
@@ -235,9 +250,20 @@ static PyObject *csp_outputs(PyObject *self, PyObject *const *args, Py_ssize_t n
         if (take(&bufs, args, i, b, kind, i <= O_FE_TIME) < 0) goto done;
     }
     if (take(&bufs, args, O_TARGET, n, 'd', 0) < 0) goto done;
+    result = PyBool_FromLong(csp_outputs_run(bufs.view, (const double *)bufs.view[O_TARGET].buf, a, b, ideal, limited,
+                                             sw_csp, sw_reached, sw_limit));
+done:
+    release(&bufs);
+    return result;
+}
 
-#define F(i) ((double *)bufs.view[i].buf + a)
-#define Q(i) ((int64_t *)bufs.view[i].buf + a)
+/* csp_outputs of drives a..b-1 on the bank arrays `view` (indexed as csp_outputs' arguments, checked) and the
+ * run's target; returns whether it did them (0: numpy's turn, fe_time untouched) */
+static int csp_outputs_run(const Py_buffer *view, const double *target, Py_ssize_t a, Py_ssize_t b, int ideal,
+                           int limited, long long sw_csp, long long sw_reached, long long sw_limit) {
+    Py_ssize_t n = b - a;
+#define F(i) ((double *)view[i].buf + a)
+#define Q(i) ((int64_t *)view[i].buf + a)
     int64_t *statusword = Q(O_STATUSWORD), *following_error = Q(O_FOLLOWING_ERROR);
     int64_t *position_counts = Q(O_POSITION_COUNTS), *velocity_counts = Q(O_VELOCITY_COUNTS);
     int64_t *torque_permille = Q(O_TORQUE_PERMILLE);
@@ -247,8 +273,7 @@ static PyObject *csp_outputs(PyObject *self, PyObject *const *args, Py_ssize_t n
     const int64_t *noise = Q(O_NOISE), *fe_window = Q(O_FE_WINDOW), *position_window = Q(O_POSITION_WINDOW);
 #undef F
 #undef Q
-    const char *limit = (const char *)bufs.view[O_LIMIT].buf + a;
-    const double *target = (const double *)bufs.view[O_TARGET].buf;
+    const char *limit = (const char *)view[O_LIMIT].buf + a;
     int done_all = 1;
     for (Py_ssize_t i = 0; i < n; i++) {
         double pos_counts;
@@ -276,14 +301,11 @@ static PyObject *csp_outputs(PyObject *self, PyObject *const *args, Py_ssize_t n
     }
     if (done_all)
         for (Py_ssize_t i = 0; i < n; i++) fe_time[i] = 0.0;
-    result = PyBool_FromLong(done_all);
-done:
-    release(&bufs);
-    return result;
+    return done_all;
 }
 
 
-/* the arguments of idle, in order */
+/* the bank arrays of idle_run (Bank's idle_arrays), in order */
 enum {
     /* bank arrays written: float64 ... */
     I_POS, I_VEL, I_PREV_TARGET, I_TAU, I_TAU_EFF, I_SHAFT,
@@ -295,46 +317,16 @@ enum {
     I_STATE, I_LOAD, I_CPR, I_VPR,
     /* the statusword's state bits by state (int64, any length) */
     I_SW_BY_STATE,
-    /* the exact-integration factors of a substep: a float, or float64 of the run */
-    I_CE, I_CF, I_CG, I_CHH,
-    /* a, b, steps; statusword: remote bit, voltage-enabled bit; the state NOT READY TO SWITCH ON */
-    I_A, I_B, I_STEPS, I_SW_REMOTE, I_SW_VOLTAGE, I_NR,
-    I_NARGS
+    I_NARRAYS
 };
 
-static PyObject *idle(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (nargs != I_NARGS) {
-        PyErr_Format(PyExc_TypeError, "idle: %d arguments, got %zd", I_NARGS, nargs);
-        return NULL;
-    }
-    Py_ssize_t a = PyLong_AsSsize_t(args[I_A]), b = PyLong_AsSsize_t(args[I_B]);
-    long steps = PyLong_AsLong(args[I_STEPS]);
-    long long sw_remote = PyLong_AsLongLong(args[I_SW_REMOTE]), sw_voltage = PyLong_AsLongLong(args[I_SW_VOLTAGE]);
-    long long nr = PyLong_AsLongLong(args[I_NR]);
-    if (PyErr_Occurred()) return NULL;
-    if (a < 0 || b < a || steps < 1) {
-        PyErr_Format(PyExc_ValueError, "idle: need 0 <= a <= b and steps >= 1, got a=%zd b=%zd steps=%ld", a, b,
-                     steps);
-        return NULL;
-    }
+/* idle's rotors and outputs of drives a..b-1 on the bank arrays `view` (indexed as its arguments, checked),
+ * the factors with their strides; returns whether it did the outputs */
+static int idle_run(const Py_buffer *view, const double *const *c, const Py_ssize_t *cs, Py_ssize_t a, Py_ssize_t b,
+                    long steps, long long sw_remote, long long sw_voltage, long long nr) {
     Py_ssize_t n = b - a;
-    Buffers bufs;
-    memset(bufs.held, 0, sizeof(bufs.held));
-    PyObject *result = NULL;
-    const double *c[4];
-    Py_ssize_t cs[4];
-    double scalars[4];
-    for (int i = 0; i <= I_VPR; i++) {
-        char kind = i == I_LIMIT ? '?' : (i >= I_STATUSWORD && i < I_LIMIT) || i == I_STATE ? 'q' : 'd';
-        if (take(&bufs, args, i, b, kind, i <= I_LIMIT) < 0) goto done;
-    }
-    if (take(&bufs, args, I_SW_BY_STATE, 0, 'q', 0) < 0) goto done;
-    for (int j = 0; j < 4; j++)
-        if (factor(&bufs, args, I_CE + j, n, &c[j], &cs[j], &scalars[j]) < 0) goto done;
-
-#define F(i) ((double *)bufs.view[i].buf + a)
-#define Q(i) ((int64_t *)bufs.view[i].buf + a)
+#define F(i) ((double *)view[i].buf + a)
+#define Q(i) ((int64_t *)view[i].buf + a)
     double *pos = F(I_POS), *vel = F(I_VEL), *prev_target = F(I_PREV_TARGET);
     double *tau = F(I_TAU), *tau_eff = F(I_TAU_EFF), *shaft = F(I_SHAFT);
     int64_t *statusword = Q(I_STATUSWORD), *following_error = Q(I_FOLLOWING_ERROR);
@@ -344,9 +336,9 @@ static PyObject *idle(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     const double *load = F(I_LOAD), *cpr = F(I_CPR), *vpr = F(I_VPR);
 #undef F
 #undef Q
-    char *limit = (char *)bufs.view[I_LIMIT].buf + a;
-    const int64_t *sw_by_state = (const int64_t *)bufs.view[I_SW_BY_STATE].buf;
-    Py_ssize_t n_states = bufs.view[I_SW_BY_STATE].len / 8;
+    char *limit = (char *)view[I_LIMIT].buf + a;
+    const int64_t *sw_by_state = (const int64_t *)view[I_SW_BY_STATE].buf;
+    Py_ssize_t n_states = view[I_SW_BY_STATE].len / 8;
     int outputs = 1;
     for (Py_ssize_t i = 0; i < n; i++) {
         double e = c[0][i * cs[0]], f = c[1][i * cs[1]], g = c[2][i * cs[2]], hh = c[3][i * cs[3]];
@@ -374,11 +366,160 @@ static PyObject *idle(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
             velocity_counts[i] = (int64_t)floor(vel[i] * vpr[i] + 0.5);
             torque_permille[i] = 0;
         }
-    result = PyBool_FromLong(outputs);
+    return outputs;
+}
+
+/* Bank(csp_arrays, out_arrays, target_position, rpc, target): the kernel's hold on one drive bank's arrays,
+ * taken once (the buffers of csp's bank arguments, of csp_outputs' bank arguments, in their orders; the raw
+ * target positions (int64), radians per count and a scratch row for the target [rad] (float64)), so a cycle
+ * of the plain CSP path is one call: Bank.csp_cycle. */
+typedef struct {
+    PyObject_HEAD
+    Buffers csp_bufs, out_bufs, idle_bufs, extra; /* extra: 0 target_position, 1 rpc, 2 target */
+    Py_ssize_t n;
+} BankObject;
+
+static void bank_dealloc(BankObject *self) {
+    release(&self->csp_bufs);
+    release(&self->out_bufs);
+    release(&self->idle_bufs);
+    release(&self->extra);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int bank_init(BankObject *self, PyObject *args, PyObject *kwds) {
+    PyObject *csp_arrays, *out_arrays, *idle_arrays, *rest[3];
+    static char *names[] = {"csp_arrays", "out_arrays", "idle_arrays", "target_position", "rpc", "target", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!O!O!OOO", names, &PyTuple_Type, &csp_arrays, &PyTuple_Type,
+                                     &out_arrays, &PyTuple_Type, &idle_arrays, &rest[0], &rest[1], &rest[2]))
+        return -1;
+    Buffers *all[] = {&self->csp_bufs, &self->out_bufs, &self->idle_bufs, &self->extra};
+    for (int k = 0; k < 4; k++) {
+        release(all[k]);
+        memset(all[k]->held, 0, sizeof(all[k]->held));
+    }
+    if (PyTuple_GET_SIZE(csp_arrays) != N_BANK || PyTuple_GET_SIZE(out_arrays) != O_LIMIT + 1 ||
+        PyTuple_GET_SIZE(idle_arrays) != I_NARRAYS) {
+        PyErr_Format(PyExc_ValueError, "Bank: %d csp, %d csp_outputs and %d idle arrays", N_BANK, O_LIMIT + 1,
+                     I_NARRAYS);
+        return -1;
+    }
+    if (take(&self->extra, rest, 1, 0, 'd', 0) < 0) return -1;
+    Py_ssize_t n = self->n = self->extra.view[1].len / 8;
+    if (take(&self->extra, rest, 0, n, 'q', 0) < 0 || take(&self->extra, rest, 2, n, 'd', 1) < 0) return -1;
+    PyObject *const *items = &PyTuple_GET_ITEM(csp_arrays, 0);
+    for (int i = 0; i < N_BANK; i++)
+        if (take(&self->csp_bufs, items, i, n, i == LIMIT ? '?' : 'd', i <= LIMIT) < 0) return -1;
+    items = &PyTuple_GET_ITEM(out_arrays, 0);
+    for (int i = 0; i <= O_LIMIT; i++) {
+        char kind = i == O_LIMIT ? '?' : (i < O_FE_TIME || (i >= O_NOISE && i < O_LIMIT)) ? 'q' : 'd';
+        if (take(&self->out_bufs, items, i, n, kind, i <= O_FE_TIME) < 0) return -1;
+    }
+    items = &PyTuple_GET_ITEM(idle_arrays, 0);
+    for (int i = 0; i <= I_VPR; i++) {
+        char kind = i == I_LIMIT ? '?' : (i >= I_STATUSWORD && i < I_LIMIT) || i == I_STATE ? 'q' : 'd';
+        if (take(&self->idle_bufs, items, i, n, kind, i <= I_LIMIT) < 0) return -1;
+    }
+    if (take(&self->idle_bufs, items, I_SW_BY_STATE, 0, 'q', 0) < 0) return -1;
+    return 0;
+}
+
+/* the arguments of Bank.csp_cycle, in order */
+enum { C_A, C_B, C_DT, C_STEPS, C_CE, C_CF, C_CG, C_CHH, C_KI_H, C_SPEED_LIMITED, C_SW_CSP, C_SW_REACHED, C_SW_LIMIT,
+       C_NARGS };
+
+/* one cycle of the plain CSP path of drives a..b-1 (ideal encoders, no command delay, no position limits): the
+ * target from the raw target positions, csp, csp_outputs; returns limited | outputs done << 1 */
+static PyObject *bank_csp_cycle(BankObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != C_NARGS) {
+        PyErr_Format(PyExc_TypeError, "csp_cycle: %d arguments, got %zd", C_NARGS, nargs);
+        return NULL;
+    }
+    Py_ssize_t a = PyLong_AsSsize_t(args[C_A]), b = PyLong_AsSsize_t(args[C_B]);
+    double dt = PyFloat_AsDouble(args[C_DT]);
+    long steps = PyLong_AsLong(args[C_STEPS]);
+    int speed_limited = PyObject_IsTrue(args[C_SPEED_LIMITED]);
+    long long sw_csp = PyLong_AsLongLong(args[C_SW_CSP]), sw_reached = PyLong_AsLongLong(args[C_SW_REACHED]);
+    long long sw_limit = PyLong_AsLongLong(args[C_SW_LIMIT]);
+    if (PyErr_Occurred() || speed_limited < 0) return NULL;
+    if (a < 0 || b < a || b > self->n || steps < 1) {
+        PyErr_Format(PyExc_ValueError, "csp_cycle: need 0 <= a <= b <= %zd and steps >= 1, got a=%zd b=%zd steps=%ld",
+                     self->n, a, b, steps);
+        return NULL;
+    }
+    Buffers bufs;
+    memset(bufs.held, 0, sizeof(bufs.held));
+    PyObject *result = NULL;
+    const double *c[5];
+    Py_ssize_t cs[5];
+    double scalars[5];
+    for (int j = 0; j < 5; j++)
+        if (factor(&bufs, args, C_CE + j, b - a, &c[j], &cs[j], &scalars[j]) < 0) goto done;
+    const int64_t *tp = (const int64_t *)self->extra.view[0].buf;
+    const double *rpc = (const double *)self->extra.view[1].buf;
+    double *target = (double *)self->extra.view[2].buf + a;
+    for (Py_ssize_t i = a; i < b; i++) target[i - a] = (double)tp[i] * rpc[i]; /* tp * rpc, as numpy */
+    int limited = csp_run(self->csp_bufs.view, target, NULL, c, cs, a, b, dt, steps, speed_limited);
+    int outputs = csp_outputs_run(self->out_bufs.view, target, a, b, 1, limited, sw_csp, sw_reached, sw_limit);
+    result = PyLong_FromLong(limited | outputs << 1);
 done:
     release(&bufs);
     return result;
 }
+
+/* the arguments of Bank.idle_cycle, in order */
+enum { D_A, D_B, D_STEPS, D_CE, D_CF, D_CG, D_CHH, D_SW_REMOTE, D_SW_VOLTAGE, D_NR, D_NARGS };
+
+/* DriveBank._idle of drives a..b-1 (ideal encoders): rotors coast through `steps` substeps, then the outputs;
+ * returns whether it did the outputs (False: a value does not fit int64, numpy's turn; the motion done) */
+static PyObject *bank_idle_cycle(BankObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != D_NARGS) {
+        PyErr_Format(PyExc_TypeError, "idle_cycle: %d arguments, got %zd", D_NARGS, nargs);
+        return NULL;
+    }
+    Py_ssize_t a = PyLong_AsSsize_t(args[D_A]), b = PyLong_AsSsize_t(args[D_B]);
+    long steps = PyLong_AsLong(args[D_STEPS]);
+    long long sw_remote = PyLong_AsLongLong(args[D_SW_REMOTE]), sw_voltage = PyLong_AsLongLong(args[D_SW_VOLTAGE]);
+    long long nr = PyLong_AsLongLong(args[D_NR]);
+    if (PyErr_Occurred()) return NULL;
+    if (a < 0 || b < a || b > self->n || steps < 1) {
+        PyErr_Format(PyExc_ValueError, "idle_cycle: need 0 <= a <= b <= %zd and steps >= 1, got a=%zd b=%zd steps=%ld",
+                     self->n, a, b, steps);
+        return NULL;
+    }
+    Buffers bufs;
+    memset(bufs.held, 0, sizeof(bufs.held));
+    PyObject *result = NULL;
+    const double *c[4];
+    Py_ssize_t cs[4];
+    double scalars[4];
+    for (int j = 0; j < 4; j++)
+        if (factor(&bufs, args, D_CE + j, b - a, &c[j], &cs[j], &scalars[j]) < 0) goto done;
+    result = PyBool_FromLong(idle_run(self->idle_bufs.view, c, cs, a, b, steps, sw_remote, sw_voltage, nr));
+done:
+    release(&bufs);
+    return result;
+}
+
+static PyMethodDef bank_methods[] = {
+    {"idle_cycle", (PyCFunction)(void (*)(void))bank_idle_cycle, METH_FASTCALL,
+     "idle_cycle(a, b, steps, e, f, g, hh, sw_remote, sw_voltage, nr) -> outputs done (False: numpy's turn)"},
+    {"csp_cycle", (PyCFunction)(void (*)(void))bank_csp_cycle, METH_FASTCALL,
+     "csp_cycle(a, b, dt, steps, e, f, g, hh, ki_h, speed_limited, sw_csp, sw_reached, sw_limit) -> "
+     "limited | outputs done << 1 (outputs not done: numpy's turn, the target in the scratch row)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject BankType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "sim_slaves._motion.Bank",
+    .tp_basicsize = sizeof(BankObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Bank(csp_arrays, out_arrays, target_position, rpc, target): a drive bank's arrays held once",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)bank_init,
+    .tp_dealloc = (destructor)bank_dealloc,
+    .tp_methods = bank_methods,
+};
 
 static PyMethodDef motion_methods[] = {
     {"csp", (PyCFunction)(void (*)(void))csp, METH_FASTCALL,
@@ -388,10 +529,6 @@ static PyMethodDef motion_methods[] = {
      "csp_outputs(statusword, following_error, position_counts, velocity_counts, torque_permille, fe_time, pos, "
      "vel, tau, cpr, epr, enc_to_counts, vpr, rated, noise, fe_window, position_window, limit, target, a, b, "
      "ideal_encoder, limited, sw_csp, sw_reached, sw_limit) -> done (False: numpy's turn)"},
-    {"idle", (PyCFunction)(void (*)(void))idle, METH_FASTCALL,
-     "idle(pos, vel, prev_target, tau, tau_eff, shaft, statusword, following_error, position_counts, "
-     "velocity_counts, torque_permille, limit, state, load, cpr, vpr, sw_by_state, e, f, g, hh, a, b, steps, "
-     "sw_remote, sw_voltage, nr) -> outputs done (False: numpy's turn for them)"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -400,4 +537,13 @@ static struct PyModuleDef motion_module = {
     motion_methods,
 };
 
-PyMODINIT_FUNC PyInit__motion(void) { return PyModule_Create(&motion_module); }
+PyMODINIT_FUNC PyInit__motion(void) {
+    if (PyType_Ready(&BankType) < 0) return NULL;
+    PyObject *m = PyModule_Create(&motion_module);
+    if (m == NULL) return NULL;
+    if (PyModule_AddObjectRef(m, "Bank", (PyObject *)&BankType) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -72,35 +72,49 @@ def csp_outputs(
 ) -> bool:
     """Statusword, following error, actual values of drives a..b-1; False (nothing settled): numpy's turn."""
 
-def idle(
-    pos: _F64,
-    vel: _F64,
-    prev_target: _F64,
-    tau: _F64,
-    tau_eff: _F64,
-    shaft: _F64,
-    statusword: _I64,
-    following_error: _I64,
-    position_counts: _I64,
-    velocity_counts: _I64,
-    torque_permille: _I64,
-    limit: npt.NDArray[np.bool_],
-    state: _I64,
-    load: _F64,
-    cpr: _F64,
-    vpr: _F64,
-    sw_by_state: _I64,
-    e: _F64 | float,
-    f: _F64 | float,
-    g: _F64 | float,
-    hh: _F64 | float,
-    a: int,
-    b: int,
-    steps: int,
-    sw_remote: int,
-    sw_voltage: int,
-    nr: int,
-    /,
-) -> bool:
-    """Rotors of drives a..b-1 coasting through ``steps`` substeps, then their outputs (ideal encoder);
-    False (the motion done, the outputs not): numpy's turn for the outputs."""
+class Bank:
+    """The kernel's hold on one drive bank's arrays (taken once): a cycle of the plain CSP path, or of the
+    idle path, in one call."""
+
+    def __init__(
+        self,
+        csp_arrays: tuple[npt.NDArray[np.generic], ...],
+        out_arrays: tuple[npt.NDArray[np.generic], ...],
+        idle_arrays: tuple[npt.NDArray[np.generic], ...],
+        target_position: _I64,
+        rpc: _F64,
+        target: _F64,
+    ) -> None: ...
+    def csp_cycle(
+        self,
+        a: int,
+        b: int,
+        dt: float,
+        steps: int,
+        e: _F64 | float,
+        f: _F64 | float,
+        g: _F64 | float,
+        hh: _F64 | float,
+        ki_h: _F64 | float,
+        speed_limited: bool,
+        sw_csp: int,
+        sw_reached: int,
+        sw_limit: int,
+        /,
+    ) -> int:
+        """limited | outputs done << 1 (outputs not done: numpy's turn, the target in ``target``)."""
+    def idle_cycle(
+        self,
+        a: int,
+        b: int,
+        steps: int,
+        e: _F64 | float,
+        f: _F64 | float,
+        g: _F64 | float,
+        hh: _F64 | float,
+        sw_remote: int,
+        sw_voltage: int,
+        nr: int,
+        /,
+    ) -> bool:
+        """Rotors of drives a..b-1 coasting, then their outputs; False (the motion done): numpy's outputs."""

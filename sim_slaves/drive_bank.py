@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from itertools import pairwise
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -76,6 +76,7 @@ _NOT_FOLLOWS_REACHED = ~(_SW_FOLLOWS | _SW_TARGET_REACHED)
 _SW_BY_STATE = np.array([int(STATUSWORD_STATE_BITS[s]) for s in _STATES], dtype=np.int64)
 _SW_CSP = int(_SW_BY_STATE[_OE]) | _SW_REMOTE | _SW_VOLTAGE | _SW_FOLLOWS
 _SW_CSP_REACHED = _SW_CSP | _SW_TARGET_REACHED
+_SW_CSP_BITS = (_SW_CSP, _SW_CSP_REACHED, _SW_LIMIT)  # the C kernel's statuswords
 # objects the bank reads and writes through a drive's OD (plain ints: enum attribute access costs ~100 ns)
 _X_ERROR_CODE = int(Obj.ERROR_CODE)
 _X_CONTROLWORD = int(Obj.CONTROLWORD)
@@ -111,6 +112,22 @@ def _c_kernel() -> MotionKernel | None:
 #: the plain CSP path's step in C, or None where ``sim_slaves._motion`` is not built (then numpy)
 motion_kernel = _c_kernel()
 
+
+#: the bank arrays ``sim_slaves._motion.Bank`` holds, in the orders of its C enums (csp's, csp_outputs', idle's)
+_KERNEL_CSP_ARRAYS = (
+    *("pos", "vel", "integ", "prev_target", "prev_vff", "tau", "tau_eff", "shaft", "limit"),
+    *("vff_gain", "tff_gain", "kv", "kp", "tmax", "load", "epr", "rpe", "vmax"),
+)
+_KERNEL_OUTPUT_ARRAYS = (
+    *("statusword", "following_error", "position_counts", "velocity_counts", "torque_permille", "fe_time"),
+    *("pos", "vel", "tau", "cpr", "epr", "enc_to_counts", "vpr", "rated"),
+    *("noise", "fe_window", "position_window", "limit"),
+)
+_KERNEL_IDLE_ARRAYS = (
+    *("pos", "vel", "prev_target", "tau", "tau_eff", "shaft"),
+    *("statusword", "following_error", "position_counts", "velocity_counts", "torque_permille", "limit"),
+    *("state", "load", "cpr", "vpr"),
+)
 
 _TINY = float(np.finfo(np.float64).tiny)  # the smallest normal float64, 2.2e-308
 
@@ -167,8 +184,11 @@ class DriveBank:
         n = len(params)
         self.n = n
         self.params = list(params)
-        #: the C kernel's idle path where built (:data:`motion_kernel`); False: numpy, the reference
+        #: the C kernel's hold on the arrays where built (:data:`motion_kernel`): the idle path and the CSP
+        #: cycle in one call each; False: the paths before it (numpy; the CSP kernel's two calls), the reference
         self.lean = True
+        self._held: tuple[object, Any] | None = None  # (kernel, its Bank on these arrays)
+        self._target: F64 = np.zeros(n)  # the CSP target of the C cycle [rad]
         self._state_arrays(n)
         self._io_arrays(n)
         self._controller_parameters(self.params)
@@ -597,40 +617,10 @@ class DriveBank:
         if self.any_delay:
             self._delayed(a, b)  # the delay line records targets in every state
         e_, f_, g_, hh_, _ = self._coefficients(a, b, dt / steps)
-        idle = getattr(motion_kernel, "idle", None)  # (None: not built, or built before it had idle)
-        if idle is not None and self.lean and self.ideal_encoder:
-            # in C (sim_slaves._motion.idle): the same operations in the same order, the same bits; it
-            # leaves the outputs to numpy when a value does not fit int64 (NaN)
-            if not idle(
-                self.pos,
-                self.vel,
-                self.prev_target,
-                self.tau,
-                self.tau_eff,
-                self.shaft,
-                self.statusword,
-                self.following_error,
-                self.position_counts,
-                self.velocity_counts,
-                self.torque_permille,
-                self.limit,
-                self.state,
-                self.load,
-                self.cpr,
-                self.vpr,
-                _SW_BY_STATE,
-                e_,
-                f_,
-                g_,
-                hh_,
-                a,
-                b,
-                steps,
-                _SW_REMOTE,
-                _SW_VOLTAGE,
-                _NR,
-            ):
-                self._idle_outputs(sl, self.pos[sl], self.vel[sl])
+        held = self._held_by_kernel() if self.lean and self.ideal_encoder else None
+        if held is not None:  # in C: the same operations in the same order, the same bits
+            if not held.idle_cycle(a, b, steps, e_, f_, g_, hh_, _SW_REMOTE, _SW_VOLTAGE, _NR):
+                self._idle_outputs(sl, self.pos[sl], self.vel[sl])  # a value beyond int64 (NaN): numpy
             return
         pos, vel = self.pos[sl], self.vel[sl]
         net = -self.load[sl]
@@ -666,8 +656,39 @@ class DriveBank:
 
     def _csp(self, a: int, b: int, dt: float, steps: int) -> None:
         """Every drive of the run enabled in CSP, ideal current loop, no dry friction, no thermal model."""
+        held = self._held_by_kernel() if self.lean and self.ideal_encoder and not self.any_delay else None
+        if held is not None:
+            speed_limited, position_limited = self._limits(a, b)
+            if not position_limited:  # the whole cycle in one call: _csp_motion and _csp_outputs in C
+                got = held.csp_cycle(
+                    a, b, dt, steps, *self._coefficients(a, b, dt / steps), speed_limited, *_SW_CSP_BITS
+                )
+                if not got & 2:  # a following error beyond its window (or NaN): numpy does the outputs
+                    self._csp_outputs_numpy(slice(a, b), dt, self._target[a:b], bool(got & 1))
+                return
         target, limited = self._csp_motion(a, b, dt, steps)
         self._csp_outputs(slice(a, b), dt, target, limited)
+
+    def _held_by_kernel(self) -> Any:
+        """``sim_slaves._motion.Bank`` on this bank's arrays (made once per kernel), or None where the kernel
+        has none: it runs :meth:`_csp_motion` and :meth:`_csp_outputs` of a cycle in one call, and
+        :meth:`_idle`."""
+        kernel = motion_kernel
+        held = self._held
+        if held is None or held[0] is not kernel:
+            make = getattr(kernel, "Bank", None)
+            arrays = None
+            if make is not None:
+                arrays = make(
+                    tuple(getattr(self, name) for name in _KERNEL_CSP_ARRAYS),
+                    tuple(getattr(self, name) for name in _KERNEL_OUTPUT_ARRAYS),
+                    (*(getattr(self, name) for name in _KERNEL_IDLE_ARRAYS), _SW_BY_STATE),
+                    self.target_position,
+                    self.rpc,
+                    self._target,
+                )
+            held = self._held = (kernel, arrays)
+        return held[1]
 
     def _csp_motion(self, a: int, b: int, dt: float, steps: int) -> tuple[F64, bool]:
         """The cascade and rotor of :meth:`_csp` through ``steps`` substeps; returns the target [rad] and

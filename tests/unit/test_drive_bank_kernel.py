@@ -106,9 +106,6 @@ class _Counted:
         self.declined += not done
         return done
 
-    def idle(self, *args: Any) -> bool:
-        return bool(self.kernel.idle(*args))  # type: ignore[attr-defined]
-
 
 def _step_both(
     c: DriveBank,
