@@ -7,9 +7,10 @@ drive state, two networks are brought up on the sim backend, each on a
 clock of its own that moves 1 ms per exchange (every call one bus cycle,
 whatever the machine's load); one keeps the chain's lean path
 (``EscChain.lean``, the default: cached datagram offsets, byte compares,
-slice copies, views made once, the drive bank's idle path in C), the other
-runs the general path, the reference (``chain.lean = False``; the CSP
-motion kernel of ``sim_slaves._motion`` stays on in both). One cycle: the
+slice copies, the drive link in C, the drive bank's idle and CSP cycles one
+C call each on arrays the kernel holds), the other runs the general path,
+the reference (``chain.lean = False``: as before these, with the CSP
+kernel's two calls per cycle of ``sim_slaves._motion``). One cycle: the
 targets set to the positions read, ``op.exchange()`` - the LRW frame and the
 DC datagram through the chain, the drives' step, the inputs decoded and
 judged. States: ``idle`` (the drives as brought up, SWITCH ON DISABLED:

@@ -102,8 +102,9 @@ class EscChain:
     (datagram offsets per frame layout, byte compares for the flags that
     numpy reductions computed, slice copies, the drive link's gather and
     scatter in C where ``sim_slaves._pdlink`` is built, the drive bank's idle
-    path in C); False: the general path, the reference it must match bit for
-    bit (tests/unit/test_chain_lean.py). Settable at any time (:attr:`lean`).
+    and CSP cycles one C call each, :attr:`DriveBank.lean`); False: the
+    general path, the reference it must match bit for bit
+    (tests/unit/test_chain_lean.py). Settable at any time (:attr:`lean`).
     """
 
     def __init__(

@@ -2,8 +2,9 @@
 
 Two chains of demo joints (``fieldbus/data/demo_joint.yaml``) get the same
 frames at the same times: one with ``lean=True`` (cached datagram offsets,
-byte compares instead of numpy reductions, slice copies, views made once,
-the drive bank's idle path in C), one with ``lean=False`` and
+byte compares instead of numpy reductions, slice copies, the drive link in
+C, the drive bank's idle and CSP cycles one C call each), one with
+``lean = False`` and
 ``drive_bank.motion_kernel`` None while it runs (every drive path numpy).
 After every frame the replies (bytes, so working counters too), the chains'
 memory (every ESC register: AL state and status code, watchdog status, error
