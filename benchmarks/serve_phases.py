@@ -105,6 +105,13 @@ class Trace:
         out = [self._row(int(i), steps, dur) for i in order]
         # the start: the steps over 1 ms among the first STARTUP (the claim, the enable, first writes)
         early = [self._row(i, steps, dur) for i in range(min(STARTUP, len(steps))) if dur[i] > 1_000_000]
+        # and the gaps over 2 ms between step starts there: (step index, gap µs, the step before it: µs)
+        starts = steps[: min(STARTUP, len(steps)), 0]
+        gaps = np.diff(starts)
+        early_gaps = [
+            (int(i) + 1, round(int(gaps[i]) / 1e3), round(int(dur[i]) / 1e3))
+            for i in np.flatnonzero(gaps > 2_000_000)
+        ]
         q = np.percentile(dur, [50, 99, 99.9]) / 1e3
         n = len(steps)
         return {
@@ -120,6 +127,7 @@ class Trace:
             "step_p999_us": round(float(q[2]), 1),
             "longest": out,
             "startup_over_1ms": early,
+            "startup_gaps_over_2ms": early_gaps,
         }
 
     def _row(self, i: int, steps: Any, dur: Any) -> dict[str, Any]:

@@ -62,9 +62,10 @@ def rt_config(args: argparse.Namespace) -> RtConfig:
     )
 
 
-def rt_context(args: argparse.Namespace) -> AbstractContextManager[RtState]:
-    """The real-time settings the flags ask for, warnings to stderr (one line each)."""
-    return realtime(rt_config(args), warn=lambda line: print(line, file=sys.stderr))
+def rt_context(args: argparse.Namespace, *, fifo_later: bool = False) -> AbstractContextManager[RtState]:
+    """The real-time settings the flags ask for, warnings to stderr (one line each); ``fifo_later``: the
+    priority when the caller calls :meth:`RtState.start_fifo` (see :func:`realtime`)."""
+    return realtime(rt_config(args), warn=lambda line: print(line, file=sys.stderr), fifo_later=fifo_later)
 
 
 def check_record(args: argparse.Namespace) -> None:

@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.network import open_network
     from fieldbus.operations.report import run_report
     from fieldbus.platform.clock import DeadlineClock
-    from fieldbus.platform.rt import rank_below, unpin_others
+    from fieldbus.platform.rt import raise_threads, rank_below, thread_ids, unpin_others
 
     if args.cycles < 0:
         raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")
@@ -143,18 +143,26 @@ def run(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
-        # real-time settings first: the DDS participant's threads (Cyclone's receive threads) are made
-        # next and inherit them, so a command is in the reader before the cycle that takes it; once all
-        # are up, rank_below puts them one priority under the cycle, which then preempts them
-        with cycleopts.rt_context(args) as rt:
+        # memory locked and the CPU pinned first; the DDS participant, the network and the topics are made
+        # at normal priority (seconds of Python: at SCHED_FIFO they used up the kernel's real-time budget
+        # for their second and it throttled the first cycles, docs/dds.md); then the cycle thread takes its
+        # priority and the participant's threads (Cyclone's receive, event and delivery threads) one
+        # below it, so a command is in the reader before the cycle that takes it; bring-up then runs at
+        # the cycle's priority, as the cycles that follow it
+        with cycleopts.rt_context(args, fifo_later=True) as rt:
+            before = set(thread_ids())
             participant = Participant(args.domain, args.interface, args.peer)
             with open_network(model, backend=args.backend) as net:
                 server = BusServer(net, participant, options)
+                rt.start_fifo()
+                if rt.fifo is not None:
+                    rt.applied.append(raise_threads(set(thread_ids()) - before, rt.fifo - 1))
                 op = net.bring_up()
                 server.attach(op)
                 cycleopts.start_recording(op, args)
-                if rt.fifo is not None:  # Cyclone's threads (and a recorder's) one priority under the cycle
-                    rt.applied.append(rank_below(rt.fifo))
+                # threads made since (a recorder's) one priority under the cycle
+                if rt.fifo is not None and not (line := rank_below(rt.fifo)).startswith("0 "):
+                    rt.applied.append(line)
                 if rt.cpus_before is not None:  # ... and not on the cycle's one CPU with it
                     rt.applied.append(unpin_others(rt.cpus_before))
                 print(

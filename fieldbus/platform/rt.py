@@ -26,7 +26,7 @@ import errno
 import os
 import resource
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -64,9 +64,18 @@ class RtState:
     refused: list[str] = field(default_factory=list)
     fifo: int | None = None  # the SCHED_FIFO priority the calling thread was given (None: none)
     cpus_before: set[int] | None = None  # the CPUs it was allowed before it was pinned (None: not pinned)
+    # realtime(..., fifo_later=True): applies the asked SCHED_FIFO priority to the calling thread (once)
+    _fifo_later: Callable[[], None] | None = field(default=None, repr=False)
 
     def to_json(self) -> dict[str, list[str]]:
         return {"applied": self.applied, "refused": self.refused}
+
+    def start_fifo(self) -> None:
+        """With ``realtime(..., fifo_later=True)``: give the calling thread its SCHED_FIFO priority now
+        (a refusal as :func:`realtime` says one). Does nothing otherwise, or the second time."""
+        start, self._fifo_later = self._fifo_later, None
+        if start is not None:
+            start()
 
 
 def _libc() -> ctypes.CDLL:
@@ -86,8 +95,18 @@ def _prefault(cfg: RtConfig) -> None:
 
 
 @contextmanager
-def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterator[RtState]:
-    """Apply ``cfg`` to the calling thread (and lock the process's memory); restore everything on exit."""
+def realtime(
+    cfg: RtConfig, warn: Callable[[str], None] | None = None, *, fifo_later: bool = False
+) -> Iterator[RtState]:
+    """Apply ``cfg`` to the calling thread (and lock the process's memory); restore everything on exit.
+
+    ``fifo_later``: the SCHED_FIFO priority is checked now but given when the caller says so
+    (:meth:`RtState.start_fifo`), so that set-up work (seconds of Python: DDS topics, a network's
+    bring-up) does not run at real-time priority. The kernel gives real-time threads
+    ``sched_rt_runtime_us`` of every ``sched_rt_period_us`` on a CPU (950 ms of 1 s by default) and
+    stops them for the rest of the period when they use more: a busy set-up at SCHED_FIFO used most of
+    its second and the first cycles were throttled (a 38 ms gap at cycle 19 of ``fieldbus serve``).
+    """
     state = RtState()
 
     def refuse(msg: str) -> None:
@@ -106,16 +125,11 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
             lo, hi = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
             if not lo <= cfg.priority <= hi:
                 refuse(f"SCHED_FIFO priority {cfg.priority} is outside {lo}..{hi}")
+            elif fifo_later:
+                priority = cfg.priority
+                state._fifo_later = lambda: _fifo(priority, state, refuse)
             else:
-                try:
-                    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.priority))
-                    state.applied.append(f"SCHED_FIFO priority {cfg.priority}")
-                    state.fifo = cfg.priority
-                except PermissionError:
-                    refuse(
-                        f"SCHED_FIFO priority {cfg.priority} refused (EPERM): needs CAP_SYS_NICE (root) or an "
-                        f"rtprio limit of at least {cfg.priority} (ulimit -r; now {_limit(resource.RLIMIT_RTPRIO)})"
-                    )
+                _fifo(cfg.priority, state, refuse)
         if cfg.cpu is not None:
             n = os.cpu_count() or 1
             if not 0 <= cfg.cpu < n:
@@ -153,6 +167,19 @@ def realtime(cfg: RtConfig, warn: Callable[[str], None] | None = None) -> Iterat
             os.sched_setscheduler(0, old_policy, old_param)
 
 
+def _fifo(priority: int, state: RtState, refuse: Callable[[str], None]) -> None:
+    """SCHED_FIFO ``priority`` for the calling thread, noted in ``state`` (or refused, saying why)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        state.applied.append(f"SCHED_FIFO priority {priority}")
+        state.fifo = priority
+    except PermissionError:
+        refuse(
+            f"SCHED_FIFO priority {priority} refused (EPERM): needs CAP_SYS_NICE (root) or an "
+            f"rtprio limit of at least {priority} (ulimit -r; now {_limit(resource.RLIMIT_RTPRIO)})"
+        )
+
+
 def thread_ids() -> list[int]:
     """The native ids of this process's threads (Linux: ``/proc/self/task``)."""
     return sorted(int(t) for t in os.listdir("/proc/self/task"))
@@ -187,6 +214,26 @@ def rank_below(priority: int) -> str:
     where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
     left = f" ({refused} refused: EPERM)" if refused else ""
     return f"{moved} other thread(s) below the cycle: {where}{left}"
+
+
+def raise_threads(tids: Iterable[int], priority: int) -> str:
+    """The threads ``tids`` of this process (made at normal priority: a DDS participant's receive and
+    event threads) to SCHED_FIFO ``priority``, so that they still preempt normal work (under priority 1
+    they stay as they are). Returns the line for :attr:`RtState.applied`."""
+    if priority < 1:
+        return "other threads left at normal priority (nothing is below SCHED_FIFO 1)"
+    moved, refused = 0, 0
+    for tid in tids:
+        try:
+            if os.sched_getscheduler(tid) not in (os.SCHED_FIFO, os.SCHED_RR):
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+                moved += 1
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+        except PermissionError:
+            refused += 1
+    left = f" ({refused} refused: EPERM)" if refused else ""
+    return f"{moved} other thread(s) below the cycle: SCHED_FIFO priority {priority}{left}"
 
 
 def unpin_others(cpus: set[int]) -> str:

@@ -58,6 +58,78 @@ def test_settings_apply_inside_and_are_restored_after() -> None:
         assert next(int(line.split()[1]) for line in f if line.startswith("VmLck:")) == 0
 
 
+def test_fifo_later_checks_the_priority_at_once_and_gives_it_when_asked() -> None:
+    """``fifo_later``: set-up work runs at the thread's own priority until start_fifo(); a second call does
+    nothing; the exit restores it; a priority out of range is refused at entry, not later."""
+    _rt_allowed(20)
+    before = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+    with realtime(RtConfig(priority=20, strict=True), fifo_later=True) as state:
+        assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+        assert state.fifo is None and not state.applied
+        state.start_fifo()
+        assert os.sched_getscheduler(0) == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 20
+        assert state.fifo == 20 and state.applied == ["SCHED_FIFO priority 20"]
+        state.start_fifo()
+        assert state.applied == ["SCHED_FIFO priority 20"]
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+    with (
+        pytest.raises(RtError, match=r"outside 1\.\.99"),
+        realtime(RtConfig(priority=0, strict=True), fifo_later=True),
+    ):
+        pass
+    with realtime(RtConfig(priority=20), fifo_later=True):
+        pass  # never started: nothing to restore
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
+
+
+_RAISE_CHILD = """
+import json, os, sys, threading
+from fieldbus.platform.rt import raise_threads
+p = int(sys.argv[1])
+go = threading.Event()
+ids = {}
+def wait(role, up):
+    ids[role] = threading.get_native_id()
+    up.set()
+    go.wait()
+def start(role):
+    up = threading.Event()
+    t = threading.Thread(target=wait, args=(role, up))
+    t.start()
+    up.wait()
+    return t
+threads = [start("chosen-1"), start("chosen-2"), start("left")]
+os.sched_setscheduler(ids["chosen-2"], os.SCHED_FIFO, os.sched_param(5))  # already real-time: left as it is
+line = raise_threads([ids["chosen-1"], ids["chosen-2"]], p)
+out = {r: [os.sched_getscheduler(t), os.sched_getparam(t).sched_priority] for r, t in ids.items()}
+go.set()
+for t in threads:
+    t.join()
+print(json.dumps({"line": line, "threads": out}))
+"""
+
+
+@pytest.mark.parametrize("priority", [19, 0])
+def test_raise_threads_gives_the_named_normal_threads_the_priority_and_no_other(priority: int) -> None:
+    if why := capabilities.fifo_refused(20):
+        pytest.skip(f"this machine refuses: {why}")
+    run = subprocess.run(
+        [sys.executable, "-c", _RAISE_CHILD, str(priority)], capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    fifo, other = os.SCHED_FIFO, os.SCHED_OTHER
+    assert out["threads"] == {
+        "chosen-1": [fifo, priority] if priority else [other, 0],
+        "chosen-2": [fifo, 5],
+        "left": [other, 0],
+    }
+    if priority:
+        assert out["line"] == f"1 other thread(s) below the cycle: SCHED_FIFO priority {priority}"
+    else:
+        assert "normal priority" in out["line"]
+
+
 _RANK_CHILD = """
 import json, os, sys, threading
 from fieldbus.platform.rt import rank_below
