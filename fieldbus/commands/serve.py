@@ -27,6 +27,7 @@ from fieldbus.commands.usage import epilog
 
 if TYPE_CHECKING:
     from fieldbus.dds.server import BusServer, ServeOptions
+    from fieldbus.platform.rt import RtState
 
 HELP_EPILOG = """DDS domain and network interface:
   --domain N      the DDS domain id; default $ROS_DOMAIN_ID (as ROS 2 does), else 0
@@ -126,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     from fieldbus.network import open_network
     from fieldbus.operations.report import run_report
     from fieldbus.platform.clock import DeadlineClock
-    from fieldbus.platform.rt import raise_threads, rank_below, thread_ids, unpin_others
+    from fieldbus.platform.rt import thread_ids
 
     if args.cycles < 0:
         raise FieldbusError("--cycles must be >= 0 (0: until SIGTERM)")
@@ -143,28 +144,17 @@ def run(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, on_term)
     try:
-        # memory locked and the CPU pinned first; the DDS participant, the network and the topics are made
-        # at normal priority (seconds of Python: at SCHED_FIFO they used up the kernel's real-time budget
-        # for their second and it throttled the first cycles, docs/dds.md); then the cycle thread takes its
-        # priority and the participant's threads (Cyclone's receive, event and delivery threads) one
-        # below it, so a command is in the reader before the cycle that takes it; bring-up then runs at
-        # the cycle's priority, as the cycles that follow it
+        # memory locked and the CPU pinned first; participant, network and topics at normal priority
         with cycleopts.rt_context(args, fifo_later=True) as rt:
             before = set(thread_ids())
             participant = Participant(args.domain, args.interface, args.peer)
             with open_network(model, backend=args.backend) as net:
                 server = BusServer(net, participant, options)
-                rt.start_fifo()
-                if rt.fifo is not None:
-                    rt.applied.append(raise_threads(set(thread_ids()) - before, rt.fifo - 1))
+                _cycle_priority(rt, before)
                 op = net.bring_up()
                 server.attach(op)
                 cycleopts.start_recording(op, args)
-                # threads made since (a recorder's) one priority under the cycle
-                if rt.fifo is not None and not (line := rank_below(rt.fifo)).startswith("0 "):
-                    rt.applied.append(line)
-                if rt.cpus_before is not None:  # ... and not on the cycle's one CPU with it
-                    rt.applied.append(unpin_others(rt.cpus_before))
+                _others_below(rt)
                 print(
                     json.dumps(_ready(server, options.namespace, participant.domain_id, rt.to_json()))
                     if args.json
@@ -201,6 +191,30 @@ def run(args: argparse.Namespace) -> int:
             f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
         )
     return 0
+
+
+def _cycle_priority(rt: RtState, before: set[int]) -> None:
+    """The cycle thread at its SCHED_FIFO priority now, and the threads made since ``before`` (the DDS
+    participant's: Cyclone's receive, event and delivery threads) one below it, so that a command is in
+    the reader before the cycle that takes it. Called after the set-up (participant, network, topics:
+    seconds of Python that, at SCHED_FIFO, used up the kernel's real-time budget of their second and got
+    the first cycles throttled, docs/realtime.md) and before the bring-up."""
+    from fieldbus.platform.rt import raise_threads, thread_ids
+
+    rt.start_fifo()
+    if rt.fifo is not None:
+        rt.applied.append(raise_threads(set(thread_ids()) - before, rt.fifo - 1))
+
+
+def _others_below(rt: RtState) -> None:
+    """Threads made since the cycle took its priority (a recorder's) one below it, and with ``--cpu`` every
+    other thread off the cycle's one CPU again."""
+    from fieldbus.platform.rt import rank_below, unpin_others
+
+    if rt.fifo is not None and not (line := rank_below(rt.fifo)).startswith("0 "):
+        rt.applied.append(line)
+    if rt.cpus_before is not None:
+        rt.applied.append(unpin_others(rt.cpus_before))
 
 
 def _options(args: argparse.Namespace, network_name: str) -> ServeOptions:
