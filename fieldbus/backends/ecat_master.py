@@ -75,15 +75,17 @@ def open_card(master: Any, interface: str, redundant: str | None = None, *, wher
         ) from exc
 
 
-SCAN_TRIES = 3  # config_init runs this often before a segment counts as empty
+SCAN_TRIES = 8  # config_init runs this often before a segment counts as empty (about 160 ms)
 
 
 def find_slaves(master: Any) -> list[Any]:
     """SOEM's ``config_init`` (station addresses, SII, PRE-OP requested): the slaves found, in wire order.
 
     SOEM counts the slaves with one broadcast read and waits 20 ms for it (EC_TIMEOUTSAFE): one lost
-    frame would read as an empty segment. A scan that finds nobody is made again, ``SCAN_TRIES`` in all
-    (an empty segment costs about 60 ms more); an empty list after that.
+    frame would read as an empty segment, and so would a machine that holds the master or the slaves'
+    process for tens of milliseconds (a loaded VM held an emulator's replies over three scans, 60 ms). A
+    scan that finds nobody is made again, ``SCAN_TRIES`` in all (an empty segment costs about 160 ms
+    more); an empty list after that.
     """
     for _ in range(SCAN_TRIES):
         if int(master.config_init()) > 0:
