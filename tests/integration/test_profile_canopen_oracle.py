@@ -74,6 +74,9 @@ def test_canopen_base_node_402_runs_a_pp_and_a_pv_move_on_our_emulator(tmp_path:
             node = BaseNode402(5, to_canopen_od(sim.node(5).od))
             network.add_node(node)
             node.sdo.RESPONSE_TIMEOUT = 3.0  # canopen's 0.3 s is short beside the suite's CPU burners
+            # and its 0.5 s for 0x6061 to show a new mode: beside four burners the PV switch read back PP
+            # (canopen logs the timeout and returns); the mode is still asserted after each switch
+            node.TIMEOUT_SWITCH_OP_MODE = 5.0
             node.nmt.state = "PRE-OPERATIONAL"
             for sdo in drive.sdo:  # the start-up writes, as canopen's user would make them
                 node.sdo.download(sdo.index, sdo.sub_index, sdo.data)
