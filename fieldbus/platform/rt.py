@@ -196,24 +196,11 @@ def rank_below(priority: int) -> str:
     """
     me = threading.get_native_id()
     policy, param = (os.SCHED_FIFO, priority - 1) if priority > 1 else (os.SCHED_OTHER, 0)
-    moved, refused = 0, 0
-    for tid in thread_ids():
-        if tid == me:
-            continue
-        try:
-            if os.sched_getscheduler(tid) not in (os.SCHED_FIFO, os.SCHED_RR):
-                continue
-            if os.sched_getparam(tid).sched_priority < priority:
-                continue
-            os.sched_setscheduler(tid, policy, os.sched_param(param))
-            moved += 1
-        except ProcessLookupError:  # the thread ended meanwhile
-            continue
-        except PermissionError:
-            refused += 1
-    where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
-    left = f" ({refused} refused: EPERM)" if refused else ""
-    return f"{moved} other thread(s) below the cycle: {where}{left}"
+
+    def at_or_above(tid: int) -> bool:
+        return _real_time(tid) and os.sched_getparam(tid).sched_priority >= priority
+
+    return _move_threads((t for t in thread_ids() if t != me), at_or_above, policy, param)
 
 
 def raise_threads(tids: Iterable[int], priority: int) -> str:
@@ -222,18 +209,29 @@ def raise_threads(tids: Iterable[int], priority: int) -> str:
     they stay as they are). Returns the line for :attr:`RtState.applied`."""
     if priority < 1:
         return "other threads left at normal priority (nothing is below SCHED_FIFO 1)"
+    return _move_threads(tids, lambda tid: not _real_time(tid), os.SCHED_FIFO, priority)
+
+
+def _real_time(tid: int) -> bool:
+    return os.sched_getscheduler(tid) in (os.SCHED_FIFO, os.SCHED_RR)
+
+
+def _move_threads(tids: Iterable[int], chosen: Callable[[int], bool], policy: int, param: int) -> str:
+    """Each of ``tids`` that is ``chosen`` to ``policy`` at priority ``param``; a thread that ended
+    meanwhile is passed over, a refusal counted. Returns the line for :attr:`RtState.applied`."""
     moved, refused = 0, 0
     for tid in tids:
         try:
-            if os.sched_getscheduler(tid) not in (os.SCHED_FIFO, os.SCHED_RR):
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            if chosen(tid):
+                os.sched_setscheduler(tid, policy, os.sched_param(param))
                 moved += 1
         except ProcessLookupError:  # the thread ended meanwhile
             continue
         except PermissionError:
             refused += 1
+    where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
     left = f" ({refused} refused: EPERM)" if refused else ""
-    return f"{moved} other thread(s) below the cycle: SCHED_FIFO priority {priority}{left}"
+    return f"{moved} other thread(s) below the cycle: {where}{left}"
 
 
 def unpin_others(cpus: set[int]) -> str:

@@ -82,9 +82,9 @@ def test_fifo_later_checks_the_priority_at_once_and_gives_it_when_asked() -> Non
     assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
 
 
-_RAISE_CHILD = """
+# the child scripts' threads: start(role) makes one that notes its native id in ids[role] and waits for go
+_THREADS = """
 import json, os, sys, threading
-from fieldbus.platform.rt import raise_threads
 p = int(sys.argv[1])
 go = threading.Event()
 ids = {}
@@ -96,8 +96,15 @@ def start(role):
     up = threading.Event()
     t = threading.Thread(target=wait, args=(role, up))
     t.start()
-    up.wait()
+    up.wait()  # blocks (no spin: a spinning SCHED_FIFO thread could keep the new one off a single CPU)
     return t
+"""
+
+
+_RAISE_CHILD = (
+    _THREADS
+    + """
+from fieldbus.platform.rt import raise_threads
 threads = [start("chosen-1"), start("chosen-2"), start("left")]
 os.sched_setscheduler(ids["chosen-2"], os.SCHED_FIFO, os.sched_param(5))  # already real-time: left as it is
 line = raise_threads([ids["chosen-1"], ids["chosen-2"]], p)
@@ -107,6 +114,7 @@ for t in threads:
     t.join()
 print(json.dumps({"line": line, "threads": out}))
 """
+)
 
 
 @pytest.mark.parametrize("priority", [19, 0])
@@ -130,22 +138,10 @@ def test_raise_threads_gives_the_named_normal_threads_the_priority_and_no_other(
         assert "normal priority" in out["line"]
 
 
-_RANK_CHILD = """
-import json, os, sys, threading
+_RANK_CHILD = (
+    _THREADS
+    + """
 from fieldbus.platform.rt import rank_below
-p = int(sys.argv[1])
-go = threading.Event()
-ids = {}
-def wait(role, up):
-    ids[role] = threading.get_native_id()
-    up.set()
-    go.wait()
-def start(role):
-    up = threading.Event()
-    t = threading.Thread(target=wait, args=(role, up))
-    t.start()
-    up.wait()  # blocks (no spin: a spinning SCHED_FIFO thread could keep the new one off a single CPU)
-    return t
 threads = [start("normal")]  # made before the switch: SCHED_OTHER
 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(p))
 threads += [start("inherited-1"), start("inherited-2"), start("lower")]  # made after it: SCHED_FIFO p
@@ -158,6 +154,7 @@ for t in threads:
     t.join()
 print(json.dumps({"line": line, "threads": out}))
 """
+)
 
 
 @pytest.mark.parametrize("priority", [20, 1])
