@@ -428,6 +428,16 @@ static int bank_init(BankObject *self, PyObject *args, PyObject *kwds) {
 enum { C_A, C_B, C_DT, C_STEPS, C_CE, C_CF, C_CG, C_CHH, C_KI_H, C_SPEED_LIMITED, C_SW_CSP, C_SW_REACHED, C_SW_LIMIT,
        C_NARGS };
 
+/* drives a..b-1 of the bank and at least one substep: 0, else -1 with a ValueError naming `name` */
+static int bank_range(const char *name, const BankObject *self, Py_ssize_t a, Py_ssize_t b, long steps) {
+    if (a < 0 || b < a || b > self->n || steps < 1) {
+        PyErr_Format(PyExc_ValueError, "%s: need 0 <= a <= b <= %zd and steps >= 1, got a=%zd b=%zd steps=%ld", name,
+                     self->n, a, b, steps);
+        return -1;
+    }
+    return 0;
+}
+
 /* one cycle of the plain CSP path of drives a..b-1 (ideal encoders, no command delay, no position limits): the
  * target from the raw target positions, csp, csp_outputs; returns limited | outputs done << 1 */
 static PyObject *bank_csp_cycle(BankObject *self, PyObject *const *args, Py_ssize_t nargs) {
@@ -442,11 +452,7 @@ static PyObject *bank_csp_cycle(BankObject *self, PyObject *const *args, Py_ssiz
     long long sw_csp = PyLong_AsLongLong(args[C_SW_CSP]), sw_reached = PyLong_AsLongLong(args[C_SW_REACHED]);
     long long sw_limit = PyLong_AsLongLong(args[C_SW_LIMIT]);
     if (PyErr_Occurred() || speed_limited < 0) return NULL;
-    if (a < 0 || b < a || b > self->n || steps < 1) {
-        PyErr_Format(PyExc_ValueError, "csp_cycle: need 0 <= a <= b <= %zd and steps >= 1, got a=%zd b=%zd steps=%ld",
-                     self->n, a, b, steps);
-        return NULL;
-    }
+    if (bank_range("csp_cycle", self, a, b, steps) < 0) return NULL;
     Buffers bufs;
     memset(bufs.held, 0, sizeof(bufs.held));
     PyObject *result = NULL;
@@ -482,11 +488,7 @@ static PyObject *bank_idle_cycle(BankObject *self, PyObject *const *args, Py_ssi
     long long sw_remote = PyLong_AsLongLong(args[D_SW_REMOTE]), sw_voltage = PyLong_AsLongLong(args[D_SW_VOLTAGE]);
     long long nr = PyLong_AsLongLong(args[D_NR]);
     if (PyErr_Occurred()) return NULL;
-    if (a < 0 || b < a || b > self->n || steps < 1) {
-        PyErr_Format(PyExc_ValueError, "idle_cycle: need 0 <= a <= b <= %zd and steps >= 1, got a=%zd b=%zd steps=%ld",
-                     self->n, a, b, steps);
-        return NULL;
-    }
+    if (bank_range("idle_cycle", self, a, b, steps) < 0) return NULL;
     Buffers bufs;
     memset(bufs.held, 0, sizeof(bufs.held));
     PyObject *result = NULL;

@@ -288,3 +288,19 @@ def test_a_rotor_at_rest_settles_to_zero_not_to_subnormals_on_both_paths(
             assert not ((x != 0.0) & (np.abs(x) < tiny)).any(), (k, x)
     assert (c.vel == 0.0).all()  # settled exactly
     assert (c.state == (State402.OPERATION_ENABLED if powered else State402.SWITCH_ON_DISABLED)).all()
+
+
+def test_the_kernel_s_bank_refuses_drives_outside_it_and_no_substep() -> None:
+    """Both cycles of the C bank check their drive range and substeps the same way, naming the call."""
+    bank = _bank([DriveParams(control_rate_hz=1000.0)] * 3)
+    kernel = bank._held_by_kernel()
+    assert kernel is not None, "sim_slaves._motion is not built (python setup.py build_ext --inplace)"
+    for a, b, steps in ((0, 4, 1), (2, 1, 1), (-1, 2, 1), (0, 3, 0)):
+        with pytest.raises(
+            ValueError, match=rf"idle_cycle: need 0 <= a <= b <= 3 .* a={a} b={b} steps={steps}"
+        ):
+            kernel.idle_cycle(a, b, steps, 0.0, 0.0, 0.0, 0.0, 0, 0, 0)
+        with pytest.raises(
+            ValueError, match=rf"csp_cycle: need 0 <= a <= b <= 3 .* a={a} b={b} steps={steps}"
+        ):
+            kernel.csp_cycle(a, b, 0.001, steps, 0.0, 0.0, 0.0, 0.0, 0.0, False, 0, 0, 0)
