@@ -29,7 +29,10 @@ def test_ten_thousand_recorded_cycles_load_back_exactly(tmp_path: Path) -> None:
         chain = net.backends[0].chain  # type: ignore[attr-defined]
         img = op["joints"]
         follower = SineFollower(op, AXES, 1000.0)
-        rec = op.record(path, raw=True)
+        # this loop runs free (tens of kHz, not the 1 kHz the default 16-block ring is sized for), so a
+        # busy machine can starve the writer thread: the ring holds the whole run and no block can be
+        # overwritten. A writer that falls behind is tested in tests/unit/test_recording.py.
+        rec = op.record(path, raw=True, ring_blocks=-(-CYCLES // 256))
         sent = np.zeros((CYCLES, AXES), dtype=img.outputs.values.dtype)
         got = np.zeros((CYCLES, AXES), dtype=img.inputs.values.dtype)
         wire_in = np.zeros((CYCLES, AXES, img.inputs.wire.shape[1]), dtype=np.uint8)
