@@ -68,6 +68,21 @@ def rt_context(args: argparse.Namespace, *, fifo_later: bool = False) -> Abstrac
     return realtime(rt_config(args), warn=lambda line: print(line, file=sys.stderr), fifo_later=fifo_later)
 
 
+def cycle_priority(rt: RtState, before: set[int], *, others_below: int) -> None:
+    """The cycle thread at its SCHED_FIFO priority now (``realtime(..., fifo_later=True)``), and the
+    threads made since ``before`` (thread ids: a DDS participant's, an in-process emulator's) at that
+    priority less ``others_below`` (serve: 1, so that a command is in the reader before the cycle that
+    takes it; the demo: 0, the priority they inherited when the whole set-up ran at SCHED_FIFO). Called
+    after the set-up (seconds of Python that, at SCHED_FIFO, used up the kernel's real-time budget of
+    their second and got the first cycles throttled, docs/realtime.md) and before the bring-up."""
+    from fieldbus.platform.rt import raise_threads, thread_ids
+
+    rt.start_fifo()
+    if rt.fifo is not None:
+        where = "below the cycle" if others_below else "at the cycle's priority"
+        rt.applied.append(raise_threads(set(thread_ids()) - before, rt.fifo - others_below, where=where))
+
+
 def check_record(args: argparse.Namespace) -> None:
     """``--record FILE``: create the file now, before any bus starts (:class:`FieldbusError` naming it)."""
     if getattr(args, "record", None):

@@ -38,7 +38,7 @@ from fieldbus.emulators import emulator_part
 from fieldbus.errors import FieldbusError, PdoMapError
 from fieldbus.network import Network, Operational, open_network
 from fieldbus.operations.report import run_report
-from fieldbus.platform.rt import RtState
+from fieldbus.platform.rt import RtState, thread_ids
 
 DEMO_MAP = Path(__file__).resolve().parents[1] / "data" / "demo_joint.yaml"
 BACKENDS = ("sim", "ethercat", "canopen", "rawcan")
@@ -158,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
     check_plot(args.plot, "--plot")
     buslogs.check_outputs(args)
     cycleopts.check_record(args)
-    with cycleopts.rt_context(args) as rt:
+    # memory locked and the CPU pinned first; the set-up (emulators, network) at normal priority
+    with cycleopts.rt_context(args, fifo_later=True) as rt:
         report = run_demo(
             args.backend,
             args.axes,
@@ -418,7 +419,10 @@ def run_demo(
 ) -> dict[str, Any]:
     """Run the demo; returns the report (``cycles``, ``missed``, ``safe_stops``, ``cycle_time_us``,
     ``latency_us``, ...). ``rt``: the real-time settings in force (reported); the histograms are under
-    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record``/``--monitor`` flags."""
+    the private key ``_latency`` for a plot. ``logs``: parsed ``--can-log``/``--pcap``/``--record``/``--monitor`` flags.
+    With ``rt`` from ``realtime(..., fifo_later=True)`` the cycle takes its priority after the set-up and before
+    the bring-up, and the threads the set-up made (an in-process emulator's) take the same."""
+    before = set(thread_ids())
     with (
         tempfile.TemporaryDirectory(prefix="fieldbus-demo-") as tmp,
         demo_network(backend, axes, rate_hz, Path(tmp), delay_us=delay_us, motor=motor) as setup,
@@ -430,6 +434,8 @@ def run_demo(
             else None,
         ) as net,
     ):
+        if rt is not None:
+            cycleopts.cycle_priority(rt, before, others_below=0)
         op = net.bring_up()
         if logs is not None:
             cycleopts.start_recording(op, logs)  # --record

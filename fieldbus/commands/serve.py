@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
             participant = Participant(args.domain, args.interface, args.peer)
             with open_network(model, backend=args.backend) as net:
                 server = BusServer(net, participant, options)
-                _cycle_priority(rt, before)
+                cycleopts.cycle_priority(rt, before, others_below=1)
                 op = net.bring_up()
                 server.attach(op)
                 cycleopts.start_recording(op, args)
@@ -191,19 +191,6 @@ def run(args: argparse.Namespace) -> int:
             f"served {report['cycles']} cycles: missed {report['missed']}, safe stops {report['safe_stops']}"
         )
     return 0
-
-
-def _cycle_priority(rt: RtState, before: set[int]) -> None:
-    """The cycle thread at its SCHED_FIFO priority now, and the threads made since ``before`` (the DDS
-    participant's: Cyclone's receive, event and delivery threads) one below it, so that a command is in
-    the reader before the cycle that takes it. Called after the set-up (participant, network, topics:
-    seconds of Python that, at SCHED_FIFO, used up the kernel's real-time budget of their second and got
-    the first cycles throttled, docs/realtime.md) and before the bring-up."""
-    from fieldbus.platform.rt import raise_threads, thread_ids
-
-    rt.start_fifo()
-    if rt.fifo is not None:
-        rt.applied.append(raise_threads(set(thread_ids()) - before, rt.fifo - 1))
 
 
 def _others_below(rt: RtState) -> None:

@@ -203,20 +203,27 @@ def rank_below(priority: int) -> str:
     return _move_threads((t for t in thread_ids() if t != me), at_or_above, policy, param)
 
 
-def raise_threads(tids: Iterable[int], priority: int) -> str:
+def raise_threads(tids: Iterable[int], priority: int, *, where: str = "below the cycle") -> str:
     """The threads ``tids`` of this process (made at normal priority: a DDS participant's receive and
     event threads) to SCHED_FIFO ``priority``, so that they still preempt normal work (under priority 1
-    they stay as they are). Returns the line for :attr:`RtState.applied`."""
+    they stay as they are). Returns the line for :attr:`RtState.applied` (``where``: their place beside
+    the cycle's priority, in words)."""
     if priority < 1:
         return "other threads left at normal priority (nothing is below SCHED_FIFO 1)"
-    return _move_threads(tids, lambda tid: not _real_time(tid), os.SCHED_FIFO, priority)
+    return _move_threads(tids, lambda tid: not _real_time(tid), os.SCHED_FIFO, priority, where)
 
 
 def _real_time(tid: int) -> bool:
     return os.sched_getscheduler(tid) in (os.SCHED_FIFO, os.SCHED_RR)
 
 
-def _move_threads(tids: Iterable[int], chosen: Callable[[int], bool], policy: int, param: int) -> str:
+def _move_threads(
+    tids: Iterable[int],
+    chosen: Callable[[int], bool],
+    policy: int,
+    param: int,
+    where: str = "below the cycle",
+) -> str:
     """Each of ``tids`` that is ``chosen`` to ``policy`` at priority ``param``; a thread that ended
     meanwhile is passed over, a refusal counted. Returns the line for :attr:`RtState.applied`."""
     moved, refused = 0, 0
@@ -229,9 +236,9 @@ def _move_threads(tids: Iterable[int], chosen: Callable[[int], bool], policy: in
             continue
         except PermissionError:
             refused += 1
-    where = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
+    to = f"SCHED_FIFO priority {param}" if policy == os.SCHED_FIFO else "SCHED_OTHER"
     left = f" ({refused} refused: EPERM)" if refused else ""
-    return f"{moved} other thread(s) below the cycle: {where}{left}"
+    return f"{moved} other thread(s) {where}: {to}{left}"
 
 
 def unpin_others(cpus: set[int]) -> str:
