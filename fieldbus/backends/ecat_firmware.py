@@ -235,6 +235,9 @@ def run_steps(steps: Generator[None, None, bytes | None]) -> bytes | None:
 
 
 AGAIN = "run the same command again to finish the update (docs/firmware.md)"
+RESCAN_S = (
+    5.0  # after the transfer, the rescan waits this long for the segment to answer (a device may restart) [s]
+)
 
 
 @dataclass(frozen=True)
@@ -316,7 +319,7 @@ def transfer_file(
                 ) from None
         finally:
             master.close()
-        master = open_segment(interface)  # the rescan: SOEM configures the slave's mailbox again
+        master = open_segment(interface, wait_s=RESCAN_S)  # the rescan: SOEM configures the mailbox again
         try:
             after = FirmwareSession(master, slave).identity()
         except KeyboardInterrupt:

@@ -25,6 +25,7 @@ through :class:`SoemPort`.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Collection, Iterator, Sequence
 from typing import Any, Protocol
 
@@ -78,27 +79,34 @@ def open_card(master: Any, interface: str, redundant: str | None = None, *, wher
 SCAN_TRIES = 8  # config_init runs this often before a segment counts as empty (about 160 ms)
 
 
-def find_slaves(master: Any) -> list[Any]:
+def find_slaves(
+    master: Any, *, wait_s: float = 0.0, clock: Callable[[], float] = time.monotonic
+) -> list[Any]:
     """SOEM's ``config_init`` (station addresses, SII, PRE-OP requested): the slaves found, in wire order.
 
     SOEM counts the slaves with one broadcast read and waits 20 ms for it (EC_TIMEOUTSAFE): one lost
     frame would read as an empty segment, and so would a machine that holds the master or the slaves'
     process for tens of milliseconds (a loaded VM held an emulator's replies over three scans, 60 ms). A
     scan that finds nobody is made again, ``SCAN_TRIES`` in all (an empty segment costs about 160 ms
-    more); an empty list after that.
+    more), and further until ``wait_s`` [s, ``clock``'s] have passed (a device restarting after a
+    firmware update); an empty list after that.
     """
-    for _ in range(SCAN_TRIES):
+    deadline = clock() + wait_s
+    tries = 0
+    while tries < SCAN_TRIES or clock() < deadline:
+        tries += 1
         if int(master.config_init()) > 0:
             return list(master.slaves)
     return []
 
 
-def open_segment(interface: str) -> Any:
+def open_segment(interface: str, *, wait_s: float = 0.0) -> Any:
     """A pysoem Master on ``interface`` with its slaves found and their states read (a tool's master: scan,
-    ``fieldbus sdo``). FieldbusError when the card cannot be opened or no slave answers. Close it when done."""
+    ``fieldbus sdo``). FieldbusError when the card cannot be opened or no slave answers (``wait_s``: how
+    long to keep scanning for one, see :func:`find_slaves`). Close it when done."""
     master = pysoem.Master()
     open_card(master, interface)
-    if not find_slaves(master):
+    if not find_slaves(master, wait_s=wait_s):
         master.close()
         raise FieldbusError(f"no EtherCAT slave answers on '{interface}' (is the cable in and the link up?)")
     master.read_state()

@@ -188,3 +188,17 @@ def test_a_segment_is_empty_after_every_scan_found_nobody() -> None:
     master = _Scanning(empty_scans=99)
     assert ecat_master.find_slaves(master) == []
     assert master.scans == ecat_master.SCAN_TRIES
+
+
+def test_with_a_wait_the_scan_goes_on_until_a_restarting_device_answers() -> None:
+    """After a firmware update a device may restart: the rescan keeps looking for ``wait_s`` (virtual
+    time here: each scan is SOEM's 20 ms wait)."""
+    master = _Scanning(empty_scans=ecat_master.SCAN_TRIES + 30)
+    assert ecat_master.find_slaves(master, wait_s=5.0, clock=lambda: master.scans * 0.02) == ["a", "b"]
+    assert master.scans == ecat_master.SCAN_TRIES + 31
+
+
+def test_with_a_wait_an_empty_segment_is_empty_once_the_wait_has_passed() -> None:
+    master = _Scanning(empty_scans=10_000)
+    assert ecat_master.find_slaves(master, wait_s=1.0, clock=lambda: master.scans * 0.02) == []
+    assert master.scans == 50  # 1 s of 20 ms scans: more than SCAN_TRIES, not for ever
