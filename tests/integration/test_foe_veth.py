@@ -463,19 +463,26 @@ def test_100_transfers_interrupted_at_random_points_over_veth_all_recover_by_the
 def test_the_rescan_after_an_update_waits_for_a_device_that_restarts(ethercat_emulator: Any) -> None:
     """After the transfer the segment is scanned again; a device may restart after a firmware update (and
     a loaded machine once held the emulator past the plain scan's 8 tries: "no EtherCAT slave answers"
-    after a whole file). The rescan keeps scanning for ``RESCAN_S``: a segment that loses its next 200
-    frames (about 30 scans) is found with the wait and reads as empty without it."""
+    after a whole file). The rescan keeps scanning for ``RESCAN_S``: a segment that loses its next 150
+    frames is found with the wait and reads as empty without it. SOEM's own 2 ms frame timeout here, as
+    the command has it: a plain scan then sends about 48 frames in 0.4 s, so 150 lost frames outlast it
+    and take about 1.2 s of the wait (at this file's 20 ms: 80 frames in 1.9 s, too close to the wait)."""
     from fieldbus.backends import ecat_firmware
     from fieldbus.backends.ecat_master import open_segment
     from fieldbus.errors import FieldbusError
 
     emu = ethercat_emulator([DEMO_MAP], count=1, app="none")
-    emu.command(cmd="drop", count=200)
-    master = open_segment(emu.iface, wait_s=ecat_firmware.RESCAN_S)
+    timeouts = pysoem.settings.timeouts
+    generous, timeouts.ret = timeouts.ret, 2_000
     try:
-        assert len(master.slaves) == 1
+        emu.command(cmd="drop", count=150)
+        master = open_segment(emu.iface, wait_s=ecat_firmware.RESCAN_S)
+        try:
+            assert len(master.slaves) == 1
+        finally:
+            master.close()
+        emu.command(cmd="drop", count=150)
+        with pytest.raises(FieldbusError, match="no EtherCAT slave answers"):
+            open_segment(emu.iface).close()
     finally:
-        master.close()
-    emu.command(cmd="drop", count=200)
-    with pytest.raises(FieldbusError, match="no EtherCAT slave answers"):
-        open_segment(emu.iface).close()
+        timeouts.ret = generous
