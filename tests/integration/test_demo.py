@@ -209,7 +209,7 @@ def test_at_rt_priority_the_demo_sets_up_at_normal_priority_and_brings_up_at_the
     """The demo's set-up (emulated nodes, network files, the network: seconds of Python) ran at
     SCHED_FIFO and spent the kernel's real-time budget for its second (docs/realtime.md), as serve's did.
     Now it runs at normal priority; the bring-up and the cycles at --rt-priority, and the threads the
-    set-up made (the emulated CANopen nodes', the CAN notifier's) at the same priority, as they were when
+    set-up made (the emulated CANopen nodes' thread) at the same priority, as they were when
     they inherited it."""
     import os
     import subprocess
