@@ -235,9 +235,8 @@ def run_steps(steps: Generator[None, None, bytes | None]) -> bytes | None:
 
 
 AGAIN = "run the same command again to finish the update (docs/firmware.md)"
-RESCAN_S = (
-    5.0  # after the transfer, the rescan waits this long for the segment to answer (a device may restart) [s]
-)
+# after the transfer, the rescan waits this long for the segment to answer (a device may restart) [s]
+RESCAN_S = 5.0
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ def test_ten_thousand_recorded_cycles_load_back_exactly(tmp_path: Path) -> None:
         chain = net.backends[0].chain  # type: ignore[attr-defined]
         img = op["joints"]
         follower = SineFollower(op, AXES, 1000.0)
-        # this loop runs free (tens of kHz, not the 1 kHz the default 16-block ring is sized for), so a
+        # this loop runs free (over 10 kHz, not the 1 kHz the default 16-block ring is sized for), so a
         # busy machine can starve the writer thread: the ring holds the whole run and no block can be
         # overwritten. A writer that falls behind is tested in tests/unit/test_recording.py.
         rec = op.record(path, raw=True, ring_blocks=-(-CYCLES // 256))
