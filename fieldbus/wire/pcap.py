@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import BinaryIO
 
 from fieldbus.errors import FieldbusError
+from fieldbus.wire.packet_socket import ETH_P_ALL, bound_packet_socket
 
-ETH_P_ALL = 0x0003
 ETH_P_ECAT = 0x88A4
 PCAP_LINKTYPE_ETHERNET = 1
 _PCAP_HEADER = struct.Struct("<IHHiIII")
@@ -85,8 +85,7 @@ class EthercatCapture:
             return
         try:
             # ETH_P_ALL: Linux hands a card's outgoing frames only to sockets of every protocol
-            sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
-            sock.bind((self.iface, 0))
+            sock = bound_packet_socket(self.iface, ETH_P_ALL)
         except OSError as exc:
             raise FieldbusError(
                 f"pcap on '{self.iface}': cannot open a packet socket ({exc.strerror or exc}); "

@@ -109,6 +109,7 @@ from fieldbus.errors import FieldbusError
 from fieldbus.interop.device import load_device
 from fieldbus.platform.rt import RtConfig, realtime
 from fieldbus.platform.timing import LatencyHistogram
+from fieldbus.wire.packet_socket import ETH_P_ALL, bound_packet_socket
 from fieldbus.wire.pcap import PcapWriter
 from fieldbus.wire.sockfilter import DROP, JEQ_K, LDH_ABS, RET_K, attach_filter
 from sim_slaves.ethercat.al import AlState
@@ -119,7 +120,6 @@ from sim_slaves.ethercat.esc import App, LoopbackApp
 from sim_slaves.od import ObjectDictionary
 
 PACKET_OUTGOING = 4  # sockaddr_ll packet type of a frame sent on this interface
-ETH_P_ALL = 0x0003
 SOL_PACKET = 263
 PACKET_ADD_MEMBERSHIP = 1
 PACKET_MR_PROMISC = 1
@@ -531,9 +531,8 @@ def open_port0(iface: str) -> socket.socket:
     The filter, promiscuous mode and ignoring outgoing frames are best
     effort: :func:`serve` checks ethertype and packet type itself.
     """
-    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+    sock = bound_packet_socket(iface, ETH_P_ALL)  # from its first frame on, this interface's only
     try:
-        sock.bind((iface, ETH_P_ALL))
         sock.setsockopt(SOL_PACKET, PACKET_AUXDATA, 1)
         with contextlib.suppress(OSError):
             sock.setsockopt(SOL_PACKET, PACKET_IGNORE_OUTGOING, 1)

@@ -35,6 +35,7 @@ from fieldbus.core.al import AL_INIT, AL_OP, AL_PREOP, AL_SAFEOP
 from fieldbus.core.ecat import BROADCAST_MAC, Command, Datagram, build_master_frame, decode_frame
 from fieldbus.core.pdo.load import load_drive_map
 from fieldbus.wire.framemaster import STATION_BASE, FrameMaster, Mapping, SlaveInfo, layout_image
+from fieldbus.wire.packet_socket import ETH_P_ALL, bound_packet_socket
 from sim_slaves.ethercat.veth import Emulator
 
 pytestmark = [pytest.mark.veth, pytest.mark.timeout(120)]
@@ -46,7 +47,6 @@ REPLY_WAIT_S = 1.0  # for a reply that must come, where a master would not resen
 QUIET_S = 0.05  # how long to listen for frames that must not come [s]
 CYCLES = 2000
 VLAN_TCI = 5 << 13 | 7  # priority 5, VLAN 7
-ETH_P_ALL = 0x0003
 ETH_P_8021Q = 0x8100
 SOL_PACKET = 263
 PACKET_AUXDATA = 8
@@ -92,8 +92,8 @@ class RawPort:
         self.iface = iface
         self.reply_tags: list[int | None] = []  # VLAN TCI of every reply the transport returned
         self.strangers: list[str] = []  # frames from another sender that reached this port (see port())
-        self.sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
-        self.sock.bind((iface, ETH_P_ALL))  # every protocol: only such a socket sees a VLAN tag
+        # every protocol: only such a socket sees a VLAN tag; made without one, then bound (packet_socket)
+        self.sock = bound_packet_socket(iface, ETH_P_ALL)
         self.sock.setsockopt(SOL_PACKET, PACKET_AUXDATA, 1)
         self.sock.setblocking(False)
         self.poller = select.poll()
@@ -417,9 +417,8 @@ def test_a_frame_from_another_sender_is_no_reply(port: Callable[..., tuple[Emula
     emulator ignores what is sent on its own interface): the port keeps it as a stranger, names its sender
     and first datagram, and still takes the emulator's reply to its own frame."""
     emu, p = port()
-    other = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+    other = bound_packet_socket(emu.peer, ETH_P_ALL)
     try:
-        other.bind((emu.peer, ETH_P_ALL))
         stray = build_master_frame(
             [Datagram.physical(Command.BWR, 0, 0x0120, bytes(2), idx=2)], src=bytes(6 * [1])
         )
